@@ -1,0 +1,101 @@
+"""The typed configuration every other module reads. Defaults are the seed's."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from abh3_supervisor.kinematics import Geometry
+from abh3_supervisor.protocol.frames import Generation
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+
+
+class ControlMode(StrEnum):
+    VELOCITY = "velocity"
+    CURRENT = "current"
+
+
+class VelocityModel(StrEnum):
+    """How the drive is parameterised: what its AY/BX command fields mean."""
+
+    TRAVEL = "travel"  # Y = travel, X = turn (the vendor sample's launch files)
+    MOTOR = "motor"  # A, B = the two motors
+
+
+class Role(StrEnum):
+    COMMAND = "command"  # we send DP0 commands (and so keep the drive's timeout fed)
+    MONITOR = "monitor"  # we only ask for DP0 replies (request PGN): never moves a motor
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Built-in simulator options (see docs/configuration.md)."""
+
+    command_zero_timeout_ms: int = 500
+    error_timeout_ms: int = 1000
+    accel: float = 3000.0  # min⁻¹ per second, both directions
+    reply_latency_ms: float = 0.2
+    dp0_period_ms: int = 0  # > 0: the drive also sends DP0 replies periodically
+    broadcast_period_ms: int = 0  # > 0: the drive also sends its broadcasts periodically
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    name: str
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int = 500_000
+    simulate: SimConfig | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BroadcastConfig:
+    mask: int = 0x7F
+    rate_hz: float = 10.0  # packet requests per second, round-robin over the mask
+    listen_only: bool = False  # the drive sends them periodically; never poll
+
+    @property
+    def packets(self) -> tuple[int, ...]:
+        return tuple(n for n in range(7) if self.mask >> n & 1)
+
+
+@dataclass(frozen=True)
+class Limits:
+    velocity: float = VELOCITY.maximum  # min⁻¹, applied to each of AY/BX
+    current: float = CURRENT.maximum  # %
+
+
+@dataclass(frozen=True)
+class UnitConfig:
+    name: str
+    bus: str
+    abh3_id: int = 1
+    host_id: int = 2
+    priority: int = 0
+    brd_group: int = 5
+    protocol: Generation = Generation.G2021
+    timeout_ms: int = 1000
+    command_rate_hz: float = 50.0
+    control: ControlMode = ControlMode.VELOCITY
+    velocity_model: VelocityModel = VelocityModel.TRAVEL
+    role: Role = Role.COMMAND
+    broadcast: BroadcastConfig = field(default_factory=BroadcastConfig)
+    geometry: Geometry = field(default_factory=Geometry)
+    limits: Limits = field(default_factory=Limits)
+    data_select: tuple[int, int] = (7, 7)
+    startup: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Config:
+    file: str
+    buses: dict[str, BusConfig]
+    units: dict[str, UnitConfig]
+    plugins: dict[str, Any] = field(default_factory=dict)
+    # line of each plugin section, so plugins can report file:line like the core
+    plugin_lines: dict[str, int] = field(default_factory=dict)
+
+    def units_on(self, bus: str) -> list[UnitConfig]:
+        return [u for u in self.units.values() if u.bus == bus]

@@ -1,0 +1,248 @@
+"""Build a :class:`Config` from YAML, collecting every problem with file:line:key."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path as FsPath
+from typing import Any
+
+from abh3_supervisor.commands import parse_command
+from abh3_supervisor.config.model import (
+    BroadcastConfig,
+    BusConfig,
+    Config,
+    ControlMode,
+    Limits,
+    Role,
+    SimConfig,
+    UnitConfig,
+    VelocityModel,
+)
+from abh3_supervisor.config.source import Section, load_source
+from abh3_supervisor.errors import CommandError, ConfigError
+from abh3_supervisor.kinematics import Geometry
+from abh3_supervisor.protocol.frames import Generation
+from abh3_supervisor.protocol.ids import MAX_ADDRESS
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+
+NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+BITRATES = (250_000, 500_000, 1_000_000)  # what the ABH3 supports (§1)
+
+TOP_KEYS = {"buses", "units", "plugins"}
+BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options"}
+SIM_KEYS = {
+    "command_zero_timeout_ms",
+    "error_timeout_ms",
+    "accel",
+    "reply_latency_ms",
+    "dp0_period_ms",
+    "broadcast_period_ms",
+}
+UNIT_KEYS = {
+    "name",
+    "bus",
+    "abh3_id",
+    "host_id",
+    "priority",
+    "brd_group",
+    "protocol",
+    "timeout_ms",
+    "command_rate_hz",
+    "control",
+    "velocity_model",
+    "role",
+    "broadcast",
+    "geometry",
+    "limits",
+    "data_select",
+    "startup",
+}
+BROADCAST_KEYS = {"mask", "rate_hz", "listen_only"}
+GEOMETRY_KEYS = {"rate_num", "rate_den", "wheel", "width"}
+LIMIT_KEYS = {"velocity", "current"}
+SELECT_KEYS = {"ay", "bx"}
+
+
+def load_config(path: str | FsPath) -> Config:
+    """Read and validate a YAML file; raise :class:`ConfigError` listing every problem."""
+    file = str(path)
+    try:
+        text = FsPath(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError([f"{file}: cannot read configuration: {exc.strerror}"]) from exc
+    return parse_config(text, file)
+
+
+def parse_config(text: str, file: str = "<config>") -> Config:
+    src = load_source(file, text)
+    top = Section(src, (), src.data, TOP_KEYS)
+    buses = _buses(top)
+    units = _units(top, buses)
+    plugins = top.sub("plugins", {str(k) for k in (top.data.get("plugins") or {})})
+    src.raise_if_problems()
+    return Config(
+        file=file,
+        buses=buses,
+        units=units,
+        plugins=dict(plugins.items()),
+        plugin_lines={name: src.line(("plugins", name)) for name, _ in plugins.items()},
+    )
+
+
+def _buses(top: Section) -> dict[str, BusConfig]:
+    if not top.has("buses"):
+        top.error("buses", "missing: declare at least one bus")
+        return {}
+    raw = top.data["buses"]
+    section = Section(
+        top.src, ("buses",), raw, {str(k) for k in (raw if isinstance(raw, dict) else {})}
+    )
+    buses: dict[str, BusConfig] = {}
+    for name, _ in section.items():
+        if not NAME.match(name):
+            section.error(name, "bus names are letters, digits and '_', starting with a letter")
+        b = section.sub(name, BUS_KEYS)
+        bitrate = b.integer("bitrate", 500_000, 1, 1_000_000)
+        if bitrate not in BITRATES:
+            b.error(
+                "bitrate", f"{bitrate} is not an ABH3 bitrate (allowed: 250000, 500000, 1000000)"
+            )
+        options = b.sub("options", {str(k) for k in (b.data.get("options") or {})})
+        buses[name] = BusConfig(
+            name=name,
+            interface=b.text("interface", "socketcan"),
+            channel=str(b.data.get("channel", "can0")),
+            bitrate=bitrate,
+            simulate=_simulate(b),
+            options=dict(options.items()),
+        )
+    if not buses:
+        top.error("buses", "declare at least one bus")
+    return buses
+
+
+def _simulate(b: Section) -> SimConfig | None:
+    value = b.data.get("simulate", False)
+    if value is False:
+        return None
+    if value is True:
+        return SimConfig()
+    s = b.sub("simulate", SIM_KEYS)
+    d = SimConfig()
+    return SimConfig(
+        command_zero_timeout_ms=s.integer(
+            "command_zero_timeout_ms", d.command_zero_timeout_ms, 0, 60_000
+        ),
+        error_timeout_ms=s.integer("error_timeout_ms", d.error_timeout_ms, 0, 60_000),
+        accel=s.number("accel", d.accel, 0, 1e6, lo_open=True),
+        reply_latency_ms=s.number("reply_latency_ms", d.reply_latency_ms, 0, 10_000),
+        dp0_period_ms=s.integer("dp0_period_ms", d.dp0_period_ms, 0, 1000),
+        broadcast_period_ms=s.integer("broadcast_period_ms", d.broadcast_period_ms, 0, 1000),
+    )
+
+
+def _units(top: Section, buses: dict[str, BusConfig]) -> dict[str, UnitConfig]:
+    raw = top.data.get("units")
+    if not isinstance(raw, list) or not raw:
+        top.error("units", "expected a list of units (each a mapping with at least 'name')")
+        return {}
+    units: dict[str, UnitConfig] = {}
+    addresses: dict[tuple[str, int], str] = {}
+    index_of: dict[str, int] = {}
+    for i, item in enumerate(raw):
+        u = Section(top.src, ("units", i), item, UNIT_KEYS)
+        unit = _unit(u, buses, i)
+        if unit is None:
+            continue
+        if unit.name in units:
+            u.error("name", f"duplicate unit name '{unit.name}'")
+        elif (unit.bus, unit.abh3_id) in addresses:
+            other = addresses[(unit.bus, unit.abh3_id)]
+            u.error(
+                "abh3_id", f"unit '{other}' already uses abh3_id {unit.abh3_id} on bus '{unit.bus}'"
+            )
+        units[unit.name] = unit
+        index_of.setdefault(unit.name, i)
+        addresses.setdefault((unit.bus, unit.abh3_id), unit.name)
+    for unit in units.values():
+        drive = addresses.get((unit.bus, unit.host_id))
+        if drive is not None:
+            top.src.error(
+                ("units", index_of[unit.name], "host_id"),
+                f"host_id {unit.host_id} is the abh3_id of unit '{drive}' on bus '{unit.bus}'",
+            )
+    return units
+
+
+def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | None:
+    name = u.text("name", "")
+    if not name:
+        u.error("name", "missing: every unit needs a name")
+        return None
+    if not NAME.match(name):
+        u.error("name", f"'{name}': unit names are letters, digits and '_', starting with a letter")
+    if u.has("bus"):
+        bus = u.text("bus", "")
+        if bus and bus not in buses:
+            u.error(
+                "bus", f"'{bus}' is not a declared bus (declared: {', '.join(buses) or 'none'})"
+            )
+    elif len(buses) == 1:
+        bus = next(iter(buses))
+    else:
+        u.error("bus", "missing: several buses are declared, say which one this unit is on")
+        bus = ""
+    d = UnitConfig(name=name, bus=bus)
+    b = u.sub("broadcast", BROADCAST_KEYS)
+    g = u.sub("geometry", GEOMETRY_KEYS)
+    lim = u.sub("limits", LIMIT_KEYS)
+    sel = u.sub("data_select", SELECT_KEYS)
+    return UnitConfig(
+        name=name,
+        bus=bus,
+        abh3_id=u.integer("abh3_id", d.abh3_id, 0, MAX_ADDRESS),
+        host_id=u.integer("host_id", d.host_id, 0, MAX_ADDRESS),
+        priority=u.integer("priority", d.priority, 0, 7),
+        brd_group=u.integer("brd_group", d.brd_group, 0, 31),
+        protocol=Generation(u.choice("protocol", d.protocol, [g.value for g in Generation])),
+        timeout_ms=u.integer("timeout_ms", d.timeout_ms, 1, 60_000),
+        command_rate_hz=u.number("command_rate_hz", d.command_rate_hz, 0, 1000, lo_open=True),
+        control=ControlMode(u.choice("control", d.control, [m.value for m in ControlMode])),
+        velocity_model=VelocityModel(
+            u.choice("velocity_model", d.velocity_model, [m.value for m in VelocityModel])
+        ),
+        role=Role(u.choice("role", d.role, [r.value for r in Role])),
+        broadcast=BroadcastConfig(
+            mask=b.integer("mask", 0x7F, 0, 0x7F),
+            rate_hz=b.number("rate_hz", 10.0, 0, 1000, lo_open=True),
+            listen_only=b.boolean("listen_only", False),
+        ),
+        geometry=Geometry(
+            rate_num=g.number("rate_num", 1.0, 0, 1e6, lo_open=True),
+            rate_den=g.number("rate_den", 10.0, 0, 1e6, lo_open=True),
+            wheel=g.number("wheel", 0.1, 0, 100, lo_open=True),
+            width=g.number("width", 0.5, 0, 100, lo_open=True),
+        ),
+        limits=Limits(
+            velocity=lim.number("velocity", VELOCITY.maximum, 0, VELOCITY.maximum, lo_open=True),
+            current=lim.number("current", CURRENT.maximum, 0, CURRENT.maximum, lo_open=True),
+        ),
+        data_select=(sel.integer("ay", 7, 0, 7), sel.integer("bx", 7, 0, 7)),
+        startup=_startup(u),
+    )
+
+
+def _startup(u: Section) -> tuple[str, ...]:
+    raw: Any = u.data.get("startup", [])
+    if not isinstance(raw, list) or not all(isinstance(c, str) for c in raw):
+        u.error("startup", "expected a list of command strings, e.g. ['SERVO ON ON']")
+        return ()
+    for i, command in enumerate(raw):
+        try:
+            parse_command(command)
+        except CommandError as exc:
+            u.src.error((*u.path, "startup", i), f"{command!r}: {exc}")
+    return tuple(raw)
+
+
+__all__ = ["ConfigError", "load_config", "parse_config"]

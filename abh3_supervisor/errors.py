@@ -1,0 +1,27 @@
+"""One exception root; each subclass is a phase a user can act on."""
+
+from __future__ import annotations
+
+
+class Abh3Error(Exception):
+    """Root of every error this package raises on purpose."""
+
+
+class CodecError(Abh3Error, ValueError):
+    """A value cannot be put on the wire (NaN, infinity, wrong type)."""
+
+
+class ConfigError(Abh3Error):
+    """The YAML configuration is invalid; ``problems`` holds one line per fault."""
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__("\n".join(problems))
+        self.problems = problems
+
+
+class CommandError(Abh3Error):
+    """A supervisor command was refused (unknown unit, wrong mode, e-stop latched)."""
+
+
+class BusOpenError(Abh3Error):
+    """A CAN bus could not be opened (missing device, interface not installed)."""

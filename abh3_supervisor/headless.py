@@ -1,0 +1,120 @@
+"""``abh3 run --headless``: run the configuration, log what matters, stop safely."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from pathlib import Path
+
+from abh3_supervisor.config.model import Config
+from abh3_supervisor.protocol import flags
+from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.scheduler.core import HealthEvent
+from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+
+log = logging.getLogger("abh3")
+LOGGED_WORDS = ("error", "alarm")
+
+
+def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
+    """The log line for an event worth an operator's attention, or None."""
+    if isinstance(event, HealthEvent):
+        if event.online:
+            return logging.INFO, f"unit {event.unit}: online"
+        ms = sup.units[event.unit].cfg.timeout_ms
+        return logging.WARNING, f"unit {event.unit}: OFFLINE (no answer for {ms} ms)"
+    if isinstance(event, FlagChange) and event.word in LOGGED_WORDS:
+        parts = []
+        for sign, bits in (("+", event.set_bits), ("-", event.cleared_bits)):
+            parts += [f"{sign}{b.name} ({b.en})" for b in flags.FAULT.set_bits(bits)]
+        if not parts:
+            return None
+        level = logging.ERROR if event.word == "error" and event.set_bits else logging.WARNING
+        return level, f"unit {event.unit}: {event.word} " + ", ".join(parts)
+    if isinstance(event, Notice):
+        return event.level, (f"unit {event.unit}: " if event.unit else "") + event.message
+    return None
+
+
+def status_lines(sup: Supervisor) -> list[str]:
+    now = sup.clock()
+    lines = []
+    for bus, scheduler in sup.schedulers.items():
+        for name, slot in scheduler.slots.items():
+            unit, st = sup.units[name], slot.stats
+            fb = unit.feedback
+            vel = f"fbk Y/X {fb.vel_y:8.1f} {fb.vel_x:8.1f}" if fb else "fbk –"
+            p50, p99 = st.rtt_ms(50), st.rtt_ms(99)
+            rtt = (
+                f"rtt p50 {p50:.2f} p99 {p99:.2f} ms"
+                if p50 is not None and p99 is not None
+                else "rtt –"
+            )
+            state = {True: "online", False: "OFFLINE", None: "waiting"}[slot.online]
+            lines.append(
+                f"{bus}/{name}: {state} {st.achieved_rate_hz(now):5.1f}/{st.requested_rate_hz:g} Hz"
+                f" cmd {unit.setpoint.ay:g} {unit.setpoint.bx:g} {vel} {rtt}"
+                f" timeouts {st.timeouts}"
+            )
+    return lines
+
+
+async def run_headless(
+    config: Config, *, duration: float | None, record: Path | None, status_interval: float
+) -> int:
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        async with Runtime(config, record=record) as rt:
+            sup = rt.supervisor
+
+            def on_event(event: SupervisorEvent) -> None:
+                line = describe(event, sup)
+                if line is not None:
+                    log.log(*line)
+
+            sup.subscribe(on_event)
+            for name, unit in config.units.items():
+                for text in unit.startup:
+                    response = sup.apply_text(name, text)
+                    log.info("unit %s: startup %r → %r", name, text, response)
+            log.info(
+                "running %d unit(s) on %d bus(es)%s; Ctrl-C stops the drives and exits",
+                len(config.units),
+                len(config.buses),
+                f" for {duration:g} s" if duration is not None else "",
+            )
+            assert rt.fatal is not None
+            stopped = asyncio.ensure_future(stop.wait())
+            reporter = asyncio.ensure_future(_report(sup, status_interval))
+            try:
+                await asyncio.wait(
+                    [stopped, rt.fatal], timeout=duration, return_when=asyncio.FIRST_COMPLETED
+                )
+            finally:
+                reporter.cancel()
+                stopped.cancel()
+            if rt.fatal.done():
+                log.critical("stopping after an internal error: %s", rt.fatal.result())
+                return 1
+            for line in status_lines(sup):
+                log.info("final %s", line)
+            log.info("stopping: zero, START and SERVO off on every unit")
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+    return 0
+
+
+async def _report(sup: Supervisor, interval: float) -> None:
+    if interval <= 0:
+        return
+    with contextlib.suppress(asyncio.CancelledError):
+        while True:
+            await asyncio.sleep(interval)
+            for line in status_lines(sup):
+                log.info("%s", line)

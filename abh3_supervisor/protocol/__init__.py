@@ -1,0 +1,1 @@
+"""Pure ABH3 CAN codec: identifiers, frames, scaling, flag words. No I/O here."""

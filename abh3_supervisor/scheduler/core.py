@@ -1,0 +1,230 @@
+"""The sans-I/O bus scheduler: frames and a clock in, frames out, events recorded.
+
+One instance per bus. For each unit it keeps the DP0 exchange going at the unit's
+command rate (also the keepalive the drive's command-zero timeout needs, doc §6), polls
+its broadcast packets round-robin, matches replies ignoring the priority bits, and tracks
+health. Commands always go before status polls. Nothing here reads a clock or touches a
+bus: the caller passes ``now`` in and sends what :meth:`poll` returns.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from abh3_supervisor.config.model import Role, UnitConfig
+from abh3_supervisor.protocol import frames
+from abh3_supervisor.protocol.ids import (
+    broadcast_id,
+    dp0_command_id,
+    dp0_reply_id,
+    request_id,
+    without_priority,
+)
+from abh3_supervisor.scheduler.stats import UnitStats
+
+OutFrame = tuple[int, bytes]
+_DP0_REQUEST = frames.encode_request(frames.PGN_DP0)
+
+
+@dataclass(frozen=True, slots=True)
+class FeedbackEvent:
+    unit: str
+    t: float
+    reply: frames.Dp0Reply | frames.Unknown
+    sent_at: float | None  # when the answered request went out; None if unsolicited
+
+
+@dataclass(frozen=True, slots=True)
+class StatusEvent:
+    unit: str
+    t: float
+    packet: int
+    record: frames.Broadcast | frames.Unknown
+
+
+@dataclass(frozen=True, slots=True)
+class HealthEvent:
+    unit: str
+    t: float
+    online: bool
+
+
+Event = FeedbackEvent | StatusEvent | HealthEvent
+
+
+class UnitSlot:
+    """One unit's schedule and exchange state inside a :class:`BusScheduler`."""
+
+    def __init__(self, cfg: UnitConfig, start: float) -> None:
+        self.cfg = cfg
+        self.period = 1.0 / cfg.command_rate_hz
+        # A DP0 exchange without reply is abandoned when the next command is due (counted as
+        # a timeout): the keepalive never stalls. ``timeout`` (the seed's) decides offline.
+        self.timeout = cfg.timeout_ms / 1000
+        self.commanding = cfg.role is Role.COMMAND
+        self.command_id = (
+            dp0_command_id(cfg.abh3_id, cfg.host_id, cfg.priority)
+            if self.commanding
+            else request_id(cfg.abh3_id, cfg.host_id, cfg.priority)
+        )
+        self.payload = frames.encode_dp0_command(0, 0, 0) if self.commanding else _DP0_REQUEST
+        self.next_command = start
+        self.dp0_sent_at: float | None = None
+        self.polls = () if cfg.broadcast.listen_only else cfg.broadcast.packets
+        self.poll_period = 1.0 / cfg.broadcast.rate_hz
+        self.poll_frames = [
+            (
+                request_id(cfg.abh3_id, cfg.host_id, cfg.priority),
+                frames.encode_request(frames.broadcast_pgn(cfg.brd_group, n)),
+            )
+            for n in self.polls
+        ]
+        self.next_poll = start + self.period / 2  # interleave with the commands
+        self.poll_index = 0
+        self.poll_sent_at: float | None = None
+        self.online: bool | None = None  # None until first heard or first timed out
+        self.since = start
+        self.stats = UnitStats(cfg.command_rate_hz)
+
+    def command_interval(self) -> float:
+        # an offline unit is only probed once per timeout, so it costs the bus little
+        return self.period if self.online is not False else max(self.period, self.timeout)
+
+
+class BusScheduler:
+    """Multiplexes every unit of one bus; see the module docstring."""
+
+    def __init__(self, units: Iterable[UnitConfig], now: float) -> None:
+        cfgs = list(units)
+        self.slots: dict[str, UnitSlot] = {}
+        self._routes: dict[int, tuple[UnitSlot, int]] = {}  # id → (slot, -1 DP0 | packet)
+        self._senders: dict[int, UnitSlot] = {}  # our request ids → slot
+        for i, cfg in enumerate(cfgs):
+            # stagger first sends so the units do not all hit the bus at one instant
+            slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / max(1, len(cfgs)))
+            self.slots[cfg.name] = slot
+            self._senders[slot.command_id] = slot
+            self._senders.update((fid, slot) for fid, _ in slot.poll_frames)
+            self._routes[without_priority(dp0_reply_id(cfg.abh3_id, cfg.host_id))] = (slot, -1)
+            for n in range(8):
+                self._routes[without_priority(broadcast_id(cfg.abh3_id, cfg.brd_group, n))] = (
+                    slot,
+                    n,
+                )
+        self.events: list[Event] = []
+
+    # ------------------------------------------------------------ inputs
+
+    def set_payload(self, unit: str, payload: bytes) -> None:
+        """The DP0 command this unit sends from its next exchange on (8 bytes)."""
+        self.slots[unit].payload = payload
+
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        route = self._routes.get(arbitration_id & 0x3FFFFFF)
+        if route is None:
+            return
+        slot, packet = route
+        cfg = slot.cfg
+        if packet < 0:
+            sent_at, slot.dp0_sent_at = slot.dp0_sent_at, None
+            if sent_at is not None:
+                slot.stats.on_reply(now, now - sent_at)
+            else:
+                slot.stats.unsolicited += 1
+                slot.stats.last_seen = now
+            reply = frames.decode_dp0_reply(data, cfg.protocol)
+            self.events.append(FeedbackEvent(cfg.name, now, reply, sent_at))
+        else:
+            if (
+                slot.polls
+                and slot.poll_sent_at is not None
+                and slot.polls[(slot.poll_index - 1) % len(slot.polls)] == packet
+            ):
+                slot.poll_sent_at = None
+            slot.stats.broadcasts += 1
+            slot.stats.last_seen = now
+            record = frames.decode_broadcast(packet, data, cfg.protocol)
+            self.events.append(StatusEvent(cfg.name, now, packet, record))
+        if slot.online is not True:
+            slot.online = True
+            # back online: resume the normal rate from now
+            slot.next_command = min(slot.next_command, now)
+            self.events.append(HealthEvent(cfg.name, now, True))
+
+    def on_send_failed(self, arbitration_id: int) -> None:
+        """The bus refused a frame we returned from :meth:`poll`: it is not in flight."""
+        slot = self._senders.get(arbitration_id)
+        if slot is None:
+            return
+        slot.stats.send_errors += 1
+        if arbitration_id == slot.command_id:
+            slot.dp0_sent_at = None
+        else:
+            slot.poll_sent_at = None
+
+    # ------------------------------------------------------------ outputs
+
+    def poll(self, now: float) -> list[OutFrame]:
+        """Frames due at ``now`` as ``(arbitration_id, data)``: commands first."""
+        out: list[OutFrame] = []
+        slots = self.slots.values()
+        for slot in slots:
+            self._check_health(slot, now)
+            if now >= slot.next_command:
+                if slot.dp0_sent_at is not None:
+                    slot.stats.timeouts += 1  # the previous exchange got no reply
+                out.append((slot.command_id, slot.payload))
+                slot.dp0_sent_at = now
+                slot.stats.commands_sent += 1
+                slot.next_command = _advance(slot.next_command, slot.command_interval(), now)
+        for slot in slots:
+            if not slot.polls or now < slot.next_poll:
+                continue
+            if slot.poll_sent_at is not None and now - slot.poll_sent_at < slot.timeout:
+                continue  # one status request in flight per unit
+            out.append(slot.poll_frames[slot.poll_index])
+            slot.poll_index = (slot.poll_index + 1) % len(slot.polls)
+            slot.poll_sent_at = now
+            slot.stats.polls_sent += 1
+            slot.next_poll = _advance(slot.next_poll, slot.poll_period, now)
+        return out
+
+    def flush(self, now: float) -> list[OutFrame]:
+        """Every commanding unit's DP0 frame, due now regardless of schedule (stop frames)."""
+        out: list[OutFrame] = []
+        for slot in self.slots.values():
+            if slot.commanding:
+                out.append((slot.command_id, slot.payload))
+                slot.dp0_sent_at = now
+                slot.stats.commands_sent += 1
+                slot.next_command = now + slot.command_interval()
+        return out
+
+    def _check_health(self, slot: UnitSlot, now: float) -> None:
+        last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
+        if slot.online is not False and now - last >= slot.timeout:
+            slot.online = False
+            self.events.append(HealthEvent(slot.cfg.name, now, False))
+
+    def next_deadline(self) -> float:
+        deadline = math.inf
+        for slot in self.slots.values():
+            deadline = min(deadline, slot.next_command)
+            if slot.polls:
+                deadline = min(deadline, slot.next_poll)
+            if slot.online is not False:
+                last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
+                deadline = min(deadline, last + slot.timeout)
+        return deadline
+
+    def drain_events(self) -> list[Event]:
+        events, self.events = self.events, []
+        return events
+
+
+def _advance(due: float, interval: float, now: float) -> float:
+    """Next due time on the grid; after a stall, restart from now rather than burst."""
+    due += interval
+    return due if due > now else now + interval

@@ -1,0 +1,136 @@
+"""The thin asyncio layer: runs one sans-I/O machine (scheduler or simulator) on a bus.
+
+python-can's ``Notifier`` delivers received frames on the loop (``add_reader`` where the
+bus has a file descriptor, a reader thread handing over with ``call_soon_threadsafe``
+otherwise); a single ``call_at`` timer wakes the machine at its next deadline. Everything
+the machine does therefore happens on the loop thread, one step at a time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+import can
+
+log = logging.getLogger(__name__)
+
+
+class Machine(Protocol):
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None: ...
+    def poll(self, now: float) -> list[tuple[int, bytes]]: ...
+    def next_deadline(self) -> float: ...
+    def on_send_failed(self, arbitration_id: int) -> None: ...
+
+
+class BusPump(can.Listener):
+    def __init__(
+        self,
+        bus: can.BusABC,
+        machine: Machine,
+        *,
+        name: str,
+        channel: str,
+        after_step: Callable[[], None] | None = None,
+        recorder: can.Listener | None = None,
+        on_fatal: Callable[[BaseException], None] | None = None,
+    ) -> None:
+        self.bus, self.machine, self.name, self.channel = bus, machine, name, channel
+        self.after_step = after_step
+        self.recorder = recorder
+        self.on_fatal = on_fatal
+        self.loop = asyncio.get_running_loop()
+        self._timer: asyncio.TimerHandle | None = None
+        self._notifier: can.Notifier | None = None
+        self.frames_sent = 0
+        self.frames_received = 0
+        self.send_errors = 0
+        self.bus_errors = 0
+
+    def start(self) -> None:
+        self._notifier = can.Notifier(self.bus, [self], loop=self.loop)
+        self._step()
+
+    def stop(self) -> None:  # also called by Notifier.stop(): must be idempotent
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        notifier, self._notifier = self._notifier, None
+        if notifier is not None:
+            notifier.stop()
+
+    # ------------------------------------------------------------ can.Listener
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.recorder is not None:
+            self.recorder.on_message_received(msg)
+        if msg.is_error_frame:
+            self.bus_errors += 1
+            return
+        if not msg.is_extended_id or msg.is_remote_frame:
+            return
+        self.frames_received += 1
+        self._guard(self.machine.on_frame, msg.arbitration_id, bytes(msg.data), self.loop.time())
+        self._step()
+
+    def on_error(self, exc: Exception) -> None:
+        self.bus_errors += 1
+        log.error("bus %s: receive failed: %s", self.name, exc)
+
+    # ------------------------------------------------------------ stepping
+
+    def _guard(self, fn: Callable[..., object], *args: object) -> None:
+        try:
+            fn(*args)
+        except Exception as exc:  # a bug in a machine must end the run safely, not hang it
+            log.exception("bus %s: internal error", self.name)
+            if self.on_fatal is not None:
+                self.on_fatal(exc)
+
+    def _step(self) -> None:
+        self._guard(self._step_unguarded)
+
+    def _step_unguarded(self) -> None:
+        for arbitration_id, data in self.machine.poll(self.loop.time()):
+            self.send(arbitration_id, data)
+        if self.after_step is not None:
+            self.after_step()
+        deadline = self.machine.next_deadline()
+        if self._timer is not None:
+            if self._timer.when() == deadline:
+                return
+            self._timer.cancel()
+            self._timer = None
+        if math.isfinite(deadline) and self._notifier is not None:
+            self._timer = self.loop.call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        self._step()
+
+    def send(self, arbitration_id: int, data: bytes) -> bool:
+        """Send one frame now; a refused frame is counted and reported, never fatal."""
+        msg = can.Message(
+            arbitration_id=arbitration_id,
+            data=data,
+            is_extended_id=True,
+            is_rx=False,
+            timestamp=time.time(),
+            channel=self.channel,
+        )
+        try:
+            self.bus.send(msg, timeout=0)
+        except can.CanError as exc:
+            self.send_errors += 1
+            if math.log2(self.send_errors).is_integer():  # 1st, 2nd, 4th, 8th … failure
+                log.warning("bus %s: send failed (%s); %d so far", self.name, exc, self.send_errors)
+            self.machine.on_send_failed(arbitration_id)
+            return False
+        self.frames_sent += 1
+        if self.recorder is not None:
+            self.recorder.on_message_received(msg)
+        return True

@@ -1,0 +1,281 @@
+"""One simulated ABH3: command handling, drive-side timeouts, ramps, status values.
+
+Modelled on the protocol doc: servo and start gating per axis, data select 0 written
+(= set #7 & STOP) stops the axis, torque mode takes the command as a current, the
+command-zero timeout raises alarm bit 22 and stops (START off), the error timeout raises
+error bit 22, both clear when commands flow again (as §8 observed), other errors latch until
+an error-reset rising edge, which also turns the servo off until SERVO is re-asserted.
+Fault injection (``silent``, ``extra_delay``, ``inject_error``) is for tests and demos.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+
+from abh3_supervisor.config.model import SimConfig, VelocityModel
+from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.protocol import flags, frames
+from abh3_supervisor.protocol.frames import Generation
+from abh3_supervisor.protocol.ids import (
+    ADDR_ALL,
+    PF_REQUEST,
+    PF_SINGLE,
+    CanId,
+    broadcast_id,
+    dp0_reply_id,
+)
+from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
+
+PULSES_PER_REV = 4096
+TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode
+
+
+class SimDrive:
+    def __init__(
+        self,
+        abh3_id: int,
+        *,
+        group: int = 5,
+        generation: Generation = Generation.G2021,
+        model: VelocityModel = VelocityModel.TRAVEL,
+        cfg: SimConfig | None = None,
+        now: float = 0.0,
+    ) -> None:
+        self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
+        self.cfg = cfg or SimConfig()
+        self.inputs = 0
+        self.cmd_raw = (0, 0)  # last AY/BX command as written
+        self.vel = [0.0, 0.0]  # motor A, B [min⁻¹]
+        self.pulses = [0.0, 0.0]
+        self.errors = 0  # latched errors (bit 22 is derived from the timeouts)
+        self.alarms = 0
+        self.servo_blocked = False  # after an error reset, until SERVO is seen off
+        self.last_command: float | None = None
+        self.t = now
+        self.started = now
+        self.host = 2  # where periodic frames go until a host speaks
+        # fault injection
+        self.silent = False
+        self.extra_delay = 0.0
+        self._out: list[tuple[float, int, int, bytes]] = []
+        self._seq = itertools.count()
+        self._next_dp0 = now + self.cfg.dp0_period_ms / 1000 if self.cfg.dp0_period_ms else math.inf
+        bp = self.cfg.broadcast_period_ms
+        self._next_brd = now + bp / 1000 if bp else math.inf
+        self.frames_received = 0
+
+    # ------------------------------------------------------------ fault injection
+
+    def inject_error(self, bits: int) -> None:
+        self.errors |= bits
+
+    def inject_alarm(self, bits: int) -> None:
+        self.alarms |= bits
+
+    # ------------------------------------------------------------ bus side
+
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        cid = CanId.from_int(arbitration_id)
+        if cid.pf == PF_SINGLE and cid.ps == self.abh3_id and len(data) == 8:
+            self.advance(now)
+            self.frames_received += 1
+            self.host = cid.sa
+            self._apply_command(data, now)
+            self._queue(now, dp0_reply_id(self.abh3_id, cid.sa), self._dp0_reply())
+        elif cid.pf == PF_REQUEST and cid.ps in (self.abh3_id, ADDR_ALL) and len(data) >= 3:
+            self.advance(now)
+            self.frames_received += 1
+            request = frames.decode_request(data)
+            if not isinstance(request, frames.Request):
+                return
+            if request.is_dp0:
+                self._queue(now, dp0_reply_id(self.abh3_id, cid.sa), self._dp0_reply())
+            elif (target := request.broadcast) is not None and target[0] == self.group:
+                self._queue(
+                    now,
+                    broadcast_id(self.abh3_id, self.group, target[1]),
+                    self.broadcast(target[1]),
+                )
+
+    def _queue(self, now: float, arbitration_id: int, data: bytes) -> None:
+        if self.silent:
+            return
+        due = now + self.cfg.reply_latency_ms / 1000 + self.extra_delay
+        heapq.heappush(self._out, (due, next(self._seq), arbitration_id, data))
+
+    def poll(self, now: float) -> list[tuple[int, bytes]]:
+        self.advance(now)
+        if now >= self._next_dp0:
+            self._next_dp0 = now + self.cfg.dp0_period_ms / 1000
+            self._queue(now, dp0_reply_id(self.abh3_id, self.host), self._dp0_reply())
+        if now >= self._next_brd:
+            self._next_brd = now + self.cfg.broadcast_period_ms / 1000
+            for n in range(7):
+                self._queue(now, broadcast_id(self.abh3_id, self.group, n), self.broadcast(n))
+        out = []
+        while self._out and self._out[0][0] <= now:
+            _, _, arbitration_id, data = heapq.heappop(self._out)
+            out.append((arbitration_id, data))
+        return out
+
+    def next_deadline(self) -> float:
+        due = self._out[0][0] if self._out else math.inf
+        return min(due, self._next_dp0, self._next_brd, self._timeout_deadline())
+
+    def _timeout_deadline(self) -> float:
+        # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
+        last = self.last_command if self.last_command is not None else self.started
+        times = [
+            last + ms / 1000
+            for ms in (self.cfg.command_zero_timeout_ms, self.cfg.error_timeout_ms)
+            if ms
+        ]
+        return min((t for t in times if t > self.t), default=math.inf)
+
+    # ------------------------------------------------------------ drive behaviour
+
+    def _apply_command(self, data: bytes, now: float) -> None:
+        ay, bx, inputs = frames.unpack_dp0_command(data)
+        rising = inputs & ~self.inputs
+        if rising & flags.ERROR_RESET:
+            self.errors = 0
+            self.servo_blocked = True
+        if not inputs & flags.SERVO_BITS:
+            self.servo_blocked = False
+        if rising & flags.A_PULSE_CLEAR_MASK:
+            self.pulses[0] = 0.0
+        if rising & flags.B_PULSE_CLEAR_MASK:
+            self.pulses[1] = 0.0
+        self.inputs, self.cmd_raw, self.last_command = inputs, (ay, bx), now
+
+    def _silence(self, timeout_ms: int) -> bool:
+        if not timeout_ms:
+            return False
+        last = self.last_command if self.last_command is not None else self.started
+        return self.t - last >= timeout_ms / 1000 or self.last_command is None
+
+    def error_word(self) -> int:
+        return self.errors | (
+            flags.CAN_COMM_ERROR if self._silence(self.cfg.error_timeout_ms) else 0
+        )
+
+    def alarm_word(self) -> int:
+        cz = self._silence(self.cfg.command_zero_timeout_ms)
+        return self.alarms | (flags.CAN_COMM_ERROR if cz else 0)
+
+    def _servo(self, axis: int) -> bool:
+        bit = flags.AY_SERVO_ON if axis == 0 else flags.BX_SERVO_ON
+        return bool(self.inputs & bit) and not self.error_word() and not self.servo_blocked
+
+    def _started(self, axis: int) -> bool:
+        bit = flags.AY_START if axis == 0 else flags.BX_START
+        cz = self._silence(self.cfg.command_zero_timeout_ms)
+        return self._servo(axis) and bool(self.inputs & bit) and not cz
+
+    def control_word(self) -> int:
+        word = self.inputs & ~(flags.SERVO_BITS | flags.START_BITS)
+        for axis, (servo, start) in enumerate(
+            ((flags.AY_SERVO_ON, flags.AY_START), (flags.BX_SERVO_ON, flags.BX_START))
+        ):
+            word |= servo if self._servo(axis) else 0
+            word |= start if self._started(axis) else 0
+        return word | (flags.TRAVEL_MODEL if self.model is VelocityModel.TRAVEL else 0)
+
+    def _axis_target(self, axis: int) -> tuple[float, bool]:
+        """(command for this command axis, is_current) after gating and polarity."""
+        raw = self.cmd_raw[axis]
+        torque = bool(self.inputs & (flags.AY_TORQUE if axis == 0 else flags.BX_TORQUE))
+        polarity = flags.INPUT.mask("AY_CMD_POLARITY" if axis == 0 else "BX_CMD_POLARITY")
+        select = flags.data_select(self.inputs)[axis]
+        if not self._started(axis) or select == 0:  # written 0 = set #7 & STOP
+            return 0.0, torque
+        value = (CURRENT if torque else VELOCITY).to_physical(raw)
+        return (-value if self.inputs & polarity else value), torque
+
+    def advance(self, now: float) -> None:
+        dt = now - self.t
+        if dt <= 0:
+            return
+        self.t = now
+        (t0, torque0), (t1, torque1) = self._axis_target(0), self._axis_target(1)
+        travel = self.model is VelocityModel.TRAVEL
+        targets = yx_to_ab(t0, t1) if travel else (t0, t1)
+        torque = (torque0, torque1)
+        for i in range(2):
+            servo = (
+                self._servo(i)
+                if self.model is VelocityModel.MOTOR
+                else (self._servo(0) and self._servo(1))
+            )
+            if torque[i] and servo:
+                self.vel[i] += targets[i] * TORQUE_ACCEL_PER_PERCENT * dt
+            else:
+                step = self.cfg.accel * dt
+                goal = targets[i] if servo else 0.0
+                self.vel[i] += max(-step, min(step, goal - self.vel[i]))
+            self.vel[i] = max(VELOCITY.minimum, min(VELOCITY.maximum, self.vel[i]))
+            self.pulses[i] += self.vel[i] / 60 * PULSES_PER_REV * dt
+
+    # ------------------------------------------------------------ frames out
+
+    def _ay_bx(self) -> tuple[float, float]:
+        if self.model is VelocityModel.TRAVEL:
+            return ab_to_yx(self.vel[0], self.vel[1])
+        return self.vel[0], self.vel[1]
+
+    def _dp0_reply(self) -> bytes:
+        r = VELOCITY.to_raw
+        if self.generation is Generation.G2023:
+            ay, bx = self._ay_bx()
+            return frames.encode_dp0_reply_2023(r(ay)[0], r(bx)[0], self.control_word())
+        y, x = ab_to_yx(self.vel[0], self.vel[1])
+        return frames.encode_dp0_reply_2021(r(self.vel[0])[0], r(self.vel[1])[0], r(y)[0], r(x)[0])
+
+    def load(self, axis: int) -> float:
+        return min(255.0, 3.0 + abs(self.vel[axis]) / 40)
+
+    def io_word(self) -> int:
+        word = (flags.IO.mask("ERROR") if self.error_word() else 0) | (
+            flags.IO.mask("ALARM") if self.alarm_word() else 0
+        )
+        for axis, (ready, busy) in enumerate((("AY_READY", "AY_BUSY"), ("BX_READY", "BX_BUSY"))):
+            if self._servo(axis):
+                word |= flags.IO.mask(ready)
+                if self._axis_target(axis)[0] != 0.0:
+                    word |= flags.IO.mask(busy)
+        if self._servo(0) or self.inputs & flags.INPUT.mask("BRAKE_RELEASE"):
+            word |= flags.IO.mask("BRAKE_RELEASED")
+        return word
+
+    def broadcast(self, n: int) -> bytes:
+        v, c = VELOCITY.to_raw, CURRENT.to_raw
+        if n == 0:
+            return frames.encode_words(self.error_word(), self.alarm_word())
+        if n == 1:
+            if self.generation is Generation.G2023:
+                return frames.encode_words(self.io_word(), self.inputs)
+            return frames.encode_words(self.control_word(), self.io_word())
+        if n == 2:
+            cmd = [self._axis_target(i)[0] for i in range(2)]
+            fbk = self._ay_bx()
+            return frames.encode_int16x4(v(cmd[0])[0], v(cmd[1])[0], v(fbk[0])[0], v(fbk[1])[0])
+        if n == 3:
+            loads = [LOAD.to_raw(self.load(i))[0] for i in range(2)]
+            cur = [c(math.copysign(self.load(i), self.vel[i]))[0] for i in range(2)]
+            return frames.encode_int16x2_uint16x2(cur[0], cur[1], loads[0], loads[1])
+        if n == 4:
+            wrap = [((int(p) + 2**31) % 2**32) - 2**31 for p in self.pulses]
+            return frames.encode_pulses(wrap[0], wrap[1])
+        if n == 5:
+            sag = (self.load(0) + self.load(1)) / 200  # main supply sags a little under load
+            return frames.encode_int16x2_uint16x2(
+                ANALOG.to_raw(0.21)[0],
+                ANALOG.to_raw(0.14)[0],
+                SUPPLY_VOLTAGE.to_raw(23.7 - sag)[0],
+                SUPPLY_VOLTAGE.to_raw(23.7)[0],
+            )
+        if n == 6:
+            return frames.encode_monitors(self.vel[0] / 1000, self.vel[1] / 1000)
+        return bytes(8)

@@ -1,0 +1,66 @@
+"""What the supervisor knows of each unit: setpoints sent, feedback and status received."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from abh3_supervisor.config.model import ControlMode, UnitConfig, VelocityModel
+from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.protocol import flags, frames
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """Velocity feedback in both models [min⁻¹]; ``control`` only in the 2023 protocol."""
+
+    t: float
+    vel_a: float
+    vel_b: float
+    vel_y: float
+    vel_x: float
+    control: int | None = None
+
+    @classmethod
+    def from_reply(cls, t: float, reply: frames.Dp0Reply, model: VelocityModel) -> Feedback:
+        if isinstance(reply, frames.Dp0Reply2021):
+            return cls(t, reply.vel_a, reply.vel_b, reply.vel_y, reply.vel_x)
+        if model is VelocityModel.TRAVEL:
+            a, b = yx_to_ab(reply.vel_ay, reply.vel_bx)
+            return cls(t, a, b, reply.vel_ay, reply.vel_bx, reply.control)
+        y, x = ab_to_yx(reply.vel_ay, reply.vel_bx)
+        return cls(t, reply.vel_ay, reply.vel_bx, y, x, reply.control)
+
+
+@dataclass(frozen=True, slots=True)
+class Setpoint:
+    """The AY/BX command in the unit's model: min⁻¹, or % when ``kind`` is current."""
+
+    ay: float = 0.0
+    bx: float = 0.0
+    kind: ControlMode = ControlMode.VELOCITY
+
+
+@dataclass
+class UnitState:
+    cfg: UnitConfig
+    inputs: int
+    setpoint: Setpoint = field(default_factory=Setpoint)
+    feedback: Feedback | None = None
+    status: dict[int, tuple[float, frames.Broadcast]] = field(default_factory=dict)
+    online: bool | None = None
+    words: dict[str, int] = field(default_factory=dict)  # error, alarm, control, io, inputs
+
+    @classmethod
+    def initial(cls, cfg: UnitConfig) -> UnitState:
+        inputs = (
+            cfg.data_select[0] << flags.AY_SELECT_SHIFT
+            | cfg.data_select[1] << flags.BX_SELECT_SHIFT
+        )
+        kind = cfg.control
+        if kind is ControlMode.CURRENT:
+            inputs |= flags.AY_TORQUE | flags.BX_TORQUE
+        return cls(cfg, inputs, Setpoint(kind=kind))
+
+    @property
+    def name(self) -> str:
+        return self.cfg.name

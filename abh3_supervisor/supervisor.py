@@ -1,0 +1,357 @@
+"""The Supervisor API: the one interface the CLI, the TUI and every plugin use.
+
+It owns one :class:`BusScheduler` per bus and every unit's state. Setpoints are encoded
+once when set (never per cycle) and handed to the scheduler; scheduler events update the
+state and reach observers. Everything here runs on the event loop's thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from abh3_supervisor import commands
+from abh3_supervisor.commands import Command, CurrentCommand, InputChange, VelocityCommand
+from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
+from abh3_supervisor.errors import CommandError
+from abh3_supervisor.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
+from abh3_supervisor.protocol import flags, frames
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.scheduler.core import (
+    BusScheduler,
+    Event,
+    FeedbackEvent,
+    HealthEvent,
+    StatusEvent,
+)
+from abh3_supervisor.state import Feedback, Setpoint, UnitState
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class FlagChange:
+    unit: str
+    t: float
+    word: str  # "error", "alarm", "control", "io" or "inputs"
+    old: int | None
+    new: int
+
+    @property
+    def set_bits(self) -> int:
+        return self.new & ~(self.old or 0)
+
+    @property
+    def cleared_bits(self) -> int:
+        return (self.old or 0) & ~self.new
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """Something an operator should read: clamping, e-stop, model mismatch, plugin errors."""
+
+    unit: str | None
+    t: float
+    level: int  # a logging level
+    message: str
+
+
+SupervisorEvent = Event | FlagChange | Notice
+Observer = Callable[[SupervisorEvent], None]
+
+WORDS = {
+    "error": flags.FAULT,
+    "alarm": flags.FAULT,
+    "control": flags.CONTROL,
+    "io": flags.IO,
+    "inputs": flags.INPUT,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class SetResult:
+    ay: float
+    bx: float
+    clamped: bool
+
+
+class Supervisor:
+    def __init__(self, config: Config, clock: Callable[[], float]) -> None:
+        self.config = config
+        self.clock = clock
+        now = clock()
+        self.units = {name: UnitState.initial(cfg) for name, cfg in config.units.items()}
+        self.schedulers = {bus: BusScheduler(config.units_on(bus), now) for bus in config.buses}
+        self._observers: list[Observer] = []
+        self._waiters: dict[str, list[tuple[float, asyncio.Future[bool]]]] = {}
+        self.estop = False
+        for unit in self.units.values():
+            self._push(unit)
+
+    # ------------------------------------------------------------ observing
+
+    def subscribe(self, observer: Observer) -> None:
+        self._observers.append(observer)
+
+    def _emit(self, event: SupervisorEvent) -> None:
+        for observer in list(self._observers):
+            try:
+                observer(event)
+            except Exception:  # an observer's bug must never stop the bus path
+                log.exception("observer %r failed on %s", observer, type(event).__name__)
+
+    def notice(self, unit: str | None, level: int, message: str) -> None:
+        self._emit(Notice(unit, self.clock(), level, message))
+
+    def dispatch(self, bus: str) -> None:
+        """Apply the events one bus's scheduler recorded (called after each pump step)."""
+        for event in self.schedulers[bus].drain_events():
+            self._apply(event)
+            self._emit(event)
+
+    def _apply(self, event: Event) -> None:
+        unit = self.units[event.unit]
+        if isinstance(event, FeedbackEvent):
+            if isinstance(event.reply, frames.Unknown):
+                return
+            unit.feedback = Feedback.from_reply(event.t, event.reply, unit.cfg.velocity_model)
+            if unit.feedback.control is not None:
+                self._word(unit, event.t, "control", unit.feedback.control)
+            if event.sent_at is not None:
+                self._wake(unit.name, event.sent_at)
+        elif isinstance(event, StatusEvent):
+            if isinstance(event.record, frames.Unknown):
+                return
+            unit.status[event.packet] = (event.t, event.record)
+            record = event.record
+            if isinstance(record, frames.Brd0):
+                self._word(unit, event.t, "error", record.error)
+                self._word(unit, event.t, "alarm", record.alarm)
+            elif isinstance(record, frames.Brd1):
+                self._word(unit, event.t, "io", record.io)
+                if record.control is not None:
+                    self._word(unit, event.t, "control", record.control)
+                if record.inputs is not None:
+                    self._word(unit, event.t, "inputs", record.inputs)
+        elif isinstance(event, HealthEvent):
+            unit.online = event.online
+            if not event.online and unit.cfg.role is Role.COMMAND:
+                # a lost drive stops itself (command-zero timeout); do not resume it moving
+                # on return with a stale setpoint: its command drops to zero
+                self._store(unit, Setpoint(kind=unit.setpoint.kind))
+
+    def _word(self, unit: UnitState, t: float, word: str, value: int) -> None:
+        old = unit.words.get(word)
+        if old == value:
+            return
+        unit.words[word] = value
+        if word == "control":
+            travel = bool(value & flags.TRAVEL_MODEL)
+            expected = unit.cfg.velocity_model is VelocityModel.TRAVEL
+            if travel != expected and (old is None or bool(old & flags.TRAVEL_MODEL) != travel):
+                self.notice(
+                    unit.name,
+                    logging.WARNING,
+                    f"drive reports the {'travel' if travel else 'motor'} model but the "
+                    f"configuration says velocity_model: {unit.cfg.velocity_model}",
+                )
+        self._emit(FlagChange(unit.name, t, word, old, value))
+
+    # ------------------------------------------------------------ commanding
+
+    def unit(self, name: str) -> UnitState:
+        try:
+            return self.units[name]
+        except KeyError:
+            raise CommandError(f"no unit named '{name}' (units: {', '.join(self.units)})") from None
+
+    def _commandable(self, name: str) -> UnitState:
+        unit = self.unit(name)
+        if unit.cfg.role is not Role.COMMAND:
+            raise CommandError(f"unit '{name}' is configured role: monitor and takes no commands")
+        return unit
+
+    def set_velocity_ab(self, name: str, a: float, b: float) -> SetResult:
+        """Motor-axis velocities [min⁻¹], converted to the drive's model."""
+        unit = self._commandable(name)
+        _finite(a, b)
+        if unit.cfg.velocity_model is VelocityModel.TRAVEL:
+            return self._set(unit, *ab_to_yx(a, b), ControlMode.VELOCITY)
+        return self._set(unit, a, b, ControlMode.VELOCITY)
+
+    def set_velocity_yx(self, name: str, y: float, x: float) -> SetResult:
+        """Travel/turn velocities [min⁻¹], converted to the drive's model."""
+        unit = self._commandable(name)
+        _finite(y, x)
+        if unit.cfg.velocity_model is VelocityModel.MOTOR:
+            return self._set(unit, *yx_to_ab(y, x), ControlMode.VELOCITY)
+        return self._set(unit, y, x, ControlMode.VELOCITY)
+
+    def set_velocity(self, name: str, ay: float, bx: float) -> SetResult:
+        """AY/BX velocities as the drive reads them (its configured model) [min⁻¹]."""
+        unit = self._commandable(name)
+        _finite(ay, bx)
+        return self._set(unit, ay, bx, ControlMode.VELOCITY)
+
+    def set_twist(self, name: str, linear_x: float, angular_z: float) -> SetResult:
+        """Robot twist [m/s, rad/s] through the unit's geometry."""
+        unit = self._commandable(name)
+        _finite(linear_x, angular_z)
+        return self.set_velocity_yx(name, *twist_to_yx(linear_x, angular_z, unit.cfg.geometry))
+
+    def set_current(self, name: str, ay: float, bx: float) -> SetResult:
+        """Current commands [%]; the unit must be in torque mode on both axes."""
+        unit = self._commandable(name)
+        _finite(ay, bx)
+        return self._set(unit, ay, bx, ControlMode.CURRENT)
+
+    def set_inputs(self, name: str, data: int, mask: int) -> None:
+        """Change the input bits selected by ``mask`` to those of ``data`` (seed inp_data)."""
+        unit = self._commandable(name)
+        new = (unit.inputs & ~mask | data & mask) & 0xFFFFFFFF
+        if self.estop and new & ~unit.inputs & flags.START_BITS:
+            raise CommandError("emergency stop is latched: clear it before START")
+        torque = new & (flags.AY_TORQUE | flags.BX_TORQUE)
+        kind = unit.setpoint.kind
+        if torque != unit.inputs & (flags.AY_TORQUE | flags.BX_TORQUE):
+            # the meaning of the command fields changes: never reinterpret an old value
+            kind = ControlMode.CURRENT if torque else ControlMode.VELOCITY
+            unit.setpoint = Setpoint(kind=kind)
+        unit.inputs = new
+        self._push(unit)
+
+    def _set(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> SetResult:
+        if self.estop and (ay or bx):
+            raise CommandError("emergency stop is latched: clear it before commanding motion")
+        torque = unit.inputs & (flags.AY_TORQUE | flags.BX_TORQUE)
+        want = flags.AY_TORQUE | flags.BX_TORQUE if kind is ControlMode.CURRENT else 0
+        if torque != want:
+            mode = {0: "velocity", flags.AY_TORQUE | flags.BX_TORQUE: "current"}.get(
+                torque, "mixed"
+            )
+            raise CommandError(
+                f"unit '{unit.name}' is in {mode} mode; a {kind} command needs "
+                f"TORQUE {'ON ON' if want else 'OFF OFF'} first"
+            )
+        limit = (
+            unit.cfg.limits.velocity if kind is ControlMode.VELOCITY else unit.cfg.limits.current
+        )
+        scale = min(1.0, *(limit / abs(v) for v in (ay, bx) if v))
+        clamped = scale < 1.0
+        if clamped:  # scale both axes alike: the robot keeps its heading, only slower
+            ay, bx = ay * scale, bx * scale
+            self.notice(
+                unit.name,
+                logging.WARNING,
+                f"{kind} command clamped to the limit {limit:g} (scaled by {scale:.3f})",
+            )
+        self._store(unit, Setpoint(ay, bx, kind))
+        return SetResult(unit.setpoint.ay, unit.setpoint.bx, clamped)
+
+    def _store(self, unit: UnitState, setpoint: Setpoint) -> None:
+        unit.setpoint = setpoint
+        self._push(unit)
+
+    def _push(self, unit: UnitState) -> None:
+        if unit.cfg.role is not Role.COMMAND:
+            return
+        scale = CURRENT if unit.setpoint.kind is ControlMode.CURRENT else VELOCITY
+        raw_ay, _ = scale.to_raw(unit.setpoint.ay)
+        raw_bx, _ = scale.to_raw(unit.setpoint.bx)
+        self.schedulers[unit.cfg.bus].set_payload(
+            unit.name, frames.encode_dp0_command(raw_ay, raw_bx, unit.inputs)
+        )
+
+    # ------------------------------------------------------------ command language
+
+    def apply(self, name: str, command: Command) -> None:
+        if isinstance(command, InputChange):
+            self.set_inputs(name, command.data, command.mask)
+        elif isinstance(command, VelocityCommand):
+            self.set_velocity(name, command.ay, command.bx)
+        else:
+            assert isinstance(command, CurrentCommand)
+            self.set_current(name, command.ay, command.bx)
+
+    def apply_text(self, name: str, text: str) -> str:
+        """Apply a command-language string now; answer as the seed's service does."""
+        self.unit(name)  # an unknown unit is the caller's error, not the command's
+        try:
+            command = commands.parse_command(text)
+        except CommandError:
+            return commands.RESPONSE_INVALID
+        try:
+            self.apply(name, command)
+        except CommandError as exc:
+            if self.estop:
+                return commands.packet_error(commands.PACKET_ESTOP)
+            self.notice(name, logging.WARNING, f"{text!r} refused: {exc}")
+            return commands.RESPONSE_INVALID
+        return commands.RESPONSE_OK
+
+    async def command(self, name: str, text: str) -> str:
+        """As :meth:`apply_text`, then wait for the drive to answer a frame carrying it."""
+        since = self.clock()
+        response = self.apply_text(name, text)
+        if response != commands.RESPONSE_OK:
+            return response
+        ok = await self.wait_exchange(name, since, self.unit(name).cfg.timeout_ms / 1000)
+        return commands.RESPONSE_OK if ok else commands.packet_error(commands.PACKET_NO_REPLY)
+
+    def expect_exchange(self, name: str, since: float) -> asyncio.Future[bool]:
+        """A future set once a reply answers a request of ``name`` sent at or after ``since``.
+
+        Registered at once (not on first await), so a reply cannot slip past it.
+        """
+        future: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+        waiters = self._waiters.setdefault(name, [])
+        waiters.append((since, future))
+        future.add_done_callback(lambda f: waiters.remove((since, f)))
+        return future
+
+    async def wait_exchange(self, name: str, since: float, timeout: float) -> bool:
+        """True once a reply answers a request sent at or after ``since``; False on timeout."""
+        try:
+            return await asyncio.wait_for(self.expect_exchange(name, since), timeout)
+        except TimeoutError:
+            return False
+
+    def _wake(self, name: str, sent_at: float) -> None:
+        for since, future in list(self._waiters.get(name, [])):
+            if sent_at >= since and not future.done():
+                future.set_result(True)
+
+    # ------------------------------------------------------------ safety
+
+    def emergency_stop(self) -> None:
+        """Zero and START off on every commanded unit; latched until cleared."""
+        self.estop = True
+        for unit in self.units.values():
+            if unit.cfg.role is Role.COMMAND:
+                unit.inputs &= ~flags.START_BITS
+                self._store(unit, Setpoint(kind=unit.setpoint.kind))
+        self.notice(None, logging.CRITICAL, "EMERGENCY STOP: all units zero, START off (latched)")
+
+    def clear_emergency_stop(self) -> None:
+        self.estop = False
+        self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
+
+    def safe_state(self) -> None:
+        """The way-out state: zero, START and SERVO off on every unit we drove."""
+        for unit in self.units.values():
+            if unit.cfg.role is Role.COMMAND:
+                unit.inputs &= ~(flags.START_BITS | flags.SERVO_BITS)
+                self._store(unit, Setpoint(kind=unit.setpoint.kind))
+
+
+def _finite(*values: float) -> None:
+    for value in values:
+        if (
+            not isinstance(value, int | float)
+            or isinstance(value, bool)
+            or not math.isfinite(value)
+        ):
+            raise CommandError(f"{value!r} is not a finite number")
