@@ -89,11 +89,12 @@ async def run_headless(
                 f" for {duration:g} s" if duration is not None else "",
             )
             assert rt.fatal is not None
-            stopped = asyncio.ensure_future(stop.wait())
+            stopped: asyncio.Future[object] = asyncio.ensure_future(stop.wait())
+            ends: list[asyncio.Future[object]] = [stopped, rt.fatal]
             reporter = asyncio.ensure_future(_report(sup, status_interval))
             try:
                 await asyncio.wait(
-                    [stopped, rt.fatal], timeout=duration, return_when=asyncio.FIRST_COMPLETED
+                    ends, timeout=duration, return_when=asyncio.FIRST_COMPLETED
                 )
             finally:
                 reporter.cancel()

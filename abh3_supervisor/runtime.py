@@ -62,7 +62,7 @@ class Runtime:
         self._sim_pumps: list[BusPump] = []
         self._buses: list[can.BusABC] = []
         self._recorder: can.Listener | None = None
-        self.fatal: asyncio.Future[BaseException] | None = None
+        self.fatal: asyncio.Future[object] | None = None
 
     async def __aenter__(self) -> Runtime:
         loop = asyncio.get_running_loop()

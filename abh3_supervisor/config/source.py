@@ -66,6 +66,7 @@ def _construct(node: yaml.Node, path: Path, src: Source) -> Any:
         for key_node, value_node in node.value:
             key = yaml.SafeLoader(" ").construct_object(key_node)  # scalar keys only
             if key in out:
+                src.lines[(*path, str(key))] = key_node.start_mark.line + 1
                 src.error((*path, str(key)), "duplicate key (the later one would win silently)")
             out[key] = _construct(value_node, (*path, str(key)), src)
         return out

@@ -60,8 +60,9 @@ class UnitSlot:
     def __init__(self, cfg: UnitConfig, start: float) -> None:
         self.cfg = cfg
         self.period = 1.0 / cfg.command_rate_hz
-        # A DP0 exchange without reply is abandoned when the next command is due (counted as
-        # a timeout): the keepalive never stalls. ``timeout`` (the seed's) decides offline.
+        # One DP0 exchange in flight: one without reply is abandoned when the next command is
+        # due (a timeout) so the keepalive never stalls. ``timeout`` (the seed's) decides
+        # offline and paces probes of an offline unit.
         self.timeout = cfg.timeout_ms / 1000
         self.commanding = cfg.role is Role.COMMAND
         self.command_id = (
@@ -72,6 +73,7 @@ class UnitSlot:
         self.payload = frames.encode_dp0_command(0, 0, 0) if self.commanding else _DP0_REQUEST
         self.next_command = start
         self.dp0_sent_at: float | None = None
+        self.last_sent: float | None = None
         self.polls = () if cfg.broadcast.listen_only else cfg.broadcast.packets
         self.poll_period = 1.0 / cfg.broadcast.rate_hz
         self.poll_frames = [
@@ -87,6 +89,12 @@ class UnitSlot:
         self.online: bool | None = None  # None until first heard or first timed out
         self.since = start
         self.stats = UnitStats(cfg.command_rate_hz)
+
+    def poll_due(self) -> float:
+        """When the next status request may go: one in flight per unit, until it expires."""
+        if self.poll_sent_at is None:
+            return self.next_poll
+        return max(self.next_poll, self.poll_sent_at + self.timeout)
 
     def command_interval(self) -> float:
         # an offline unit is only probed once per timeout, so it costs the bus little
@@ -128,6 +136,7 @@ class BusScheduler:
         slot, packet = route
         cfg = slot.cfg
         if packet < 0:
+            # DP0 replies carry no sequence number: a reply answers the one request in flight
             sent_at, slot.dp0_sent_at = slot.dp0_sent_at, None
             if sent_at is not None:
                 slot.stats.on_reply(now, now - sent_at)
@@ -149,8 +158,9 @@ class BusScheduler:
             self.events.append(StatusEvent(cfg.name, now, packet, record))
         if slot.online is not True:
             slot.online = True
-            # back online: resume the normal rate from now
-            slot.next_command = min(slot.next_command, now)
+            # back online: resume the normal rate (an offline unit was probed slowly)
+            if slot.last_sent is not None:
+                slot.next_command = min(slot.next_command, max(now, slot.last_sent + slot.period))
             self.events.append(HealthEvent(cfg.name, now, True))
 
     def on_send_failed(self, arbitration_id: int) -> None:
@@ -174,16 +184,14 @@ class BusScheduler:
             self._check_health(slot, now)
             if now >= slot.next_command:
                 if slot.dp0_sent_at is not None:
-                    slot.stats.timeouts += 1  # the previous exchange got no reply
+                    slot.stats.timeouts += 1  # the previous exchange got no reply in time
                 out.append((slot.command_id, slot.payload))
-                slot.dp0_sent_at = now
+                slot.dp0_sent_at = slot.last_sent = now
                 slot.stats.commands_sent += 1
                 slot.next_command = _advance(slot.next_command, slot.command_interval(), now)
         for slot in slots:
-            if not slot.polls or now < slot.next_poll:
+            if not slot.polls or now < slot.poll_due():
                 continue
-            if slot.poll_sent_at is not None and now - slot.poll_sent_at < slot.timeout:
-                continue  # one status request in flight per unit
             out.append(slot.poll_frames[slot.poll_index])
             slot.poll_index = (slot.poll_index + 1) % len(slot.polls)
             slot.poll_sent_at = now
@@ -197,14 +205,14 @@ class BusScheduler:
         for slot in self.slots.values():
             if slot.commanding:
                 out.append((slot.command_id, slot.payload))
-                slot.dp0_sent_at = now
+                slot.dp0_sent_at = slot.last_sent = now
                 slot.stats.commands_sent += 1
                 slot.next_command = now + slot.command_interval()
         return out
 
     def _check_health(self, slot: UnitSlot, now: float) -> None:
         last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
-        if slot.online is not False and now - last >= slot.timeout:
+        if slot.online is not False and now >= last + slot.timeout:  # as in next_deadline
             slot.online = False
             self.events.append(HealthEvent(slot.cfg.name, now, False))
 
@@ -213,7 +221,7 @@ class BusScheduler:
         for slot in self.slots.values():
             deadline = min(deadline, slot.next_command)
             if slot.polls:
-                deadline = min(deadline, slot.next_poll)
+                deadline = min(deadline, slot.poll_due())
             if slot.online is not False:
                 last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
                 deadline = min(deadline, last + slot.timeout)

@@ -154,7 +154,8 @@ class SimDrive:
         if not timeout_ms:
             return False
         last = self.last_command if self.last_command is not None else self.started
-        return self.t - last >= timeout_ms / 1000 or self.last_command is None
+        # the same sum as in _timeout_deadline, so waking at it always sees the timeout
+        return self.t >= last + timeout_ms / 1000 or self.last_command is None
 
     def error_word(self) -> int:
         return self.errors | (

@@ -1,0 +1,139 @@
+"""The per-bus scheduler on a fake clock, against the simulated drives. No sleeps."""
+
+from __future__ import annotations
+
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.protocol import ids
+from abh3_supervisor.protocol.classify import AddressBook, Kind, classify
+from abh3_supervisor.scheduler.core import BusScheduler, FeedbackEvent, HealthEvent
+from tests.conftest import TWO_UNITS, Rig
+
+
+def sent(rig: Rig, arbitration_id: int, since: float = 0.0) -> list[float]:
+    return [f.start for f in rig.timeline.frames if f.arbitration_id == arbitration_id
+            and f.start >= since]
+
+
+def test_command_rate_and_polls_follow_the_configuration(rig: Rig) -> None:
+    rig.run(9.999)
+    left = sent(rig, ids.dp0_command_id(1, 2))
+    right = sent(rig, ids.dp0_command_id(3, 2))
+    assert len(left) == 500 and len(right) == 500  # 50 Hz for 10 s
+    polls = [f for f in rig.timeline.frames if f.arbitration_id == ids.request_id(1, 2)]
+    assert len(polls) == 140  # 14 Hz
+    book = AddressBook()
+    asked = [classify(f.arbitration_id, f.data, True, book).payload for f in polls[:14]]
+    assert [getattr(p, "broadcast", None) for p in asked] == [(5, n) for n in range(7)] * 2
+    slot = rig.scheduler.slots["left"]
+    assert slot.stats.timeouts == 0 and slot.stats.replies == 500
+    assert abs(slot.stats.achieved_rate_hz(rig.timeline.now) - 50) < 0.5
+
+
+def test_right_unit_polls_only_its_mask(rig: Rig) -> None:
+    rig.run(2.0)
+    packets = {
+        classify(f.arbitration_id, f.data, True, AddressBook()).packet
+        for f in rig.timeline.frames if f.arbitration_id >> 8 & 0xFFFF == 0xFF28 >> 0 or
+        (f.arbitration_id >> 16 & 0xFF == 0xFF and f.arbitration_id & 0xFF == 3)
+    }
+    assert packets == {0, 1, 2, 3}
+
+
+def test_commands_go_before_polls_when_both_are_due() -> None:
+    cfg = parse_config("buses: {b: {}}\nunits: [{name: u, command_rate_hz: 10, "
+                       "broadcast: {rate_hz: 10}}]\n", "c.yaml")
+    sched = BusScheduler(cfg.units.values(), now=0.0)
+    sched.slots["u"].next_poll = 0.0
+    out = sched.poll(0.0)
+    assert [ids.CanId.from_int(i).pf for i, _ in out] == [0xEF, 0xEA]
+
+
+def test_replies_match_ignoring_priority_and_unsolicited_are_accepted() -> None:
+    cfg = parse_config("buses: {b: {}}\nunits: [{name: u, priority: 6}]\n", "c.yaml")
+    sched = BusScheduler(cfg.units.values(), now=0.0)
+    (cmd_id, _), *_ = sched.poll(0.0)
+    assert cmd_id == 0x18EF0102
+    sched.on_frame(0x14EF0201, bytes(8), 0.001)  # any priority
+    sched.on_frame(0x00EF0201, bytes(8), 0.002)  # nothing in flight: unsolicited
+    events = sched.drain_events()
+    feedback = [e for e in events if isinstance(e, FeedbackEvent)]
+    assert [e.sent_at for e in feedback] == [0.0, None]
+    assert sched.slots["u"].stats.unsolicited == 1
+    assert any(isinstance(e, HealthEvent) and e.online for e in events)
+
+
+def test_periodic_drive_frames_without_polling() -> None:
+    cfg = parse_config(TWO_UNITS.replace("simulate: true", "simulate: {broadcast_period_ms: 100,"
+                                         " dp0_period_ms: 50}").replace(
+        "broadcast: {mask: 0x7f, rate_hz: 14}", "broadcast: {listen_only: true}"), "p.yaml")
+    rig = Rig(cfg)
+    rig.run(1.0)
+    assert not sent(rig, ids.request_id(1, 2))  # listen-only: never polled
+    slot = rig.scheduler.slots["left"]
+    assert slot.stats.broadcasts >= 60  # 7 packets every 100 ms
+    assert slot.stats.unsolicited >= 15
+    assert set(rig.sup.units["left"].status) == set(range(7))
+
+
+def test_a_silent_unit_goes_offline_within_its_timeout_and_comes_back(rig: Rig) -> None:
+    rig.run(1.0)
+    rig.drive("right").silent = True
+    silenced = rig.timeline.now
+    rig.run(2.0)
+    offline = [e for e in rig.events if isinstance(e, HealthEvent) and not e.online]
+    assert [e.unit for e in offline] == ["right"]
+    # the last reply came at most one period before silence: offline within timeout + period
+    assert silenced < offline[0].t <= silenced + 1.0 + 0.02
+    # the other unit's command rate holds while one is silent …
+    left = sent(rig, ids.dp0_command_id(1, 2), since=silenced)
+    assert len(left) == 100
+    # … and the offline unit is only probed once per timeout, not at 50 Hz
+    probes = sent(rig, ids.dp0_command_id(3, 2), since=offline[0].t)
+    assert 1 <= len(probes) <= 2
+    rig.drive("right").silent = False
+    back = rig.timeline.now
+    rig.run(1.5)
+    online = [e for e in rig.events if isinstance(e, HealthEvent) and e.online and e.t > back]
+    assert [e.unit for e in online] == ["right"] and online[0].t <= back + 1.0 + 0.01
+    assert abs(rig.scheduler.slots["right"].stats.achieved_rate_hz(rig.timeline.now) - 50) < 1
+
+
+def test_slow_replies_keep_the_keepalive_and_the_feedback(rig: Rig) -> None:
+    rig.run(0.5)
+    rig.drive("left").extra_delay = 0.030  # slower than the 20 ms command period
+    start = rig.timeline.now
+    rig.run(1.0)
+    # the keepalive never waits for a late reply …
+    assert len(sent(rig, ids.dp0_command_id(1, 2), since=start)) == 50
+    assert rig.scheduler.slots["left"].stats.timeouts >= 1
+    # … and every reply, late or not, still updates the feedback
+    feedback = rig.sup.units["left"].feedback
+    assert feedback is not None and feedback.t > rig.timeline.now - 0.021
+    assert rig.scheduler.slots["left"].online
+
+
+def test_a_unit_that_never_answers_is_reported_offline() -> None:
+    rig = Rig(parse_config(TWO_UNITS, "t.yaml"))
+    rig.drive("left").silent = True
+    rig.run(1.5)
+    offline = [e for e in rig.events if isinstance(e, HealthEvent) and not e.online]
+    assert [(e.unit, e.t) for e in offline] == [("left", 1.0)]
+
+
+def test_send_failure_frees_the_exchange() -> None:
+    cfg = parse_config("buses: {b: {}}\nunits: [{name: u}]\n", "c.yaml")
+    sched = BusScheduler(cfg.units.values(), now=0.0)
+    (cmd_id, _), *_ = sched.poll(0.0)
+    sched.on_send_failed(cmd_id)
+    assert sched.slots["u"].dp0_sent_at is None and sched.slots["u"].stats.send_errors == 1
+
+
+def test_monitor_units_only_request_feedback() -> None:
+    rig = Rig(parse_config(TWO_UNITS.replace("name: right,", "name: right, role: monitor,"),
+                           "m.yaml"))
+    rig.run(1.0)
+    book = AddressBook(generations={})
+    kinds = {classify(f.arbitration_id, f.data, True, book).kind
+             for f in rig.timeline.frames if f.node == 0 and f.arbitration_id & 0xFF00 == 0x0300}
+    assert kinds == {Kind.REQUEST}
+    assert rig.sup.units["right"].feedback is not None
