@@ -93,9 +93,7 @@ async def run_headless(
             ends: list[asyncio.Future[object]] = [stopped, rt.fatal]
             reporter = asyncio.ensure_future(_report(sup, status_interval))
             try:
-                await asyncio.wait(
-                    ends, timeout=duration, return_when=asyncio.FIRST_COMPLETED
-                )
+                await asyncio.wait(ends, timeout=duration, return_when=asyncio.FIRST_COMPLETED)
             finally:
                 reporter.cancel()
                 stopped.cancel()

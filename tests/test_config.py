@@ -25,11 +25,19 @@ def test_defaults_are_the_seeds() -> None:
     cfg = parse_config(MINIMAL, "m.yaml")
     bus = cfg.buses["can0"]
     assert (bus.interface, bus.channel, bus.bitrate, bus.simulate) == (
-        "socketcan", "can0", 500000, None,
+        "socketcan",
+        "can0",
+        500000,
+        None,
     )
     u = cfg.units["drive"]
     assert (u.bus, u.abh3_id, u.host_id, u.priority, u.brd_group, u.timeout_ms) == (
-        "can0", 1, 2, 0, 5, 1000,
+        "can0",
+        1,
+        2,
+        0,
+        5,
+        1000,
     )
     assert u.broadcast.mask == 0x7F and u.broadcast.packets == (0, 1, 2, 3, 4, 5, 6)
     assert u.protocol is Generation.G2021 and u.control is ControlMode.VELOCITY
@@ -73,7 +81,11 @@ plugins:
     )
     u = cfg.units["m"]
     assert (u.abh3_id, u.host_id, u.priority, u.brd_group, u.protocol) == (
-        253, 0, 7, 31, Generation.G2023,
+        253,
+        0,
+        7,
+        31,
+        Generation.G2023,
     )
     assert u.broadcast.packets == (0, 1) and u.broadcast.listen_only
     assert u.limits.velocity == 1000 and u.data_select == (6, 5) and u.role is Role.MONITOR
@@ -88,28 +100,64 @@ plugins:
     [
         ("buses: [", "robot.yaml:1: invalid YAML"),
         ("units: []\n", "robot.yaml:1: buses: missing"),
-        (MINIMAL + "    abh3_idd: 3\n", "robot.yaml:5: units[0].abh3_idd: unknown key; did you mean 'abh3_id'?"),
-        (MINIMAL + "    abh3_id: 254\n", "robot.yaml:5: units[0].abh3_id: 254 is out of range (allowed 0–253)"),
+        (
+            MINIMAL + "    abh3_idd: 3\n",
+            "robot.yaml:5: units[0].abh3_idd: unknown key; did you mean 'abh3_id'?",
+        ),
+        (
+            MINIMAL + "    abh3_id: 254\n",
+            "robot.yaml:5: units[0].abh3_id: 254 is out of range (allowed 0–253)",
+        ),
         (MINIMAL + "    host_id: -1\n", "units[0].host_id: -1 is out of range (allowed 0–253)"),
         (MINIMAL + "    priority: 8\n", "units[0].priority: 8 is out of range (allowed 0–7)"),
         (MINIMAL + "    brd_group: 32\n", "units[0].brd_group: 32 is out of range (allowed 0–31)"),
         (MINIMAL + "    broadcast: {mask: 0x80}\n", "units[0].broadcast.mask: 128 is out of range"),
-        (MINIMAL + "    command_rate_hz: 0\n", "command_rate_hz: 0 is out of range (allowed more than 0–1000)"),
+        (
+            MINIMAL + "    command_rate_hz: 0\n",
+            "command_rate_hz: 0 is out of range (allowed more than 0–1000)",
+        ),
         (MINIMAL + "    command_rate_hz: .nan\n", "command_rate_hz: nan is not a finite number"),
-        (MINIMAL + "    abh3_id: one\n", "units[0].abh3_id: expected an integer 0–253, got a string 'one'"),
+        (
+            MINIMAL + "    abh3_id: one\n",
+            "units[0].abh3_id: expected an integer 0–253, got a string 'one'",
+        ),
         (MINIMAL + "    protocol: 2022\n", "units[0].protocol: 2022 is not one of: 2021, 2023"),
-        (MINIMAL + "    bus: can1\n", "units[0].bus: 'can1' is not a declared bus (declared: can0)"),
-        (MINIMAL + "    startup: ['SERVO ON']\n", "robot.yaml:5: units[0].startup[0]: 'SERVO ON': SERVO takes two values"),
+        (
+            MINIMAL + "    bus: can1\n",
+            "units[0].bus: 'can1' is not a declared bus (declared: can0)",
+        ),
+        (
+            MINIMAL + "    startup: ['SERVO ON']\n",
+            "robot.yaml:5: units[0].startup[0]: 'SERVO ON': SERVO takes two values",
+        ),
         (MINIMAL + "  - name: drive\n", "robot.yaml:5: units[1].name: duplicate unit name 'drive'"),
-        (MINIMAL + "  - name: other\n", "units[1].abh3_id: unit 'drive' already uses abh3_id 1 on bus 'can0'"),
-        (MINIMAL + "    host_id: 1\n", "units[0].host_id: host_id 1 is the abh3_id of unit 'drive'"),
-        ("buses:\n  can0: {bitrate: 125000}\nunits: [{name: a}]\n", "robot.yaml:2: buses.can0.bitrate: 125000 is not an ABH3 bitrate"),
-        ("buses:\n  can0: {}\n  can0: {}\nunits: [{name: a}]\n", "robot.yaml:3: buses.can0: duplicate key"),
-        ("buses:\n  a: {}\n  b: {}\nunits: [{name: x}]\n", "units[0].bus: missing: several buses are declared"),
+        (
+            MINIMAL + "  - name: other\n",
+            "units[1].abh3_id: unit 'drive' already uses abh3_id 1 on bus 'can0'",
+        ),
+        (
+            MINIMAL + "    host_id: 1\n",
+            "units[0].host_id: host_id 1 is the abh3_id of unit 'drive'",
+        ),
+        (
+            "buses:\n  can0: {bitrate: 125000}\nunits: [{name: a}]\n",
+            "robot.yaml:2: buses.can0.bitrate: 125000 is not an ABH3 bitrate",
+        ),
+        (
+            "buses:\n  can0: {}\n  can0: {}\nunits: [{name: a}]\n",
+            "robot.yaml:3: buses.can0: duplicate key",
+        ),
+        (
+            "buses:\n  a: {}\n  b: {}\nunits: [{name: x}]\n",
+            "units[0].bus: missing: several buses are declared",
+        ),
         ("buses:\n  can0: {}\nunits: [{abh3_id: 3}]\n", "units[0].name: missing"),
         ("buses:\n  can0: {}\nunits: [{name: 'my unit'}]\n", "'my unit': unit names are letters"),
         ("buses:\n  can0: {}\nunits: [{name: a}]\nextra: 1\n", "robot.yaml:4: extra: unknown key"),
-        ("buses:\n  can0: {simulate: {acel: 3}}\nunits: [{name: a}]\n", "buses.can0.simulate.acel: unknown key; did you mean 'accel'?"),
+        (
+            "buses:\n  can0: {simulate: {acel: 3}}\nunits: [{name: a}]\n",
+            "buses.can0.simulate.acel: unknown key; did you mean 'accel'?",
+        ),
     ],
 )
 def test_errors_name_file_line_and_key(text: str, expected: str) -> None:

@@ -134,9 +134,7 @@ class TestFrames:
         g = Generation.G2021
         assert frames.encode_words(0x00400000, 0x00400000) == bytes.fromhex("0000400000004000")
         assert frames.encode_pulses(141803, 430787) == bytes.fromhex("eb290200c3920600")
-        assert frames.encode_int16x2_uint16x2(21, 14, 237, 237) == bytes.fromhex(
-            "15000e00ed00ed00"
-        )
+        assert frames.encode_int16x2_uint16x2(21, 14, 237, 237) == bytes.fromhex("15000e00ed00ed00")
         load = LOAD.to_raw(6.0)[0]
         brd3 = frames.decode_broadcast(3, frames.encode_int16x2_uint16x2(100, -100, load, 0), g)
         assert brd3 == frames.Brd3(1.0, -1.0, 6.0, 0.0, 6, 0)
@@ -173,11 +171,17 @@ class TestClassify:
     def test_command_and_reply_told_apart_by_host_address(self) -> None:
         cmd = classify(0x00EF0102, frames.encode_dp0_command(0, 0, 0), True, self.book)
         assert (cmd.kind, cmd.direction, cmd.abh3, cmd.host) == (
-            Kind.DP0_COMMAND, Direction.TO_DRIVE, 1, 2,
+            Kind.DP0_COMMAND,
+            Direction.TO_DRIVE,
+            1,
+            2,
         )
         reply = classify(0x00EF0201, bytes(8), True, self.book)
         assert (reply.kind, reply.direction, reply.abh3, reply.host) == (
-            Kind.DP0_REPLY, Direction.FROM_DRIVE, 1, 2,
+            Kind.DP0_REPLY,
+            Direction.FROM_DRIVE,
+            1,
+            2,
         )
 
     def test_broadcast_group_and_packet(self) -> None:

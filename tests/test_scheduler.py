@@ -10,8 +10,11 @@ from tests.conftest import TWO_UNITS, Rig
 
 
 def sent(rig: Rig, arbitration_id: int, since: float = 0.0) -> list[float]:
-    return [f.start for f in rig.timeline.frames if f.arbitration_id == arbitration_id
-            and f.start >= since]
+    return [
+        f.start
+        for f in rig.timeline.frames
+        if f.arbitration_id == arbitration_id and f.start >= since
+    ]
 
 
 def test_command_rate_and_polls_follow_the_configuration(rig: Rig) -> None:
@@ -33,15 +36,18 @@ def test_right_unit_polls_only_its_mask(rig: Rig) -> None:
     rig.run(2.0)
     packets = {
         classify(f.arbitration_id, f.data, True, AddressBook()).packet
-        for f in rig.timeline.frames if f.arbitration_id >> 8 & 0xFFFF == 0xFF28 >> 0 or
-        (f.arbitration_id >> 16 & 0xFF == 0xFF and f.arbitration_id & 0xFF == 3)
+        for f in rig.timeline.frames
+        if f.arbitration_id >> 8 & 0xFFFF == 0xFF28 >> 0
+        or (f.arbitration_id >> 16 & 0xFF == 0xFF and f.arbitration_id & 0xFF == 3)
     }
     assert packets == {0, 1, 2, 3}
 
 
 def test_commands_go_before_polls_when_both_are_due() -> None:
-    cfg = parse_config("buses: {b: {}}\nunits: [{name: u, command_rate_hz: 10, "
-                       "broadcast: {rate_hz: 10}}]\n", "c.yaml")
+    cfg = parse_config(
+        "buses: {b: {}}\nunits: [{name: u, command_rate_hz: 10, broadcast: {rate_hz: 10}}]\n",
+        "c.yaml",
+    )
     sched = BusScheduler(cfg.units.values(), now=0.0)
     sched.slots["u"].next_poll = 0.0
     out = sched.poll(0.0)
@@ -63,9 +69,12 @@ def test_replies_match_ignoring_priority_and_unsolicited_are_accepted() -> None:
 
 
 def test_periodic_drive_frames_without_polling() -> None:
-    cfg = parse_config(TWO_UNITS.replace("simulate: true", "simulate: {broadcast_period_ms: 100,"
-                                         " dp0_period_ms: 50}").replace(
-        "broadcast: {mask: 0x7f, rate_hz: 14}", "broadcast: {listen_only: true}"), "p.yaml")
+    cfg = parse_config(
+        TWO_UNITS.replace(
+            "simulate: true", "simulate: {broadcast_period_ms: 100, dp0_period_ms: 50}"
+        ).replace("broadcast: {mask: 0x7f, rate_hz: 14}", "broadcast: {listen_only: true}"),
+        "p.yaml",
+    )
     rig = Rig(cfg)
     rig.run(1.0)
     assert not sent(rig, ids.request_id(1, 2))  # listen-only: never polled
@@ -129,11 +138,15 @@ def test_send_failure_frees_the_exchange() -> None:
 
 
 def test_monitor_units_only_request_feedback() -> None:
-    rig = Rig(parse_config(TWO_UNITS.replace("name: right,", "name: right, role: monitor,"),
-                           "m.yaml"))
+    rig = Rig(
+        parse_config(TWO_UNITS.replace("name: right,", "name: right, role: monitor,"), "m.yaml")
+    )
     rig.run(1.0)
     book = AddressBook(generations={})
-    kinds = {classify(f.arbitration_id, f.data, True, book).kind
-             for f in rig.timeline.frames if f.node == 0 and f.arbitration_id & 0xFF00 == 0x0300}
+    kinds = {
+        classify(f.arbitration_id, f.data, True, book).kind
+        for f in rig.timeline.frames
+        if f.node == 0 and f.arbitration_id & 0xFF00 == 0x0300
+    }
     assert kinds == {Kind.REQUEST}
     assert rig.sup.units["right"].feedback is not None

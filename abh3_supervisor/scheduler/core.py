@@ -23,6 +23,7 @@ from abh3_supervisor.protocol.ids import (
     without_priority,
 )
 from abh3_supervisor.scheduler.stats import UnitStats
+from abh3_supervisor.timing import next_on_grid
 
 OutFrame = tuple[int, bytes]
 _DP0_REQUEST = frames.encode_request(frames.PGN_DP0)
@@ -188,7 +189,7 @@ class BusScheduler:
                 out.append((slot.command_id, slot.payload))
                 slot.dp0_sent_at = slot.last_sent = now
                 slot.stats.commands_sent += 1
-                slot.next_command = _advance(slot.next_command, slot.command_interval(), now)
+                slot.next_command = next_on_grid(slot.next_command, slot.command_interval(), now)
         for slot in slots:
             if not slot.polls or now < slot.poll_due():
                 continue
@@ -196,7 +197,7 @@ class BusScheduler:
             slot.poll_index = (slot.poll_index + 1) % len(slot.polls)
             slot.poll_sent_at = now
             slot.stats.polls_sent += 1
-            slot.next_poll = _advance(slot.next_poll, slot.poll_period, now)
+            slot.next_poll = next_on_grid(slot.next_poll, slot.poll_period, now)
         return out
 
     def flush(self, now: float) -> list[OutFrame]:
@@ -230,9 +231,3 @@ class BusScheduler:
     def drain_events(self) -> list[Event]:
         events, self.events = self.events, []
         return events
-
-
-def _advance(due: float, interval: float, now: float) -> float:
-    """Next due time on the grid; after a stall, restart from now rather than burst."""
-    due += interval
-    return due if due > now else now + interval

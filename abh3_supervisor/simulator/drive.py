@@ -27,6 +27,7 @@ from abh3_supervisor.protocol.ids import (
     dp0_reply_id,
 )
 from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
+from abh3_supervisor.timing import next_on_grid
 
 PULSES_PER_REV = 4096
 TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode
@@ -108,10 +109,10 @@ class SimDrive:
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         self.advance(now)
         if now >= self._next_dp0:
-            self._next_dp0 = now + self.cfg.dp0_period_ms / 1000
+            self._next_dp0 = next_on_grid(self._next_dp0, self.cfg.dp0_period_ms / 1000, now)
             self._queue(now, dp0_reply_id(self.abh3_id, self.host), self._dp0_reply())
         if now >= self._next_brd:
-            self._next_brd = now + self.cfg.broadcast_period_ms / 1000
+            self._next_brd = next_on_grid(self._next_brd, self.cfg.broadcast_period_ms / 1000, now)
             for n in range(7):
                 self._queue(now, broadcast_id(self.abh3_id, self.group, n), self.broadcast(n))
         out = []
