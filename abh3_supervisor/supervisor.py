@@ -239,7 +239,7 @@ class Supervisor:
         limit = (
             unit.cfg.limits.velocity if kind is ControlMode.VELOCITY else unit.cfg.limits.current
         )
-        scale = min(1.0, *(limit / abs(v) for v in (ay, bx) if v))
+        scale = min([1.0, *(limit / abs(v) for v in (ay, bx) if v)])
         clamped = scale < 1.0
         if clamped:  # scale both axes alike: the robot keeps its heading, only slower
             ay, bx = ay * scale, bx * scale

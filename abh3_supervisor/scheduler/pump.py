@@ -52,7 +52,8 @@ class BusPump(can.Listener):
         self.bus_errors = 0
 
     def start(self) -> None:
-        self._notifier = can.Notifier(self.bus, [self], loop=self.loop)
+        # a short receive timeout lets stop() join a reader thread quickly
+        self._notifier = can.Notifier(self.bus, [self], timeout=0.05, loop=self.loop)
         self._step()
 
     def stop(self) -> None:  # also called by Notifier.stop(): must be idempotent

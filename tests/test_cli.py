@@ -1,0 +1,146 @@
+"""The ``abh3`` command end to end, in a subprocess, as a user runs it."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+DEMO = ROOT / "configs" / "demo.yaml"
+
+
+def abh3(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "abh3_supervisor", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
+
+
+def decoded(path: Path) -> list[dict[str, Any]]:
+    out = abh3("decode", str(path), "--config", str(DEMO), "--json")
+    assert out.returncode == 0, out.stderr
+    return [json.loads(line) for line in out.stdout.splitlines()]
+
+
+def test_headless_run_records_what_was_commanded_at_the_configured_rate(tmp_path: Path) -> None:
+    record = tmp_path / "t.log"
+    run = abh3("run", str(DEMO), "--headless", "--duration", "3", "--record", str(record))
+    assert run.returncode == 0, run.stderr
+    assert "unit left: online" in run.stderr and "unit right: online" in run.stderr
+    rows = decoded(record)
+    for unit, mask, commanded in (("left", 0x7F, (300.0, 20.0)), ("right", 0x0F, (150.0, -150.0))):
+        mine = [r for r in rows if r["unit"] == unit]
+        cmds = [r for r in mine if r["kind"] == "dp0_command"]
+        replies = [r for r in mine if r["kind"] == "dp0_reply"]
+        times = [float(r["t"]) for r in cmds]
+        rate = (len(times) - 2) / (times[-2] - times[0])  # the last one is the stop frame
+        assert abs(rate - 50) / 50 < 0.05, rate
+        assert abs(len(replies) - len(cmds)) <= 1  # every command answered
+        values = Counter((r["values"]["cmd_ay"], r["values"]["cmd_bx"]) for r in cmds)
+        assert values.most_common(1)[0][0] == commanded
+        packets = {r["packet"] for r in mine if r["kind"] == "broadcast"}
+        assert packets == {n for n in range(7) if mask >> n & 1}
+        stop = cmds[-1]
+        assert stop["values"]["cmd_ay"] == 0.0 and "AY_SERVO_ON" not in stop["flags"]["inputs"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signals_stop_the_drives_and_keep_the_recording(tmp_path: Path, sig: int) -> None:
+    record = tmp_path / "sig.asc"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "abh3_supervisor",
+            "run",
+            str(DEMO),
+            "--headless",
+            "--record",
+            str(record),
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.stderr is not None
+    seen = []
+    for line in proc.stderr:  # event-driven: wait for both units, no sleeping
+        seen.append(line)
+        if sum("online" in s for s in seen) == 2:
+            break
+    proc.send_signal(sig)
+    rest = proc.stderr.read()
+    assert proc.wait(timeout=30) == 0, rest
+    assert rest.count("stop frame confirmed by the drive") == 2
+    assert "Traceback" not in rest
+    cmds = [r for r in decoded(record) if r["kind"] == "dp0_command"]
+    for unit in ("left", "right"):
+        last = [r for r in cmds if r["unit"] == unit][-1]
+        assert not {"AY_SERVO_ON", "AY_START", "BX_SERVO_ON", "BX_START"} & set(
+            last["flags"]["inputs"]
+        )
+
+
+def test_check_prints_the_bus_load_plan(tmp_path: Path) -> None:
+    out = abh3("check", str(DEMO), "--json")
+    assert out.returncode == 0, out.stderr
+    plan = json.loads(out.stdout)
+    bus = plan["buses"][0]
+    # per unit: 50 × 2 DP0 frames + polls × (request + reply), 160/110 bits worst case
+    assert bus["frames_per_s"] == pytest.approx(2 * (50 + 14) + 2 * (50 + 8))
+    assert bus["bits_per_s"] == pytest.approx(50 * 320 + 14 * 270 + 50 * 320 + 8 * 270)
+    assert bus["load_percent"] == pytest.approx(bus["bits_per_s"] / 5000)
+    text = abh3("check", str(DEMO))
+    assert "bus demo: 500000 bit/s" in text.stdout
+
+
+def test_check_warns_and_fails_on_an_overloaded_plan(tmp_path: Path) -> None:
+    cfg = tmp_path / "busy.yaml"
+    units = "\n".join(
+        f"  - {{name: u{i}, abh3_id: {i + 10}, command_rate_hz: 500}}" for i in range(4)
+    )
+    cfg.write_text(f"buses:\n  can0: {{bitrate: 250000}}\nunits:\n{units}\n")
+    out = abh3("check", str(cfg))
+    assert out.returncode == 1 and "exceeds the bus" in out.stdout
+
+
+def test_decode_without_config_uses_seed_defaults(tmp_path: Path) -> None:
+    log = tmp_path / "x.log"
+    log.write_text(
+        "(1.000000) can0 00EF0102#F401000001100000 T\n"
+        "(1.001000) can0 00EF0201#F3FF0000FAFF0D00 R\n"
+        "(1.002000) can0 18FEF100#0000000000000000 R\n"
+    )
+    out = abh3("decode", str(log))
+    lines = out.stdout.splitlines()
+    assert "dp0_command" in lines[0] and "cmd_ay=100.0" in lines[0]
+    assert "inputs[AY_SERVO_ON,BX_SERVO_ON]" in lines[0]
+    assert "dp0_reply" in lines[1] and "vel_a=-2.6" in lines[1]
+    assert "unknown" in lines[2] and "not ABH3" in lines[2]
+
+
+def test_user_mistakes_give_messages_not_tracebacks(tmp_path: Path) -> None:
+    out = abh3("decode", str(tmp_path / "missing.log"))
+    assert out.returncode == 2 and "cannot read recording" in out.stderr
+    assert "Traceback" not in out.stderr
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("buses:\n  can0: {}\nunits:\n  - {name: a, abh3_id: 300}\n")
+    out = abh3("run", str(bad), "--headless")
+    assert out.returncode == 2 and "bad.yaml:4: units[0].abh3_id: 300 is out of range" in out.stderr
+    out = abh3("run", str(DEMO), "--duration", "-1")
+    assert out.returncode == 2 and "must be more than 0" in out.stderr
+    missing = tmp_path / "hw.yaml"
+    missing.write_text("buses:\n  can0: {channel: can7}\nunits:\n  - {name: a}\n")
+    out = abh3("run", str(missing), "--headless", "--duration", "1")
+    assert out.returncode == 1 and "cannot open socketcan channel 'can7'" in out.stderr
+    assert "Traceback" not in out.stderr
