@@ -298,8 +298,17 @@ class Supervisor:
         response = self.apply_text(name, text)
         if response != commands.RESPONSE_OK:
             return response
-        ok = await self.wait_exchange(name, since, self.unit(name).cfg.timeout_ms / 1000)
-        return commands.RESPONSE_OK if ok else commands.packet_error(commands.PACKET_NO_REPLY)
+        unit = self.unit(name)
+        stats = self.schedulers[unit.cfg.bus].slots[name].stats
+        failures = stats.send_errors
+        if await self.wait_exchange(name, since, unit.cfg.timeout_ms / 1000):
+            return commands.RESPONSE_OK
+        code = (
+            commands.PACKET_SEND_FAILED
+            if stats.send_errors > failures
+            else commands.PACKET_NO_REPLY
+        )
+        return commands.packet_error(code)
 
     def expect_exchange(self, name: str, since: float) -> asyncio.Future[bool]:
         """A future set once a reply answers a request of ``name`` sent at or after ``since``.

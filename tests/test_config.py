@@ -114,7 +114,7 @@ plugins:
         (MINIMAL + "    broadcast: {mask: 0x80}\n", "units[0].broadcast.mask: 128 is out of range"),
         (
             MINIMAL + "    command_rate_hz: 0\n",
-            "command_rate_hz: 0 is out of range (allowed more than 0–1000)",
+            "command_rate_hz: 0 is out of range (allowed more than 0, up to 1000)",
         ),
         (MINIMAL + "    command_rate_hz: .nan\n", "command_rate_hz: nan is not a finite number"),
         (

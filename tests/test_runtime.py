@@ -125,3 +125,24 @@ def test_every_recording_format_is_readable_again(tmp_path: Path, suffix: str) -
 
     asyncio.run(scenario())
     assert len(commands_in(record, 1)) >= 2
+
+
+def test_packet_errors_for_no_reply_and_refused_frames(monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg = parse_config(TWO_UNITS.replace("name: left,", "name: left, timeout_ms: 200,"), "t.yaml")
+
+    async def scenario() -> None:
+        async with Runtime(cfg) as rt:
+            await until_online(rt)
+            rt.sims["b"].drives[1].silent = True
+            assert await rt.supervisor.command("left", "SERVO ON ON") == "Packet Error: 1"
+            rt.sims["b"].drives[1].silent = False
+            bus = rt.pumps["b"].bus
+
+            def refuse(msg: can.Message, timeout: float | None = None) -> None:
+                raise can.CanOperationError("Transmit buffer full")
+
+            monkeypatch.setattr(bus, "send", refuse)
+            assert await rt.supervisor.command("left", "SERVO ON ON") == "Packet Error: 2"
+            monkeypatch.undo()
+
+    asyncio.run(scenario())

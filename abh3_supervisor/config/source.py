@@ -127,15 +127,15 @@ class Section:
     def number(
         self, key: str, default: float, lo: float, hi: float, *, lo_open: bool = False
     ) -> float:
-        low = f"more than {lo:g}" if lo_open else f"{lo:g}"
+        allowed = f"more than {lo:g}, up to {hi:g}" if lo_open else f"{lo:g}–{hi:g}"
 
         def check(v: Any) -> str | None:
             if isinstance(v, bool) or not isinstance(v, int | float):
-                return f"expected a number {low}–{hi:g}, got {_kind(v)} {v!r}"
+                return f"expected a number ({allowed}), got {_kind(v)} {v!r}"
             if not math.isfinite(v):
                 return f"{v} is not a finite number"
             ok = (v > lo if lo_open else v >= lo) and v <= hi
-            return None if ok else f"{v:g} is out of range (allowed {low}–{hi:g})"
+            return None if ok else f"{v:g} is out of range (allowed {allowed})"
 
         return float(self._get(key, default, check))
 
