@@ -8,7 +8,7 @@ import logging
 import signal
 from pathlib import Path
 
-from abh3_supervisor.config.model import Config
+from abh3_supervisor.config.model import Config, VelocityModel
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
@@ -45,7 +45,13 @@ def status_lines(sup: Supervisor) -> list[str]:
         for name, slot in scheduler.slots.items():
             unit, st = sup.units[name], slot.stats
             fb = unit.feedback
-            vel = f"fbk Y/X {fb.vel_y:8.1f} {fb.vel_x:8.1f}" if fb else "fbk –"
+            travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
+            model = "Y/X" if travel else "A/B"
+            if fb is None:
+                vel = f"fbk {model} –"
+            else:
+                ay, bx = (fb.vel_y, fb.vel_x) if travel else (fb.vel_a, fb.vel_b)
+                vel = f"fbk {model} {ay:8.1f} {bx:8.1f}"
             p50, p99 = st.rtt_ms(50), st.rtt_ms(99)
             rtt = (
                 f"rtt p50 {p50:.2f} p99 {p99:.2f} ms"
@@ -55,7 +61,7 @@ def status_lines(sup: Supervisor) -> list[str]:
             state = {True: "online", False: "OFFLINE", None: "waiting"}[slot.online]
             lines.append(
                 f"{bus}/{name}: {state} {st.achieved_rate_hz(now):5.1f}/{st.requested_rate_hz:g} Hz"
-                f" cmd {unit.setpoint.ay:g} {unit.setpoint.bx:g} {vel} {rtt}"
+                f" cmd {model} {unit.setpoint.ay:g} {unit.setpoint.bx:g} {vel} {rtt}"
                 f" timeouts {st.timeouts}"
             )
     return lines

@@ -77,6 +77,7 @@ class UnitConfig:
     brd_group: int = 5
     protocol: Generation = Generation.G2021
     timeout_ms: int = 1000
+    reply_timeout_ms: int = 100
     command_rate_hz: float = 50.0
     control: ControlMode = ControlMode.VELOCITY
     velocity_model: VelocityModel = VelocityModel.TRAVEL

@@ -47,6 +47,7 @@ UNIT_KEYS = {
     "brd_group",
     "protocol",
     "timeout_ms",
+    "reply_timeout_ms",
     "command_rate_hz",
     "control",
     "velocity_model",
@@ -206,6 +207,7 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
         brd_group=u.integer("brd_group", d.brd_group, 0, 31),
         protocol=Generation(u.choice("protocol", d.protocol, [g.value for g in Generation])),
         timeout_ms=u.integer("timeout_ms", d.timeout_ms, 1, 60_000),
+        reply_timeout_ms=u.integer("reply_timeout_ms", d.reply_timeout_ms, 1, 60_000),
         command_rate_hz=u.number("command_rate_hz", d.command_rate_hz, 0, 1000, lo_open=True),
         control=ControlMode(u.choice("control", d.control, [m.value for m in ControlMode])),
         velocity_model=VelocityModel(

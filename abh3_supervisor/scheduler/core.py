@@ -61,10 +61,11 @@ class UnitSlot:
     def __init__(self, cfg: UnitConfig, start: float) -> None:
         self.cfg = cfg
         self.period = 1.0 / cfg.command_rate_hz
-        # One DP0 exchange in flight: one without reply is abandoned when the next command is
-        # due (a timeout) so the keepalive never stalls. ``timeout`` (the seed's) decides
-        # offline and paces probes of an offline unit.
+        # One DP0 exchange in flight (replies carry no sequence number). It waits for its
+        # reply at most ``exchange_timeout``, short enough that a lost reply never starves
+        # the drive's command-zero timeout; ``timeout`` (the seed's) decides offline.
         self.timeout = cfg.timeout_ms / 1000
+        self.exchange_timeout = min(self.timeout, cfg.reply_timeout_ms / 1000)
         self.commanding = cfg.role is Role.COMMAND
         self.command_id = (
             dp0_command_id(cfg.abh3_id, cfg.host_id, cfg.priority)
@@ -96,6 +97,12 @@ class UnitSlot:
         if self.poll_sent_at is None:
             return self.next_poll
         return max(self.next_poll, self.poll_sent_at + self.timeout)
+
+    def command_due(self) -> float:
+        """When the next DP0 request may go: on its grid, after the one in flight ends."""
+        if self.dp0_sent_at is None:
+            return self.next_command
+        return max(self.next_command, self.dp0_sent_at + self.exchange_timeout)
 
     def command_interval(self) -> float:
         # an offline unit is only probed once per timeout, so it costs the bus little
@@ -183,7 +190,7 @@ class BusScheduler:
         slots = self.slots.values()
         for slot in slots:
             self._check_health(slot, now)
-            if now >= slot.next_command:
+            if now >= slot.command_due():
                 if slot.dp0_sent_at is not None:
                     slot.stats.timeouts += 1  # the previous exchange got no reply in time
                 out.append((slot.command_id, slot.payload))
@@ -220,7 +227,7 @@ class BusScheduler:
     def next_deadline(self) -> float:
         deadline = math.inf
         for slot in self.slots.values():
-            deadline = min(deadline, slot.next_command)
+            deadline = min(deadline, slot.command_due())
             if slot.polls:
                 deadline = min(deadline, slot.poll_due())
             if slot.online is not False:
