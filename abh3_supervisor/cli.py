@@ -141,7 +141,7 @@ def _check(config: Config, as_json: bool) -> int:
         for p in plans:
             print(
                 f"bus {p.bus}: {p.bitrate} bit/s, {p.frames_per_s:.0f} frames/s, "
-                f"{p.bits_per_s:.0f} bit/s = {p.load_percent:.1f} % (worst-case bit stuffing)"
+                f"load {p.load_percent:.1f} % expected, {p.worst_load_percent:.1f} % worst case"
             )
             for u in p.units:
                 print(
@@ -150,4 +150,4 @@ def _check(config: Config, as_json: bool) -> int:
                 )
             if p.warning:
                 print(f"  warning: {p.warning}")
-    return EXIT_RUNTIME if any(p.load_percent > 100 for p in plans) else EXIT_OK
+    return EXIT_RUNTIME if any(p.worst_load_percent > 100 for p in plans) else EXIT_OK

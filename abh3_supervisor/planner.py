@@ -1,11 +1,18 @@
-"""Bus-load plan: what the configured schedule puts on each bus, before anything runs."""
+"""Bus-load plan: what the configured schedule puts on each bus, before anything runs.
+
+Two figures per bus: *expected*, from the exact stuffed length of the frames the schedule
+sends with idle payloads (the identifiers are known exactly; zero commands and flags are
+what an idle drive exchanges), and *worst case*, with every frame maximally stuffed.
+The warning uses the worst case.
+"""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
 from abh3_supervisor.config.model import Config, Role, UnitConfig
-from abh3_supervisor.wire import worst_case_bits
+from abh3_supervisor.protocol import frames, ids
+from abh3_supervisor.wire import exact_bits, worst_case_bits
 
 # Keep planned load at or below 70 %: queueing delay for the lowest-priority frame grows
 # steeply as a CAN bus nears saturation, and the plan cannot see frames the drives send
@@ -22,6 +29,7 @@ class UnitLoad:
     polls_per_s: float
     frames_per_s: float
     bits_per_s: float
+    worst_bits_per_s: float
 
 
 @dataclass(frozen=True)
@@ -32,17 +40,51 @@ class BusPlan:
     frames_per_s: float
     bits_per_s: float
     load_percent: float
+    worst_load_percent: float
     warning: str | None
 
     def to_json(self) -> dict[str, object]:
         return asdict(self)
 
 
+def _expected_bits(u: UnitConfig) -> tuple[float, float]:
+    """Exact bits of one DP0 exchange and of one average status poll, idle payloads."""
+    zero8 = bytes(8)
+    if u.role is Role.COMMAND:
+        inputs = u.data_select[0] << 4 | u.data_select[1] << 16
+        request = exact_bits(
+            ids.dp0_command_id(u.abh3_id, u.host_id, u.priority),
+            frames.encode_dp0_command(0, 0, inputs),
+        )
+    else:
+        request = exact_bits(
+            ids.request_id(u.abh3_id, u.host_id, u.priority), frames.encode_request(frames.PGN_DP0)
+        )
+    exchange = request + exact_bits(ids.dp0_reply_id(u.abh3_id, u.host_id), zero8)
+    packets = u.broadcast.packets or (0,)
+    poll = sum(
+        exact_bits(
+            ids.request_id(u.abh3_id, u.host_id, u.priority),
+            frames.encode_request(frames.broadcast_pgn(u.brd_group, n)),
+        )
+        + exact_bits(ids.broadcast_id(u.abh3_id, u.brd_group, n), zero8)
+        for n in packets
+    ) / len(packets)
+    return exchange, poll
+
+
 def unit_load(u: UnitConfig) -> UnitLoad:
-    request = DP0 if u.role is Role.COMMAND else REQUEST  # a monitor asks with the request PGN
+    worst_request = DP0 if u.role is Role.COMMAND else REQUEST
     polls = 0.0 if u.broadcast.listen_only or not u.broadcast.mask else u.broadcast.rate_hz
-    bits = u.command_rate_hz * (request + DP0) + polls * (REQUEST + DP0)
-    return UnitLoad(u.name, u.command_rate_hz, polls, 2 * (u.command_rate_hz + polls), bits)
+    exchange, poll = _expected_bits(u)
+    return UnitLoad(
+        u.name,
+        u.command_rate_hz,
+        polls,
+        2 * (u.command_rate_hz + polls),
+        u.command_rate_hz * exchange + polls * poll,
+        u.command_rate_hz * (worst_request + DP0) + polls * (REQUEST + DP0),
+    )
 
 
 def plan(config: Config) -> list[BusPlan]:
@@ -50,17 +92,26 @@ def plan(config: Config) -> list[BusPlan]:
     for name, bus in config.buses.items():
         units = [unit_load(u) for u in config.units_on(name)]
         bits = sum(u.bits_per_s for u in units)
-        percent = 100 * bits / bus.bitrate
+        worst = 100 * sum(u.worst_bits_per_s for u in units) / bus.bitrate
         warning = None
-        if percent > 100:
+        if worst > 100:
             warning = (
-                f"planned load {percent:.1f} % exceeds the bus: lower rates or raise the bitrate"
+                f"worst-case load {worst:.1f} % exceeds the bus: lower rates or raise the bitrate"
             )
-        elif percent > WARN_PERCENT:
-            warning = f"planned load {percent:.1f} % is above {WARN_PERCENT:.0f} %: little headroom"
+        elif worst > WARN_PERCENT:
+            warning = (
+                f"worst-case load {worst:.1f} % is above {WARN_PERCENT:.0f} %: little headroom"
+            )
         plans.append(
             BusPlan(
-                name, bus.bitrate, units, sum(u.frames_per_s for u in units), bits, percent, warning
+                name,
+                bus.bitrate,
+                units,
+                sum(u.frames_per_s for u in units),
+                bits,
+                100 * bits / bus.bitrate,
+                worst,
+                warning,
             )
         )
     return plans

@@ -96,9 +96,11 @@ def test_check_prints_the_bus_load_plan(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     plan = json.loads(out.stdout)
     bus = plan["buses"][0]
-    # per unit: 50 × 2 DP0 frames + polls × (request + reply), 160/110 bits worst case
+    # per unit: 50 × 2 DP0 frames + polls × (request + reply); worst case 160/110 bits
     assert bus["frames_per_s"] == pytest.approx(2 * (50 + 14) + 2 * (50 + 8))
-    assert bus["bits_per_s"] == pytest.approx(50 * 320 + 14 * 270 + 50 * 320 + 8 * 270)
+    worst = 50 * 320 + 14 * 270 + 50 * 320 + 8 * 270
+    assert bus["worst_load_percent"] == pytest.approx(worst / 5000)
+    assert 0.75 * worst < bus["bits_per_s"] < worst  # exact stuffing of idle frames
     assert bus["load_percent"] == pytest.approx(bus["bits_per_s"] / 5000)
     text = abh3("check", str(DEMO))
     assert "bus demo: 500000 bit/s" in text.stdout
