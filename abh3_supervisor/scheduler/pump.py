@@ -17,6 +17,8 @@ from typing import Protocol
 
 import can
 
+from abh3_supervisor.scheduler.timer import DeadlineTimer
+
 log = logging.getLogger(__name__)
 
 
@@ -44,7 +46,7 @@ class BusPump(can.Listener):
         self.recorder = recorder
         self.on_fatal = on_fatal
         self.loop = asyncio.get_running_loop()
-        self._timer: asyncio.TimerHandle | None = None
+        self._timer = DeadlineTimer(self.loop, self._step)
         self._notifier: can.Notifier | None = None
         self.frames_sent = 0
         self.frames_received = 0
@@ -57,9 +59,7 @@ class BusPump(can.Listener):
         self._step()
 
     def stop(self) -> None:  # also called by Notifier.stop(): must be idempotent
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
+        self._timer.close()
         notifier, self._notifier = self._notifier, None
         if notifier is not None:
             notifier.stop()
@@ -67,6 +67,8 @@ class BusPump(can.Listener):
     # ------------------------------------------------------------ can.Listener
 
     def on_message_received(self, msg: can.Message) -> None:
+        if self._notifier is None:
+            return  # stopped: a frame handed over just before stop() is dropped
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         if msg.is_error_frame:
@@ -101,17 +103,10 @@ class BusPump(can.Listener):
         if self.after_step is not None:
             self.after_step()
         deadline = self.machine.next_deadline()
-        if self._timer is not None:
-            if self._timer.when() == deadline:
-                return
+        if self._notifier is None or not math.isfinite(deadline):
             self._timer.cancel()
-            self._timer = None
-        if math.isfinite(deadline) and self._notifier is not None:
-            self._timer = self.loop.call_at(deadline, self._on_timer)
-
-    def _on_timer(self) -> None:
-        self._timer = None
-        self._step()
+        else:
+            self._timer.arm(deadline)
 
     def send(self, arbitration_id: int, data: bytes) -> bool:
         """Send one frame now; a refused frame is counted and reported, never fatal."""

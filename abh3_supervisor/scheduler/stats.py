@@ -41,7 +41,10 @@ class UnitStats:
         recent = [t for t in self._reply_times if now - t <= window]
         if len(recent) < 2:
             return 0.0
-        span = max(now - recent[0], recent[-1] - recent[0])
+        # measure between replies while they flow (no bias from where `now` falls between
+        # two of them); once they stop, stretch to `now` so the rate decays
+        last = recent[-1] if now - recent[-1] <= window / 4 else now
+        span = last - recent[0]
         return (len(recent) - 1) / span if span > 0 else 0.0
 
     def rtt_ms(self, q: float) -> float | None:

@@ -1,0 +1,241 @@
+"""``python -m benchmarks``: every figure next to its baseline, as ratios, in one run.
+
+``--quick`` is the smoke mode CI runs (short windows, one repetition); ``--long`` adds the
+10-minute memory-growth run. Results are medians of ``--runs`` repetitions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+
+from benchmarks import bus_model, cycle_timing, host_cpu, scale
+from benchmarks.report import Row, machine, print_rows
+
+COUNTS = [1, 4, 8, 16, 32]
+BITRATES = [250_000, 500_000, 1_000_000]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
+    p.add_argument("--quick", action="store_true", help="smoke mode: short and single runs")
+    p.add_argument("--long", action="store_true", help="add the 10-minute memory-growth run")
+    p.add_argument("--runs", type=int, default=3, help="repetitions; the median is printed")
+    p.add_argument(
+        "--latency-ms",
+        type=float,
+        default=0.5,
+        help="simulated drive response latency for the bus model (default 0.5)",
+    )
+    a = p.parse_args(argv)
+    runs = 1 if a.quick else a.runs
+    rows: list[Row] = []
+    print(f"machine: {machine()}")
+    print(
+        f"mode: {'quick' if a.quick else 'full'}, median of {runs} run(s); "
+        f"bus model drive latency {a.latency_ms} ms"
+    )
+
+    # 1. bus utilisation (deterministic model: one run is exact)
+    latency = a.latency_ms / 1000
+    section = "1. bus utilisation (simulated wire, offered load above capacity)"
+    for r in bus_model.utilisation_table(
+        COUNTS if not a.quick else [1, 8],
+        BITRATES if not a.quick else [500_000],
+        latency,
+        seed_turnaround=0.0,
+    ):
+        n, kbit = int(r["units"]), int(r["bitrate"]) // 1000
+        rows.append(
+            Row(
+                section,
+                f"{n:>2} units @ {kbit:>4} kbit/s: exchanges/s vs seed-style",
+                r["ours"],
+                r["seed"],
+                "/s",
+                ">=2.5x seed @8" if n == 8 else "",
+            )
+        )
+        ok = r["percent"] >= 95
+        rows.append(
+            Row(
+                section,
+                f"{n:>2} units @ {kbit:>4} kbit/s: % of physical limit",
+                r["percent"],
+                100.0,
+                "%",
+                ">=95%",
+                ok,
+            )
+        )
+        if n == 8:
+            rows[-2] = Row(
+                section,
+                rows[-2].figure,
+                r["ours"],
+                r["seed"],
+                "/s",
+                ">=2.5x seed",
+                r["ours"] >= 2.5 * r["seed"],
+            )
+
+    # 2. host CPU per exchange
+    section = "2. host CPU per DP0 exchange (virtual bus, same echo drive)"
+    n = 2000 if a.quick else 10000
+    bare = statistics.median(host_cpu.bare(n) for _ in range(runs)) * 1e6
+    ours = statistics.median(host_cpu.ours(n) for _ in range(runs)) * 1e6
+    rows.append(
+        Row(
+            section,
+            "CPU per exchange: ours vs bare python-can",
+            ours,
+            bare,
+            "us",
+            "<=1.5x",
+            ours <= 1.5 * bare,
+        )
+    )
+
+    # 3. cycle timing, 8 units at 100 Hz
+    section = "3. cycle timing: 8 units at 100 Hz, headless (baseline: 1 unit)"
+    seconds = 2.0 if a.quick else 10.0
+    eight = [cycle_timing.run(8, 100, seconds, f"timing8-{i}") for i in range(runs)]
+    one = [cycle_timing.run(1, 100, seconds, f"timing1-{i}") for i in range(runs)]
+
+    def med(results: list[dict[str, float]], key: str) -> float:
+        return statistics.median(r[key] for r in results)
+
+    rows.append(
+        Row(
+            section,
+            "worst unit's rate error vs requested",
+            med(eight, "rate_error_percent"),
+            med(one, "rate_error_percent"),
+            "%",
+            "<=1%",
+            med(eight, "rate_error_percent") <= 1,
+        )
+    )
+    rows.append(
+        Row(
+            section,
+            "period jitter p50",
+            med(eight, "jitter_p50_ms"),
+            med(one, "jitter_p50_ms"),
+            "ms",
+        )
+    )
+    rows.append(
+        Row(
+            section,
+            "period jitter p99",
+            med(eight, "jitter_p99_ms"),
+            med(one, "jitter_p99_ms"),
+            "ms",
+            "<=1 ms",
+            med(eight, "jitter_p99_ms") <= 1,
+        )
+    )
+    rows.append(
+        Row(
+            section,
+            "input-to-frame latency p99",
+            med(eight, "latency_p99_ms"),
+            med(one, "latency_p99_ms"),
+            "ms",
+            "<=11 ms (cycle + 1)",
+            med(eight, "latency_p99_ms") <= 11,
+        )
+    )
+    rows.append(
+        Row(section, "with the TUI", float("nan"), None, "", "n/a: the TUI does not exist yet")
+    )
+
+    # 4. scale and memory (fresh subprocess per measurement)
+    section = "4. scale and memory (simulated drives in the same process)"
+    secs = "3" if a.quick else "10"
+    one_unit = scale.in_subprocess("--units", "1", "--seconds", secs)
+    for count in [1, 4, 8, 16, 32] if not a.quick else [16]:
+        m = scale.in_subprocess("--units", str(count), "--seconds", secs)
+        rows.append(
+            Row(
+                section,
+                f"{count:>2} units, 1 bus: CPU % of one core (vs 1 unit)",
+                m["cpu_percent"],
+                one_unit["cpu_percent"],
+                "%",
+            )
+        )
+        rows.append(
+            Row(
+                section,
+                f"{count:>2} units, 1 bus: slowest unit's achieved/requested",
+                100 * m["min_rate_ratio"],
+                100.0,
+                "%",
+                ">=99%",
+                m["min_rate_ratio"] >= 0.99,
+            )
+        )
+        if count == 16:
+            base = scale.in_subprocess("--baseline")["rss_mb"]
+            rows.append(
+                Row(
+                    section,
+                    "16 units: RSS vs python with python-can only",
+                    m["rss_mb"],
+                    base,
+                    "MB",
+                    "<=80 MB",
+                    m["rss_mb"] <= 80,
+                )
+            )
+    multi = scale.in_subprocess("--units", "8", "--buses", "4", "--seconds", secs)
+    rows.append(
+        Row(
+            section,
+            "4 buses x 8 units: slowest achieved/requested",
+            100 * multi["min_rate_ratio"],
+            100.0,
+            "%",
+            ">=99%",
+            multi["min_rate_ratio"] >= 0.99,
+        )
+    )
+    growth_secs = "600" if a.long else ("20" if a.quick else "60")
+    g = scale.in_subprocess("--units", "16", "--seconds", growth_secs)
+    rows.append(
+        Row(
+            section,
+            f"16 units: RSS growth over {growth_secs} s",
+            g["rss_growth_mb"],
+            0.0,
+            "MB",
+            "<2 MB (10-min run: --long)",
+            g["rss_growth_mb"] < 2,
+        )
+    )
+
+    # 5. planner accuracy
+    section = "5. planner accuracy (abh3 check vs the simulated wire)"
+    planned, measured = bus_model.planner_accuracy()
+    rows.append(
+        Row(
+            section,
+            "8 units @100 Hz + polls, 500 kbit/s: planned vs measured load",
+            planned,
+            measured,
+            "%",
+            "within 5%",
+            abs(planned - measured) / measured <= 0.05,
+        )
+    )
+
+    print_rows(rows)
+    missed = [r for r in rows if r.ok is False]
+    print(f"\n{len(rows)} figures, {len(missed)} target(s) missed")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,108 @@
+"""2. Host CPU per DP0 exchange: our whole stack next to bare python-can.
+
+Both sides talk to the same echo drive (a python-can handle in a thread of this process
+that answers every DP0 command at once) on python-can's ``virtual`` interface, and both
+are timed with process CPU time, so the echo's own cost is in both figures alike.
+
+* **bare python-can** — build a message, ``send``, ``recv`` until the reply: the least any
+  Python host can do per exchange on this interface;
+* **ours** — the real path: set a new setpoint (encode), scheduler poll, pump send,
+  Notifier delivery onto the event loop, match + decode, state update, flag bookkeeping,
+  and dispatch to one subscribed observer (the hook path plugins use).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import can
+
+from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, UnitConfig
+from abh3_supervisor.protocol import frames, ids
+from abh3_supervisor.scheduler.core import FeedbackEvent
+from abh3_supervisor.scheduler.pump import BusPump
+from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
+
+CMD_ID, REPLY_ID = ids.dp0_command_id(1, 2), ids.dp0_reply_id(1, 2)
+
+
+class EchoDrive:
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self.reply = can.Message(arbitration_id=REPLY_ID, data=bytes(8), is_extended_id=True)
+
+    def __enter__(self) -> EchoDrive:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.bus.shutdown()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is not None and msg.arbitration_id == CMD_ID:
+                self.bus.send(self.reply)
+
+
+def bare(exchanges: int) -> float:
+    """CPU seconds per exchange for a plain python-can send/recv loop."""
+    with EchoDrive("bench-bare"):
+        bus = can.Bus(interface="virtual", channel="bench-bare")
+        try:
+            start = time.process_time()
+            for i in range(exchanges):
+                data = frames.encode_dp0_command(i & 0x7FFF, 0, 0)
+                bus.send(can.Message(arbitration_id=CMD_ID, data=data, is_extended_id=True))
+                while (msg := bus.recv(1.0)) is not None and msg.arbitration_id != REPLY_ID:
+                    pass
+            return (time.process_time() - start) / exchanges
+        finally:
+            bus.shutdown()
+
+
+def ours(exchanges: int) -> float:
+    """CPU seconds per exchange through scheduler, pump, supervisor and one observer."""
+    unit = UnitConfig(name="u", bus="b", command_rate_hz=1e6, broadcast=BroadcastConfig(mask=0))
+    config = Config(file="bench", buses={"b": BusConfig(name="b")}, units={"u": unit})
+
+    async def run() -> float:
+        loop = asyncio.get_running_loop()
+        done = loop.create_future()
+        sup = Supervisor(config, clock=loop.time)
+        count = 0
+
+        def observer(event: SupervisorEvent) -> None:
+            nonlocal count
+            if not isinstance(event, FeedbackEvent):
+                return
+            count += 1
+            sup.set_velocity("u", float(count % 1000), 0.0)  # a new setpoint every exchange
+            if count >= exchanges and not done.done():
+                done.set_result(None)
+
+        sup.subscribe(observer)
+        with EchoDrive("bench-ours"):
+            bus = can.Bus(interface="virtual", channel="bench-ours")
+            pump = BusPump(
+                bus,
+                sup.schedulers["b"],
+                name="b",
+                channel="bench-ours",
+                after_step=lambda: sup.dispatch("b"),
+            )
+            start = time.process_time()
+            pump.start()
+            await done
+            cpu = time.process_time() - start
+            pump.stop()
+            bus.shutdown()
+        return cpu / count
+
+    return asyncio.run(run())

@@ -1,0 +1,27 @@
+"""Smoke mode for the benchmarks: they run and produce sane figures. No timed assertions."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks import bus_model, cycle_timing, host_cpu, scale
+
+
+def test_bus_model_reaches_the_physical_limit_deterministically() -> None:
+    got, bits = bus_model.ours(8, 500_000, 0.0005)
+    limit = bus_model.physical_limit(8, 500_000, 0.0005, bits)
+    assert got == pytest.approx(limit, rel=0.02)
+    assert 0 < bus_model.seed_style(8, 500_000, 0.0005, 0.0) <= limit * 1.01
+
+
+def test_planner_matches_the_wire_model() -> None:
+    planned, measured = bus_model.planner_accuracy()
+    assert planned == pytest.approx(measured, rel=0.05)
+
+
+def test_host_cpu_and_timing_and_scale_run() -> None:
+    assert host_cpu.bare(50) > 0 and host_cpu.ours(50) > 0
+    result = cycle_timing.run(2, 100, 0.5, "smoke")
+    assert set(result) >= {"jitter_p99_ms", "latency_p99_ms", "rate_error_percent"}
+    measured = scale.in_subprocess("--units", "2", "--seconds", "1")
+    assert measured["units"] == 2 and measured["rss_mb"] > 0
