@@ -13,10 +13,14 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
 from abh3_supervisor.config import Config, load_config
 from abh3_supervisor.errors import Abh3Error, BusOpenError, ConfigError
+
+if TYPE_CHECKING:
+    from abh3_supervisor.plugin_host import PluginHost
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
 
@@ -85,12 +89,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         if args.cmd == "check":
-            return _check(load_config(args.config), args.json)
+            config = load_config(args.config)
+            _plugins(config)  # plugin sections are validated like the core's
+            return _check(config, args.json)
         if args.cmd == "decode":
-            config = load_config(args.config) if args.config else None
             from abh3_supervisor.decoding import decode_file
 
-            for out in decode_file(args.file, config, args.json):
+            known = load_config(args.config) if args.config else None
+            for out in decode_file(args.file, known, args.json):
                 print(out)
             return EXIT_OK
         return _run(args)
@@ -112,13 +118,24 @@ def _run(args: argparse.Namespace) -> int:
     from abh3_supervisor.headless import run_headless
 
     config = load_config(args.config)
+    plugins = _plugins(config)
     if not args.headless and sys.stdout.isatty():
         logging.getLogger("abh3").info("the TUI is not built yet: running headless")
     return asyncio.run(
         run_headless(
-            config, duration=args.duration, record=args.record, status_interval=args.status_interval
+            config,
+            duration=args.duration,
+            record=args.record,
+            status_interval=args.status_interval,
+            plugins=plugins,
         )
     )
+
+
+def _plugins(config: Config) -> PluginHost:
+    from abh3_supervisor.plugin_host import PluginHost
+
+    return PluginHost(config)
 
 
 def _check(config: Config, as_json: bool) -> int:

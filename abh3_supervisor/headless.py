@@ -9,6 +9,7 @@ import signal
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
+from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
@@ -68,14 +69,19 @@ def status_lines(sup: Supervisor) -> list[str]:
 
 
 async def run_headless(
-    config: Config, *, duration: float | None, record: Path | None, status_interval: float
+    config: Config,
+    *,
+    duration: float | None,
+    record: Path | None,
+    status_interval: float,
+    plugins: PluginHost | None = None,
 ) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     try:
-        async with Runtime(config, record=record) as rt:
+        async with Runtime(config, record=record, plugins=plugins) as rt:
             sup = rt.supervisor
 
             def on_event(event: SupervisorEvent) -> None:

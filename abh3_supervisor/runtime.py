@@ -19,6 +19,7 @@ import can
 
 from abh3_supervisor.config.model import BusConfig, Config
 from abh3_supervisor.errors import BusOpenError
+from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
 from abh3_supervisor.supervisor import Supervisor
@@ -53,9 +54,12 @@ def open_recorder(path: Path) -> can.Listener:
 
 
 class Runtime:
-    def __init__(self, config: Config, *, record: Path | None = None) -> None:
+    def __init__(
+        self, config: Config, *, record: Path | None = None, plugins: PluginHost | None = None
+    ) -> None:
         self.config = config
         self.record = record
+        self.plugins = plugins
         self.supervisor: Supervisor
         self.sims: dict[str, SimBus] = {}
         self.pumps: dict[str, BusPump] = {}
@@ -100,6 +104,8 @@ class Runtime:
             )
         for pump in self.pumps.values():
             pump.start()
+        if self.plugins is not None:
+            self.plugins.start(self.supervisor, loop)
 
     def _on_fatal(self, exc: BaseException) -> None:
         if self.fatal is not None and not self.fatal.done():
@@ -109,9 +115,15 @@ class Runtime:
         self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
     ) -> None:
         try:
+            if self.plugins is not None:
+                self.plugins.stop_inputs()  # nothing may command motion from here on
             await self.stop_drives()
         finally:
-            self._close()
+            try:
+                if self.plugins is not None:
+                    self.plugins.stop(self.supervisor)  # recordings get their last rows
+            finally:
+                self._close()
 
     async def stop_drives(self) -> None:
         """Zero, START and SERVO off on every commanded unit, sent now and confirmed."""

@@ -88,6 +88,7 @@ class Supervisor:
         self._observers: list[Observer] = []
         self._waiters: dict[str, list[tuple[float, asyncio.Future[bool]]]] = {}
         self.estop = False
+        self.stopping = False  # set by safe_state(): every later command is refused
         for unit in self.units.values():
             self._push(unit)
 
@@ -170,6 +171,8 @@ class Supervisor:
 
     def _commandable(self, name: str) -> UnitState:
         unit = self.unit(name)
+        if self.stopping:
+            raise CommandError("the supervisor is stopping: commands are refused")
         if unit.cfg.role is not Role.COMMAND:
             raise CommandError(f"unit '{name}' is configured role: monitor and takes no commands")
         return unit
@@ -349,7 +352,8 @@ class Supervisor:
         self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
 
     def safe_state(self) -> None:
-        """The way-out state: zero, START and SERVO off on every unit we drove."""
+        """The way-out state: zero, START and SERVO off on every unit we drove; final."""
+        self.stopping = True
         for unit in self.units.values():
             if unit.cfg.role is Role.COMMAND:
                 unit.inputs &= ~(flags.START_BITS | flags.SERVO_BITS)

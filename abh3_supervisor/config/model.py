@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
+from abh3_supervisor.config.source import Source
 from abh3_supervisor.kinematics import Geometry
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
@@ -97,6 +98,8 @@ class Config:
     plugins: dict[str, Any] = field(default_factory=dict)
     # line of each plugin section, so plugins can report file:line like the core
     plugin_lines: dict[str, int] = field(default_factory=dict)
+    # the parsed document with positions, for validating plugin sections later
+    source: Source | None = field(default=None, compare=False, repr=False)
 
     def units_on(self, bus: str) -> list[UnitConfig]:
         return [u for u in self.units.values() if u.bus == bus]

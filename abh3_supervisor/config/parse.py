@@ -87,6 +87,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
         units=units,
         plugins=dict(plugins.items()),
         plugin_lines={name: src.line(("plugins", name)) for name, _ in plugins.items()},
+        source=src,
     )
 
 

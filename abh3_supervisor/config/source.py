@@ -78,7 +78,8 @@ def _construct(node: yaml.Node, path: Path, src: Source) -> Any:
 class Section:
     """Typed, validating access to one mapping of a :class:`Source`."""
 
-    def __init__(self, src: Source, path: Path, data: Any, allowed: set[str]) -> None:
+    def __init__(self, src: Source, path: Path, data: Any, allowed: set[str] | None) -> None:
+        """``allowed`` None: the keys are checked later with :meth:`only` (plugin sections)."""
         self.src, self.path = src, path
         if data is None:
             data = {}
@@ -86,12 +87,18 @@ class Section:
             src.error(path, f"expected a mapping, got {_kind(data)}")
             data = {}
         self.data: dict[Any, Any] = data
-        for key in data:
+        if allowed is not None:
+            self.only(allowed)
+
+    def only(self, allowed: set[str]) -> None:
+        """Report every key not in ``allowed``, with a did-you-mean when one is close."""
+        for key in self.data:
             if key not in allowed:
                 hint = difflib.get_close_matches(str(key), sorted(allowed), n=1)
                 did = f"; did you mean '{hint[0]}'?" if hint else ""
-                src.error(
-                    (*path, str(key)), f"unknown key{did} (allowed: {', '.join(sorted(allowed))})"
+                self.src.error(
+                    (*self.path, str(key)),
+                    f"unknown key{did} (allowed: {', '.join(sorted(allowed))})",
                 )
 
     def has(self, key: str) -> bool:
@@ -154,6 +161,15 @@ class Section:
                 None if isinstance(v, str) and v else f"expected a non-empty string, got {v!r}"
             ),
         )
+
+    def strings(self, key: str, default: tuple[str, ...]) -> tuple[str, ...]:
+        def check(v: Any) -> str | None:
+            if isinstance(v, list) and v and all(isinstance(x, str) and x for x in v):
+                return None
+            return f"expected a list of names, got {v!r}"
+
+        value = self._get(key, default, check)
+        return tuple(value)
 
     def choice(self, key: str, default: str, choices: list[str]) -> str:
         def check(v: Any) -> str | None:

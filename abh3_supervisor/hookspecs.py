@@ -1,0 +1,71 @@
+"""The hooks a plugin may implement. Each is documented in docs/plugins.md.
+
+Call conventions: hooks are called with keyword arguments, and an implementation may
+accept fewer arguments than its spec (pluggy's rule), so specs can grow without breaking
+plugins. Configuration, start, stop and input-source hooks run on the event loop; the
+observation hooks (``abh3_feedback`` … ``abh3_notice``) run in the plugin's own worker
+thread, so a slow plugin never delays the bus.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import pluggy
+
+if TYPE_CHECKING:
+    from abh3_supervisor.config.source import Section
+    from abh3_supervisor.inputs import InputSource
+    from abh3_supervisor.protocol.frames import Broadcast
+    from abh3_supervisor.state import Feedback, Setpoint
+    from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor
+
+PROJECT = "abh3_supervisor"
+hookspec = pluggy.HookspecMarker(PROJECT)
+hookimpl = pluggy.HookimplMarker(PROJECT)
+
+
+@hookspec
+def abh3_configure(section: Section) -> None:
+    """Validate this plugin's own ``plugins.<name>`` YAML section; report with ``section.error``."""
+
+
+@hookspec
+def abh3_start(supervisor: Supervisor) -> None:
+    """The supervisor runs: open files, start threads. On the event loop; keep it short."""
+
+
+@hookspec
+def abh3_input_sources(register: Callable[[InputSource], None], supervisor: Supervisor) -> None:
+    """Contribute input sources by calling ``register(source)`` for each."""
+
+
+@hookspec
+def abh3_feedback(unit: str, feedback: Feedback, setpoint: Setpoint) -> None:
+    """After every DP0 reply: velocity feedback and the setpoint that was in force."""
+
+
+@hookspec
+def abh3_status(unit: str, packet: int, record: Broadcast, t: float) -> None:
+    """A broadcast status packet (0–7) arrived from a unit."""
+
+
+@hookspec
+def abh3_health(unit: str, online: bool, t: float) -> None:
+    """A unit went online or offline."""
+
+
+@hookspec
+def abh3_flags(change: FlagChange) -> None:
+    """A flag word (error, alarm, control, io, inputs) of a unit changed."""
+
+
+@hookspec
+def abh3_notice(notice: Notice) -> None:
+    """Something for the operator: clamping, e-stop, model mismatch, plugin trouble."""
+
+
+@hookspec
+def abh3_stop(supervisor: Supervisor) -> None:
+    """Every way out, after the drives were stopped: flush and close everything."""

@@ -1,0 +1,157 @@
+"""Input sources and the arbitration between them.
+
+Several sources (keyboard, joystick, a network bridge, …) may target the same unit. For
+each unit the **winner** is, among the sources targeting it that are *fresh* (heard within
+their ``timeout``) and holding a command, the one with the highest ``priority``; on a tie
+the most recently heard. When a unit's winner goes silent or releases (deadman let go)
+and no other source is fresh, the unit gets **zero velocity** at once. The arbiter is
+sans-I/O: it is fed submissions and the time, and applies commands through a callback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+DEFAULT_TIMEOUT = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class Twist:
+    """Robot twist: linear.x [m/s], angular.z [rad/s], through each unit's geometry."""
+
+    linear_x: float
+    angular_z: float
+
+
+@dataclass(frozen=True, slots=True)
+class VelocityYX:
+    """Travel/turn velocities [min⁻¹] at the motors."""
+
+    y: float
+    x: float
+
+
+InputCommand = Twist | VelocityYX
+ZERO = VelocityYX(0.0, 0.0)
+
+
+class InputSource(ABC):
+    """Something that produces commands for some units. Subclass and register it."""
+
+    def __init__(
+        self, name: str, units: tuple[str, ...], priority: int = 0, timeout: float = DEFAULT_TIMEOUT
+    ) -> None:
+        self.name, self.units, self.priority, self.timeout = name, units, priority, timeout
+
+    @abstractmethod
+    def start(self, feed: InputFeed) -> None:
+        """Begin producing commands through ``feed`` (usually from a thread of your own)."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Stop producing and release devices; called on every way out."""
+
+
+class Feed(Protocol):
+    """What a source may do: command a twist or Y/X velocities, or let go."""
+
+    def twist(self, linear_x: float, angular_z: float) -> None: ...
+    def velocity_yx(self, y: float, x: float) -> None: ...
+    def release(self) -> None: ...
+
+
+class InputFeed:
+    """A source's thread-safe :class:`Feed`: every call is handed to the event loop."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, arbiter: InputArbiter, name: str) -> None:
+        self._loop, self._arbiter, self._name = loop, arbiter, name
+
+    def twist(self, linear_x: float, angular_z: float) -> None:
+        self._submit(Twist(linear_x, angular_z))
+
+    def velocity_yx(self, y: float, x: float) -> None:
+        self._submit(VelocityYX(y, x))
+
+    def release(self) -> None:
+        """The source lets go (deadman released, device lost): its units stop now."""
+        self._submit(None)
+
+    def _submit(self, command: InputCommand | None) -> None:
+        if self._loop.is_closed():
+            return
+        self._loop.call_soon_threadsafe(self._arbiter.submit_now, self._name, command)
+
+
+@dataclass
+class _SourceState:
+    name: str
+    units: tuple[str, ...]
+    priority: int
+    timeout: float
+    command: InputCommand | None = None
+    heard: float = -math.inf
+
+    def fresh(self, now: float) -> bool:
+        return self.command is not None and now < self.heard + self.timeout
+
+
+@dataclass
+class InputArbiter:
+    apply: Callable[[str, InputCommand], None]
+    clock: Callable[[], float]
+    sources: dict[str, _SourceState] = field(default_factory=dict)
+    # per unit: (winning source, the command applied) — None when nobody drives it
+    current: dict[str, tuple[str, InputCommand] | None] = field(default_factory=dict)
+    on_change: Callable[[], None] | None = None  # re-arm the deadline timer
+
+    def add(self, source: InputSource) -> None:
+        self.sources[source.name] = _SourceState(
+            source.name, source.units, source.priority, source.timeout
+        )
+
+    def submit_now(self, name: str, command: InputCommand | None) -> None:
+        self.submit(name, command, self.clock())
+
+    def submit(self, name: str, command: InputCommand | None, now: float) -> None:
+        state = self.sources[name]
+        state.command, state.heard = command, now
+        self._decide(state.units, now)
+
+    def poll(self, now: float) -> None:
+        """Expire silent sources (call at :meth:`next_deadline`)."""
+        units = {u for s in self.sources.values() if s.command is not None for u in s.units}
+        self._decide(tuple(units), now)
+
+    def next_deadline(self) -> float:
+        return min(
+            (s.heard + s.timeout for s in self.sources.values() if s.command is not None),
+            default=math.inf,
+        )
+
+    def _decide(self, units: tuple[str, ...], now: float) -> None:
+        for unit in units:
+            candidates = [s for s in self.sources.values() if unit in s.units and s.fresh(now)]
+            if candidates:
+                best = max(candidates, key=lambda s: (s.priority, s.heard))
+                assert best.command is not None
+                chosen: tuple[str, InputCommand] | None = (best.name, best.command)
+            else:
+                chosen = None
+            previous = self.current.get(unit)
+            if chosen == previous:
+                continue
+            self.current[unit] = chosen
+            if chosen is not None:
+                self.apply(unit, chosen[1])
+            elif previous is not None:
+                self.apply(unit, ZERO)  # silence or release means zero velocity
+        for state in self.sources.values():
+            if state.command is not None and not state.fresh(now):
+                state.command = None  # expired: forget it, so a late deadline is not kept
+        if self.on_change is not None:
+            self.on_change()

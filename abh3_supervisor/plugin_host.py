@@ -1,0 +1,271 @@
+"""Finding, configuring and running plugins, each isolated from the bus and the others.
+
+Plugins are found through the entry-point group ``abh3_supervisor`` (our built-ins too);
+listing them imports nothing. Only plugins named in the YAML ``plugins:`` section are
+loaded. Every hook call is isolated per plugin: an exception is logged with the plugin's
+name, and after ``MAX_FAILURES`` failures in one run the plugin is disabled. Observation
+hooks are queued to a worker thread per plugin, so a slow plugin never delays the bus;
+when its queue is full, events for it are dropped and counted, never waited for.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import queue
+import threading
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, cast
+
+import pluggy
+
+from abh3_supervisor import hookspecs
+from abh3_supervisor.config.model import Config
+from abh3_supervisor.config.source import Section, Source
+from abh3_supervisor.errors import CommandError, ConfigError
+from abh3_supervisor.inputs import InputArbiter, InputCommand, InputFeed, InputSource, Twist
+from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
+from abh3_supervisor.scheduler.timer import DeadlineTimer
+from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+
+log = logging.getLogger(__name__)
+GROUP = "abh3_supervisor"
+MAX_FAILURES = 5
+QUEUE_SIZE = 10_000
+_STOP = object()
+
+
+def installed() -> dict[str, EntryPoint]:
+    """Installed plugins by name, without importing any of them."""
+    return {ep.name: ep for ep in entry_points(group=GROUP)}
+
+
+def _plugin_object(ep: EntryPoint) -> object:
+    target = ep.load()
+    return target() if isinstance(target, type) else target
+
+
+class _Worker:
+    """One plugin's observation hooks, run in order on a thread of its own."""
+
+    def __init__(self, host: PluginHost, name: str) -> None:
+        self.host, self.name = host, name
+        self.queue: queue.Queue[object] = queue.Queue(QUEUE_SIZE)
+        self.dropped = 0
+        self.thread = threading.Thread(target=self._run, name=f"plugin {name}", daemon=True)
+        self.thread.start()
+
+    def post(self, hook: str, kwargs: dict[str, Any]) -> None:
+        try:
+            self.queue.put_nowait((hook, kwargs))
+        except queue.Full:
+            self.dropped += 1
+            if self.dropped in (1, 100, 10_000):
+                log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
+
+    def _run(self) -> None:
+        while (item := self.queue.get()) is not _STOP:
+            hook, kwargs = cast(tuple[str, dict[str, Any]], item)
+            self.host.call_one(self.name, hook, **kwargs)
+
+    def close(self, timeout: float) -> None:
+        """Let the worker finish what is queued (so files get their last rows), then end."""
+        self.queue.put(_STOP)
+        self.thread.join(timeout)
+        if self.thread.is_alive():
+            log.warning("plugin %s did not finish its queue within %.1f s", self.name, timeout)
+
+
+class PluginHost:
+    def __init__(self, config: Config, available: dict[str, EntryPoint] | None = None) -> None:
+        self.pm = pluggy.PluginManager(hookspecs.PROJECT)
+        self.pm.add_hookspecs(hookspecs)
+        self.failures: dict[str, int] = {}
+        self.disabled: set[str] = set()
+        self._callers: dict[tuple[str, str], Any] = {}
+        self.workers: dict[str, _Worker] = {}
+        self.sources: list[InputSource] = []
+        self.arbiter: InputArbiter | None = None
+        self._timer: DeadlineTimer | None = None
+        self._sup: Supervisor | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._load(config, installed() if available is None else available)
+
+    # ------------------------------------------------------------ loading
+
+    def _load(self, config: Config, available: dict[str, EntryPoint]) -> None:
+        src = config.source or Source(config.file, {})
+        for name in config.plugins:
+            ep = available.get(name)
+            if ep is None:
+                names = ", ".join(sorted(available)) or "none"
+                src.error(
+                    ("plugins", name), f"no plugin named '{name}' is installed (installed: {names})"
+                )
+                continue
+            try:
+                plugin = _plugin_object(ep)
+                self.pm.register(plugin, name=name)
+            except Exception as exc:  # a broken plugin is the plugin's fault, said plainly
+                src.error(("plugins", name), f"plugin '{name}' failed to load: {exc!r}")
+        src.raise_if_problems()
+        for name in config.plugins:
+            if self.pm.get_plugin(name) is not None:
+                section = config.plugins[name]
+                # the plugin checks its own keys with section.only(...)
+                self.call_one(
+                    name, "abh3_configure", section=Section(src, ("plugins", name), section, None)
+                )
+        if src.problems:
+            raise ConfigError(src.problems)
+
+    def register(self, plugin: object, name: str) -> None:
+        """Register an already built plugin object (tests, embedding)."""
+        self.pm.register(plugin, name=name)
+
+    @property
+    def names(self) -> list[str]:
+        """Active plugins (registered and not disabled)."""
+        return [
+            n for n, p in self.pm.list_name_plugin() if p is not None and n not in self.disabled
+        ]
+
+    # ------------------------------------------------------------ calling
+
+    def _caller(self, name: str, hook: str) -> Any:
+        key = (name, hook)
+        if key not in self._callers:  # built on the loop thread before workers exist
+            others = [p for n, p in self.pm.list_name_plugin() if n != name and p is not None]
+            self._callers[key] = self.pm.subset_hook_caller(hook, remove_plugins=others)
+        return self._callers[key]
+
+    def call_one(self, name: str, hook: str, **kwargs: Any) -> None:
+        """Call one plugin's implementation of ``hook``, isolated (any thread)."""
+        if name in self.disabled:
+            return
+        try:
+            self._caller(name, hook)(**kwargs)
+        except ConfigError:
+            raise
+        except Exception as exc:
+            self._failed(name, hook, exc)
+
+    def _failed(self, name: str, hook: str, exc: Exception) -> None:
+        count = self.failures[name] = self.failures.get(name, 0) + 1
+        log.error(
+            "plugin %s failed in %s (failure %d of %d): %r",
+            name,
+            hook,
+            count,
+            MAX_FAILURES,
+            exc,
+            exc_info=count == 1,
+        )
+        if self._sup is not None and self._loop is not None and not self._loop.is_closed():
+            # may run on a worker thread: the supervisor is only touched on its loop
+            self._loop.call_soon_threadsafe(
+                self._sup.notice, None, logging.ERROR, f"plugin {name} failed in {hook}: {exc!r}"
+            )
+        if count >= MAX_FAILURES and name not in self.disabled:
+            self.disabled.add(name)  # a set add: safe from any thread; calls stop here
+            log.error(
+                "plugin %s disabled after %d failures; the others keep running", name, MAX_FAILURES
+            )
+
+    def _has(self, name: str, hook: str) -> bool:
+        caller = getattr(self.pm.hook, hook)
+        return any(impl.plugin_name == name for impl in caller.get_hookimpls())
+
+    # ------------------------------------------------------------ lifecycle
+
+    def start(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
+        self._sup, self._loop = sup, loop
+        observing = ("abh3_feedback", "abh3_status", "abh3_health", "abh3_flags", "abh3_notice")
+        for name in self.names:
+            for hook in observing:
+                self._caller(name, hook)
+        for name in self.names:
+            self.call_one(name, "abh3_start", supervisor=sup)
+            if any(self._has(name, hook) for hook in observing):
+                self.workers[name] = _Worker(self, name)
+        sup.subscribe(self._observe)
+        for name in self.names:
+            self.call_one(name, "abh3_input_sources", register=self.sources.append, supervisor=sup)
+        if self.sources:
+            self._start_inputs(sup, loop)
+
+    def _start_inputs(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
+        arbiter = self.arbiter = InputArbiter(apply=lambda u, c: _apply(sup, u, c), clock=loop.time)
+        self._timer = DeadlineTimer(loop, lambda: arbiter.poll(loop.time()))
+        timer = self._timer
+        arbiter.on_change = lambda: timer.arm(arbiter.next_deadline()) if arbiter.sources else None
+        for source in self.sources:
+            unknown = [u for u in source.units if u not in sup.units]
+            if unknown:
+                log.error("input %s names unknown units %s: not started", source.name, unknown)
+                continue
+            arbiter.add(source)
+            try:
+                source.start(InputFeed(loop, arbiter, source.name))
+            except Exception as exc:
+                log.error("input %s failed to start: %r", source.name, exc)
+
+    def _observe(self, event: SupervisorEvent) -> None:
+        """On the loop: translate an event into hook calls and queue them, never block."""
+        if not self.workers:
+            return
+        assert self._sup is not None
+        if isinstance(event, FeedbackEvent):
+            unit = self._sup.units[event.unit]
+            if unit.feedback is None or unit.feedback.t != event.t:
+                return
+            hook, kwargs = (
+                "abh3_feedback",
+                {"unit": event.unit, "feedback": unit.feedback, "setpoint": unit.setpoint},
+            )
+        elif isinstance(event, StatusEvent):
+            hook, kwargs = (
+                "abh3_status",
+                {"unit": event.unit, "packet": event.packet, "record": event.record, "t": event.t},
+            )
+        elif isinstance(event, HealthEvent):
+            hook, kwargs = "abh3_health", {"unit": event.unit, "online": event.online, "t": event.t}
+        elif isinstance(event, FlagChange):
+            hook, kwargs = "abh3_flags", {"change": event}
+        elif isinstance(event, Notice):
+            hook, kwargs = "abh3_notice", {"notice": event}
+        else:
+            return
+        for worker in self.workers.values():
+            worker.post(hook, kwargs)
+
+    def stop_inputs(self) -> None:
+        """First on the way out: no input may command anything after this."""
+        if self._timer is not None:
+            self._timer.close()
+        if self.arbiter is not None:
+            self.arbiter.apply = lambda unit, command: None  # calls still queued are dropped
+        for source in self.sources:
+            try:
+                source.stop()
+            except Exception as exc:
+                log.error("input %s failed to stop: %r", source.name, exc)
+
+    def stop(self, sup: Supervisor, timeout: float = 5.0) -> None:
+        """Last on the way out (drives already stopped): drain queues, then abh3_stop."""
+        self.stop_inputs()
+        for worker in self.workers.values():
+            worker.close(timeout)
+        self.workers.clear()
+        for name in self.names:
+            self.call_one(name, "abh3_stop", supervisor=sup)
+
+
+def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:
+    try:
+        if isinstance(command, Twist):
+            sup.set_twist(unit, command.linear_x, command.angular_z)
+        else:
+            sup.set_velocity_yx(unit, command.y, command.x)
+    except CommandError as exc:
+        sup.notice(unit, logging.WARNING, f"input refused: {exc}")

@@ -1,0 +1,144 @@
+"""``keyboard``: headless teleop from the terminal, like ROS teleop_twist_keyboard.
+
+    u i o      i/,: forward/back   j/l: turn left/right   u o m .: arcs
+    j k l      k or space: stop    q/z: all speeds ×1.1/×0.9
+    m , .      w/x: linear ×1.1/×0.9   e/c: angular ×1.1/×0.9
+
+Each key press sends a robot twist to the configured units; hold a key (the terminal
+repeats it) to keep moving: silence longer than ``timeout`` means zero. The terminal is
+put in cbreak mode (no echo, Ctrl-C still stops the program) and restored on the way out.
+Inside the TUI, the TUI forwards keys instead; this plugin is for headless runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import sys
+import termios
+import threading
+import tty
+from typing import Any
+
+from abh3_supervisor.config.source import Section
+from abh3_supervisor.hookspecs import hookimpl
+from abh3_supervisor.inputs import InputFeed, InputSource
+from abh3_supervisor.supervisor import Supervisor
+
+log = logging.getLogger(__name__)
+MOVES = {
+    "i": (1, 0),
+    "o": (1, -1),
+    "j": (0, 1),
+    "l": (0, -1),
+    "u": (1, 1),
+    ",": (-1, 0),
+    ".": (-1, 1),
+    "m": (-1, -1),
+    "k": (0, 0),
+    " ": (0, 0),
+}
+SPEEDS = {
+    "q": (1.1, 1.1),
+    "z": (0.9, 0.9),
+    "w": (1.1, 1.0),
+    "x": (0.9, 1.0),
+    "e": (1.0, 1.1),
+    "c": (1.0, 0.9),
+}
+
+
+class Teleop:
+    """Key → twist, the pure part (no terminal)."""
+
+    def __init__(self, speed: float, turn: float) -> None:
+        self.speed, self.turn = speed, turn
+
+    def key(self, ch: str) -> tuple[float, float] | None:
+        if ch in SPEEDS:
+            fs, ft = SPEEDS[ch]
+            self.speed, self.turn = self.speed * fs, self.turn * ft
+            log.info("keyboard: speed %.2f m/s, turn %.2f rad/s", self.speed, self.turn)
+            return None
+        if ch in MOVES:
+            x, th = MOVES[ch]
+            return x * self.speed, th * self.turn
+        return None
+
+
+class KeyboardSource(InputSource):
+    def __init__(
+        self,
+        units: tuple[str, ...],
+        priority: int,
+        timeout: float,
+        teleop: Teleop,
+        stream: Any = None,
+    ) -> None:
+        super().__init__("keyboard", units, priority, timeout)
+        self.teleop = teleop
+        self.stream = stream if stream is not None else sys.stdin
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._saved: Any = None
+
+    def start(self, feed: InputFeed) -> None:
+        fd = self.stream.fileno()
+        if not os.isatty(fd):
+            log.warning("keyboard: standard input is not a terminal; teleop is off")
+            return
+        self._saved = termios.tcgetattr(fd)
+        tty.setcbreak(fd)  # keys one by one, no echo; Ctrl-C still raises SIGINT
+        self._thread = threading.Thread(
+            target=self._run, args=(feed, fd), daemon=True, name="keyboard"
+        )
+        self._thread.start()
+        print(__doc__.split("\n\n")[1], file=sys.stderr)
+
+    def _run(self, feed: InputFeed, fd: int) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([fd], [], [], 0.1)
+            if not ready:
+                continue
+            ch = os.read(fd, 1).decode(errors="ignore")
+            twist = self.teleop.key(ch)
+            if twist is not None:
+                feed.twist(*twist)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1)
+        if self._saved is not None:
+            termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self._saved)
+            self._saved = None
+
+
+class KeyboardPlugin:
+    def __init__(self) -> None:
+        self.units: tuple[str, ...] = ()
+        self.settings: dict[str, float] = {}
+
+    @hookimpl
+    def abh3_configure(self, section: Section) -> None:
+        section.only({"units", "speed", "turn", "priority", "timeout"})
+        self.units = section.strings("units", ())
+        if not self.units:
+            section.error("units", "missing: name the units the keyboard drives, e.g. [left]")
+        self.settings = {
+            "speed": section.number("speed", 0.2, 0.0, 10.0, lo_open=True),
+            "turn": section.number("turn", 0.5, 0.0, 20.0, lo_open=True),
+            "priority": section.integer("priority", 0, -100, 100),
+            # a held key repeats only after the terminal's delay (often 0.25–0.5 s)
+            "timeout": section.number("timeout", 0.6, 0.05, 10.0),
+        }
+
+    @hookimpl
+    def abh3_input_sources(self, register: Any, supervisor: Supervisor) -> None:
+        s = self.settings
+        register(
+            KeyboardSource(
+                self.units, int(s["priority"]), s["timeout"], Teleop(s["speed"], s["turn"])
+            )
+        )
