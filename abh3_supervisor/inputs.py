@@ -125,7 +125,7 @@ class InputArbiter:
     def poll(self, now: float) -> None:
         """Expire silent sources (call at :meth:`next_deadline`)."""
         units = {u for s in self.sources.values() if s.command is not None for u in s.units}
-        self._decide(tuple(units), now)
+        self._decide(tuple(sorted(units)), now)
 
     def next_deadline(self) -> float:
         return min(

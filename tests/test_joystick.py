@@ -75,7 +75,7 @@ def test_deadman_and_turbo() -> None:
 
 def test_deadman_release_sends_release_and_device_loss_means_zero_then_reopen() -> None:
     opened: list[FakeDevice] = []
-    batches: list[list[list[JsEvent] | Exception]] = [
+    devices: list[list[list[JsEvent] | Exception]] = [
         [
             [button(4, True), axis(4, -32767)],
             [],
@@ -83,28 +83,29 @@ def test_deadman_release_sends_release_and_device_loss_means_zero_then_reopen() 
             [button(4, True)],
             DeviceLost("unplugged"),
         ],
-        [[button(4, True), axis(0, -32767)]],
+        [[button(4, True), axis(0, -32767)], DeviceLost("unplugged again")],
     ]
 
     def open_device() -> FakeDevice:
-        if not batches:
-            source._stop.set()
+        if not devices:
+            source._stop.set()  # no third device: end the run
             raise OSError(19, "No such device")
-        dev = FakeDevice(batches.pop(0))
-        opened.append(dev)
-        return dev
+        opened.append(FakeDevice(devices.pop(0)))
+        return opened[-1]
 
     source = JoystickSource(("left",), 10, 0.5, Mapping(), open_device, retry_s=0.0)
     feed = FakeFeed()
-    dev = open_device()
-    for _ in range(4):
-        source.step(dev, feed)
-    assert feed.sent == [(0.5, 0.0), (0.5, 0.0), None, (0.5, 0.0)]  # re-sent while held
-    feed.sent.clear()
-    source.run(feed)  # continues: device lost → release, reopen, new state
-    assert feed.sent[0] is None
-    assert opened[0].closed and len(opened) == 2
-    assert feed.sent[1] == pytest.approx((0.0, 0.5))  # after reopening, deadman re-pressed
+    source.run(feed)
+    assert feed.sent == [
+        (0.5, 0.0),
+        (0.5, 0.0),  # re-sent while held, though the stick did not move
+        None,  # deadman released: zero at once
+        (0.5, 0.0),
+        None,  # device lost: zero at once
+        pytest.approx((0.0, 0.5)),  # reopened: fresh state, deadman pressed again
+        None,
+    ]
+    assert all(d.closed for d in opened) and len(opened) == 2
 
 
 def test_deadman_release_gives_zero_on_the_very_next_command_frame(rig: Rig) -> None:
@@ -128,11 +129,9 @@ def test_deadman_release_gives_zero_on_the_very_next_command_frame(rig: Rig) -> 
     source.step(FakeDevice([[button(4, False)]]), feed)
     rig.run(0.1)
     cmd_id = ids.dp0_command_id(1, 2)
-    after = [
-        f for f in rig.timeline.frames if f.arbitration_id == cmd_id and f.start >= released_at
-    ]
+    after = [f for f in rig.timeline.frames if f.arbitration_id == cmd_id and f.start > released_at]
     before = [
-        f for f in rig.timeline.frames if f.arbitration_id == cmd_id and f.start < released_at
+        f for f in rig.timeline.frames if f.arbitration_id == cmd_id and f.start <= released_at
     ]
     moving = frames.decode_dp0_command(before[-1].data)
     first = frames.decode_dp0_command(after[0].data)
