@@ -49,6 +49,7 @@ class DeadlineTimer:
         self.when: float | None = None
         self._handle: asyncio.TimerHandle | None = None
         self._fd = -1
+        self._spec = _Itimerspec()  # reused: arming happens on every scheduler step
         # the loop must tell time with CLOCK_MONOTONIC for absolute timerfd deadlines
         if _LIBC is not None and abs(loop.time() - time.monotonic()) < 0.01:
             fd = _LIBC.timerfd_create(_CLOCK_MONOTONIC, os.O_NONBLOCK | os.O_CLOEXEC)
@@ -67,9 +68,10 @@ class DeadlineTimer:
         if self._fd >= 0:
             when = max(when, 1e-6)  # an all-zero it_value would disarm instead
             seconds = int(when)
-            spec = _Itimerspec(_Timespec(0, 0), _Timespec(seconds, int((when - seconds) * 1e9)))
+            value = self._spec.it_value
+            value.tv_sec, value.tv_nsec = seconds, int((when - seconds) * 1e9)
             assert _LIBC is not None
-            _LIBC.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
+            _LIBC.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(self._spec), None)
         else:
             if self._handle is not None:
                 self._handle.cancel()
@@ -79,7 +81,9 @@ class DeadlineTimer:
         self.when = None
         if self._fd >= 0:
             assert _LIBC is not None
-            _LIBC.timerfd_settime(self._fd, 0, ctypes.byref(_Itimerspec()), None)
+            value = self._spec.it_value
+            value.tv_sec, value.tv_nsec = 0, 0  # all zero: disarm
+            _LIBC.timerfd_settime(self._fd, 0, ctypes.byref(self._spec), None)
         elif self._handle is not None:
             self._handle.cancel()
             self._handle = None
@@ -90,6 +94,7 @@ class DeadlineTimer:
             self.loop.remove_reader(self._fd)
             os.close(self._fd)
             self._fd = -1
+        self._spec = _Itimerspec()  # reused: arming happens on every scheduler step
 
     def _on_readable(self) -> None:
         try:

@@ -6,14 +6,20 @@ import math
 from collections.abc import Iterable
 
 from abh3_supervisor.config.model import SimConfig, UnitConfig
+from abh3_supervisor.protocol.ids import ADDR_ALL
 from abh3_supervisor.simulator.drive import SimDrive
 
 
 class SimBus:
-    """Feeds every frame to every drive and collects what they send, in time order."""
+    """Routes each frame to the drive it addresses and polls only drives that are due.
+
+    Per frame and per step the cost is that of the drives involved, not of all of them:
+    a bus with many simulated drives stays cheap to run.
+    """
 
     def __init__(self, drives: Iterable[SimDrive]) -> None:
         self.drives = {d.abh3_id: d for d in drives}
+        self._due = {a: d.next_deadline() for a, d in self.drives.items()}
 
     @classmethod
     def for_units(cls, units: Iterable[UnitConfig], cfg: SimConfig, now: float) -> SimBus:
@@ -30,17 +36,28 @@ class SimBus:
         )
 
     def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
-        for drive in self.drives.values():
+        destination = arbitration_id >> 8 & 0xFF  # PS: the addressed drive, or all
+        if destination == ADDR_ALL:
+            targets = list(self.drives.values())
+        elif (drive := self.drives.get(destination)) is not None:
+            targets = [drive]
+        else:
+            return
+        for drive in targets:
             drive.on_frame(arbitration_id, data, now)
+            self._due[drive.abh3_id] = drive.next_deadline()
 
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         out: list[tuple[int, bytes]] = []
-        for drive in self.drives.values():
-            out.extend(drive.poll(now))
+        for address, due in self._due.items():
+            if due <= now:
+                drive = self.drives[address]
+                out.extend(drive.poll(now))
+                self._due[address] = drive.next_deadline()
         return out
 
     def next_deadline(self) -> float:
-        return min((d.next_deadline() for d in self.drives.values()), default=math.inf)
+        return min(self._due.values(), default=math.inf)
 
     def on_send_failed(self, arbitration_id: int) -> None:
         """A drive's reply was refused by the bus: like a real drive, it does not retry."""

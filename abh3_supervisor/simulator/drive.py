@@ -128,12 +128,11 @@ class SimDrive:
     def _timeout_deadline(self) -> float:
         # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
         last = self.last_command if self.last_command is not None else self.started
-        times = [
-            last + ms / 1000
-            for ms in (self.cfg.command_zero_timeout_ms, self.cfg.error_timeout_ms)
-            if ms
-        ]
-        return min((t for t in times if t > self.t), default=math.inf)
+        deadline = math.inf
+        for ms in (self.cfg.command_zero_timeout_ms, self.cfg.error_timeout_ms):
+            if ms and self.t < last + ms / 1000 < deadline:
+                deadline = last + ms / 1000
+        return deadline
 
     # ------------------------------------------------------------ drive behaviour
 
