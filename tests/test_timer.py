@@ -31,9 +31,10 @@ def test_fires_at_the_deadline_and_not_after_cancel(
         if precise and timer_module._LIBC is None:
             pytest.skip("no timerfd on this platform")
         assert t.precise is precise
-        t.arm(loop.time() + 10)  # re-arming replaces the earlier deadline
+        t.arm(loop.time() + 10)
         deadline = loop.time() + 0.02
-        t.arm(deadline)
+        t.arm(deadline)  # an earlier deadline replaces the armed one
+        t.arm(loop.time() + 5)  # a later one keeps it (the callback re-arms when it fires)
         await asyncio.wait_for(done, 5)
         assert fired[0] >= deadline - 1e-4 and len(fired) == 1
         t.arm(loop.time() + 0.01)

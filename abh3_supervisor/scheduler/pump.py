@@ -77,8 +77,7 @@ class BusPump(can.Listener):
         if not msg.is_extended_id or msg.is_remote_frame:
             return
         self.frames_received += 1
-        self._guard(self.machine.on_frame, msg.arbitration_id, bytes(msg.data), self.loop.time())
-        self._step()
+        self._guard(self._receive_and_step, msg.arbitration_id, bytes(msg.data))
 
     def on_error(self, exc: Exception) -> None:
         self.bus_errors += 1
@@ -93,6 +92,10 @@ class BusPump(can.Listener):
             log.exception("bus %s: internal error", self.name)
             if self.on_fatal is not None:
                 self.on_fatal(exc)
+
+    def _receive_and_step(self, arbitration_id: int, data: bytes) -> None:
+        self.machine.on_frame(arbitration_id, data, self.loop.time())
+        self._step_unguarded()
 
     def _step(self) -> None:
         self._guard(self._step_unguarded)

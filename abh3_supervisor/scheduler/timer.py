@@ -62,7 +62,12 @@ class DeadlineTimer:
         return self._fd >= 0
 
     def arm(self, when: float) -> None:
-        if when == self.when:
+        """Fire at ``when`` — or earlier: a later deadline keeps the armed one (lazy re-arm).
+
+        The callback then finds nothing due and arms again; that costs one spurious wake-up
+        now and then instead of a system call on every scheduler step.
+        """
+        if self.when is not None and self.when <= when:
             return
         self.when = when
         if self._fd >= 0:
