@@ -1,0 +1,61 @@
+"""Keyboard teleop: the key map, and a real terminal (a pseudo-terminal) end to end."""
+
+from __future__ import annotations
+
+import os
+import pty
+import termios
+import threading
+
+import pytest
+
+from abh3_plugins.keyboard import KeyboardSource, Teleop
+
+
+def test_teleop_twist_keyboard_layout() -> None:
+    t = Teleop(speed=0.5, turn=1.0)
+    assert t.key("i") == (0.5, 0.0)
+    assert t.key(",") == (-0.5, 0.0)
+    assert t.key("j") == (0.0, 1.0)
+    assert t.key("l") == (0.0, -1.0)
+    assert t.key("u") == (0.5, 1.0)
+    assert t.key(" ") == (0.0, 0.0) and t.key("k") == (0.0, 0.0)
+    assert t.key("q") is None and t.key("i") == pytest.approx((0.55, 0.0))
+    assert t.key("?") is None
+
+
+class Feed:
+    def __init__(self, want: int) -> None:
+        self.sent: list[tuple[float, float] | None] = []
+        self.want = want
+        self.done = threading.Event()
+
+    def twist(self, linear_x: float, angular_z: float) -> None:
+        self.sent.append((linear_x, angular_z))
+        if len(self.sent) >= self.want:
+            self.done.set()
+
+    def velocity_yx(self, y: float, x: float) -> None:
+        raise AssertionError
+
+    def release(self) -> None:
+        self.sent.append(None)
+
+
+def test_keys_typed_in_a_terminal_drive_and_the_terminal_is_restored() -> None:
+    master, slave = pty.openpty()
+    stream = os.fdopen(slave, "r")
+    before = termios.tcgetattr(slave)
+    source = KeyboardSource(("left",), 0, 0.6, Teleop(0.2, 0.5), stream=stream)
+    feed = Feed(want=3)
+    source.start(feed)  # type: ignore[arg-type]
+    try:
+        assert not termios.tcgetattr(slave)[3] & termios.ECHO  # cbreak: no echo
+        os.write(master, b"ijk")
+        assert feed.done.wait(5)
+    finally:
+        source.stop()
+    assert feed.sent == [(0.2, 0.0), (0.0, 0.5), (0.0, 0.0)]
+    assert termios.tcgetattr(slave) == before
+    stream.close()
+    os.close(master)
