@@ -62,7 +62,8 @@ def status_lines(sup: Supervisor) -> list[str]:
             state = {True: "online", False: "OFFLINE", None: "waiting"}[slot.online]
             lines.append(
                 f"{bus}/{name}: {state} {st.achieved_rate_hz(now):5.1f}/{st.requested_rate_hz:g} Hz"
-                f" cmd {model} {unit.setpoint.ay + 0.0:.1f} {unit.setpoint.bx + 0.0:.1f} {vel} {rtt}"
+                f" cmd {model} {unit.setpoint.ay + 0.0:.1f} {unit.setpoint.bx + 0.0:.1f}"
+                f" {vel} {rtt}"
                 f" timeouts {st.timeouts}"
             )
     return lines
