@@ -119,8 +119,10 @@ def _run(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     plugins = _plugins(config)
-    if not args.headless and sys.stdout.isatty():
-        logging.getLogger("abh3").info("the TUI is not built yet: running headless")
+    if not args.headless and sys.stdin.isatty() and sys.stdout.isatty():
+        from abh3_supervisor.tui.app import run_tui
+
+        return asyncio.run(run_tui(config, record=args.record, plugins=plugins))
     return asyncio.run(
         run_headless(
             config,

@@ -5,13 +5,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import signal
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import flags
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime import STOP_SIGNALS, Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
 
@@ -79,7 +78,7 @@ async def run_headless(
 ) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, stop.set)
     try:
         async with Runtime(config, record=record, plugins=plugins) as rt:
@@ -91,10 +90,6 @@ async def run_headless(
                     log.log(*line)
 
             sup.subscribe(on_event)
-            for name, unit in config.units.items():
-                for text in unit.startup:
-                    response = sup.apply_text(name, text)
-                    log.info("unit %s: startup %r → %r", name, text, response)
             log.info(
                 "running %d unit(s) on %d bus(es)%s; Ctrl-C stops the drives and exits",
                 len(config.units),
@@ -117,7 +112,7 @@ async def run_headless(
                 log.info("final %s", line)
             log.info("stopping: zero, START and SERVO off on every unit")
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
     return 0
 

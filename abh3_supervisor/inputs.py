@@ -81,6 +81,11 @@ class InputFeed:
         """The source lets go (deadman released, device lost): its units stop now."""
         self._submit(None)
 
+    def retarget(self, units: tuple[str, ...]) -> None:
+        """Drive other units from now on; units left behind stop if this source drove them."""
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._arbiter.retarget_now, self._name, units)
+
     def _submit(self, command: InputCommand | None) -> None:
         if self._loop.is_closed():
             return
@@ -121,6 +126,11 @@ class InputArbiter:
         state = self.sources[name]
         state.command, state.heard = command, now
         self._decide(state.units, now)
+
+    def retarget_now(self, name: str, units: tuple[str, ...]) -> None:
+        state = self.sources[name]
+        before, state.units = state.units, units
+        self._decide(tuple(sorted(set(before) | set(units))), self.clock())
 
     def poll(self, now: float) -> None:
         """Expire silent sources (call at :meth:`next_deadline`)."""

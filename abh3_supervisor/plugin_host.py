@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import queue
 import threading
 from importlib.metadata import EntryPoint, entry_points
@@ -119,6 +120,10 @@ class PluginHost:
         if src.problems:
             raise ConfigError(src.problems)
 
+    def add_source(self, source: InputSource) -> None:
+        """An input source of the host program itself (the TUI), arbitrated like the rest."""
+        self.sources.append(source)
+
     def register(self, plugin: object, name: str) -> None:
         """Register an already built plugin object (tests, embedding)."""
         self.pm.register(plugin, name=name)
@@ -198,7 +203,15 @@ class PluginHost:
         arbiter = self.arbiter = InputArbiter(apply=lambda u, c: _apply(sup, u, c), clock=loop.time)
         self._timer = DeadlineTimer(loop, lambda: arbiter.poll(loop.time()))
         timer = self._timer
-        arbiter.on_change = lambda: timer.arm(arbiter.next_deadline()) if arbiter.sources else None
+
+        def rearm() -> None:
+            deadline = arbiter.next_deadline()
+            if math.isfinite(deadline):
+                timer.arm(deadline)
+            else:
+                timer.cancel()
+
+        arbiter.on_change = rearm
         for source in self.sources:
             unknown = [u for u in source.units if u not in sup.units]
             if unknown:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import signal
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -26,6 +27,8 @@ from abh3_supervisor.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 STOP_CONFIRM_S = 0.5  # longest wait for the drives to answer the stop frame
+# every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def open_bus(cfg: BusConfig) -> can.BusABC:
@@ -106,6 +109,10 @@ class Runtime:
             pump.start()
         if self.plugins is not None:
             self.plugins.start(self.supervisor, loop)
+        for name, unit in self.config.units.items():
+            for text in unit.startup:  # validated when the file loaded
+                response = self.supervisor.apply_text(name, text)
+                log.info("unit %s: startup %r → %r", name, text, response)
 
     def _on_fatal(self, exc: BaseException) -> None:
         if self.fatal is not None and not self.fatal.done():

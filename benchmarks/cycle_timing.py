@@ -13,13 +13,17 @@ import itertools
 import random
 import time
 from collections import defaultdict
+from collections.abc import Callable
 
 import can
 
 from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, SimConfig, UnitConfig
+from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime_thread import RuntimeThread
 from abh3_supervisor.scheduler.stats import percentile
+from abh3_supervisor.tui.app import SupervisorApp, TuiSource
 
 
 class TxProbe(can.Listener):
@@ -48,32 +52,55 @@ def config(n: int, rate: float, channel: str) -> Config:
     return Config(file="bench", buses={"b": bus}, units=units)
 
 
-def run(n: int, rate: float, seconds: float, channel: str) -> dict[str, float]:
+def run(n: int, rate: float, seconds: float, channel: str, tui: bool = False) -> dict[str, float]:
+    """Measure; with ``tui`` the Textual app runs (headless, refreshing at 10 Hz) alongside."""
     cfg = config(n, rate, channel)
     probe = TxProbe()
     latencies: list[float] = []
+    host = PluginHost(cfg)
+    source = TuiSource(tuple(cfg.units))
+    if tui:
+        host.add_source(source)
+
+    async def measure(rt: Runtime, call: Callable[..., object]) -> None:
+        rt.pumps["b"].recorder = probe
+        sup = rt.supervisor
+        end = time.perf_counter() + seconds
+        rng = random.Random(1)
+        value = 0
+        pending: list[tuple[float, int, bytes]] = []
+        while time.perf_counter() < end:
+            await asyncio.sleep(rng.uniform(0.005, 0.03))  # input arrives at random moments
+            value = value % 3000 + 1
+            unit = rng.randrange(n)
+            inputs = sup.units[f"u{unit}"].inputs
+            pending.append(
+                (time.perf_counter(), unit + 1, frames.encode_dp0_command(value, 0, inputs))
+            )
+            call(sup.set_velocity, f"u{unit}", value * 0.2, 0.0)
+        await asyncio.sleep(0.05)
+        for t, abh3, payload in pending:
+            sent = probe.sent[ids.dp0_command_id(abh3, 2)]
+            first = next((ts for ts, data in sent if ts >= t and data == payload), None)
+            if first is not None:
+                latencies.append(first - t)
 
     async def scenario() -> None:
-        async with Runtime(cfg) as rt:
-            rt.pumps["b"].recorder = probe
-            sup = rt.supervisor
-            end = time.perf_counter() + seconds
-            rng = random.Random(1)
-            value = 0
-            pending: list[tuple[float, int, bytes]] = []
-            while time.perf_counter() < end:
-                await asyncio.sleep(rng.uniform(0.005, 0.03))  # input arrives at random moments
-                value = value % 3000 + 1
-                unit = rng.randrange(n)
-                sup.set_velocity(f"u{unit}", value * 0.2, 0.0)
-                payload = frames.encode_dp0_command(value, 0, sup.units[f"u{unit}"].inputs)
-                pending.append((time.perf_counter(), unit + 1, payload))
-            await asyncio.sleep(0.05)
-            for t, abh3, payload in pending:
-                sent = probe.sent[ids.dp0_command_id(abh3, 2)]
-                first = next((ts for ts, data in sent if ts >= t and data == payload), None)
-                if first is not None:
-                    latencies.append(first - t)
+        if not tui:
+            async with Runtime(cfg, plugins=host) as rt:
+                await measure(rt, lambda fn, *args: fn(*args))
+            return
+        # as `abh3 run` does with a terminal: the buses on their own thread, the app here
+        bridge = RuntimeThread(cfg, record=None, plugins=host)
+        rt = bridge.start()
+        app = SupervisorApp(rt, source, bridge)
+        app_task = asyncio.ensure_future(app.run_async(headless=True, size=(160, 50)))
+        try:
+            await measure(rt, bridge.call)
+        finally:
+            app.exit()
+            await app_task
+            bridge.stop()
 
     asyncio.run(scenario())
     period = 1.0 / rate

@@ -54,7 +54,7 @@ def test_headless_run_records_what_was_commanded_at_the_configured_rate(tmp_path
         assert stop["values"]["cmd_ay"] == 0.0 and "AY_SERVO_ON" not in stop["flags"]["inputs"]
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
 def test_signals_stop_the_drives_and_keep_the_recording(tmp_path: Path, sig: int) -> None:
     record = tmp_path / "sig.asc"
     proc = subprocess.Popen(

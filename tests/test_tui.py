@@ -1,0 +1,222 @@
+"""The TUI: pilot tests for behaviour on the real runtime, snapshots for layout.
+
+Snapshots render a supervisor run for exactly one second of fake time (the Rig), so
+every figure on screen is deterministic. Set ``ABH3_UPDATE_SNAPSHOTS=1`` to rewrite them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import fcntl
+import os
+import pty
+import re
+import select
+import signal
+import struct
+import sys
+import termios
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.protocol import flags
+from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.scheduler.core import HealthEvent
+from abh3_supervisor.tui.app import SupervisorApp, TuiSource
+from abh3_supervisor.tui.screens import ConfirmScreen
+from tests.conftest import TWO_UNITS, Rig
+
+SNAPSHOTS = Path(__file__).parent / "snapshots"
+
+
+def run_app(check: Any) -> None:
+    """Run the app on the real runtime (virtual bus, simulated drives) and a pilot."""
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    host = PluginHost(cfg)
+    source = TuiSource(tuple(cfg.units))
+    host.add_source(source)
+
+    async def scenario() -> None:
+        async with Runtime(cfg, plugins=host) as rt:
+            sup = rt.supervisor
+            since = sup.clock()
+            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
+            app = SupervisorApp(rt, source)
+            async with app.run_test(size=(180, 40)) as pilot:
+                await check(app, pilot, rt)
+
+    asyncio.run(scenario())
+
+
+def response(app: SupervisorApp) -> str:
+    return str(app.query_one("#response").render())
+
+
+def test_estop_from_every_screen_stops_both_units() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        for unit in ("left", "right"):
+            assert await sup.command(unit, "SERVO ON ON") == ""
+            assert await sup.command(unit, "START ON ON") == ""
+        sup.set_velocity("left", 100, 0)
+        await pilot.press("2")  # the unit screen: e-stop works from here too
+        await pilot.press("ctrl+e")
+        assert sup.estop
+        for state in sup.units.values():
+            assert (state.setpoint.ay, state.setpoint.bx) == (0, 0)
+            assert not state.inputs & flags.START_BITS
+        app.refresh_view()
+        assert app.query_one("#estop").has_class("latched")
+        await pilot.press("E")  # clearing asks first
+        await pilot.pause()
+        assert sup.estop and isinstance(app.screen, ConfirmScreen)
+        await pilot.press("y")
+        await pilot.pause()
+        assert not sup.estop
+
+    run_app(check)
+
+
+def test_command_line_answers_exactly_as_the_seed() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await pilot.press("colon", *"SERVO ON ON", "enter")
+        await app.workers.wait_for_complete()
+        assert response(app) == "left ← 'SERVO ON ON' → ''"
+        await pilot.press("colon", *"FOO", "enter")
+        await app.workers.wait_for_complete()
+        assert response(app) == "left ← 'FOO' → 'Invalid Command.'"
+
+    run_app(check)
+
+
+def test_risky_toggles_ask_first_and_arrows_drive_the_selected_unit() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+
+        async def press(*keys: str) -> None:
+            for key in keys:
+                await pilot.press(key)
+                await pilot.pause()
+            await app.workers.wait_for_complete()
+
+        await press("v", "n")  # servo on? no
+        assert not sup.units["left"].inputs & flags.SERVO_BITS
+        await press("v", "y", "s", "y")
+        assert sup.units["left"].inputs & flags.START_BITS
+        assert not isinstance(app.screen, ConfirmScreen)
+        await press("n", "up")  # select right, drive forward
+        assert response(app).startswith("drive right")
+        for _ in range(100):  # the feed hands the twist over through the loop
+            if sup.units["right"].setpoint.ay > 0:
+                break
+            await pilot.pause()
+        assert sup.units["right"].setpoint.ay > 0 and sup.units["left"].setpoint.ay == 0
+
+    run_app(check)
+
+
+def test_a_silenced_unit_turns_offline_on_screen() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        gone = asyncio.get_running_loop().create_future()
+
+        def watch(event: object) -> None:
+            if isinstance(event, HealthEvent) and not event.online and not gone.done():
+                gone.set_result(event.unit)
+
+        rt.supervisor.subscribe(watch)
+        await pilot.press("n", "f")  # silence the simulated right unit
+        assert await asyncio.wait_for(gone, 3) == "right"
+        app.refresh_view()
+        cell = app.query_one("#table").get_cell("right", "state")  # type: ignore[attr-defined]
+        assert str(cell) == "OFFLINE"
+        await pilot.press("f")
+
+    run_app(check)
+
+
+def snapshot(name: str, svg: str) -> None:
+    # strip what differs between runs but is not layout: generated ids
+    svg = re.sub(r"terminal-\d+", "terminal", svg)
+    path = SNAPSHOTS / f"{name}.svg"
+    if os.environ.get("ABH3_UPDATE_SNAPSHOTS") or not path.exists():
+        SNAPSHOTS.mkdir(exist_ok=True)
+        path.write_text(svg, encoding="utf-8")
+        if not os.environ.get("ABH3_UPDATE_SNAPSHOTS"):
+            pytest.fail(f"new snapshot written: {path}; check it and run again")
+    assert svg == path.read_text(encoding="utf-8"), f"{name} layout changed (see {path})"
+
+
+@pytest.mark.parametrize("keys", [[], ["2"], ["question_mark"]], ids=["overview", "unit", "help"])
+def test_layout_snapshots(keys: list[str], request: pytest.FixtureRequest) -> None:
+    rig = Rig(parse_config(TWO_UNITS, "t.yaml"))
+    rig.sup.apply_text("left", "SERVO ON ON")
+    rig.sup.apply_text("left", "START ON ON")
+    rig.sup.set_velocity("left", 100, 10)
+    rig.run(1.0)
+    rt = SimpleNamespace(config=rig.config, supervisor=rig.sup, pumps={}, sims={}, plugins=None)
+
+    async def scenario() -> str:
+        app = SupervisorApp(rt, TuiSource(("left", "right")))  # type: ignore[arg-type]
+        async with app.run_test(size=(160, 40)) as pilot:
+            await pilot.press(*keys)
+            await pilot.pause()
+            app.refresh_view()
+            await pilot.pause()
+            return app.export_screenshot()
+
+    snapshot(f"tui-{request.node.callspec.id}", asyncio.run(scenario()))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig: int) -> None:
+    """`abh3 run` on a (pseudo-)terminal opens the TUI; a signal still stops the drives."""
+    record = tmp_path / "tui.log"
+    root = Path(__file__).resolve().parent.parent
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: the program, on the terminal
+        os.chdir(root)
+        os.execv(
+            sys.executable,
+            [
+                sys.executable,
+                "-m",
+                "abh3_supervisor",
+                "run",
+                "configs/demo.yaml",
+                "--record",
+                str(record),
+            ],
+        )
+    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 180, 0, 0))
+    screen = b""
+    while screen.count(b"online") < 2:  # wait until the live table shows both units online
+        ready, _, _ = select.select([fd], [], [], 20)
+        assert ready, f"no TUI output: {screen[-500:]!r}"
+        screen += os.read(fd, 65536)
+    os.kill(pid, sig)
+    while True:  # drain the terminal until the program has gone
+        ready, _, _ = select.select([fd], [], [], 20)
+        try:
+            if not ready or not os.read(fd, 65536):
+                break
+        except OSError:
+            break
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    import can
+
+    from abh3_supervisor.protocol import frames, ids
+
+    last = {}
+    for msg in can.LogReader(str(record)):
+        if msg.arbitration_id in (ids.dp0_command_id(1, 2), ids.dp0_command_id(3, 2)):
+            last[msg.arbitration_id] = frames.decode_dp0_command(bytes(msg.data))
+    assert len(last) == 2
+    for cmd in last.values():
+        assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
+        assert not cmd.inputs & (flags.SERVO_BITS | flags.START_BITS)
