@@ -1,8 +1,10 @@
 """The runtime on a thread and event loop of its own, for front ends with heavy work.
 
 A UI that renders on its own loop must never delay the buses: here the schedulers run on
-a dedicated loop; the UI reads supervisor state (plain attributes, atomic to read under
-the GIL) and hands every command over with :meth:`call` / :meth:`run`. Stopping the
+a dedicated loop; the UI reads supervisor state (attribute reads are atomic under the
+GIL; containers the bus side mutates are copied in one C call first — ``list(deque)``,
+``dict(d)`` — never iterated live) and hands every command over with :meth:`call` /
+:meth:`run`. Stopping the
 thread leaves the runtime, so the drives are stopped as on every other way out.
 """
 

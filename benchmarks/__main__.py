@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     # 3. cycle timing, 8 units at 100 Hz
-    section = "3. cycle timing: 8 units at 100 Hz, headless (baseline: 1 unit)"
+    section = "3. cycle timing at 100 Hz (baseline: 1 unit headless; TUI rows: 8 units headless)"
     seconds = 2.0 if a.quick else 10.0
     eight = [cycle_timing.run(8, 100, seconds, f"timing8-{i}") for i in range(runs)]
     one = [cycle_timing.run(1, 100, seconds, f"timing1-{i}") for i in range(runs)]

@@ -38,7 +38,9 @@ class UnitStats:
 
     def achieved_rate_hz(self, now: float, window: float = 2.0) -> float:
         """Solicited replies per second over the last ``window`` seconds."""
-        recent = [t for t in self._reply_times if now - t <= window]
+        # list(deque) copies in one C call, atomic under the GIL: the TUI reads these from
+        # its own thread while the bus thread appends
+        recent = [t for t in list(self._reply_times) if now - t <= window]
         if len(recent) < 2:
             return 0.0
         # measure between replies while they flow (no bias from where `now` falls between

@@ -115,7 +115,7 @@ def detail_lines(sup: Supervisor, name: str) -> list[str]:
         f"send errors {st.send_errors}, rtt p50 {fmt(st.rtt_ms(50), 2)} ms, "
         f"p99 {fmt(st.rtt_ms(99), 2)} ms, status packets {st.broadcasts}",
     ]
-    status = {n: r for n, (_, r) in unit.status.items()}
+    status = {n: r for n, (_, r) in dict(unit.status).items()}  # copy: another thread writes
     b4, b5, b6 = status.get(4), status.get(5), status.get(6)
     if isinstance(b4, frames.Brd4):
         lines.append(f"pulses A {b4.pulse_a}  B {b4.pulse_b}")
