@@ -122,7 +122,9 @@ def _run(args: argparse.Namespace) -> int:
     if not args.headless and sys.stdin.isatty() and sys.stdout.isatty():
         from abh3_supervisor.tui.app import run_tui
 
-        return asyncio.run(run_tui(config, record=args.record, plugins=plugins))
+        return asyncio.run(
+            run_tui(config, record=args.record, plugins=plugins, duration=args.duration)
+        )
     return asyncio.run(
         run_headless(
             config,
