@@ -67,8 +67,8 @@ WIDTHS = {
     "current %": 11,
     "load %": 7,
     "supply V": 9,
-    "errors": 14,
-    "alarms": 14,
+    "errors": 24,
+    "alarms": 24,
     "rate Hz": 9,
 }
 PLOTS = {
