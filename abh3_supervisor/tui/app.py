@@ -34,7 +34,7 @@ from textual.widgets import (
 )
 
 from abh3_supervisor.config.model import Config, Role
-from abh3_supervisor.headless import describe
+from abh3_supervisor.eventlog import describe
 from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import flags

@@ -1,0 +1,31 @@
+"""One line per event an operator should see: shared by the headless log and the TUI."""
+
+from __future__ import annotations
+
+import logging
+
+from abh3_supervisor.protocol import flags
+from abh3_supervisor.scheduler.core import HealthEvent
+from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+
+LOGGED_WORDS = ("error", "alarm")
+
+
+def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
+    """The log line for an event worth an operator's attention, or None."""
+    if isinstance(event, HealthEvent):
+        if event.online:
+            return logging.INFO, f"unit {event.unit}: online"
+        ms = sup.units[event.unit].cfg.timeout_ms
+        return logging.WARNING, f"unit {event.unit}: OFFLINE (no answer for {ms} ms)"
+    if isinstance(event, FlagChange) and event.word in LOGGED_WORDS:
+        parts = []
+        for sign, bits in (("+", event.set_bits), ("-", event.cleared_bits)):
+            parts += [f"{sign}{b.name} ({b.en})" for b in flags.FAULT.set_bits(bits)]
+        if not parts:
+            return None
+        level = logging.ERROR if event.word == "error" and event.set_bits else logging.WARNING
+        return level, f"unit {event.unit}: {event.word} " + ", ".join(parts)
+    if isinstance(event, Notice):
+        return event.level, (f"unit {event.unit}: " if event.unit else "") + event.message
+    return None
