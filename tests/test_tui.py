@@ -110,6 +110,8 @@ def test_risky_toggles_ask_first_and_arrows_drive_the_selected_unit() -> None:
         await press("v", "y", "s", "y")
         assert sup.units["left"].inputs & flags.START_BITS
         assert not isinstance(app.screen, ConfirmScreen)
+        await press("d", "y")  # data select: written 7 → 6 (set #1) on both axes
+        assert flags.data_select(sup.units["left"].inputs) == (6, 6)
         await press("n", "up")  # select right, drive forward
         assert response(app).startswith("drive right")
         for _ in range(100):  # the feed hands the twist over through the loop

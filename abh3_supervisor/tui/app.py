@@ -144,6 +144,7 @@ class SupervisorApp(App[None]):
         Binding("b", "flip('BRAKE')", "brake", show=False),
         Binding("T", "flip('TORQUE')", "torque", show=False),
         Binding("r", "reset", "error reset", show=False),
+        Binding("d", "data_select", "data select", show=False),
         Binding("f", "fault", "sim: silence", show=False),
         Binding("colon", "command", "command"),
         Binding("1", "tab('overview')", "overview", show=False),
@@ -378,6 +379,21 @@ class SupervisorApp(App[None]):
             self.push_screen(ConfirmScreen(f"{command} on unit {self.unit}?"), answer)
         else:
             self.run_command(command)
+
+    def action_data_select(self) -> None:
+        """Step both axes to the next preset table (written 7 = set #0 … 0 = #7 & STOP)."""
+        ay, _ = flags.data_select(self.sup.units[self.unit].inputs)
+        written = (ay - 1) % 8
+        command = f"SELECT {written} {written}"
+        table = f"#{7 - written}" + (" & STOP" if written == 0 else "")
+
+        def answer(yes: bool | None) -> None:
+            if yes:
+                self.run_command(command)
+
+        self.push_screen(
+            ConfirmScreen(f"{command} (data set {table}) on unit {self.unit}?"), answer
+        )
 
     def action_reset(self) -> None:
         def answer(yes: bool | None) -> None:

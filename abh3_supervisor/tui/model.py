@@ -170,10 +170,15 @@ def bus_lines(rt: Runtime, last: dict[str, BusSample]) -> list[str]:
         p = plans[name]
         bits_per_frame = p.bits_per_s / p.frames_per_s if p.frames_per_s else 0.0
         load = 100 * rate * bits_per_frame / p.bitrate
-        timeouts = sum(s.stats.timeouts for s in rt.supervisor.schedulers[name].slots.values())
         lines.append(
             f"bus {name}: {rate:7.0f} frames/s  ≈{load:5.1f} % of {p.bitrate} bit/s "
             f"(planned {p.load_percent:.1f} %)  send errors {pump.send_errors}  "
-            f"bus errors {pump.bus_errors}  unit timeouts {timeouts}"
+            f"bus errors {pump.bus_errors}"
         )
+        for unit, slot in rt.supervisor.schedulers[name].slots.items():
+            st = slot.stats
+            lines.append(
+                f"    {unit:<12} timeouts {st.timeouts:<6} send errors "
+                f"{st.send_errors:<4} replies {st.replies:<8} status {st.broadcasts}"
+            )
     return lines
