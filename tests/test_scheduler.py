@@ -38,12 +38,10 @@ def test_command_rate_and_polls_follow_the_configuration(rig: Rig) -> None:
 
 def test_right_unit_polls_only_its_mask(rig: Rig) -> None:
     rig.run(2.0)
-    packets = {
-        classify(f.arbitration_id, f.data, True, AddressBook()).packet
-        for f in rig.timeline.frames
-        if f.arbitration_id >> 8 & 0xFFFF == 0xFF28 >> 0
-        or (f.arbitration_id >> 16 & 0xFF == 0xFF and f.arbitration_id & 0xFF == 3)
-    }
+    book = AddressBook()
+    decoded = [classify(f.arbitration_id, f.data, True, book) for f in rig.timeline.frames]
+    # broadcast replies from drive 3 (right, mask 0x0f), all answers to our polls
+    packets = {d.packet for d in decoded if d.kind is Kind.BROADCAST and d.abh3 == 3}
     assert packets == {0, 1, 2, 3}
 
 
