@@ -36,8 +36,29 @@ class VelocityYX:
     x: float
 
 
-InputCommand = Twist | VelocityYX
-ZERO = VelocityYX(0.0, 0.0)
+@dataclass(frozen=True, slots=True)
+class VelocityAYBX:
+    """AY/BX velocities [min⁻¹] as the drive reads them (its configured model)."""
+
+    ay: float
+    bx: float
+
+
+@dataclass(frozen=True, slots=True)
+class CurrentAYBX:
+    """AY/BX currents [%]; the unit must be in torque mode."""
+
+    ay: float
+    bx: float
+
+
+@dataclass(frozen=True, slots=True)
+class Stop:
+    """Zero command in whatever mode the unit is in (velocity or current)."""
+
+
+InputCommand = Twist | VelocityYX | VelocityAYBX | CurrentAYBX | Stop
+ZERO = Stop()
 
 
 class InputSource(ABC):
@@ -62,6 +83,8 @@ class Feed(Protocol):
 
     def twist(self, linear_x: float, angular_z: float) -> None: ...
     def velocity_yx(self, y: float, x: float) -> None: ...
+    def velocity(self, ay: float, bx: float) -> None: ...
+    def current(self, ay: float, bx: float) -> None: ...
     def release(self) -> None: ...
 
 
@@ -76,6 +99,12 @@ class InputFeed:
 
     def velocity_yx(self, y: float, x: float) -> None:
         self._submit(VelocityYX(y, x))
+
+    def velocity(self, ay: float, bx: float) -> None:
+        self._submit(VelocityAYBX(ay, bx))
+
+    def current(self, ay: float, bx: float) -> None:
+        self._submit(CurrentAYBX(ay, bx))
 
     def release(self) -> None:
         """The source lets go (deadman released, device lost): its units stop now."""
@@ -159,7 +188,7 @@ class InputArbiter:
             if chosen is not None:
                 self.apply(unit, chosen[1])
             elif previous is not None:
-                self.apply(unit, ZERO)  # silence or release means zero velocity
+                self.apply(unit, ZERO)  # silence or release means zero (velocity or current)
         for state in self.sources.values():
             if state.command is not None and not state.fresh(now):
                 state.command = None  # expired: forget it, so a late deadline is not kept

@@ -24,7 +24,16 @@ from abh3_supervisor import hookspecs
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.errors import CommandError, ConfigError
-from abh3_supervisor.inputs import InputArbiter, InputCommand, InputFeed, InputSource, Twist
+from abh3_supervisor.inputs import (
+    CurrentAYBX,
+    InputArbiter,
+    InputCommand,
+    InputFeed,
+    InputSource,
+    Twist,
+    VelocityAYBX,
+    VelocityYX,
+)
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
@@ -278,7 +287,13 @@ def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:
     try:
         if isinstance(command, Twist):
             sup.set_twist(unit, command.linear_x, command.angular_z)
-        else:
+        elif isinstance(command, VelocityYX):
             sup.set_velocity_yx(unit, command.y, command.x)
+        elif isinstance(command, VelocityAYBX):
+            sup.set_velocity(unit, command.ay, command.bx)
+        elif isinstance(command, CurrentAYBX):
+            sup.set_current(unit, command.ay, command.bx)
+        else:
+            sup.zero(unit)
     except CommandError as exc:
         sup.notice(unit, logging.WARNING, f"input refused: {exc}")

@@ -211,6 +211,11 @@ class Supervisor:
         _finite(ay, bx)
         return self._set(unit, ay, bx, ControlMode.CURRENT)
 
+    def zero(self, name: str) -> None:
+        """Zero command in the unit's current mode (velocity or current); flags unchanged."""
+        unit = self._commandable(name)
+        self._store(unit, Setpoint(kind=unit.setpoint.kind))
+
     def set_inputs(self, name: str, data: int, mask: int) -> None:
         """Change the input bits selected by ``mask`` to those of ``data`` (seed inp_data)."""
         unit = self._commandable(name)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from abh3_supervisor.config import ControlMode
 from abh3_supervisor.inputs import (
     ZERO,
+    CurrentAYBX,
     InputArbiter,
     InputCommand,
     InputFeed,
@@ -11,6 +13,7 @@ from abh3_supervisor.inputs import (
     Twist,
     VelocityYX,
 )
+from tests.conftest import Rig
 
 
 class Source(InputSource):
@@ -65,6 +68,22 @@ def test_release_means_zero_at_once() -> None:
     arb.submit("joy", Twist(0.3, 0.1), 0.0)
     arb.submit("joy", None, 0.05)
     assert applied[-2:] == [("left", ZERO), ("right", ZERO)]
+
+
+def test_silence_zeroes_a_unit_in_current_mode_too(rig: Rig) -> None:
+    from abh3_supervisor.plugin_host import _apply
+
+    arb = InputArbiter(apply=lambda u, c: _apply(rig.sup, u, c), clock=rig.timeline.clock)
+    arb.add(Source("net", ("left",), priority=0, timeout=0.5))
+    assert rig.sup.apply_text("left", "TORQUE ON ON") == ""
+    arb.submit("net", CurrentAYBX(12.5, -3.0), 0.0)
+    assert (rig.sup.units["left"].setpoint.ay, rig.sup.units["left"].setpoint.kind) == (
+        12.5,
+        ControlMode.CURRENT,
+    )
+    arb.poll(0.5)  # silent for its timeout: zero current, still in current mode
+    setpoint = rig.sup.units["left"].setpoint
+    assert (setpoint.ay, setpoint.bx, setpoint.kind) == (0.0, 0.0, ControlMode.CURRENT)
 
 
 def test_repeating_the_same_command_applies_it_once() -> None:

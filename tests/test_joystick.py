@@ -43,6 +43,8 @@ class FakeFeed:
     def velocity_yx(self, y: float, x: float) -> None:
         raise AssertionError("the joystick sends twists")
 
+    velocity = current = velocity_yx
+
     def release(self) -> None:
         self.sent.append(None)
 

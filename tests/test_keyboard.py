@@ -38,6 +38,8 @@ class Feed:
     def velocity_yx(self, y: float, x: float) -> None:
         raise AssertionError
 
+    velocity = current = velocity_yx
+
     def release(self) -> None:
         self.sent.append(None)
 
