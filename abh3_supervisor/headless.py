@@ -74,15 +74,12 @@ async def run_headless(
                 len(config.buses),
                 f" for {duration:g} s" if duration is not None else "",
             )
-            assert rt.fatal is not None
-            stopped: asyncio.Future[object] = asyncio.ensure_future(stop.wait())
-            ends: list[asyncio.Future[object]] = [stopped, rt.fatal]
             reporter = asyncio.ensure_future(_report(sup, status_interval))
             try:
-                await asyncio.wait(ends, timeout=duration, return_when=asyncio.FIRST_COMPLETED)
+                await rt.run_until(stop, duration)
             finally:
                 reporter.cancel()
-                stopped.cancel()
+            assert rt.fatal is not None
             if rt.fatal.done():
                 log.critical("stopping after an internal error: %s", rt.fatal.result())
                 return 1

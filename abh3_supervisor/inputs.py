@@ -17,6 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from abh3_supervisor.commands import CurrentCommand, VelocityCommand
+
 DEFAULT_TIMEOUT = 0.5
 
 
@@ -37,27 +39,12 @@ class VelocityYX:
 
 
 @dataclass(frozen=True, slots=True)
-class VelocityAYBX:
-    """AY/BX velocities [min⁻¹] as the drive reads them (its configured model)."""
-
-    ay: float
-    bx: float
-
-
-@dataclass(frozen=True, slots=True)
-class CurrentAYBX:
-    """AY/BX currents [%]; the unit must be in torque mode."""
-
-    ay: float
-    bx: float
-
-
-@dataclass(frozen=True, slots=True)
 class Stop:
     """Zero command in whatever mode the unit is in (velocity or current)."""
 
 
-InputCommand = Twist | VelocityYX | VelocityAYBX | CurrentAYBX | Stop
+# AY/BX velocity and current are the command language's own records (VEL / CUR)
+InputCommand = Twist | VelocityYX | VelocityCommand | CurrentCommand | Stop
 ZERO = Stop()
 
 
@@ -101,10 +88,10 @@ class InputFeed:
         self._submit(VelocityYX(y, x))
 
     def velocity(self, ay: float, bx: float) -> None:
-        self._submit(VelocityAYBX(ay, bx))
+        self._submit(VelocityCommand(ay, bx))
 
     def current(self, ay: float, bx: float) -> None:
-        self._submit(CurrentAYBX(ay, bx))
+        self._submit(CurrentCommand(ay, bx))
 
     def release(self) -> None:
         """The source lets go (deadman released, device lost): its units stop now."""

@@ -25,13 +25,12 @@ from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.errors import CommandError, ConfigError
 from abh3_supervisor.inputs import (
-    CurrentAYBX,
     InputArbiter,
     InputCommand,
     InputFeed,
     InputSource,
+    Stop,
     Twist,
-    VelocityAYBX,
     VelocityYX,
 )
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
@@ -97,6 +96,7 @@ class PluginHost:
         self.sources: list[InputSource] = []
         self.arbiter: InputArbiter | None = None
         self._timer: DeadlineTimer | None = None
+        self._inputs_stopped = False
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._load(config, installed() if available is None else available)
@@ -262,7 +262,10 @@ class PluginHost:
             worker.post(hook, kwargs)
 
     def stop_inputs(self) -> None:
-        """First on the way out: no input may command anything after this."""
+        """First on the way out: no input may command anything after this. Idempotent."""
+        if self._inputs_stopped:
+            return
+        self._inputs_stopped = True
         if self._timer is not None:
             self._timer.close()
         if self.arbiter is not None:
@@ -289,11 +292,9 @@ def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:
             sup.set_twist(unit, command.linear_x, command.angular_z)
         elif isinstance(command, VelocityYX):
             sup.set_velocity_yx(unit, command.y, command.x)
-        elif isinstance(command, VelocityAYBX):
-            sup.set_velocity(unit, command.ay, command.bx)
-        elif isinstance(command, CurrentAYBX):
-            sup.set_current(unit, command.ay, command.bx)
-        else:
+        elif isinstance(command, Stop):
             sup.zero(unit)
+        else:
+            sup.apply(unit, command)  # VEL / CUR records, as the command language applies them
     except CommandError as exc:
         sup.notice(unit, logging.WARNING, f"input refused: {exc}")

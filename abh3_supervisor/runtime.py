@@ -132,6 +132,18 @@ class Runtime:
             finally:
                 self._close()
 
+    async def run_until(self, stop: asyncio.Event, timeout: float | None = None) -> None:
+        """Run until ``stop`` is set, an internal error ends the run (see :attr:`fatal`),
+        or ``timeout`` seconds pass."""
+        assert self.fatal is not None, "only inside `async with Runtime(...)`"
+        stopped: asyncio.Future[object] = asyncio.ensure_future(stop.wait())
+        try:
+            await asyncio.wait(
+                [stopped, self.fatal], timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+            )
+        finally:
+            stopped.cancel()
+
     async def stop_drives(self) -> None:
         """Zero, START and SERVO off on every commanded unit, sent now and confirmed."""
         sup = self.supervisor

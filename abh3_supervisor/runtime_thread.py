@@ -59,11 +59,7 @@ class RuntimeThread:
             async with Runtime(self.config, record=self.record, plugins=self.plugins) as rt:
                 self.runtime = rt
                 self._ready.set()
-                assert rt.fatal is not None
-                stopped: asyncio.Future[object] = asyncio.ensure_future(self._stop.wait())
-                ends: list[asyncio.Future[object]] = [stopped, rt.fatal]
-                await asyncio.wait(ends, return_when=asyncio.FIRST_COMPLETED)
-                stopped.cancel()
+                await rt.run_until(self._stop)
         except BaseException as exc:  # handed to the starting thread, or kept for stop()
             self.error = exc
         finally:

@@ -142,7 +142,7 @@ class Supervisor:
             if not event.online and unit.cfg.role is Role.COMMAND:
                 # a lost drive stops itself (command-zero timeout); do not resume it moving
                 # on return with a stale setpoint: its command drops to zero
-                self._store(unit, Setpoint(kind=unit.setpoint.kind))
+                self._zero(unit)
 
     def _word(self, unit: UnitState, t: float, word: str, value: int) -> None:
         old = unit.words.get(word)
@@ -214,7 +214,7 @@ class Supervisor:
     def zero(self, name: str) -> None:
         """Zero command in the unit's current mode (velocity or current); flags unchanged."""
         unit = self._commandable(name)
-        self._store(unit, Setpoint(kind=unit.setpoint.kind))
+        self._zero(unit)
 
     def set_inputs(self, name: str, data: int, mask: int) -> None:
         """Change the input bits selected by ``mask`` to those of ``data`` (seed inp_data)."""
@@ -262,6 +262,10 @@ class Supervisor:
     def _store(self, unit: UnitState, setpoint: Setpoint) -> None:
         unit.setpoint = setpoint
         self._push(unit)
+
+    def _zero(self, unit: UnitState) -> None:
+        """Zero command in the unit's current mode (velocity or current)."""
+        self._store(unit, Setpoint(kind=unit.setpoint.kind))
 
     def _push(self, unit: UnitState) -> None:
         if unit.cfg.role is not Role.COMMAND:
@@ -337,7 +341,10 @@ class Supervisor:
             return False
 
     def _wake(self, name: str, sent_at: float) -> None:
-        for since, future in list(self._waiters.get(name, [])):
+        waiters = self._waiters.get(name)
+        if not waiters:  # the usual case, once per reply on the bus path: no allocation
+            return
+        for since, future in list(waiters):
             if sent_at >= since and not future.done():
                 future.set_result(True)
 
@@ -349,7 +356,7 @@ class Supervisor:
         for unit in self.units.values():
             if unit.cfg.role is Role.COMMAND:
                 unit.inputs &= ~flags.START_BITS
-                self._store(unit, Setpoint(kind=unit.setpoint.kind))
+                self._zero(unit)
         self.notice(None, logging.CRITICAL, "EMERGENCY STOP: all units zero, START off (latched)")
 
     def clear_emergency_stop(self) -> None:
@@ -362,7 +369,7 @@ class Supervisor:
         for unit in self.units.values():
             if unit.cfg.role is Role.COMMAND:
                 unit.inputs &= ~(flags.START_BITS | flags.SERVO_BITS)
-                self._store(unit, Setpoint(kind=unit.setpoint.kind))
+                self._zero(unit)
 
 
 def _finite(*values: float) -> None:

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+from abh3_supervisor.commands import CurrentCommand
 from abh3_supervisor.config import ControlMode
 from abh3_supervisor.inputs import (
     ZERO,
-    CurrentAYBX,
     InputArbiter,
     InputCommand,
     InputFeed,
@@ -76,7 +76,7 @@ def test_silence_zeroes_a_unit_in_current_mode_too(rig: Rig) -> None:
     arb = InputArbiter(apply=lambda u, c: _apply(rig.sup, u, c), clock=rig.timeline.clock)
     arb.add(Source("net", ("left",), priority=0, timeout=0.5))
     assert rig.sup.apply_text("left", "TORQUE ON ON") == ""
-    arb.submit("net", CurrentAYBX(12.5, -3.0), 0.0)
+    arb.submit("net", CurrentCommand(12.5, -3.0), 0.0)
     assert (rig.sup.units["left"].setpoint.ay, rig.sup.units["left"].setpoint.kind) == (
         12.5,
         ControlMode.CURRENT,

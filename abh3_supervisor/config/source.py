@@ -55,24 +55,25 @@ def load_source(file: str, text: str) -> Source:
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError([f"{file}:{line}: invalid YAML: {problem}"]) from exc
     src = Source(file, None)
-    src.data = {} if node is None else _construct(node, (), src)
+    loader = yaml.SafeLoader("")
+    src.data = {} if node is None else _construct(node, (), src, loader)
     return src
 
 
-def _construct(node: yaml.Node, path: Path, src: Source) -> Any:
+def _construct(node: yaml.Node, path: Path, src: Source, loader: yaml.SafeLoader) -> Any:
     src.lines[path] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
         out: dict[Any, Any] = {}
         for key_node, value_node in node.value:
-            key = yaml.SafeLoader(" ").construct_object(key_node)  # scalar keys only
+            key = loader.construct_object(key_node)  # scalar keys only
             if key in out:
                 src.lines[(*path, str(key))] = key_node.start_mark.line + 1
                 src.error((*path, str(key)), "duplicate key (the later one would win silently)")
-            out[key] = _construct(value_node, (*path, str(key)), src)
+            out[key] = _construct(value_node, (*path, str(key)), src, loader)
         return out
     if isinstance(node, yaml.SequenceNode):
-        return [_construct(item, (*path, i), src) for i, item in enumerate(node.value)]
-    return yaml.SafeLoader(" ").construct_object(node)
+        return [_construct(item, (*path, i), src, loader) for i, item in enumerate(node.value)]
+    return loader.construct_object(node)
 
 
 class Section:

@@ -166,6 +166,8 @@ BX_START = INPUT.mask("BX_START")
 AY_TORQUE = INPUT.mask("AY_TORQUE")
 BX_TORQUE = INPUT.mask("BX_TORQUE")
 ERROR_RESET = INPUT.mask("ERROR_RESET")
+A_PULSE_CLEAR_MASK = INPUT.mask("A_PULSE_CLEAR")
+B_PULSE_CLEAR_MASK = INPUT.mask("B_PULSE_CLEAR")
 TRAVEL_MODEL = CONTROL.mask("TRAVEL_MODEL")
 AY_SELECT_SHIFT = 4
 BX_SELECT_SHIFT = 16
@@ -177,7 +179,3 @@ CAN_COMM_ERROR = FAULT.mask("CAN_COMM_ERROR")
 def data_select(word: int) -> tuple[int, int]:
     """The written 3-bit data-select values (A/Y, B/X); the drive uses set ``7 - value``."""
     return (word >> AY_SELECT_SHIFT) & 7, (word >> BX_SELECT_SHIFT) & 7
-
-
-A_PULSE_CLEAR_MASK = INPUT.mask("A_PULSE_CLEAR")
-B_PULSE_CLEAR_MASK = INPUT.mask("B_PULSE_CLEAR")

@@ -12,7 +12,7 @@ PF_TP_DT = 0xEB  # §3.4 transport data
 ADDR_ALL = 0xFF
 MAX_ADDRESS = 253  # 0–253 are unit/host addresses; 254/255 are reserved
 _PRIORITY_SHIFT = 26
-_MATCH_MASK = (1 << _PRIORITY_SHIFT) - 1  # everything except the priority bits
+MATCH_MASK = (1 << _PRIORITY_SHIFT) - 1  # everything except the priority bits
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,7 +47,7 @@ class CanId:
 
 def without_priority(arbitration_id: int) -> int:
     """The part of an identifier replies are matched on (§2: ignore the priority)."""
-    return arbitration_id & _MATCH_MASK
+    return arbitration_id & MATCH_MASK
 
 
 def dp0_command_id(abh3: int, host: int, priority: int = 0) -> int:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from abh3_supervisor.config.model import Role, UnitConfig
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.ids import (
+    MATCH_MASK,
     broadcast_id,
     dp0_command_id,
     dp0_reply_id,
@@ -138,7 +139,7 @@ class BusScheduler:
         self.slots[unit].payload = payload
 
     def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
-        route = self._routes.get(arbitration_id & 0x3FFFFFF)
+        route = self._routes.get(arbitration_id & MATCH_MASK)  # inline: the hot path
         if route is None:
             return
         slot, packet = route

@@ -36,6 +36,7 @@ from textual.widgets import (
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.eventlog import describe
 from abh3_supervisor.inputs import InputFeed, InputSource
+from abh3_supervisor.planner import plan
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import STOP_SIGNALS, Runtime
@@ -174,6 +175,7 @@ class SupervisorApp(App[None]):
         self.speed, self.turn = 0.2, 0.5
         self.sampler = Sampler(self.sup)
         self.bus_samples: dict[str, BusSample] = {}
+        self.plans = {p.bus: p for p in plan(runtime.config)}  # static: computed once
         self.pending_log: deque[Text] = deque(maxlen=2000)
         self.overview_rows: dict[str, dict[str, str]] = {}
         self.sup.subscribe(self._on_event)
@@ -243,7 +245,7 @@ class SupervisorApp(App[None]):
             self._refresh_unit()
         elif active == "bus":
             self.query_one("#bus-view", Static).update(
-                "\n".join(bus_lines(self.rt, self.bus_samples))
+                "\n".join(bus_lines(self.rt, self.plans, self.bus_samples))
             )
         self.sub_title = (
             f"unit {self.unit}{' (all units)' if self.drive_all else ''} · "

@@ -6,6 +6,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from abh3_supervisor.config.model import VelocityModel
+from abh3_supervisor.planner import BusPlan
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.supervisor import Supervisor
@@ -155,11 +156,8 @@ class BusSample:
     t: float = 0.0
 
 
-def bus_lines(rt: Runtime, last: dict[str, BusSample]) -> list[str]:
+def bus_lines(rt: Runtime, plans: dict[str, BusPlan], last: dict[str, BusSample]) -> list[str]:
     """Frames/s, estimated load % and error counts per bus since the previous call."""
-    from abh3_supervisor.planner import plan
-
-    plans = {p.bus: p for p in plan(rt.config)}
     lines = []
     for name, pump in rt.pumps.items():
         now = rt.supervisor.clock()
