@@ -11,13 +11,24 @@ sans-I/O: it is fed submissions and the time, and applies commands through a cal
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import logging
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-from abh3_supervisor.commands import CurrentCommand, VelocityCommand
+from abh3_supervisor.commands import (
+    RESPONSE_INVALID,
+    RESPONSE_OK,
+    CurrentCommand,
+    VelocityCommand,
+)
+from abh3_supervisor.errors import CommandError
+
+if TYPE_CHECKING:
+    from abh3_supervisor.supervisor import Supervisor
 
 DEFAULT_TIMEOUT = 0.5
 
@@ -76,10 +87,21 @@ class Feed(Protocol):
 
 
 class InputFeed:
-    """A source's thread-safe :class:`Feed`: every call is handed to the event loop."""
+    """A source's thread-safe :class:`Feed`: every call is handed to the event loop.
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, arbiter: InputArbiter, name: str) -> None:
-        self._loop, self._arbiter, self._name = loop, arbiter, name
+    Besides the arbitrated motion commands, a source may change input bits, run the
+    command language and ask for status packets on its units (the seed's ``inp_data``,
+    ``inp_service`` and ``brd_num``): these are not arbitrated, they act at once.
+    """
+
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        arbiter: InputArbiter,
+        name: str,
+        supervisor: Supervisor,
+    ) -> None:
+        self._loop, self._arbiter, self._name, self._sup = loop, arbiter, name, supervisor
 
     def twist(self, linear_x: float, angular_z: float) -> None:
         self._submit(Twist(linear_x, angular_z))
@@ -99,13 +121,54 @@ class InputFeed:
 
     def retarget(self, units: tuple[str, ...]) -> None:
         """Drive other units from now on; units left behind stop if this source drove them."""
-        if not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self._arbiter.retarget_now, self._name, units)
+        self._on_loop(self._arbiter.retarget_now, self._name, units)
 
-    def _submit(self, command: InputCommand | None) -> None:
+    def inputs(self, data: int, mask: int) -> None:
+        """Set the input bits selected by ``mask`` (uint32) to those of ``data``."""
+        self._on_loop(self._each, self._sup.set_inputs, data & 0xFFFFFFFF, mask & 0xFFFFFFFF)
+
+    def request_status(self, packet: int) -> None:
+        """Ask for broadcast ``packet`` (0–6) once; it arrives through ``abh3_status``."""
+        self._on_loop(self._each, self._sup.request_status, packet)
+
+    def command(self, text: str) -> concurrent.futures.Future[str]:
+        """Run a command-language string on the source's units; the future holds the
+        seed's response (``''``, ``'Invalid Command.'`` or ``'Packet Error: n'``) once a
+        drive answered or the unit's timeout passed. The first unit that fails answers."""
+        future: concurrent.futures.Future[str] = concurrent.futures.Future()
+        if self._loop.is_closed():
+            future.set_result(RESPONSE_INVALID)
+            return future
+
+        async def run() -> str:
+            if self._arbiter.closed:
+                return RESPONSE_INVALID
+            responses = [await self._sup.command(unit, text) for unit in self._units()]
+            return next((r for r in responses if r != RESPONSE_OK), RESPONSE_OK)
+
+        return asyncio.run_coroutine_threadsafe(run(), self._loop)
+
+    def _units(self) -> tuple[str, ...]:
+        return self._arbiter.sources[self._name].units
+
+    def _each(self, action: Callable[..., None], *args: int) -> None:
+        for unit in self._units():
+            try:
+                action(unit, *args)
+            except CommandError as exc:
+                self._sup.notice(unit, logging.WARNING, f"input {self._name} refused: {exc}")
+
+    def _on_loop(self, fn: Callable[..., None], *args: object) -> None:
         if self._loop.is_closed():
             return
-        self._loop.call_soon_threadsafe(self._arbiter.submit_now, self._name, command)
+        self._loop.call_soon_threadsafe(self._unless_closed, fn, *args)
+
+    def _unless_closed(self, fn: Callable[..., None], *args: object) -> None:
+        if not self._arbiter.closed:  # inputs stopped: nothing queued may act any more
+            fn(*args)
+
+    def _submit(self, command: InputCommand | None) -> None:
+        self._on_loop(self._arbiter.submit_now, self._name, command)
 
 
 @dataclass
@@ -129,6 +192,7 @@ class InputArbiter:
     # per unit: (winning source, the command applied) — None when nobody drives it
     current: dict[str, tuple[str, InputCommand] | None] = field(default_factory=dict)
     on_change: Callable[[], None] | None = None  # re-arm the deadline timer
+    closed: bool = False  # inputs stopped: submissions are ignored from now on
 
     def add(self, source: InputSource) -> None:
         self.sources[source.name] = _SourceState(

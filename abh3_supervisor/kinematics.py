@@ -18,6 +18,8 @@ class Geometry:
     rate_den: float = 10.0
     wheel: float = 0.1
     width: float = 0.5
+    # encoder pulses per motor revolution (broadcast 4 counts); 0: unknown, no odometry
+    pulses_per_rev: float = 0.0
 
     @property
     def metres_per_motor_rev(self) -> float:

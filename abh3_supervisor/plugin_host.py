@@ -228,7 +228,7 @@ class PluginHost:
                 continue
             arbiter.add(source)
             try:
-                source.start(InputFeed(loop, arbiter, source.name))
+                source.start(InputFeed(loop, arbiter, source.name, sup))
             except Exception as exc:
                 log.error("input %s failed to start: %r", source.name, exc)
 
@@ -269,7 +269,7 @@ class PluginHost:
         if self._timer is not None:
             self._timer.close()
         if self.arbiter is not None:
-            self.arbiter.apply = lambda unit, command: None  # calls still queued are dropped
+            self.arbiter.closed = True  # calls still queued are dropped
         for source in self.sources:
             try:
                 source.stop()

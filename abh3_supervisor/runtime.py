@@ -105,7 +105,8 @@ class Runtime:
                 recorder=self._recorder,
                 on_fatal=self._on_fatal,
             )
-        for pump in self.pumps.values():
+        for name, pump in self.pumps.items():
+            self.supervisor.wakers[name] = pump.wake
             pump.start()
         if self.plugins is not None:
             self.plugins.start(self.supervisor, loop)

@@ -89,6 +89,8 @@ class Supervisor:
         self._waiters: dict[str, list[tuple[float, asyncio.Future[bool]]]] = {}
         self.estop = False
         self.stopping = False  # set by safe_state(): every later command is refused
+        # per bus: step the scheduler now (set by the runtime; absent on a fake clock)
+        self.wakers: dict[str, Callable[[], None]] = {}
         for unit in self.units.values():
             self._push(unit)
 
@@ -276,6 +278,19 @@ class Supervisor:
         self.schedulers[unit.cfg.bus].set_payload(
             unit.name, frames.encode_dp0_command(raw_ay, raw_bx, unit.inputs)
         )
+
+    def request_status(self, name: str, packet: int) -> None:
+        """Ask the drive for broadcast ``packet`` (0-6) once, soon (seed ``brd_num``).
+
+        Read-only, so allowed in every state; the answer arrives as a status event.
+        """
+        unit = self.unit(name)
+        if isinstance(packet, bool) or not isinstance(packet, int) or not 0 <= packet <= 6:
+            raise CommandError(f"broadcast packet {packet!r} is not 0-6")
+        self.schedulers[unit.cfg.bus].request_status(name, packet)
+        wake = self.wakers.get(unit.cfg.bus)
+        if wake is not None:
+            wake()
 
     # ------------------------------------------------------------ command language
 

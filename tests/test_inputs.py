@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
+
 from abh3_supervisor.commands import CurrentCommand
-from abh3_supervisor.config import ControlMode
+from abh3_supervisor.config import ControlMode, parse_config
 from abh3_supervisor.inputs import (
     ZERO,
     InputArbiter,
@@ -13,7 +15,11 @@ from abh3_supervisor.inputs import (
     Twist,
     VelocityYX,
 )
-from tests.conftest import Rig
+from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.protocol import flags
+from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.scheduler.core import StatusEvent
+from tests.conftest import TWO_UNITS, Rig
 
 
 class Source(InputSource):
@@ -91,3 +97,55 @@ def test_repeating_the_same_command_applies_it_once() -> None:
     for i in range(10):
         arb.submit("joy", Twist(0.3, 0), i * 0.05)
     assert len(applied) == 2  # left and right, once each
+
+
+class Holder(InputSource):
+    """Keeps the feed so the test can call it from another thread, as a network source."""
+
+    feed: InputFeed | None = None
+
+    def start(self, feed: InputFeed) -> None:
+        self.feed = feed
+
+    def stop(self) -> None:
+        pass
+
+
+def test_feed_runs_commands_inputs_and_status_requests_from_another_thread() -> None:
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    host = PluginHost(cfg)
+    source = Holder("net", ("right",))
+    host.add_source(source)
+
+    async def scenario() -> None:
+        async with Runtime(cfg, plugins=host) as rt:
+            sup = rt.supervisor
+            answered = asyncio.Event()
+            sup.subscribe(
+                lambda e: (
+                    answered.set()
+                    if isinstance(e, StatusEvent) and e.unit == "right" and e.packet == 6
+                    else None
+                )
+            )
+            feed = source.feed
+            assert feed is not None
+            # the seed's inp_service answers, waited for in a thread as a DDS reader does
+            assert await asyncio.to_thread(feed.command("SERVO ON ON").result, 5) == ""
+            assert await asyncio.to_thread(feed.command("FOO").result, 5) == "Invalid Command."
+            assert sup.units["right"].inputs & flags.SERVO_BITS == flags.SERVO_BITS
+            await asyncio.to_thread(feed.inputs, 0xFFFFFFFF, flags.START_BITS)  # inp_data
+            await asyncio.to_thread(feed.request_status, 6)  # brd_num, outside the mask
+            # both were queued on the loop before the thread returned: applied by now
+            assert sup.units["right"].inputs & flags.START_BITS == flags.START_BITS
+            assert sup.units["left"].inputs & flags.SERVO_BITS == 0  # the source's units only
+            await asyncio.wait_for(answered.wait(), 5)
+            host.stop_inputs()
+            feed.inputs(0, flags.SERVO_BITS)  # after the inputs stopped: ignored
+            assert await asyncio.to_thread(feed.command("SERVO OFF OFF").result, 5) == (
+                "Invalid Command."
+            )
+            await asyncio.sleep(0)  # the queued call runs, and does nothing
+            assert sup.units["right"].inputs & flags.SERVO_BITS == flags.SERVO_BITS
+
+    asyncio.run(scenario())

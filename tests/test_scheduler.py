@@ -7,9 +7,15 @@ import itertools
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import ids
 from abh3_supervisor.protocol.classify import AddressBook, Kind, classify
-from abh3_supervisor.scheduler.core import BusScheduler, FeedbackEvent, HealthEvent
+from abh3_supervisor.scheduler.core import (
+    BusScheduler,
+    FeedbackEvent,
+    HealthEvent,
+    StatusEvent,
+)
 from tests.conftest import TWO_UNITS, Rig
 
 
@@ -163,3 +169,31 @@ def test_monitor_units_only_request_feedback() -> None:
     }
     assert kinds == {Kind.REQUEST}
     assert rig.sup.units["right"].feedback is not None
+
+
+def test_status_on_demand_takes_the_next_poll_turn_once() -> None:
+    """The seed's brd_num: a unit with no polling of its own answers requested packets."""
+    cfg = parse_config(
+        "buses: {b: {interface: virtual, channel: t, simulate: true}}\n"
+        "units: [{name: u, broadcast: {mask: 0}}]\n",
+        "c.yaml",
+    )
+    rig = Rig(cfg)
+    rig.run(1.0)
+    assert rig.scheduler.slots["u"].stats.polls_sent == 0  # mask 0: no polling at all
+    for packet in (4, 4, 4, 0):  # a flood of the same request costs one frame
+        rig.sup.request_status("u", packet)
+    rig.run(0.5)
+    answered = [e.packet for e in rig.events if isinstance(e, StatusEvent)]
+    assert answered == [4, 0]
+    assert rig.scheduler.slots["u"].stats.polls_sent == 2
+    with pytest.raises(CommandError, match="not 0-6"):
+        rig.sup.request_status("u", 7)
+
+
+def test_requested_status_goes_between_the_regular_polls(rig: Rig) -> None:
+    rig.run(1.0)
+    rig.sup.request_status("right", 6)  # outside right's mask 0x0f: asked for explicitly
+    rig.run(1.0)
+    right = [e.packet for e in rig.events if isinstance(e, StatusEvent) and e.unit == "right"]
+    assert right.count(6) == 1 and set(right) == {0, 1, 2, 3, 6}

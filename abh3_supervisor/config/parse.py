@@ -59,7 +59,7 @@ UNIT_KEYS = {
     "startup",
 }
 BROADCAST_KEYS = {"mask", "rate_hz", "listen_only"}
-GEOMETRY_KEYS = {"rate_num", "rate_den", "wheel", "width"}
+GEOMETRY_KEYS = {"rate_num", "rate_den", "wheel", "width", "pulses_per_rev"}
 LIMIT_KEYS = {"velocity", "current"}
 SELECT_KEYS = {"ay", "bx"}
 
@@ -225,6 +225,7 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
             rate_den=g.number("rate_den", 10.0, 0, 1e6, lo_open=True),
             wheel=g.number("wheel", 0.1, 0, 100, lo_open=True),
             width=g.number("width", 0.5, 0, 100, lo_open=True),
+            pulses_per_rev=g.number("pulses_per_rev", 0.0, 0, 1e9),
         ),
         limits=Limits(
             velocity=lim.number("velocity", VELOCITY.maximum, 0, VELOCITY.maximum, lo_open=True),

@@ -79,25 +79,27 @@ class UnitSlot:
         self.last_sent: float | None = None
         self.polls = () if cfg.broadcast.listen_only else cfg.broadcast.packets
         self.poll_period = 1.0 / cfg.broadcast.rate_hz
+        self.poll_id = request_id(cfg.abh3_id, cfg.host_id, cfg.priority)
         self.poll_frames = [
-            (
-                request_id(cfg.abh3_id, cfg.host_id, cfg.priority),
-                frames.encode_request(frames.broadcast_pgn(cfg.brd_group, n)),
-            )
-            for n in self.polls
+            frames.encode_request(frames.broadcast_pgn(cfg.brd_group, n)) for n in range(8)
         ]
         self.next_poll = start + self.period / 2  # interleave with the commands
         self.poll_index = 0
         self.poll_sent_at: float | None = None
+        self.poll_packet = -1  # the packet asked for by the request in flight
+        self.asked: list[int] = []  # on-demand requests (seed brd_num), before the polls
         self.online: bool | None = None  # None until first heard or first timed out
         self.since = start
         self.stats = UnitStats(cfg.command_rate_hz)
 
     def poll_due(self) -> float:
         """When the next status request may go: one in flight per unit, until it expires."""
+        if not self.polls and not self.asked:
+            return math.inf
+        due = -math.inf if self.asked else self.next_poll  # asked: as soon as allowed
         if self.poll_sent_at is None:
-            return self.next_poll
-        return max(self.next_poll, self.poll_sent_at + self.timeout)
+            return due
+        return max(due, self.poll_sent_at + self.timeout)
 
     def command_due(self) -> float:
         """When the next DP0 request may go: on its grid, after the one in flight ends."""
@@ -123,7 +125,7 @@ class BusScheduler:
             slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / max(1, len(cfgs)))
             self.slots[cfg.name] = slot
             self._senders[slot.command_id] = slot
-            self._senders.update((fid, slot) for fid, _ in slot.poll_frames)
+            self._senders[slot.poll_id] = slot
             self._routes[without_priority(dp0_reply_id(cfg.abh3_id, cfg.host_id))] = (slot, -1)
             for n in range(8):
                 self._routes[without_priority(broadcast_id(cfg.abh3_id, cfg.brd_group, n))] = (
@@ -155,11 +157,7 @@ class BusScheduler:
             reply = frames.decode_dp0_reply(data, cfg.protocol)
             self.events.append(FeedbackEvent(cfg.name, now, reply, sent_at))
         else:
-            if (
-                slot.polls
-                and slot.poll_sent_at is not None
-                and slot.polls[(slot.poll_index - 1) % len(slot.polls)] == packet
-            ):
+            if slot.poll_sent_at is not None and slot.poll_packet == packet:
                 slot.poll_sent_at = None
             slot.stats.broadcasts += 1
             slot.stats.last_seen = now
@@ -199,14 +197,29 @@ class BusScheduler:
                 slot.stats.commands_sent += 1
                 slot.next_command = next_on_grid(slot.next_command, slot.command_interval(), now)
         for slot in slots:
-            if not slot.polls or now < slot.poll_due():
+            if now < slot.poll_due():
                 continue
-            out.append(slot.poll_frames[slot.poll_index])
-            slot.poll_index = (slot.poll_index + 1) % len(slot.polls)
+            if slot.asked:  # an on-demand request takes the turn, the polls keep their grid
+                slot.poll_packet = slot.asked.pop(0)
+            else:
+                slot.poll_packet = slot.polls[slot.poll_index]
+                slot.poll_index = (slot.poll_index + 1) % len(slot.polls)
+                slot.next_poll = next_on_grid(slot.next_poll, slot.poll_period, now)
+            out.append((slot.poll_id, slot.poll_frames[slot.poll_packet]))
             slot.poll_sent_at = now
             slot.stats.polls_sent += 1
-            slot.next_poll = next_on_grid(slot.next_poll, slot.poll_period, now)
         return out
+
+    def request_status(self, unit: str, packet: int) -> None:
+        """Ask for broadcast ``packet`` once, at the next free poll turn (seed ``brd_num``).
+
+        A packet already waiting is not queued twice: a flood of requests costs one frame.
+        """
+        if not 0 <= packet <= 7:
+            raise ValueError(f"broadcast packet {packet} is not 0-7")
+        slot = self.slots[unit]
+        if packet not in slot.asked:
+            slot.asked.append(packet)
 
     def flush(self, now: float) -> list[OutFrame]:
         """Every commanding unit's DP0 frame, due now regardless of schedule (stop frames)."""
@@ -229,8 +242,7 @@ class BusScheduler:
         deadline = math.inf
         for slot in self.slots.values():
             deadline = min(deadline, slot.command_due())
-            if slot.polls:
-                deadline = min(deadline, slot.poll_due())
+            deadline = min(deadline, slot.poll_due())
             if slot.online is not False:
                 last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
                 deadline = min(deadline, last + slot.timeout)

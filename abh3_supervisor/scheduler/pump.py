@@ -111,6 +111,11 @@ class BusPump(can.Listener):
         else:
             self._timer.arm(deadline)
 
+    def wake(self) -> None:
+        """Step now (on the loop): new work was queued outside the schedule."""
+        if self._notifier is not None:
+            self._timer.arm(self.loop.time())
+
     def send(self, arbitration_id: int, data: bytes) -> bool:
         """Send one frame now; a refused frame is counted and reported, never fatal."""
         msg = can.Message(
