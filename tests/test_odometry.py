@@ -44,7 +44,7 @@ def test_needs_pulses_per_rev() -> None:
 
 def test_quaternion_of_a_yaw() -> None:
     x, y, z, w = yaw_quaternion(math.pi / 2)
-    assert (x, y, z * z + w * w) == (0, 0, pytest.approx(1))
+    assert x == y == 0 and z * z + w * w == pytest.approx(1)
     assert 2 * math.atan2(z, w) == pytest.approx(math.pi / 2)
 
 
@@ -61,13 +61,12 @@ def test_odometry_follows_a_commanded_twist_on_the_simulated_drive() -> None:
     for text in cfg.units["u"].startup:
         rig.sup.apply_text("u", text)
     odo = PulseOdometry(cfg.units["u"].geometry)
-    rig.sup.subscribe(
-        lambda e: (
-            odo.update(e.record.pulse_a, e.record.pulse_b)
-            if isinstance(e, StatusEvent) and isinstance(e.record, frames.Brd4)
-            else None
-        )
-    )
+
+    def on_event(event: object) -> None:
+        if isinstance(event, StatusEvent) and isinstance(event.record, frames.Brd4):
+            odo.update(event.record.pulse_a, event.record.pulse_b)
+
+    rig.sup.subscribe(on_event)
     rig.run(0.5)  # first reading: the origin
     rig.sup.set_twist("u", 0.1, 0.2)
     rig.run(1.0)  # ramp
