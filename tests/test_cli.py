@@ -146,3 +146,10 @@ def test_user_mistakes_give_messages_not_tracebacks(tmp_path: Path) -> None:
     out = abh3("run", str(missing), "--headless", "--duration", "1")
     assert out.returncode == 1 and "cannot open socketcan channel 'can7'" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("config", sorted(p.name for p in (ROOT / "configs").glob("*.yaml")))
+def test_every_shipped_configuration_checks_clean(config: str) -> None:
+    out = abh3("check", f"configs/{config}")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "OK" in out.stdout

@@ -1,10 +1,19 @@
-"""The ROS 2 bridge between two processes over DDS, loopback only, multicast off."""
+"""The ROS 2 bridge between two processes over DDS, loopback only, multicast off.
+
+The supervisor runs as ``abh3 run`` in a child process on the simulated drives; this
+process is the other ROS 2 participant, speaking plain DDS with ROS 2's naming, as a ROS
+node on rmw_cyclonedds would. Each test uses a domain of its own.
+"""
 
 from __future__ import annotations
 
+import itertools
+import math
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -16,93 +25,199 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from abh3_plugins.ros2 import types
-from abh3_plugins.ros2.bridge import ROS_DEFAULT, twist
-from abh3_supervisor.config import parse_config
-from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.kinematics import Geometry, twist_to_ab
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_plugins.ros2.bridge import twist
+from abh3_plugins.ros2.dds import SERVICE_QOS, qos
+from abh3_plugins.ros2.settings import QosSettings
+from abh3_supervisor.kinematics import Geometry, twist_to_ab, twist_to_yx
 
 ROOT = Path(__file__).resolve().parent.parent
-DOMAIN = 17
 LOOPBACK = (
     "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/>"
     "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
     "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>30</MaxAutoParticipantIndex>"
     "<Peers><Peer address='127.0.0.1'/></Peers></Discovery></Domain></CycloneDDS>"
 )
-CONFIG = f"""
+ROS_DEFAULT = qos(QosSettings())
+UNIT = """
 buses:
-  demo: {{interface: virtual, channel: ros2-test, simulate: true}}
+  demo: {{interface: virtual, channel: ros2-{domain}, simulate: true}}
 units:
   - name: left
     abh3_id: 1
-    broadcast: {{mask: 0x03, rate_hz: 20}}
-    startup: ["SERVO ON ON", "START ON ON", "VEL 300 20"]
+    broadcast: {{mask: 0x13, rate_hz: 20}}
+    geometry: {{pulses_per_rev: 4096}}
+    startup: {startup}
 plugins:
-  ros2: {{domain_id: {DOMAIN}}}
+  ros2: {{domain_id: {domain}{extra}}}
 """
+_client = itertools.count(1)
 
 
-def test_commands_stay_off_unless_implemented_and_enabled() -> None:
-    cfg = parse_config(CONFIG.replace(f"domain_id: {DOMAIN}", "allow_commands: true"), "r.yaml")
-    with pytest.raises(ConfigError, match="commands over ROS 2 are not implemented yet"):
-        PluginHost(cfg)
+class Peer:
+    """The other ROS 2 participant: topics under /left, and an inp_service client."""
 
-
-def test_feedback_status_and_conversions_reach_another_process(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
-    cfg = tmp_path / "ros2.yaml"
-    cfg.write_text(CONFIG)
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "abh3_supervisor",
-            "run",
-            str(cfg),
-            "--headless",
-            "--duration",
-            "30",
-        ],
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-    )
-    try:
-        dp = DomainParticipant(DOMAIN)
-
-        def reader(name: str, typ: type) -> DataReader:  # type: ignore[type-arg]
-            return DataReader(dp, Topic(dp, f"rt/left/{name}", typ), qos=ROS_DEFAULT)
-
-        fbk_ab, fbk_yx = (
-            reader("vel_fbk_ab", types.Abh3Velocity),
-            reader("vel_fbk_yx", types.Abh3Velocity),
+    def __init__(self, domain: int) -> None:
+        self.dp = DomainParticipant(domain)
+        self.topics: dict[str, Topic[Any]] = {}
+        self.guid, self.sequence = next(_client) << 32, 0
+        self.request = DataWriter(
+            self.dp,
+            Topic(self.dp, "rq/left/inp_serviceRequest", types.Abh3InputRequest),
+            qos=SERVICE_QOS,
         )
-        brd1, xa_ab = reader("brd1_data", types.Abh3Brd1), reader("xa_ab", types.Abh3Velocity)
-        xa = DataWriter(dp, Topic(dp, "rt/left/xa", types.Twist), qos=ROS_DEFAULT)
+        self.reply = DataReader(
+            self.dp,
+            Topic(self.dp, "rr/left/inp_serviceReply", types.Abh3InputResponse),
+            qos=SERVICE_QOS,
+        )
 
-        def until(reader: DataReader, want: object, seconds: float = 20) -> bool:  # type: ignore[type-arg]
-            for sample in reader.take_iter(timeout=duration(seconds=seconds)):  # waits on data
-                if sample == want:
-                    return True
-            return False
+    def _topic(self, name: str, typ: type) -> Topic[Any]:
+        if name not in self.topics:
+            self.topics[name] = Topic(self.dp, f"rt/left/{name}", typ)
+        return self.topics[name]
 
-        # the drive ramps to the command: Y 300, X 20 = A 320, B 280 at the motors
-        assert until(fbk_ab, types.Abh3Velocity(320.0, 280.0))
-        assert until(fbk_yx, types.Abh3Velocity(300.0, 20.0), 5)
-        control = next(brd1.take_iter(timeout=duration(seconds=5)))
-        assert control.control & 0x3 == 0x3  # servo and start on, as the drive reports
-        for _ in range(20):  # until the bridge's reader is matched and answers
-            xa.write(twist(0.5, 0.2))
-            answers = list(xa_ab.take_iter(timeout=duration(milliseconds=500)))
-            if answers:
-                break
-        a, b = twist_to_ab(0.5, 0.2, Geometry())
-        assert (answers[0].vel_ay, answers[0].vel_bx) == (pytest.approx(a), pytest.approx(b))
-    finally:
+    def reader(self, name: str, typ: type) -> DataReader[Any]:
+        return DataReader(self.dp, self._topic(name, typ), qos=ROS_DEFAULT)
+
+    def writer(self, name: str, typ: type) -> DataWriter[Any]:
+        return DataWriter(self.dp, self._topic(name, typ), qos=ROS_DEFAULT)
+
+    def call(self, command: str, seconds: float = 20) -> str | None:
+        """inp_service as a ROS client does: resend until the service is matched."""
+        self.sequence += 1
+        for _ in range(int(seconds / 0.5)):
+            self.request.write(types.Abh3InputRequest(self.guid, self.sequence, command))
+            for reply in self.reply.take_iter(timeout=duration(milliseconds=500)):
+                if (reply.client_guid, reply.sequence) == (self.guid, self.sequence):
+                    return str(reply.responce)
+        return None
+
+
+def until(reader: DataReader[Any], want: Any, seconds: float = 20) -> Any:
+    """The first sample equal to ``want`` (or for which ``want`` is true), or None."""
+    for sample in reader.take_iter(timeout=duration(seconds=seconds)):  # waits on data
+        if want(sample) if callable(want) else sample == want:
+            return sample
+    return None
+
+
+def close(a: types.Abh3Velocity, ay: float, bx: float, tol: float = 0.3) -> bool:
+    return abs(a.vel_ay - ay) <= tol and abs(a.vel_bx - bx) <= tol
+
+
+@pytest.fixture
+def supervisor(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
+    """Start ``abh3 run`` with a config; yields a starter; checks the clean stop after."""
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    procs: list[subprocess.Popen[str]] = []
+
+    def start(domain: int, startup: str = "[]", extra: str = "") -> Peer:
+        cfg = tmp_path / "ros2.yaml"
+        cfg.write_text(UNIT.format(domain=domain, startup=startup, extra=extra))
+        command = [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless"]
+        procs.append(
+            subprocess.Popen(
+                [*command, "--duration", "60"], stderr=subprocess.PIPE, text=True, cwd=ROOT
+            )
+        )
+        return Peer(domain)
+
+    yield start
+    for proc in procs:
         proc.terminate()
         _, err = proc.communicate(timeout=30)
-    assert proc.returncode == 0, err
-    assert "stop frame confirmed" in err
+        assert proc.returncode == 0, err
+        assert "stop frame confirmed" in err
+        assert "Traceback" not in err
+
+
+def test_feedback_status_odometry_and_conversions_reach_another_process(
+    supervisor: Any,
+) -> None:
+    peer = supervisor(17, startup='["SERVO ON ON", "START ON ON", "VEL 300 20"]')
+    fbk_ab = peer.reader("vel_fbk_ab", types.Abh3Velocity)
+    fbk_yx = peer.reader("vel_fbk_yx", types.Abh3Velocity)
+    brd1 = peer.reader("brd1_data", types.Abh3Brd1)
+    odom = peer.reader("odom", types.Odometry)
+    xa_ab = peer.reader("xa_ab", types.Abh3Velocity)
+    xa = peer.writer("xa", types.Twist)
+    vel_cmd = peer.writer("vel_cmd", types.Abh3Velocity)
+    # the drive ramps to the command: Y 300, X 20 = A 320, B 280 at the motors
+    assert until(fbk_ab, types.Abh3Velocity(320.0, 280.0))
+    assert until(fbk_yx, types.Abh3Velocity(300.0, 20.0), 5)
+    control = next(brd1.take_iter(timeout=duration(seconds=5)))
+    assert control.control & 0x3 == 0x3  # servo and start on, as the drive reports
+    # odometry: the twist from the feedback, the pose from the pulse counts
+    speed = (300 / 60 * 0.1 * 0.1 * math.pi, -20 / 60 * 0.1 * 0.1 * math.pi / 0.25)
+    first = until(
+        odom,
+        lambda o: [o.twist.twist.linear.x, o.twist.twist.angular.z] == pytest.approx(speed),
+        5,
+    )
+    assert first is not None
+    assert (first.header.frame_id, first.child_frame_id) == ("odom", "base_link")
+    assert until(odom, lambda o: o.pose.pose.position.x > first.pose.pose.position.x + 0.01)
+    for _ in range(20):  # until the bridge's reader is matched and answers
+        xa.write(twist(types, 0.5, 0.2))
+        vel_cmd.write(types.Abh3Velocity(-500.0, 0.0))  # commands are off by default
+        answers = list(xa_ab.take_iter(timeout=duration(milliseconds=500)))
+        if answers:
+            break
+    a, b = twist_to_ab(0.5, 0.2, Geometry())
+    assert (answers[0].vel_ay, answers[0].vel_bx) == (pytest.approx(a), pytest.approx(b))
+    # the seed's formulas: Y = v·60/(r·wheel·π), X = −ω·60/(r·wheel·π)·width/2
+    k = 60 / (0.1 * 0.1 * math.pi)
+    assert [a, b] == pytest.approx([0.5 * k - 0.2 * k * 0.25, 0.5 * k + 0.2 * k * 0.25])
+    assert until(fbk_ab, types.Abh3Velocity(320.0, 280.0), 2)  # vel_cmd changed nothing
+    assert peer.call("SERVO OFF OFF", seconds=2) is None  # no service without allow_commands
+
+
+def test_commands_service_and_staleness_across_processes(supervisor: Any) -> None:
+    """The issue's check: vel_cmd drives, inp_service answers as the seed, silence → zero."""
+    peer = supervisor(18, extra=", allow_commands: true, command_timeout_ms: 300")
+    fbk_ab = peer.reader("vel_fbk_ab", types.Abh3Velocity)
+    fbk_yx = peer.reader("vel_fbk_yx", types.Abh3Velocity)
+    vel_cmd = peer.writer("vel_cmd", types.Abh3Velocity)
+    cmd_vel = peer.writer("cmd_vel", types.Twist)
+    assert peer.call("SERVO ON ON") == ""
+    assert peer.call("FOO") == "Invalid Command."
+    assert peer.call("START ON ON") == ""
+
+    def drive(write: Any, sample: Any, reader: DataReader[Any], want: Any) -> bool:
+        """Publish at 20 Hz, as a teleop node does, until the feedback shows ``want``."""
+        for _ in range(200):
+            write(sample)
+            for got in reader.take_iter(timeout=duration(milliseconds=50)):
+                if want(got):
+                    return True
+        return False
+
+    vel_cmd.write(types.Abh3Velocity(math.nan, 0.0))  # refused, never reaches a drive
+    vel_cmd.write(types.Abh3Velocity(1e9, 0.0))
+    assert drive(
+        vel_cmd.write, types.Abh3Velocity(300.0, 20.0), fbk_yx, lambda m: close(m, 300, 20)
+    )
+    assert until(fbk_ab, lambda m: close(m, 320, 280), 5)
+    # silence longer than command_timeout_ms: the unit is zeroed and the drive ramps down
+    assert until(fbk_ab, types.Abh3Velocity(0.0, 0.0), 10)
+    y, x = twist_to_yx(0.2, 0.5, Geometry())
+    assert drive(cmd_vel.write, twist(types, 0.2, 0.5), fbk_yx, lambda m: close(m, y, x, 0.2))
+    assert peer.call("SERVO OFF OFF") == ""
+
+
+def test_brd_num_asks_the_drive_for_packets_of_the_mask(supervisor: Any) -> None:
+    """status: request is the seed's status node: a packet only when brd_num asks for it."""
+    peer = supervisor(19, extra=", status: request")
+    brd0 = peer.reader("brd0_data", types.Abh3Brd0)
+    brd4 = peer.reader("brd4_data", types.Abh3Brd4)
+    brd_num = peer.writer("brd_num", types.Int32)
+    got: list[Any] = []
+    for _ in range(40):
+        brd_num.write(types.Int32(4))
+        brd_num.write(types.Int32(2))  # outside the mask 0x13: ignored, as the seed does
+        got = list(brd4.take_iter(timeout=duration(milliseconds=500)))
+        if got:
+            break
+    assert got and isinstance(got[0], types.Abh3Brd4)
+    # the unit polls 0, 1 and 4 by itself, but with status: request only asked ones go out
+    assert list(brd0.take_iter(timeout=duration(seconds=1))) == []

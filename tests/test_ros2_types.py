@@ -97,3 +97,51 @@ def test_service_samples_carry_the_rmw_cyclonedds_request_header() -> None:
         ).responce
         == "Invalid Command."
     )
+
+
+def test_odometry_matches_rosbags_stock_nav_msgs() -> None:
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    t = ts.types
+    covariance = [float(i) for i in range(36)]
+    ours = types.Odometry(
+        types.Header(types.Time(12, 345), "odom"),
+        "base_link",
+        types.PoseWithCovariance(
+            types.Pose(types.Point(1.0, 2.0, 0.0), types.Quaternion(0.0, 0.0, 0.38, 0.92)),
+            covariance,
+        ),
+        types.TwistWithCovariance(
+            types.Twist(types.Vector3(0.5), types.Vector3(z=0.2)), covariance
+        ),
+    )
+    np = pytest.importorskip("numpy")
+    theirs = t["nav_msgs/msg/Odometry"](
+        t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](12, 345), "odom"),
+        "base_link",
+        t["geometry_msgs/msg/PoseWithCovariance"](
+            t["geometry_msgs/msg/Pose"](
+                t["geometry_msgs/msg/Point"](1.0, 2.0, 0.0),
+                t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.38, 0.92),
+            ),
+            np.array(covariance),
+        ),
+        t["geometry_msgs/msg/TwistWithCovariance"](
+            t["geometry_msgs/msg/Twist"](
+                t["geometry_msgs/msg/Vector3"](0.5, 0.0, 0.0),
+                t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.2),
+            ),
+            np.array(covariance),
+        ),
+    )
+    assert ours.serialize() == bytes(ts.serialize_cdr(theirs, "nav_msgs/msg/Odometry"))
+    assert types.Odometry.__idl_typename__ == "nav_msgs::msg::dds_::Odometry_"
+    for cls, ros in ((types.Int32, "std_msgs/msg/Int32"), (types.Twist, "geometry_msgs/msg/Twist")):
+        assert cls().serialize() == bytes(ts.serialize_cdr(t[ros](*_zeros(t, ros)), ros))
+
+
+def _zeros(t: Any, ros: str) -> list[Any]:
+    """Default field values for a rosbags type (all our defaults are zero)."""
+    if ros == "std_msgs/msg/Int32":
+        return [0]
+    vector = t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0)
+    return [vector, vector]

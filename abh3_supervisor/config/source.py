@@ -108,7 +108,7 @@ class Section:
     def error(self, key: str, message: str) -> None:
         self.src.error((*self.path, key), message)
 
-    def sub(self, key: str, allowed: set[str]) -> Section:
+    def sub(self, key: str, allowed: set[str] | None) -> Section:
         return Section(self.src, (*self.path, key), self.data.get(key), allowed)
 
     def items(self) -> Iterator[tuple[str, Any]]:

@@ -1,44 +1,59 @@
-"""``ros2``: the vendor sample's ROS 2 topics over DDS, with no ROS install needed.
+"""``ros2``: the vendor sample's whole ROS 2 interface, per unit, with or without ROS.
 
-This first part is read-only, so it is safe on any network: per unit, under the
-namespace ``<namespace>/<unit>``, it publishes ``vel_fbk_ab`` and ``vel_fbk_yx`` after
-every exchange (as ros2ABH3Cmd does), ``brd0_data`` … ``brd6_data`` for the unit's
-broadcast mask on the scheduler's own polling, and serves the conversion node's topics
-(``xa`` → ``xa_yx``, ``xa_ab``; ``yx`` → ``yx_xa``, ``yx_ab``; ``ab`` → ``ab_yx``,
-``ab_xa``) with the unit's geometry. Commands (``vel_cmd``, ``cur_cmd``, ``inp_data``,
-``inp_service``, ``cmd_vel``) come in a later step, behind ``allow_commands``.
+Per unit, under ``<namespace>/<unit>/`` (every name remappable, see settings.py):
+
+- command node: ``vel_cmd``, ``cur_cmd``, ``inp_data`` and the ``inp_service`` command
+  language — only with ``allow_commands: true``; ``vel_fbk_ab``/``vel_fbk_yx`` after
+  every exchange;
+- status node: ``brd_num`` asks for a packet of the unit's mask; ``brd0_data`` …
+  ``brd6_data`` for the mask, also on the scheduler's own polling (``status: poll``);
+- conversion node: ``xa``/``yx``/``ab`` → ``xa_yx``, ``xa_ab``, ``yx_xa``, ``yx_ab``,
+  ``ab_yx``, ``ab_xa`` with the unit's geometry;
+- and what ROS users expect today: ``cmd_vel`` (with ``allow_commands``) and ``odom``
+  from the pulse counts when ``geometry.pulses_per_rev`` is known.
+
+Motion commands go through the input arbitration as one source per unit: silence
+longer than ``command_timeout_ms`` means zero, like every other source. Every incoming
+value is checked (finite, within the protocol's range) before it can reach a drive.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
-from cyclonedds.core import Listener, Policy, Qos
-from cyclonedds.domain import DomainParticipant
-from cyclonedds.pub import DataWriter
-from cyclonedds.sub import DataReader
-from cyclonedds.topic import Topic
-from cyclonedds.util import duration
-
-from abh3_plugins.ros2 import types
+from abh3_plugins.ros2.settings import Settings, parse
+from abh3_plugins.ros2.transport import Transport, open_transport, problem
 from abh3_supervisor import kinematics
+from abh3_supervisor.commands import RESPONSE_INVALID
+from abh3_supervisor.config.model import Role
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.kinematics import Geometry
+from abh3_supervisor.inputs import InputFeed, InputSource
+from abh3_supervisor.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.protocol import frames
-from abh3_supervisor.state import Feedback
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.state import Feedback, UnitState
 from abh3_supervisor.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
-# ROS 2's default QoS for topics: reliable, keep the last 10, volatile
-ROS_DEFAULT = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10))
+MAX_COMMAND_TEXT = 256  # longer than any command of the language
 
 
-def twist(linear_x: float, angular_z: float) -> types.Twist:
-    return types.Twist(types.Vector3(linear_x, 0.0, 0.0), types.Vector3(0.0, 0.0, angular_z))
+class Refused(ValueError):
+    """An incoming value that must not reach a drive."""
+
+
+def _within(limit: float, *values: float) -> None:
+    for v in values:
+        if not math.isfinite(v):
+            raise Refused(f"{v} is not a finite number")
+        if abs(v) > limit:
+            raise Refused(f"{v:g} is beyond the protocol's range ±{limit:g}")
 
 
 def _int32(value: int) -> int:
@@ -46,157 +61,298 @@ def _int32(value: int) -> int:
     return value - (1 << 32) if value & 0x80000000 else value
 
 
-def brd_message(record: frames.Broadcast) -> Any:
+def brd_message(msg: Any, record: frames.Broadcast) -> Any:
+    """The vendor's ``Abh3Brd<n>`` message for a decoded broadcast, or None (packet 7)."""
     if isinstance(record, frames.Brd0):
-        return types.Abh3Brd0(_int32(record.error), _int32(record.alarm))
+        return msg.Abh3Brd0(error=_int32(record.error), alarm=_int32(record.alarm))
     if isinstance(record, frames.Brd1):
         # 2021: control + I/O; 2023 sends the input word where control was
         first = record.control if record.control is not None else record.inputs or 0
-        return types.Abh3Brd1(_int32(first), _int32(record.io))
+        return msg.Abh3Brd1(control=_int32(first), in_out=_int32(record.io))
     if isinstance(record, frames.Brd2):
-        return types.Abh3Brd2(
-            record.vel_cmd_ay, record.vel_cmd_bx, record.vel_fbk_ay, record.vel_fbk_bx
+        return msg.Abh3Brd2(
+            vel_cmd_ay=record.vel_cmd_ay,
+            vel_cmd_bx=record.vel_cmd_bx,
+            vel_fbk_ay=record.vel_fbk_ay,
+            vel_fbk_bx=record.vel_fbk_bx,
         )
     if isinstance(record, frames.Brd3):
-        return types.Abh3Brd3(record.cur_cmd_ay, record.cur_cmd_bx, record.load_a, record.load_b)
+        return msg.Abh3Brd3(
+            cur_cmd_ay=record.cur_cmd_ay,
+            cur_cmd_bx=record.cur_cmd_bx,
+            load_a=record.load_a,
+            load_b=record.load_b,
+        )
     if isinstance(record, frames.Brd4):
-        return types.Abh3Brd4(record.pulse_a, record.pulse_b)
+        return msg.Abh3Brd4(pulse_a=record.pulse_a, pulse_b=record.pulse_b)
     if isinstance(record, frames.Brd5):
-        return types.Abh3Brd5(record.analog0, record.analog1, record.main_volt, record.control_volt)
+        return msg.Abh3Brd5(
+            analog0=record.analog0,
+            analog1=record.analog1,
+            main_volt=record.main_volt,
+            control_volt=record.control_volt,
+        )
     if isinstance(record, frames.Brd6):
-        return types.Abh3Brd6(record.monitor0, record.monitor1)
-    return None  # broadcast 7 is not defined: nothing to publish
+        return msg.Abh3Brd6(monitor0=record.monitor0, monitor1=record.monitor1)
+    return None
 
 
-class _Converter:
-    """The conversion node for one unit: three inputs, two outputs each."""
+def twist(msg: Any, linear_x: float, angular_z: float) -> Any:
+    return msg.Twist(linear=msg.Vector3(x=linear_x), angular=msg.Vector3(z=angular_z))
 
-    def __init__(self, bridge: Ros2Plugin, ns: str, geometry: Geometry) -> None:
-        g = geometry
+
+def _twist_values(m: Any) -> tuple[float, float]:
+    """linear.x and angular.z of a Twist; every component must be finite."""
+    values = (m.linear.x, m.linear.y, m.linear.z, m.angular.x, m.angular.y, m.angular.z)
+    _within(math.inf, *values)
+    return m.linear.x, m.angular.z
+
+
+class UnitBridge(InputSource):
+    """One unit's topics and service; also its input source in the arbitration."""
+
+    def __init__(self, unit: UnitState, t: Transport, settings: Settings) -> None:
+        super().__init__(
+            f"ros2:{unit.name}", (unit.name,), settings.priority, settings.command_timeout
+        )
+        self.unit, self.t, self.settings = unit, t, settings
+        self.cfg = unit.cfg
+        self.feed: InputFeed | None = None
+        self.requested: set[int] = set()  # brd_num packets awaiting their answer
+        self._warned: dict[str, float] = {}
+        msg = t.msg
+        self.fbk_ab = t.publisher(self.name_of("vel_fbk_ab"), msg.Abh3Velocity)
+        self.fbk_yx = t.publisher(self.name_of("vel_fbk_yx"), msg.Abh3Velocity)
+        packets = self.cfg.broadcast.packets
+        # only the mask's publishers, as the seed's status node
+        self.brd = {
+            n: t.publisher(self.name_of(f"brd{n}_data"), _brd_type(msg, n)) for n in packets
+        }
+        self.mask = set(packets)
+        t.subscribe(self.name_of("brd_num"), msg.Int32, self._guarded("brd_num", self.on_brd_num))
+        self.odometry: PulseOdometry | None = None
+        if self.cfg.geometry.pulses_per_rev > 0:
+            self.odometry = PulseOdometry(self.cfg.geometry)
+            self.odom = t.publisher(self.name_of("odom"), msg.Odometry)
+        if settings.conversion:
+            self._conversion()
+        if settings.allow_commands and self.cfg.role is Role.COMMAND:
+            self._commands()
+
+    def name_of(self, name: str) -> str:
+        return self.settings.name(self.unit.name, name)
+
+    # ------------------------------------------------------------ input source
+
+    def start(self, feed: InputFeed) -> None:
+        self.feed = feed
+
+    def stop(self) -> None:
+        self.feed = None  # from now on every incoming command is dropped
+
+    # ------------------------------------------------------------ incoming
+
+    def _guarded(self, topic: str, handle: Callable[[Any], None]) -> Callable[[Any], None]:
+        def guarded(sample: Any) -> None:
+            try:
+                handle(sample)
+            except Refused as exc:
+                self._warn(topic, f"ros2: {self.unit.name}: {topic} refused: {exc}")
+
+        return guarded
+
+    def _warn(self, topic: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._warned.get(topic, -math.inf) >= 5.0:  # a flood logs once per 5 s
+            self._warned[topic] = now
+            log.warning("%s", text)
+
+    def on_brd_num(self, m: Any) -> None:
+        if m.data not in self.mask:  # as the seed: numbers outside 0–6 or the mask
+            raise Refused(f"packet {m.data} is not in the unit's mask {sorted(self.mask)}")
+        feed = self.feed
+        if feed is not None:
+            self.requested.add(m.data)
+            feed.request_status(m.data)
+
+    def _commands(self) -> None:
+        t, msg = self.t, self.t.msg
+
+        def vel_cmd(m: Any) -> None:
+            _within(VELOCITY.maximum, m.vel_ay, m.vel_bx)
+            feed = self.feed  # None once the inputs stopped
+            if feed is not None:
+                feed.velocity(m.vel_ay, m.vel_bx)
+
+        def cur_cmd(m: Any) -> None:
+            _within(CURRENT.maximum, m.cur_ay, m.cur_bx)
+            feed = self.feed  # None once the inputs stopped
+            if feed is not None:
+                feed.current(m.cur_ay, m.cur_bx)
+
+        def cmd_vel(m: Any) -> None:
+            linear_x, angular_z = _twist_values(m)
+            y, x = kinematics.twist_to_yx(linear_x, angular_z, self.cfg.geometry)
+            _within(VELOCITY.maximum, *kinematics.yx_to_ab(y, x))
+            feed = self.feed  # None once the inputs stopped
+            if feed is not None:
+                feed.twist(linear_x, angular_z)
+
+        def inp_data(m: Any) -> None:
+            feed = self.feed  # None once the inputs stopped
+            if feed is not None:
+                feed.inputs(m.data, m.mask)
+
+        for name, typ, handle in (
+            ("vel_cmd", msg.Abh3Velocity, vel_cmd),
+            ("cur_cmd", msg.Abh3Current, cur_cmd),
+            ("cmd_vel", msg.Twist, cmd_vel),
+            ("inp_data", msg.Abh3Input, inp_data),
+        ):
+            t.subscribe(self.name_of(name), typ, self._guarded(name, handle))
+        t.serve(self.name_of("inp_service"), self.inp_service)
+
+    def inp_service(self, command: str) -> concurrent.futures.Future[str]:
+        feed = self.feed
+        if feed is None or len(command) > MAX_COMMAND_TEXT:
+            done: concurrent.futures.Future[str] = concurrent.futures.Future()
+            done.set_result(RESPONSE_INVALID)
+            return done
+        return feed.command(command)
+
+    def _conversion(self) -> None:
+        t, msg, g = self.t, self.t.msg, self.cfg.geometry
         out = {
-            name: bridge.writer(f"{ns}/{name}", typ)
+            name: t.publisher(self.name_of(name), typ)
             for name, typ in (
-                ("xa_yx", types.Abh3Velocity),
-                ("xa_ab", types.Abh3Velocity),
-                ("yx_xa", types.Twist),
-                ("yx_ab", types.Abh3Velocity),
-                ("ab_yx", types.Abh3Velocity),
-                ("ab_xa", types.Twist),
+                ("xa_yx", msg.Abh3Velocity),
+                ("xa_ab", msg.Abh3Velocity),
+                ("yx_xa", msg.Twist),
+                ("yx_ab", msg.Abh3Velocity),
+                ("ab_yx", msg.Abh3Velocity),
+                ("ab_xa", msg.Twist),
             )
         }
 
-        def from_xa(m: types.Twist) -> None:
-            y, x = kinematics.twist_to_yx(m.linear.x, m.angular.z, g)
-            out["xa_yx"].write(types.Abh3Velocity(y, x))
-            out["xa_ab"].write(types.Abh3Velocity(*kinematics.yx_to_ab(y, x)))
+        def velocity(ay: float, bx: float) -> Any:
+            return msg.Abh3Velocity(vel_ay=ay, vel_bx=bx)
 
-        def from_yx(m: types.Abh3Velocity) -> None:
-            out["yx_xa"].write(twist(*kinematics.yx_to_twist(m.vel_ay, m.vel_bx, g)))
-            out["yx_ab"].write(types.Abh3Velocity(*kinematics.yx_to_ab(m.vel_ay, m.vel_bx)))
+        def from_xa(m: Any) -> None:
+            y, x = kinematics.twist_to_yx(*_twist_values(m), g)
+            out["xa_yx"](velocity(y, x))
+            out["xa_ab"](velocity(*kinematics.yx_to_ab(y, x)))
 
-        def from_ab(m: types.Abh3Velocity) -> None:
-            out["ab_yx"].write(types.Abh3Velocity(*kinematics.ab_to_yx(m.vel_ay, m.vel_bx)))
-            out["ab_xa"].write(twist(*kinematics.ab_to_twist(m.vel_ay, m.vel_bx, g)))
+        def from_yx(m: Any) -> None:
+            _within(math.inf, m.vel_ay, m.vel_bx)
+            out["yx_xa"](twist(msg, *kinematics.yx_to_twist(m.vel_ay, m.vel_bx, g)))
+            out["yx_ab"](velocity(*kinematics.yx_to_ab(m.vel_ay, m.vel_bx)))
 
-        bridge.reader(f"{ns}/xa", types.Twist, from_xa)
-        bridge.reader(f"{ns}/yx", types.Abh3Velocity, from_yx)
-        bridge.reader(f"{ns}/ab", types.Abh3Velocity, from_ab)
+        def from_ab(m: Any) -> None:
+            _within(math.inf, m.vel_ay, m.vel_bx)
+            out["ab_yx"](velocity(*kinematics.ab_to_yx(m.vel_ay, m.vel_bx)))
+            out["ab_xa"](twist(msg, *kinematics.ab_to_twist(m.vel_ay, m.vel_bx, g)))
+
+        t.subscribe(self.name_of("xa"), msg.Twist, self._guarded("xa", from_xa))
+        t.subscribe(self.name_of("yx"), msg.Abh3Velocity, self._guarded("yx", from_yx))
+        t.subscribe(self.name_of("ab"), msg.Abh3Velocity, self._guarded("ab", from_ab))
+
+    # ------------------------------------------------------------ outgoing
+
+    def feedback(self, feedback: Feedback) -> None:
+        msg = self.t.msg
+        self.fbk_ab(msg.Abh3Velocity(vel_ay=feedback.vel_a, vel_bx=feedback.vel_b))
+        self.fbk_yx(msg.Abh3Velocity(vel_ay=feedback.vel_y, vel_bx=feedback.vel_x))
+
+    def status(self, packet: int, record: frames.Broadcast) -> None:
+        asked = packet in self.requested
+        self.requested.discard(packet)
+        publish = self.brd.get(packet)
+        if publish is not None and (asked or self.settings.status == "poll"):
+            message = brd_message(self.t.msg, record)
+            if message is not None:
+                publish(message)
+        if self.odometry is not None and isinstance(record, frames.Brd4):
+            self.odom(self._odometry(record))
+
+    def _odometry(self, record: frames.Brd4) -> Any:
+        assert self.odometry is not None
+        msg = self.t.msg
+        pose = self.odometry.update(record.pulse_a, record.pulse_b)
+        fbk = self.unit.feedback  # read across threads: a whole, immutable record
+        linear_x, angular_z = (
+            kinematics.yx_to_twist(fbk.vel_y, fbk.vel_x, self.cfg.geometry)
+            if fbk is not None
+            else (0.0, 0.0)
+        )
+        now = time.time_ns()
+        qx, qy, qz, qw = yaw_quaternion(pose.yaw)
+        return msg.Odometry(
+            header=msg.Header(
+                stamp=msg.Time(sec=now // 1_000_000_000, nanosec=now % 1_000_000_000),
+                frame_id=self.settings.odom_frame,
+            ),
+            child_frame_id=self.settings.base_frame,
+            pose=msg.PoseWithCovariance(
+                pose=msg.Pose(
+                    position=msg.Point(x=pose.x, y=pose.y),
+                    orientation=msg.Quaternion(x=qx, y=qy, z=qz, w=qw),
+                )
+            ),
+            twist=msg.TwistWithCovariance(twist=twist(msg, linear_x, angular_z)),
+        )
+
+
+def _brd_type(msg: Any, n: int) -> type:
+    return getattr(msg, f"Abh3Brd{n}")  # type: ignore[no-any-return]
 
 
 class Ros2Plugin:
     def __init__(self) -> None:
-        self.domain_id = 0
-        self.namespace = ""
-        self.conversion = True
-        self.participant: DomainParticipant | None = None
-        self.readers: list[DataReader[Any]] = []
-        self.fbk: dict[str, tuple[DataWriter[Any], DataWriter[Any]]] = {}
-        self.brd: dict[tuple[str, int], DataWriter[Any]] = {}
+        self.settings = Settings()
+        self.transport: Transport | None = None
+        self.units: dict[str, UnitBridge] = {}
 
     @hookimpl
     def abh3_configure(self, section: Section) -> None:
-        section.only({"domain_id", "namespace", "conversion", "allow_commands"})
-        self.domain_id = section.integer("domain_id", 0, 0, 232)
-        self.namespace = section.text("namespace", "/").rstrip("/")
-        self.conversion = section.boolean("conversion", True)
-        if section.boolean("allow_commands", False):
-            section.error(
-                "allow_commands",
-                "commands over ROS 2 are not implemented yet: "
-                "this version of the bridge only publishes",
-            )
-
-    def writer(self, name: str, typ: type) -> DataWriter[Any]:
-        assert self.participant is not None
-        return DataWriter(
-            self.participant, Topic(self.participant, f"rt{name}", typ), qos=ROS_DEFAULT
-        )
-
-    def reader(self, name: str, typ: type, handle: Callable[[Any], None]) -> None:
-        assert self.participant is not None
-
-        def on_data(reader: DataReader[Any]) -> None:
-            for sample in reader.take(N=64):
-                if all(math.isfinite(v) for v in _numbers(sample)):
-                    handle(sample)
-                else:
-                    log.warning("ros2: %s: non-finite value ignored", name)
-
-        self.readers.append(
-            DataReader(
-                self.participant,
-                Topic(self.participant, f"rt{name}", typ),
-                qos=ROS_DEFAULT,
-                listener=Listener(on_data_available=on_data),  # type: ignore[no-untyped-call]
-            )
-        )
+        self.settings = parse(section)
+        missing = problem(self.settings.transport)
+        if missing:
+            section.error("transport", missing)
 
     @hookimpl
     def abh3_start(self, supervisor: Supervisor) -> None:
-        self.participant = DomainParticipant(self.domain_id)
+        t = self.transport = open_transport(self.settings)
         for name, unit in supervisor.units.items():
-            ns = f"{self.namespace}/{name}"
-            self.fbk[name] = (
-                self.writer(f"{ns}/vel_fbk_ab", types.Abh3Velocity),
-                self.writer(f"{ns}/vel_fbk_yx", types.Abh3Velocity),
-            )
-            for n in unit.cfg.broadcast.packets:  # only the mask's publishers, as the seed
-                self.brd[(name, n)] = self.writer(f"{ns}/brd{n}_data", types.BROADCASTS[n])
-            if self.conversion:
-                _Converter(self, ns, unit.cfg.geometry)
-        log.info(
-            "ros2: publishing for %d unit(s) on DDS domain %d",
-            len(supervisor.units),
-            self.domain_id,
+            self.units[name] = UnitBridge(unit, t, self.settings)
+        t.start()
+        log.log(
+            logging.WARNING if self.settings.allow_commands else logging.INFO,
+            "ros2: %d unit(s) on domain %d over %s; commands from ROS 2 %s",
+            len(self.units),
+            self.settings.domain_id,
+            type(t).__name__,
+            "ALLOWED" if self.settings.allow_commands else "off (allow_commands: false)",
         )
 
     @hookimpl
+    def abh3_input_sources(self, register: Callable[[InputSource], None]) -> None:
+        for bridge in self.units.values():
+            register(bridge)  # brd_num needs the feed too, so always registered
+
+    @hookimpl
     def abh3_feedback(self, unit: str, feedback: Feedback) -> None:
-        ab, yx = self.fbk[unit]
-        ab.write(types.Abh3Velocity(feedback.vel_a, feedback.vel_b))
-        yx.write(types.Abh3Velocity(feedback.vel_y, feedback.vel_x))
+        bridge = self.units.get(unit)  # none if the transport failed to start (logged)
+        if bridge is not None:
+            bridge.feedback(feedback)
 
     @hookimpl
     def abh3_status(self, unit: str, packet: int, record: frames.Broadcast) -> None:
-        writer = self.brd.get((unit, packet))
-        message = brd_message(record)
-        if writer is not None and message is not None:
-            writer.write(message)
+        bridge = self.units.get(unit)
+        if bridge is not None:
+            bridge.status(packet, record)
 
     @hookimpl
     def abh3_stop(self) -> None:
-        self.readers.clear()
-        self.participant = None  # cyclonedds deletes the entities with the participant
-
-
-def _numbers(sample: Any) -> list[float]:
-    if isinstance(sample, types.Twist):
-        return [
-            sample.linear.x,
-            sample.linear.y,
-            sample.linear.z,
-            sample.angular.x,
-            sample.angular.y,
-            sample.angular.z,
-        ]
-    return [getattr(sample, f) for f in ("vel_ay", "vel_bx")]
+        if self.transport is not None:
+            self.transport.close()
+            self.transport = None

@@ -10,10 +10,12 @@ including the reply field ``responce``.
 """
 
 # no `from __future__ import annotations`: cyclonedds reads the field types at runtime
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Annotated
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float64, int32, int64, uint64
+from cyclonedds.idl.types import array, float64, int32, int64, uint32, uint64
 
 
 def _name(kind: str, typ: str, pkg: str = "abh3_can_interface") -> str:
@@ -102,6 +104,67 @@ class Vector3(IdlStruct, typename=_name("msg", "Vector3", "geometry_msgs")):
 class Twist(IdlStruct, typename=_name("msg", "Twist", "geometry_msgs")):
     linear: Vector3 = field(default_factory=Vector3)
     angular: Vector3 = field(default_factory=Vector3)
+
+
+@dataclass
+class Time(IdlStruct, typename=_name("msg", "Time", "builtin_interfaces")):
+    sec: int32 = 0
+    nanosec: uint32 = 0
+
+
+@dataclass
+class Header(IdlStruct, typename=_name("msg", "Header", "std_msgs")):
+    stamp: Time = field(default_factory=Time)
+    frame_id: str = ""
+
+
+@dataclass
+class Point(IdlStruct, typename=_name("msg", "Point", "geometry_msgs")):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Quaternion(IdlStruct, typename=_name("msg", "Quaternion", "geometry_msgs")):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+    w: float64 = 1.0
+
+
+@dataclass
+class Pose(IdlStruct, typename=_name("msg", "Pose", "geometry_msgs")):
+    position: Point = field(default_factory=Point)
+    orientation: Quaternion = field(default_factory=Quaternion)
+
+
+# float64[36], spelled so that type checkers read it too: array[float64, 36] is this
+Covariance = Annotated[Sequence[float64], array(float64, 36)]
+
+
+def _covariance() -> list[float]:
+    return [0.0] * 36
+
+
+@dataclass
+class PoseWithCovariance(IdlStruct, typename=_name("msg", "PoseWithCovariance", "geometry_msgs")):
+    pose: Pose = field(default_factory=Pose)
+    covariance: Covariance = field(default_factory=_covariance)
+
+
+@dataclass
+class TwistWithCovariance(IdlStruct, typename=_name("msg", "TwistWithCovariance", "geometry_msgs")):
+    twist: Twist = field(default_factory=Twist)
+    covariance: Covariance = field(default_factory=_covariance)
+
+
+@dataclass
+class Odometry(IdlStruct, typename=_name("msg", "Odometry", "nav_msgs")):
+    header: Header = field(default_factory=Header)
+    child_frame_id: str = ""
+    pose: PoseWithCovariance = field(default_factory=PoseWithCovariance)
+    twist: TwistWithCovariance = field(default_factory=TwistWithCovariance)
 
 
 @dataclass

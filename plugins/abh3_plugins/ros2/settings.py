@@ -1,0 +1,119 @@
+"""The ``plugins.ros2`` section of the YAML file, validated, and the topic names it gives."""
+
+from __future__ import annotations
+
+import difflib
+import re
+from dataclasses import dataclass, field
+
+from abh3_supervisor.config.source import Section
+
+# every name the bridge uses, per unit: the seed's names plus cmd_vel and odom
+COMMANDS = ("vel_cmd", "cur_cmd", "cmd_vel", "inp_data", "inp_service")
+NAMES = (
+    *COMMANDS,
+    "vel_fbk_ab",
+    "vel_fbk_yx",
+    "brd_num",
+    *(f"brd{n}_data" for n in range(7)),
+    "xa",
+    "xa_yx",
+    "xa_ab",
+    "yx",
+    "yx_xa",
+    "yx_ab",
+    "ab",
+    "ab_yx",
+    "ab_xa",
+    "odom",
+)
+_NAME = re.compile(r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
+
+
+@dataclass(frozen=True)
+class QosSettings:
+    reliability: str = "reliable"  # or best_effort
+    durability: str = "volatile"  # or transient_local
+    depth: int = 10
+
+
+@dataclass(frozen=True)
+class Settings:
+    domain_id: int = 0
+    namespace: str = ""  # "" or "/robot": topics are <namespace>/<unit>/<name>
+    transport: str = "auto"  # rclpy when importable, else dds
+    conversion: bool = True
+    allow_commands: bool = False
+    command_timeout: float = 0.5  # [s] silence on vel_cmd/cur_cmd/cmd_vel → zero
+    priority: int = 0
+    status: str = "poll"  # poll: every packet received; request: answers to brd_num only
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    qos: QosSettings = field(default_factory=QosSettings)
+    remap: dict[str, str] = field(default_factory=dict)
+
+    def name(self, unit: str, name: str) -> str:
+        """The fully qualified ROS name of ``name`` for ``unit``, after remapping.
+
+        A remap key is a bare name (every unit) or ``<unit>/<name>`` (that unit, first);
+        a relative target stays under the unit's namespace, an absolute one is used as is.
+        """
+        target = self.remap.get(f"{unit}/{name}", self.remap.get(name, name))
+        return target if target.startswith("/") else f"{self.namespace}/{unit}/{target}"
+
+
+def parse(section: Section) -> Settings:
+    section.only(
+        {
+            "domain_id",
+            "namespace",
+            "transport",
+            "conversion",
+            "allow_commands",
+            "command_timeout_ms",
+            "priority",
+            "status",
+            "odom_frame",
+            "base_frame",
+            "qos",
+            "remap",
+        }
+    )
+    d = Settings()
+    namespace = section.text("namespace", "/")
+    if not (namespace == "/" or (_NAME.match(namespace) and namespace.startswith("/"))):
+        section.error("namespace", f"{namespace!r} is not an absolute ROS name like /robot")
+    q = section.sub("qos", {"reliability", "durability", "depth"})
+    return Settings(
+        domain_id=section.integer("domain_id", d.domain_id, 0, 232),
+        namespace=namespace.rstrip("/"),
+        transport=section.choice("transport", d.transport, ["auto", "rclpy", "dds"]),
+        conversion=section.boolean("conversion", d.conversion),
+        allow_commands=section.boolean("allow_commands", d.allow_commands),
+        command_timeout=section.integer("command_timeout_ms", 500, 10, 60_000) / 1000,
+        priority=section.integer("priority", d.priority, -1000, 1000),
+        status=section.choice("status", d.status, ["poll", "request"]),
+        odom_frame=section.text("odom_frame", d.odom_frame),
+        base_frame=section.text("base_frame", d.base_frame),
+        qos=QosSettings(
+            reliability=q.choice("reliability", "reliable", ["reliable", "best_effort"]),
+            durability=q.choice("durability", "volatile", ["volatile", "transient_local"]),
+            depth=q.integer("depth", 10, 1, 10_000),
+        ),
+        remap=_remap(section.sub("remap", None)),
+    )
+
+
+def _remap(section: Section) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for key, target in section.items():
+        name = key.rsplit("/", 1)[-1]
+        if name not in NAMES or key.count("/") > 1:
+            hint = difflib.get_close_matches(name, NAMES, n=1)
+            did = f"did you mean '{hint[0]}'? " if hint else ""
+            section.error(key, f"not a name of the bridge; {did}(names: {', '.join(NAMES)})")
+        elif not isinstance(target, str) or not _NAME.match(target):
+            section.error(key, f"{target!r} is not a ROS name like cmd or /robot/cmd")
+        else:
+            out[key] = target
+    return out
