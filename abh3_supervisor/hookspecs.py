@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import pluggy
 
 if TYPE_CHECKING:
+    from abh3_supervisor.config.model import Config
     from abh3_supervisor.config.source import Section
     from abh3_supervisor.inputs import InputSource
     from abh3_supervisor.protocol.frames import Broadcast
@@ -27,8 +28,11 @@ hookimpl = pluggy.HookimplMarker(PROJECT)
 
 
 @hookspec
-def abh3_configure(section: Section) -> None:
-    """Validate this plugin's own ``plugins.<name>`` YAML section; report with ``section.error``."""
+def abh3_configure(section: Section, config: Config) -> None:
+    """Validate this plugin's own ``plugins.<name>`` YAML section; report with ``section.error``.
+
+    ``config`` is the rest of the file, already validated (units, buses), for cross-checks.
+    """
 
 
 @hookspec

@@ -124,7 +124,10 @@ class PluginHost:
                 section = config.plugins[name]
                 # the plugin checks its own keys with section.only(...)
                 self.call_one(
-                    name, "abh3_configure", section=Section(src, ("plugins", name), section, None)
+                    name,
+                    "abh3_configure",
+                    section=Section(src, ("plugins", name), section, None),
+                    config=config,
                 )
         if src.problems:
             raise ConfigError(src.problems)

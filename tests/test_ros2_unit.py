@@ -166,27 +166,41 @@ def test_status_poll_publishes_everything_and_odometry_follows_the_pulses() -> N
 
 
 def test_names_follow_the_namespace_and_remapping() -> None:
-    s = Settings(namespace="/robot", remap={"cmd_vel": "/cmd_vel", "left/odom": "wheel_odom"})
+    s = Settings(
+        namespace="/robot/{unit}", remap={"cmd_vel": "/cmd_vel", "left/odom": "wheel_odom"}
+    )
     assert s.name("left", "vel_cmd") == "/robot/left/vel_cmd"
     assert s.name("left", "cmd_vel") == "/cmd_vel"
     assert s.name("left", "odom") == "/robot/left/wheel_odom"
     assert s.name("right", "odom") == "/robot/right/odom"
+    assert Settings(namespace="/").name("only", "vel_cmd") == "/vel_cmd"  # the seed's names
+
+
+def problems(ros2: str, units: str = UNITS) -> str:
+    with pytest.raises(ConfigError) as err:
+        PluginHost(parse_config(units + "plugins:\n  ros2:\n" + ros2, "r.yaml"))
+    return str(err.value)
 
 
 def test_bad_settings_are_reported_with_file_line_and_key() -> None:
-    text = UNITS + (
-        "plugins:\n  ros2:\n    namespace: robot\n    qos: {reliability: sometimes}\n"
+    message = problems(
+        "    namespace: robot\n    qos: {reliability: sometimes}\n"
         "    remap: {vel_cmdd: x, odom: 'bad name'}\n"
     )
-    with pytest.raises(ConfigError) as err:
-        PluginHost(parse_config(text, "r.yaml"))
-    message = str(err.value)
-    assert "r.yaml:8: plugins.ros2.namespace: 'robot' is not an absolute ROS name" in message
+    assert "r.yaml:8: plugins.ros2.namespace: 'robot' (unit left) is not an absolute" in message
     assert "plugins.ros2.qos.reliability: 'sometimes' is not one of" in message
-    assert (
-        "plugins.ros2.remap.vel_cmdd: not a name of the bridge; did you mean 'vel_cmd'?" in message
-    )
+    assert "remap.vel_cmdd: not a name of the bridge; did you mean 'vel_cmd'?" in message
     assert "plugins.ros2.remap.odom: 'bad name' is not a ROS name" in message
+
+
+def test_two_units_may_share_an_input_but_never_an_output() -> None:
+    assert "units left and eye would both publish /vel_fbk_ab" in problems("    namespace: /\n")
+    assert "would both publish /fbk" in problems("    remap: {vel_fbk_ab: /fbk}\n")
+    ok = parse_config(UNITS + "plugins:\n  ros2: {remap: {cmd_vel: /cmd_vel}}\n", "r.yaml")
+    PluginHost(ok)  # one /cmd_vel for both drives of a robot is fine
+    assert "'/left-x' (unit left) is not an absolute ROS name" in problems(
+        "    namespace: /{unit}-x\n"
+    )
 
 
 def test_a_plugin_that_could_not_start_ignores_events() -> None:

@@ -30,7 +30,7 @@ from abh3_plugins.ros2.settings import Settings, parse
 from abh3_plugins.ros2.transport import Transport, open_transport, problem
 from abh3_supervisor import kinematics
 from abh3_supervisor.commands import RESPONSE_INVALID
-from abh3_supervisor.config.model import Role
+from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.hookspecs import hookimpl
 from abh3_supervisor.inputs import InputFeed, InputSource
@@ -313,8 +313,8 @@ class Ros2Plugin:
         self.units: dict[str, UnitBridge] = {}
 
     @hookimpl
-    def abh3_configure(self, section: Section) -> None:
-        self.settings = parse(section)
+    def abh3_configure(self, section: Section, config: Config) -> None:
+        self.settings = parse(section, config)
         missing = problem(self.settings.transport)
         if missing:
             section.error("transport", missing)

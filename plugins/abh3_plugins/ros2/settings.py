@@ -6,6 +6,7 @@ import difflib
 import re
 from dataclasses import dataclass, field
 
+from abh3_supervisor.config.model import Config, Role, UnitConfig
 from abh3_supervisor.config.source import Section
 
 # every name the bridge uses, per unit: the seed's names plus cmd_vel and odom
@@ -37,10 +38,13 @@ class QosSettings:
     depth: int = 10
 
 
+CONVERSION_OUT = ("xa_yx", "xa_ab", "yx_xa", "yx_ab", "ab_yx", "ab_xa")
+
+
 @dataclass(frozen=True)
 class Settings:
     domain_id: int = 0
-    namespace: str = ""  # "" or "/robot": topics are <namespace>/<unit>/<name>
+    namespace: str = "/{unit}"  # {unit} is replaced by each unit's name
     transport: str = "auto"  # rclpy when importable, else dds
     conversion: bool = True
     allow_commands: bool = False
@@ -56,13 +60,15 @@ class Settings:
         """The fully qualified ROS name of ``name`` for ``unit``, after remapping.
 
         A remap key is a bare name (every unit) or ``<unit>/<name>`` (that unit, first);
-        a relative target stays under the unit's namespace, an absolute one is used as is.
+        a relative target goes under the unit's namespace, an absolute one is used as is.
         """
         target = self.remap.get(f"{unit}/{name}", self.remap.get(name, name))
-        return target if target.startswith("/") else f"{self.namespace}/{unit}/{target}"
+        if target.startswith("/"):
+            return target
+        return f"{self.namespace.format(unit=unit).rstrip('/')}/{target}"
 
 
-def parse(section: Section) -> Settings:
+def parse(section: Section, config: Config) -> Settings:
     section.only(
         {
             "domain_id",
@@ -80,13 +86,10 @@ def parse(section: Section) -> Settings:
         }
     )
     d = Settings()
-    namespace = section.text("namespace", "/")
-    if not (namespace == "/" or (_NAME.match(namespace) and namespace.startswith("/"))):
-        section.error("namespace", f"{namespace!r} is not an absolute ROS name like /robot")
     q = section.sub("qos", {"reliability", "durability", "depth"})
-    return Settings(
+    settings = Settings(
         domain_id=section.integer("domain_id", d.domain_id, 0, 232),
-        namespace=namespace.rstrip("/"),
+        namespace=section.text("namespace", d.namespace),
         transport=section.choice("transport", d.transport, ["auto", "rclpy", "dds"]),
         conversion=section.boolean("conversion", d.conversion),
         allow_commands=section.boolean("allow_commands", d.allow_commands),
@@ -102,6 +105,8 @@ def parse(section: Section) -> Settings:
         ),
         remap=_remap(section.sub("remap", None)),
     )
+    _check_names(section, settings, config)
+    return settings
 
 
 def _remap(section: Section) -> dict[str, str]:
@@ -117,3 +122,48 @@ def _remap(section: Section) -> dict[str, str]:
         else:
             out[key] = target
     return out
+
+
+def outputs(settings: Settings, unit: UnitConfig) -> list[str]:
+    """The names a unit publishes or serves: no two units may share one."""
+    names = ["vel_fbk_ab", "vel_fbk_yx", *(f"brd{n}_data" for n in unit.broadcast.packets)]
+    if unit.geometry.pulses_per_rev > 0:
+        names.append("odom")
+    if settings.conversion:
+        names += CONVERSION_OUT
+    if settings.allow_commands and unit.role is Role.COMMAND:
+        names.append("inp_service")
+    return names
+
+
+def _check_names(section: Section, settings: Settings, config: Config) -> None:
+    """Every unit's names must be valid ROS names, and its outputs its own.
+
+    Inputs may be shared on purpose (one ``/cmd_vel`` for both drives of a robot).
+    """
+    try:
+        spaces = {unit: settings.namespace.format(unit=unit) for unit in config.units}
+    except (KeyError, IndexError, ValueError):
+        section.error("namespace", f"{settings.namespace!r}: only {{unit}} may stand in braces")
+        return
+    for unit, space in spaces.items():
+        if not (space == "/" or (space.startswith("/") and _NAME.match(space))):
+            section.error(
+                "namespace",
+                f"{space!r} (unit {unit}) is not an absolute ROS name like /robot/{{unit}}: "
+                "ROS names take letters, digits and _",
+            )
+            return
+    owner: dict[str, str] = {}
+    for unit, cfg in config.units.items():
+        for name in outputs(settings, cfg):
+            full = settings.name(unit, name)
+            other = owner.setdefault(full, unit)
+            if other != unit:
+                key = "namespace" if "{unit}" not in settings.namespace else "remap"
+                section.error(
+                    key,
+                    f"units {other} and {unit} would both publish {full}: "
+                    "put {unit} in the namespace, or remap one of them",
+                )
+                return
