@@ -26,3 +26,13 @@ def test_host_cpu_and_timing_and_scale_run() -> None:
         assert set(result) >= {"jitter_p99_ms", "latency_p99_ms", "rate_error_percent"}
     measured = scale.in_subprocess("--units", "2", "--seconds", "1")
     assert measured["units"] == 2 and measured["rss_mb"] > 0
+
+
+def test_ros2_bridge_figures_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("cyclonedds")
+    from benchmarks import ros2_bridge
+
+    monkeypatch.setenv("CYCLONEDDS_URI", ros2_bridge.LOOPBACK)  # restored afterwards
+    result = ros2_bridge.vel_cmd_latency(50, 1.0)
+    assert result["delivered_percent"] > 50 and result["latency_p99_ms"] > 0
+    assert ros2_bridge.cpu_percent(1, 50, 0.5, bridge=True) > 0
