@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import fcntl
+import logging
 import os
 import pty
 import re
@@ -24,12 +25,14 @@ import pytest
 from textual.widgets import Static
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.hookspecs import hookimpl
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime_thread import RuntimeThread
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.supervisor import SetResult
-from abh3_supervisor.tui.app import SupervisorApp, TuiSource
+from abh3_supervisor.tui.app import SupervisorApp, TuiSource, start_logged
 from abh3_supervisor.tui.screens import ConfirmScreen
 from tests.conftest import TWO_UNITS, Rig
 
@@ -235,3 +238,24 @@ def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig:
     for cmd in last.values():
         assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
         assert not cmd.inputs & (flags.SERVO_BITS | flags.START_BITS)
+
+
+class StartLogger:
+    @hookimpl
+    def abh3_start(self) -> None:
+        logging.getLogger("my_plugin").warning("commands from the network ALLOWED")
+
+
+def test_what_plugins_log_at_start_reaches_the_log_pane() -> None:
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    host = PluginHost(cfg)
+    host.register(StartLogger(), "start_logger")
+    bridge = RuntimeThread(cfg, record=None, plugins=host)
+    handlers = list(logging.getLogger().handlers)
+    try:
+        _, early = start_logged(bridge)
+    finally:
+        bridge.stop()
+    assert [line.plain[9:] for line in early] == ["commands from the network ALLOWED"]
+    assert str(early[0].style) == "yellow"
+    assert logging.getLogger().handlers == handlers  # the capture ends with the start

@@ -473,6 +473,17 @@ class SupervisorApp(App[None]):
         self.push_screen(ConfirmScreen("Quit? Every unit gets zero, START and SERVO off."), answer)
 
 
+def start_logged(bridge: RuntimeThread) -> tuple[Runtime, deque[Text]]:
+    """Start the runtime, keeping what is logged meanwhile (plugins' start-up lines) for
+    the log pane: the app, and its own log handler, exist only once the runtime runs."""
+    early = _PaneHandler(deque(maxlen=200))
+    logging.getLogger().addHandler(early)
+    try:
+        return bridge.start(), early.pending
+    finally:
+        logging.getLogger().removeHandler(early)
+
+
 async def run_tui(
     config: Config, *, record: Path | None, plugins: PluginHost, duration: float | None = None
 ) -> int:
@@ -480,7 +491,9 @@ async def run_tui(
     source = TuiSource(tuple(config.units))
     plugins.add_source(source)
     bridge = RuntimeThread(config, record=record, plugins=plugins)
-    app = SupervisorApp(bridge.start(), source, bridge, duration=duration)
+    runtime, early = start_logged(bridge)
+    app = SupervisorApp(runtime, source, bridge, duration=duration)
+    app.pending_log.extendleft(reversed(early))
     loop = asyncio.get_running_loop()
     for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, app.exit)
