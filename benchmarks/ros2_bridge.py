@@ -26,11 +26,6 @@ from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.scheduler.stats import percentile
 from benchmarks.cycle_timing import TxProbe
 
-LOOPBACK = (
-    "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/>"
-    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
-    "<Peers><Peer address='127.0.0.1'/></Peers></Discovery></Domain></CycloneDDS>"
-)
 DOMAIN = 77
 # the publishing peer: waits to be matched, then writes values 1, 2, … at random moments
 PEER = """
@@ -58,6 +53,12 @@ print(json.dumps(sent))
 """
 
 
+def _loopback() -> None:
+    from abh3_plugins.ros2.dds import LOOPBACK_URI  # cyclonedds: only with the ros2 extra
+
+    os.environ["CYCLONEDDS_URI"] = LOOPBACK_URI
+
+
 def setup(units: int, rate: float, channel: str, bridge: bool) -> tuple[Config, PluginHost]:
     """The configuration as a user writes it, with the ros2 plugin or without."""
     listed = "".join(
@@ -75,7 +76,7 @@ def setup(units: int, rate: float, channel: str, bridge: bool) -> tuple[Config, 
 
 def vel_cmd_latency(rate: float, seconds: float) -> dict[str, float]:
     """p50/p99 [ms] from a vel_cmd written in another process to the frame carrying it."""
-    os.environ["CYCLONEDDS_URI"] = LOOPBACK
+    _loopback()
     cfg, host = setup(1, rate, "ros2-latency", bridge=True)
     probe = TxProbe()
 
@@ -106,7 +107,7 @@ def vel_cmd_latency(rate: float, seconds: float) -> dict[str, float]:
 
 def cpu_percent(units: int, rate: float, seconds: float, bridge: bool) -> float:
     """This process's CPU share running ``units`` at ``rate``, with or without the bridge."""
-    os.environ["CYCLONEDDS_URI"] = LOOPBACK
+    _loopback()
     cfg, host = setup(units, rate, f"ros2-cpu-{bridge}", bridge)
 
     async def scenario() -> float:

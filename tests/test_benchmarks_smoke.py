@@ -30,9 +30,10 @@ def test_host_cpu_and_timing_and_scale_run() -> None:
 
 def test_ros2_bridge_figures_run(monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("cyclonedds")
+    from abh3_plugins.ros2.dds import LOOPBACK_URI
     from benchmarks import ros2_bridge
 
-    monkeypatch.setenv("CYCLONEDDS_URI", ros2_bridge.LOOPBACK)  # restored afterwards
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK_URI)  # restored afterwards
     result = ros2_bridge.vel_cmd_latency(50, 1.0)
     assert result["delivered_percent"] > 50 and result["latency_p99_ms"] > 0
     assert ros2_bridge.cpu_percent(1, 50, 0.5, bridge=True) > 0

@@ -26,17 +26,11 @@ from cyclonedds.util import duration
 
 from abh3_plugins.ros2 import types
 from abh3_plugins.ros2.bridge import twist
-from abh3_plugins.ros2.dds import SERVICE_QOS, qos
+from abh3_plugins.ros2.dds import LOOPBACK_URI, SERVICE_QOS, qos
 from abh3_plugins.ros2.settings import QosSettings
 from abh3_supervisor.kinematics import Geometry, twist_to_ab, twist_to_yx
 
 ROOT = Path(__file__).resolve().parent.parent
-LOOPBACK = (
-    "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/>"
-    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
-    "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>30</MaxAutoParticipantIndex>"
-    "<Peers><Peer address='127.0.0.1'/></Peers></Discovery></Domain></CycloneDDS>"
-)
 ROS_DEFAULT = qos(QosSettings())
 UNIT = """
 buses:
@@ -108,7 +102,7 @@ def close(a: types.Abh3Velocity, ay: float, bx: float, tol: float = 0.3) -> bool
 @pytest.fixture
 def supervisor(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
     """Start ``abh3 run`` with a config; yields a starter; checks the clean stop after."""
-    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK_URI)
     procs: list[subprocess.Popen[str]] = []
 
     def start(domain: int, startup: str = "[]", extra: str = "") -> Peer:

@@ -80,8 +80,10 @@ class UnitSlot:
         self.polls = () if cfg.broadcast.listen_only else cfg.broadcast.packets
         self.poll_period = 1.0 / cfg.broadcast.rate_hz
         self.poll_id = request_id(cfg.abh3_id, cfg.host_id, cfg.priority)
-        self.poll_frames = [
-            frames.encode_request(frames.broadcast_pgn(cfg.brd_group, n)) for n in range(8)
+        # every packet's request, built once: polls and on-demand requests cost no allocation
+        self.poll_frames: list[OutFrame] = [
+            (self.poll_id, frames.encode_request(frames.broadcast_pgn(cfg.brd_group, n)))
+            for n in range(8)
         ]
         self.next_poll = start + self.period / 2  # interleave with the commands
         self.poll_index = 0
@@ -205,7 +207,7 @@ class BusScheduler:
                 slot.poll_packet = slot.polls[slot.poll_index]
                 slot.poll_index = (slot.poll_index + 1) % len(slot.polls)
                 slot.next_poll = next_on_grid(slot.next_poll, slot.poll_period, now)
-            out.append((slot.poll_id, slot.poll_frames[slot.poll_packet]))
+            out.append(slot.poll_frames[slot.poll_packet])
             slot.poll_sent_at = now
             slot.stats.polls_sent += 1
         return out

@@ -61,6 +61,16 @@ def _int32(value: int) -> int:
     return value - (1 << 32) if value & 0x80000000 else value
 
 
+# packets 2-6: the vendor's message and its fields, which the decoded records share
+SAME_FIELDS: dict[type, tuple[str, tuple[str, ...]]] = {
+    frames.Brd2: ("Abh3Brd2", ("vel_cmd_ay", "vel_cmd_bx", "vel_fbk_ay", "vel_fbk_bx")),
+    frames.Brd3: ("Abh3Brd3", ("cur_cmd_ay", "cur_cmd_bx", "load_a", "load_b")),
+    frames.Brd4: ("Abh3Brd4", ("pulse_a", "pulse_b")),
+    frames.Brd5: ("Abh3Brd5", ("analog0", "analog1", "main_volt", "control_volt")),
+    frames.Brd6: ("Abh3Brd6", ("monitor0", "monitor1")),
+}
+
+
 def brd_message(msg: Any, record: frames.Broadcast) -> Any:
     """The vendor's ``Abh3Brd<n>`` message for a decoded broadcast, or None (packet 7)."""
     if isinstance(record, frames.Brd0):
@@ -69,32 +79,11 @@ def brd_message(msg: Any, record: frames.Broadcast) -> Any:
         # 2021: control + I/O; 2023 sends the input word where control was
         first = record.control if record.control is not None else record.inputs or 0
         return msg.Abh3Brd1(control=_int32(first), in_out=_int32(record.io))
-    if isinstance(record, frames.Brd2):
-        return msg.Abh3Brd2(
-            vel_cmd_ay=record.vel_cmd_ay,
-            vel_cmd_bx=record.vel_cmd_bx,
-            vel_fbk_ay=record.vel_fbk_ay,
-            vel_fbk_bx=record.vel_fbk_bx,
-        )
-    if isinstance(record, frames.Brd3):
-        return msg.Abh3Brd3(
-            cur_cmd_ay=record.cur_cmd_ay,
-            cur_cmd_bx=record.cur_cmd_bx,
-            load_a=record.load_a,
-            load_b=record.load_b,
-        )
-    if isinstance(record, frames.Brd4):
-        return msg.Abh3Brd4(pulse_a=record.pulse_a, pulse_b=record.pulse_b)
-    if isinstance(record, frames.Brd5):
-        return msg.Abh3Brd5(
-            analog0=record.analog0,
-            analog1=record.analog1,
-            main_volt=record.main_volt,
-            control_volt=record.control_volt,
-        )
-    if isinstance(record, frames.Brd6):
-        return msg.Abh3Brd6(monitor0=record.monitor0, monitor1=record.monitor1)
-    return None
+    same = SAME_FIELDS.get(type(record))
+    if same is None:
+        return None  # broadcast 7 is not defined: nothing to publish
+    name, fields = same
+    return getattr(msg, name)(**{f: getattr(record, f) for f in fields})
 
 
 def twist(msg: Any, linear_x: float, angular_z: float) -> Any:

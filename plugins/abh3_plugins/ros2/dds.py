@@ -50,6 +50,14 @@ def qos(q: QosSettings) -> Qos:
     return Qos(reliability, durability, Policy.History.KeepLast(q.depth))
 
 
+# a CYCLONEDDS_URI that keeps DDS on this machine: loopback only, multicast off, 127.0.0.1
+# the only peer: what the tests and the benchmarks run on
+LOOPBACK_URI = (
+    "<CycloneDDS><Domain Id='any'><General><Interfaces><NetworkInterface address='127.0.0.1'/>"
+    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
+    "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>30</MaxAutoParticipantIndex>"
+    "<Peers><Peer address='127.0.0.1'/></Peers></Discovery></Domain></CycloneDDS>"
+)
 # ROS 2's services default: reliable, volatile, keep the last 10
 SERVICE_QOS = qos(QosSettings())
 
