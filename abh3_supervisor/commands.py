@@ -4,16 +4,19 @@
 ``BRAKE``, ``RESET`` take ``ON``/``OFF``/``1``/``0`` per axis (the last three are one bit,
 so A and B must agree); ``SELECT a b`` takes the written data-select value 0–7 per axis.
 Extensions of ours (not in the seed): ``VEL ay bx`` [min⁻¹] and ``CUR ay bx`` [%].
-Keywords are case-insensitive; the token count and every value are checked.
+Keywords are case-insensitive; the text is printable ASCII; the token count and every value
+are checked. Parsing knows no bit positions: :func:`input_change` places a command in the
+unit's generation's layout (protocol doc §5), so one command means the same on both.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.protocol import flags
+from abh3_supervisor.protocol.flags import Layout, Pair
 
 # Service responses, exactly as the seed's ros2ABH3Cmd answers (manual §2.5).
 RESPONSE_OK = ""
@@ -32,8 +35,29 @@ PACKET_ESTOP = 3  # refused: the emergency stop is latched
 
 @dataclass(frozen=True, slots=True)
 class InputChange:
+    """Raw input bits (the seed's ``inp_data``): ``mask`` selects the bits ``data`` sets."""
+
     data: int
     mask: int
+
+
+@dataclass(frozen=True, slots=True)
+class SwitchCommand:
+    """``SERVO``, ``START``, …: one bit per axis, or one bit for both (``M/S``, ``BRAKE``,
+    ``RESET``, where ``ay == bx``). Generation-free: :func:`input_change` places the bits.
+    """
+
+    keyword: str
+    ay: bool
+    bx: bool
+
+
+@dataclass(frozen=True, slots=True)
+class SelectCommand:
+    """``SELECT a b``: the written data-select values (0 = set #7 & STOP … 7 = set #0)."""
+
+    ay: int
+    bx: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,26 +72,26 @@ class CurrentCommand:
     bx: float
 
 
-Command = InputChange | VelocityCommand | CurrentCommand
+Command = SwitchCommand | SelectCommand | InputChange | VelocityCommand | CurrentCommand
 
-_M = flags.INPUT.mask
-# keyword → (A/Y bit mask, B/X bit mask); single-bit commands use one mask for both
-_PAIRS: dict[str, tuple[int, int]] = {
-    "SERVO": (_M("AY_SERVO_ON"), _M("BX_SERVO_ON")),
-    "START": (_M("AY_START"), _M("BX_START")),
-    "DIR": (_M("AY_CMD_POLARITY"), _M("BX_CMD_POLARITY")),
-    "CADD": (_M("AY_CORR_ADD"), _M("BX_CORR_ADD")),
-    "CDIR": (_M("AY_CORR_POLARITY"), _M("BX_CORR_POLARITY")),
-    "PCLR": (_M("A_PULSE_CLEAR"), _M("B_PULSE_CLEAR")),
-    "TORQUE": (_M("AY_TORQUE"), _M("BX_TORQUE")),
+# keyword → the Layout mask it sets: a Pair (one bit per axis) or one bit for both axes
+_PAIRS = {
+    "SERVO": "servo",
+    "START": "start",
+    "DIR": "reverse",
+    "CADD": "corr_add",
+    "CDIR": "corr_subtract",
+    "PCLR": "pulse_clear",
+    "TORQUE": "torque",
 }
-_SINGLE: dict[str, int] = {
-    "M/S": _M("SLAVE"),
-    "BRAKE": _M("BRAKE_RELEASE"),
-    "RESET": _M("ERROR_RESET"),
-}
+_SINGLE = {"M/S": "master_slave", "BRAKE": "brake_release", "RESET": "error_reset"}
 _SWITCH = {"ON": True, "1": True, "OFF": False, "0": False}
 KEYWORDS = (*_PAIRS, *_SINGLE, "SELECT", "VEL", "CUR")
+# ASCII only: str.split() and float() would accept Unicode spaces and digits ('²', '١')
+_SPACE = re.compile(r"[ \t\r\n]+")
+_PRINTABLE = re.compile(r"[\x20-\x7e\t\r\n]*")
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_MAX_LENGTH = 200  # far above any valid command; longer text is not parsed at all
 
 
 def _switch(token: str) -> bool:
@@ -78,18 +102,29 @@ def _switch(token: str) -> bool:
 
 
 def _number(token: str) -> float:
-    try:
-        value = float(token)
-    except ValueError:
-        raise CommandError(f"'{token}' is not a number") from None
+    if not _NUMBER.fullmatch(token):
+        raise CommandError(f"'{token}' is not a number")
+    value = float(token)
     if not math.isfinite(value):
         raise CommandError(f"'{token}' is not a finite number")
     return value
 
 
+def _select(token: str) -> int:
+    if token in ("0", "1", "2", "3", "4", "5", "6", "7"):
+        return int(token)
+    raise CommandError(f"'{token}' is not a data select value 0–7")
+
+
 def parse_command(text: str) -> Command:
     """Parse one command; raise :class:`CommandError` saying what is wrong."""
-    tokens = text.split()
+    if not isinstance(text, str):
+        raise CommandError(f"a command is text, not {type(text).__name__}")
+    if len(text) > _MAX_LENGTH:
+        raise CommandError(f"command longer than {_MAX_LENGTH} characters")
+    if not _PRINTABLE.fullmatch(text):
+        raise CommandError("commands are printable ASCII: keywords, ON/OFF/1/0 and numbers")
+    tokens = [t for t in _SPACE.split(text) if t]
     if not tokens:
         raise CommandError("empty command")
     keyword = tokens[0].upper()
@@ -99,27 +134,25 @@ def parse_command(text: str) -> Command:
         raise CommandError(f"{keyword} takes two values (A/Y and B/X), got {len(tokens) - 1}")
     a, b = tokens[1], tokens[2]
     if keyword in _PAIRS:
-        mask_a, mask_b = _PAIRS[keyword]
-        return InputChange(
-            (mask_a if _switch(a) else 0) | (mask_b if _switch(b) else 0), mask_a | mask_b
-        )
+        return SwitchCommand(keyword, _switch(a), _switch(b))
     if keyword in _SINGLE:
         on_a, on_b = _switch(a), _switch(b)
-        if on_a != on_b:
+        if on_a != on_b:  # the manual: "give the same value"; the maker's code ORs them
             raise CommandError(f"{keyword} is one bit for both axes: give the same value twice")
-        return InputChange(_SINGLE[keyword] if on_a else 0, _SINGLE[keyword])
+        return SwitchCommand(keyword, on_a, on_b)
     if keyword == "SELECT":
-        sel_a, sel_b = _select(a), _select(b)
-        return InputChange(
-            sel_a << flags.AY_SELECT_SHIFT | sel_b << flags.BX_SELECT_SHIFT,
-            7 << flags.AY_SELECT_SHIFT | 7 << flags.BX_SELECT_SHIFT,
-        )
+        return SelectCommand(_select(a), _select(b))
     if keyword == "VEL":
         return VelocityCommand(_number(a), _number(b))
     return CurrentCommand(_number(a), _number(b))
 
 
-def _select(token: str) -> int:
-    if token.isdigit() and 0 <= int(token) <= 7:
-        return int(token)
-    raise CommandError(f"'{token}' is not a data select value 0–7")
+def input_change(command: SwitchCommand | SelectCommand, layout: Layout) -> InputChange:
+    """The input bits a command sets in one generation's layout (protocol doc §5)."""
+    if isinstance(command, SelectCommand):
+        return InputChange(layout.select(command.ay, command.bx), layout.select_mask)
+    if command.keyword in _SINGLE:
+        bit: int = getattr(layout, _SINGLE[command.keyword])
+        return InputChange(bit if command.ay else 0, bit)
+    pair: Pair = getattr(layout, _PAIRS[command.keyword])
+    return InputChange((pair.ay if command.ay else 0) | (pair.bx if command.bx else 0), pair.both)

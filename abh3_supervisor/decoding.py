@@ -15,14 +15,6 @@ from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.classify import AddressBook, DecodedFrame, Kind, classify
 
-FLAG_FIELDS = {
-    "inputs": flags.INPUT,
-    "control": flags.CONTROL,
-    "error": flags.FAULT,
-    "alarm": flags.FAULT,
-    "io": flags.IO,
-}
-
 
 def address_book(config: Config | None) -> AddressBook:
     if config is None:
@@ -70,11 +62,18 @@ def record(
         out["unit"] = names.get((channel, frame.abh3)) or names.get(("", frame.abh3))
     if frame.packet is not None:
         out["group"], out["packet"] = frame.group, frame.packet
-    out["values"], out["flags"] = _values(frame)
+    generation = book.generation(frame.abh3) if frame.abh3 is not None else None
+    if generation is not None:
+        out["protocol"] = generation.value
+    layout = flags.layout(generation or book.default_generation)
+    out["values"], out["flags"] = _values(frame, layout)
     return out
 
 
-def _values(frame: DecodedFrame) -> tuple[dict[str, Any], dict[str, list[str]]]:
+def _values(
+    frame: DecodedFrame, layout: flags.Layout
+) -> tuple[dict[str, Any], dict[str, list[str]]]:
+    """Physical values and the names of every set flag, in the drive's generation."""
     payload = frame.payload
     if isinstance(payload, frames.Unknown):
         return {"reason": payload.reason}, {}
@@ -94,14 +93,12 @@ def _values(frame: DecodedFrame) -> tuple[dict[str, Any], dict[str, list[str]]]:
                 else "other"
             )
         )
-    if isinstance(payload, frames.Dp0Command):
+    if isinstance(payload, frames.Dp0Command):  # the unit says it: the booleans add nothing
+        del values["ay_is_current"], values["bx_is_current"]
         values["ay_unit"] = "%" if payload.ay_is_current else "min^-1"
         values["bx_unit"] = "%" if payload.bx_is_current else "min^-1"
-    named = {
-        k: FLAG_FIELDS[k].names(v)
-        for k, v in values.items()
-        if k in FLAG_FIELDS and isinstance(v, int)
-    }
+    words = layout.words
+    named = {k: words[k].names(v) for k, v in values.items() if k in words and isinstance(v, int)}
     for key in named:
         values[key] = f"0x{values[key]:08X}"
     return values, named

@@ -85,7 +85,7 @@ async def run_headless(
                 return 1
             for line in status_lines(sup):
                 log.info("final %s", line)
-            log.info("stopping: zero, START and SERVO off on every unit")
+            log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
     finally:
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from abh3_supervisor.config.model import Config, Role, UnitConfig
-from abh3_supervisor.protocol import frames, ids
+from abh3_supervisor.config.model import Config, ControlMode, Role, UnitConfig
+from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.wire import exact_bits, worst_case_bits
 
 # Keep planned load at or below 70 %: queueing delay for the lowest-priority frame grows
@@ -51,7 +51,8 @@ def _expected_bits(u: UnitConfig) -> tuple[float, float]:
     """Exact bits of one DP0 exchange and of one average status poll, idle payloads."""
     zero8 = bytes(8)
     if u.role is Role.COMMAND:
-        inputs = u.data_select[0] << 4 | u.data_select[1] << 16
+        current = u.control is ControlMode.CURRENT
+        inputs = flags.layout(u.protocol).idle(*u.data_select, torque=current)
         request = exact_bits(
             ids.dp0_command_id(u.abh3_id, u.host_id, u.priority),
             frames.encode_dp0_command(0, 0, inputs),

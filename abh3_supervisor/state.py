@@ -50,15 +50,17 @@ class UnitState:
     online: bool | None = None
     words: dict[str, int] = field(default_factory=dict)  # error, alarm, control, io, inputs
 
+    layout: flags.Layout = field(init=False)  # the unit's generation's flag words
+
+    def __post_init__(self) -> None:
+        self.layout = flags.layout(self.cfg.protocol)
+
     @classmethod
     def initial(cls, cfg: UnitConfig) -> UnitState:
-        inputs = (
-            cfg.data_select[0] << flags.AY_SELECT_SHIFT
-            | cfg.data_select[1] << flags.BX_SELECT_SHIFT
-        )
         kind = cfg.control
-        if kind is ControlMode.CURRENT:
-            inputs |= flags.AY_TORQUE | flags.BX_TORQUE
+        inputs = flags.layout(cfg.protocol).idle(
+            *cfg.data_select, torque=kind is ControlMode.CURRENT
+        )
         return cls(cfg, inputs, Setpoint(kind=kind))
 
     @property

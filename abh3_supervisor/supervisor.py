@@ -14,12 +14,19 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from abh3_supervisor import commands
-from abh3_supervisor.commands import Command, CurrentCommand, InputChange, VelocityCommand
+from abh3_supervisor.commands import (
+    Command,
+    CurrentCommand,
+    InputChange,
+    SelectCommand,
+    SwitchCommand,
+    VelocityCommand,
+)
 from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
-from abh3_supervisor.protocol import flags, frames
-from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.protocol import frames
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 from abh3_supervisor.scheduler.core import (
     BusScheduler,
     Event,
@@ -36,7 +43,7 @@ log = logging.getLogger(__name__)
 class FlagChange:
     unit: str
     t: float
-    word: str  # "error", "alarm", "control", "io" or "inputs"
+    word: str  # a key of the unit's Layout.words: "error", "alarm", "control", "io", …
     old: int | None
     new: int
 
@@ -61,14 +68,6 @@ class Notice:
 
 SupervisorEvent = Event | FlagChange | Notice
 Observer = Callable[[SupervisorEvent], None]
-
-WORDS = {
-    "error": flags.FAULT,
-    "alarm": flags.FAULT,
-    "control": flags.CONTROL,
-    "io": flags.IO,
-    "inputs": flags.INPUT,
-}
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,8 +136,8 @@ class Supervisor:
                 self._word(unit, event.t, "io", record.io)
                 if record.control is not None:
                     self._word(unit, event.t, "control", record.control)
-                if record.inputs is not None:
-                    self._word(unit, event.t, "inputs", record.inputs)
+                if record.inputs is not None:  # 2023: the inputs as the drive sees them
+                    self._word(unit, event.t, "drive_inputs", record.inputs)
         elif isinstance(event, HealthEvent):
             unit.online = event.online
             if not event.online and unit.cfg.role is Role.COMMAND:
@@ -152,9 +151,10 @@ class Supervisor:
             return
         unit.words[word] = value
         if word == "control":
-            travel = bool(value & flags.TRAVEL_MODEL)
+            model_bit = unit.layout.travel_model
+            travel = bool(value & model_bit)
             expected = unit.cfg.velocity_model is VelocityModel.TRAVEL
-            if travel != expected and (old is None or bool(old & flags.TRAVEL_MODEL) != travel):
+            if travel != expected and (old is None or bool(old & model_bit) != travel):
                 self.notice(
                     unit.name,
                     logging.WARNING,
@@ -221,12 +221,18 @@ class Supervisor:
     def set_inputs(self, name: str, data: int, mask: int) -> None:
         """Change the input bits selected by ``mask`` to those of ``data`` (seed inp_data)."""
         unit = self._commandable(name)
+        layout = unit.layout
+        if undefined := layout.undefined(data & mask):
+            raise CommandError(
+                f"bits 0x{undefined:08X} are not defined in the {layout.generation} input "
+                f"word of unit '{name}': refused, nothing sent"
+            )
         new = (unit.inputs & ~mask | data & mask) & 0xFFFFFFFF
-        if self.estop and new & ~unit.inputs & flags.START_BITS:
+        if self.estop and new & ~unit.inputs & layout.start.both:
             raise CommandError("emergency stop is latched: clear it before START")
-        torque = new & (flags.AY_TORQUE | flags.BX_TORQUE)
+        torque = new & layout.torque.both
         kind = unit.setpoint.kind
-        if torque != unit.inputs & (flags.AY_TORQUE | flags.BX_TORQUE):
+        if torque != unit.inputs & layout.torque.both:
             # the meaning of the command fields changes: never reinterpret an old value
             kind = ControlMode.CURRENT if torque else ControlMode.VELOCITY
             unit.setpoint = Setpoint(kind=kind)
@@ -236,20 +242,20 @@ class Supervisor:
     def _set(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> SetResult:
         if self.estop and (ay or bx):
             raise CommandError("emergency stop is latched: clear it before commanding motion")
-        torque = unit.inputs & (flags.AY_TORQUE | flags.BX_TORQUE)
-        want = flags.AY_TORQUE | flags.BX_TORQUE if kind is ControlMode.CURRENT else 0
+        both = unit.layout.torque.both
+        torque = unit.inputs & both
+        want = both if kind is ControlMode.CURRENT else 0
         if torque != want:
-            mode = {0: "velocity", flags.AY_TORQUE | flags.BX_TORQUE: "current"}.get(
-                torque, "mixed"
-            )
+            mode = {0: "velocity", both: "current"}.get(torque, "mixed")
             raise CommandError(
                 f"unit '{unit.name}' is in {mode} mode; a {kind} command needs "
                 f"TORQUE {'ON ON' if want else 'OFF OFF'} first"
             )
-        limit = (
-            unit.cfg.limits.velocity if kind is ControlMode.VELOCITY else unit.cfg.limits.current
-        )
-        scale = min([1.0, *(limit / abs(v) for v in (ay, bx) if v)])
+        if kind is ControlMode.VELOCITY:
+            limit, wire = unit.cfg.limits.velocity, VELOCITY
+        else:
+            limit, wire = unit.cfg.limits.current, CURRENT
+        scale = min([1.0, *(_bound(v, limit, wire) / abs(v) for v in (ay, bx) if v)])
         clamped = scale < 1.0
         if clamped:  # scale both axes alike: the robot keeps its heading, only slower
             ay, bx = ay * scale, bx * scale
@@ -295,7 +301,10 @@ class Supervisor:
     # ------------------------------------------------------------ command language
 
     def apply(self, name: str, command: Command) -> None:
-        if isinstance(command, InputChange):
+        if isinstance(command, SwitchCommand | SelectCommand):
+            change = commands.input_change(command, self.unit(name).layout)
+            self.set_inputs(name, change.data, change.mask)
+        elif isinstance(command, InputChange):
             self.set_inputs(name, command.data, command.mask)
         elif isinstance(command, VelocityCommand):
             self.set_velocity(name, command.ay, command.bx)
@@ -370,7 +379,7 @@ class Supervisor:
         self.estop = True
         for unit in self.units.values():
             if unit.cfg.role is Role.COMMAND:
-                unit.inputs &= ~flags.START_BITS
+                unit.inputs &= ~unit.layout.start.both
                 self._zero(unit)
         self.notice(None, logging.CRITICAL, "EMERGENCY STOP: all units zero, START off (latched)")
 
@@ -379,12 +388,20 @@ class Supervisor:
         self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
 
     def safe_state(self) -> None:
-        """The way-out state: zero, START and SERVO off on every unit we drove; final."""
+        """The way-out state on every unit we drove, final: zero velocity in the safe word
+        (SERVO, START, brake release, torque and every other switch off; data select kept).
+        """
         self.stopping = True
         for unit in self.units.values():
             if unit.cfg.role is Role.COMMAND:
-                unit.inputs &= ~(flags.START_BITS | flags.SERVO_BITS)
-                self._zero(unit)
+                unit.inputs = unit.layout.safe(unit.inputs)
+                self._store(unit, Setpoint())  # torque is off: the fields are velocities
+
+
+def _bound(value: float, limit: float, wire: Scale) -> float:
+    """The largest magnitude ``value``'s sign may have: the limit, within the wire range
+    (int16 reaches one LSB further below zero: −6553.6 min⁻¹, −327.68 %)."""
+    return min(limit, wire.maximum if value > 0 else -wire.minimum)
 
 
 def _finite(*values: float) -> None:

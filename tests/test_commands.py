@@ -1,4 +1,4 @@
-"""The seed's input-service command language, parsed strictly."""
+"""The seed's input-service command language, parsed strictly, placed per generation."""
 
 from __future__ import annotations
 
@@ -7,47 +7,83 @@ import pytest
 from abh3_supervisor.commands import (
     CurrentCommand,
     InputChange,
+    SelectCommand,
+    SwitchCommand,
     VelocityCommand,
+    input_change,
     parse_command,
 )
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.protocol import flags
+from abh3_supervisor.protocol.flags import LAYOUT_2021, LAYOUT_2023
+
+# text, 2021 (data, mask) — the seed's layout, protocol doc §5 — and 2023 (data, mask)
+CASES = [
+    ("SERVO ON ON", (0x1001, 0x1001), (0x0101, 0x0101)),
+    ("SERVO 1 0", (0x0001, 0x1001), (0x0001, 0x0101)),
+    ("servo off on", (0x1000, 0x1001), (0x0100, 0x0101)),
+    ("START ON OFF", (0x0002, 0x2002), (0x0002, 0x0202)),
+    ("START ON ON", (0x2002, 0x2002), (0x0202, 0x0202)),
+    ("DIR 1 1", (0x4004, 0x4004), (0x0404, 0x0404)),
+    ("CADD ON ON", (0x8008, 0x8008), (0x0808, 0x0808)),
+    ("CDIR ON ON", (0x00800080, 0x00800080), (0x8080, 0x8080)),
+    ("PCLR ON ON", (0x00080100, 0x00080100), (0x00300000, 0x00300000)),
+    ("PCLR ON OFF", (0x00000100, 0x00080100), (0x00100000, 0x00300000)),
+    ("TORQUE ON ON", (0x03000000, 0x03000000), (0x00030000, 0x00030000)),
+    ("M/S ON ON", (1 << 26, 1 << 26), (1 << 18, 1 << 18)),
+    ("BRAKE 1 1", (1 << 28, 1 << 28), (1 << 19, 1 << 19)),
+    ("BRAKE ON ON", (1 << 28, 1 << 28), (0x00080000, 0x00080000)),
+    ("RESET ON ON", (1 << 31, 1 << 31), (0x00400000, 0x00400000)),  # the maker's v2.0 word
+    ("RESET OFF 0", (0, 1 << 31), (0, 1 << 22)),
+    ("SELECT 7 7", (0x00070070, 0x00070070), (0x7070, 0x7070)),
+    ("SELECT 0 5", (0x00050000, 0x00070070), (0x5000, 0x7070)),
+    ("  SELECT   3\t1 ", (0x00010030, 0x00070070), (0x1030, 0x7070)),
+]
 
 
-@pytest.mark.parametrize(
-    ("text", "data", "mask"),
-    [
-        ("SERVO ON ON", 0x1001, 0x1001),
-        ("SERVO 1 0", 0x0001, 0x1001),
-        ("servo off on", 0x1000, 0x1001),
-        ("START ON OFF", 0x0002, 0x2002),
-        ("DIR 1 1", 0x4004, 0x4004),
-        ("CADD ON ON", 0x8008, 0x8008),
-        ("CDIR ON ON", 0x00800080, 0x00800080),
-        ("PCLR ON ON", 0x00080100, 0x00080100),
-        ("TORQUE ON ON", 0x03000000, 0x03000000),
-        ("M/S ON ON", 1 << 26, 1 << 26),
-        ("BRAKE 1 1", 1 << 28, 1 << 28),
-        ("RESET ON ON", 1 << 31, 1 << 31),
-        ("RESET OFF 0", 0, 1 << 31),
-        ("SELECT 7 7", 0x00070070, 0x00070070),
-        ("SELECT 0 5", 0x00050000, 0x00070070),
-        ("  SELECT   3\t1 ", 0x00010030, 0x00070070),
-    ],
-)
-def test_input_commands(text: str, data: int, mask: int) -> None:
-    assert parse_command(text) == InputChange(data, mask)
+@pytest.mark.parametrize(("text", "old", "new"), CASES)
+def test_every_command_sets_exactly_the_documented_bits(
+    text: str, old: tuple[int, int], new: tuple[int, int]
+) -> None:
+    command = parse_command(text)
+    assert isinstance(command, SwitchCommand | SelectCommand)
+    assert input_change(command, LAYOUT_2021) == InputChange(*old)
+    assert input_change(command, LAYOUT_2023) == InputChange(*new)
+
+
+def test_the_makers_example_words() -> None:
+    def word(layout: object, *texts: str) -> int:
+        data = 0
+        for text in texts:
+            command = parse_command(text)
+            assert isinstance(command, SwitchCommand | SelectCommand)
+            change = input_change(command, layout)  # type: ignore[arg-type]
+            data = data & ~change.mask | change.data
+        return data
+
+    # the maker's Linux sample v2.0: servo + start + select 7 on both axes; error reset
+    assert word(LAYOUT_2023, "SERVO ON ON", "START ON ON", "SELECT 7 7") == 0x00007373
+    assert word(LAYOUT_2023, "RESET ON ON") == 0x00400000
+    # its Arduino sample's servo + start mask
+    assert (
+        input_change(SwitchCommand("SERVO", True, True), LAYOUT_2023).mask
+        | input_change(SwitchCommand("START", True, True), LAYOUT_2023).mask
+        == 0x00000303
+    )
+    assert word(LAYOUT_2021, "SERVO ON ON", "START ON ON", "SELECT 7 7") == 0x00073073
 
 
 def test_velocity_and_current_extensions() -> None:
     assert parse_command("VEL 100 -20.5") == VelocityCommand(100.0, -20.5)
     assert parse_command("cur 5 5") == CurrentCommand(5.0, 5.0)
+    assert parse_command("VEL -6553.6 1e3") == VelocityCommand(-6553.6, 1000.0)
+    assert parse_command("VEL .5 +2.") == VelocityCommand(0.5, 2.0)
 
 
 @pytest.mark.parametrize(
     ("text", "why"),
     [
         ("", "empty"),
+        ("   ", "empty"),
         ("FOO", "unknown command 'FOO'"),
         ("SERVO", "takes two values"),
         ("SERVO ON", "takes two values"),
@@ -56,11 +92,20 @@ def test_velocity_and_current_extensions() -> None:
         ("SERVO YES ON", "'YES' is not ON, OFF, 1 or 0"),
         ("SERVOX ON ON", "unknown command"),
         ("BRAKE ON OFF", "one bit for both axes"),
+        ("RESET 1 0", "one bit for both axes"),
         ("SELECT 8 0", "not a data select value"),
         ("SELECT -1 0", "not a data select value"),
-        ("VEL nan 0", "not a finite number"),
-        ("VEL inf 0", "not a finite number"),
+        ("SELECT 07 0", "not a data select value"),
+        ("VEL nan 0", "not a number"),
+        ("VEL inf 0", "not a number"),
+        ("VEL 1e999 0", "not a finite number"),
         ("VEL x 0", "not a number"),
+        ("VEL 1_000 0", "not a number"),
+        ("SELECT ² 7", "printable ASCII"),  # '²'.isdigit() is True
+        ("VEL ١٠ 0", "printable ASCII"),  # float() reads Arabic-Indic digits
+        ("SERVO\u3000ON ON", "printable ASCII"),  # str.split() splits on it
+        ("SERVO ON ON\x00", "printable ASCII"),
+        ("S" * 201, "longer than"),
     ],
 )
 def test_strict_parsing(text: str, why: str) -> None:
@@ -68,7 +113,5 @@ def test_strict_parsing(text: str, why: str) -> None:
         parse_command(text)
 
 
-def test_bits_match_the_flag_table() -> None:
-    change = parse_command("SERVO ON ON")
-    assert isinstance(change, InputChange)
-    assert change.data == flags.SERVO_BITS
+def test_one_bit_commands_keep_one_value() -> None:
+    assert parse_command("brake on 1") == SwitchCommand("BRAKE", True, True)

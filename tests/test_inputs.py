@@ -16,7 +16,6 @@ from abh3_supervisor.inputs import (
     VelocityYX,
 )
 from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.scheduler.core import StatusEvent
 from tests.conftest import TWO_UNITS, Rig
@@ -133,19 +132,20 @@ def test_feed_runs_commands_inputs_and_status_requests_from_another_thread() -> 
             # the seed's inp_service answers, waited for in a thread as a DDS reader does
             assert await asyncio.to_thread(feed.command("SERVO ON ON").result, 5) == ""
             assert await asyncio.to_thread(feed.command("FOO").result, 5) == "Invalid Command."
-            assert sup.units["right"].inputs & flags.SERVO_BITS == flags.SERVO_BITS
-            await asyncio.to_thread(feed.inputs, 0xFFFFFFFF, flags.START_BITS)  # inp_data
+            right, left = sup.units["right"].layout, sup.units["left"].layout  # 2023, 2021
+            assert sup.units["right"].inputs & right.servo.both == right.servo.both
+            await asyncio.to_thread(feed.inputs, 0xFFFFFFFF, right.start.both)  # inp_data
             await asyncio.to_thread(feed.request_status, 6)  # brd_num, outside the mask
             # both were queued on the loop before the thread returned: applied by now
-            assert sup.units["right"].inputs & flags.START_BITS == flags.START_BITS
-            assert sup.units["left"].inputs & flags.SERVO_BITS == 0  # the source's units only
+            assert sup.units["right"].inputs & right.start.both == right.start.both
+            assert sup.units["left"].inputs & left.servo.both == 0  # the source's units only
             await asyncio.wait_for(answered.wait(), 5)
             host.stop_inputs()
-            feed.inputs(0, flags.SERVO_BITS)  # after the inputs stopped: ignored
+            feed.inputs(0, right.servo.both)  # after the inputs stopped: ignored
             assert await asyncio.to_thread(feed.command("SERVO OFF OFF").result, 5) == (
                 "Invalid Command."
             )
             await asyncio.sleep(0)  # the queued call runs, and does nothing
-            assert sup.units["right"].inputs & flags.SERVO_BITS == flags.SERVO_BITS
+            assert sup.units["right"].inputs & right.servo.both == right.servo.both
 
     asyncio.run(scenario())

@@ -15,6 +15,7 @@ from abh3_plugins.joystick import (
 from abh3_supervisor.inputs import InputArbiter, Twist
 from abh3_supervisor.plugin_host import _apply
 from abh3_supervisor.protocol import frames, ids
+from abh3_supervisor.protocol.generation import Generation
 from tests.conftest import Rig
 
 
@@ -135,7 +136,7 @@ def test_deadman_release_gives_zero_on_the_very_next_command_frame(rig: Rig) -> 
     before = [
         f for f in rig.timeline.frames if f.arbitration_id == cmd_id and f.start <= released_at
     ]
-    moving = frames.decode_dp0_command(before[-1].data)
-    first = frames.decode_dp0_command(after[0].data)
+    moving = frames.decode_dp0_command(before[-1].data, Generation.G2021)
+    first = frames.decode_dp0_command(after[0].data, Generation.G2021)
     assert isinstance(moving, frames.Dp0Command) and moving.cmd_ay > 0
     assert isinstance(first, frames.Dp0Command) and (first.cmd_ay, first.cmd_bx) == (0.0, 0.0)

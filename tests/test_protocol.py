@@ -67,14 +67,19 @@ class TestFrames:
     def test_dp0_command_bytes(self) -> None:
         data = frames.encode_dp0_command(500, -100, 0x00073073)
         assert data == bytes.fromhex("f4019cff73300700")
-        cmd = frames.decode_dp0_command(data)
+        cmd = frames.decode_dp0_command(data, Generation.G2021)
         assert cmd == frames.Dp0Command(100.0, -20.0, 0x00073073)
 
-    def test_dp0_command_in_torque_mode_decodes_as_current(self) -> None:
-        data = frames.encode_dp0_command(1000, 0, flags.AY_TORQUE | flags.BX_TORQUE)
-        cmd = frames.decode_dp0_command(data)
+    @pytest.mark.parametrize("layout", [flags.LAYOUT_2021, flags.LAYOUT_2023])
+    def test_dp0_command_in_torque_mode_decodes_as_current(self, layout: flags.Layout) -> None:
+        data = frames.encode_dp0_command(1000, 0, layout.torque.both)
+        cmd = frames.decode_dp0_command(data, layout.generation)
         assert isinstance(cmd, frames.Dp0Command)
         assert (cmd.cmd_ay, cmd.ay_is_current, cmd.bx_is_current) == (10.0, True, True)
+        # the other generation reads those bits differently: not torque there
+        other = {"2021": Generation.G2023, "2023": Generation.G2021}[layout.generation]
+        cmd = frames.decode_dp0_command(data, other)
+        assert isinstance(cmd, frames.Dp0Command) and not cmd.ay_is_current
 
     def test_dp0_reply_both_generations(self) -> None:
         old = bytes.fromhex("f3ff0000faff0d00")
@@ -104,8 +109,8 @@ class TestFrames:
         data = bytes.fromhex("70000708c3000000")
         brd = frames.decode_broadcast(1, data, Generation.G2021)
         assert brd == frames.Brd1(io=0xC3, control=0x08070070)
-        assert flags.CONTROL.names(0x08070070)[-1] == "TRAVEL_MODEL"
-        assert flags.IO.names(0xC3) == ["ERROR", "ALARM", "ERROR_CODE0", "ERROR_CODE1"]
+        assert flags.LAYOUT_2021.control.names(0x08070070)[-1] == "TRAVEL_MODEL"
+        assert flags.LAYOUT_2021.io.names(0xC3) == ["ERROR", "ALARM", "ERROR_CODE0", "ERROR_CODE1"]
         # the 2023 protocol swaps the words: I/O first, then the input flags
         assert frames.decode_broadcast(1, data, Generation.G2023) == frames.Brd1(
             io=0x08070070, inputs=0xC3
@@ -143,7 +148,7 @@ class TestFrames:
         assert frames.decode_broadcast(7, b"\x01\x02", Generation.G2023) == frames.Brd7(b"\x01\x02")
 
     def test_short_payloads_decode_to_unknown(self) -> None:
-        assert frames.decode_dp0_command(b"\x00" * 7) == frames.Unknown(
+        assert frames.decode_dp0_command(b"\x00" * 7, Generation.G2021) == frames.Unknown(
             "DP0 command: 7 data bytes, expected 8"
         )
         assert isinstance(frames.decode_broadcast(4, b"", Generation.G2021), frames.Unknown)
@@ -152,17 +157,19 @@ class TestFrames:
 
 class TestFlags:
     def test_every_bit_has_a_name_and_both_labels(self) -> None:
-        for word in (flags.INPUT, flags.CONTROL, flags.FAULT, flags.IO):
-            for bit in word.bits:
-                assert bit.name and bit.en and bit.ja
-        assert len(flags.IO.bits) == 32  # every I/O bit is defined
+        for layout in flags.LAYOUTS.values():
+            for word in layout.words.values():
+                for bit in word.bits:
+                    assert bit.name and bit.en and bit.ja
+        assert len(flags.LAYOUT_2021.io.bits) == 32  # every I/O bit is defined
         assert flags.FAULT.labels(1 << 22, "ja") == ["CAN 通信異常"]
 
     def test_undefined_bits_are_still_shown(self) -> None:
         assert flags.FAULT.names(1 << 30) == ["bit30"]
 
     def test_data_select(self) -> None:
-        assert flags.data_select(0x08070070) == (7, 7)
+        assert flags.LAYOUT_2021.data_select(0x08070070) == (7, 7)
+        assert flags.LAYOUT_2023.data_select(0x00007373) == (7, 7)
 
 
 class TestClassify:

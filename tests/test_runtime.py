@@ -13,6 +13,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.headless import run_headless
 from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.scheduler.core import BusScheduler
 from tests.conftest import TWO_UNITS
@@ -20,11 +21,20 @@ from tests.conftest import TWO_UNITS
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
 
 
+def protocol_of(abh3_id: int) -> Generation:
+    return next(u.protocol for u in CONFIG.units.values() if u.abh3_id == abh3_id)
+
+
+def is_safe_word(abh3_id: int, cmd: frames.Dp0Command) -> bool:
+    """Nothing set but data select, in the unit's generation."""
+    return cmd.inputs & ~flags.layout(protocol_of(abh3_id)).select_mask == 0
+
+
 def commands_in(path: Path, abh3_id: int) -> list[frames.Dp0Command]:
     out = []
     for msg in can.LogReader(str(path)):
         if msg.arbitration_id == ids.dp0_command_id(abh3_id, 2):
-            cmd = frames.decode_dp0_command(bytes(msg.data))
+            cmd = frames.decode_dp0_command(bytes(msg.data), protocol_of(abh3_id))
             assert isinstance(cmd, frames.Dp0Command)
             out.append(cmd)
     return out
@@ -54,10 +64,10 @@ def test_runs_records_and_stops_the_drives_on_the_way_out(tmp_path: Path) -> Non
     asyncio.run(scenario())
     left = commands_in(record, 1)
     assert any(c.cmd_ay == 200.0 and c.cmd_bx == 10.0 for c in left)
-    for cmds in (left, commands_in(record, 3)):
-        last = cmds[-1]  # the recording is complete: the stop frame is in it
+    for abh3_id in (1, 3):
+        last = commands_in(record, abh3_id)[-1]  # the recording is complete: the stop frame
         assert (last.cmd_ay, last.cmd_bx) == (0.0, 0.0)
-        assert not last.inputs & (flags.SERVO_BITS | flags.START_BITS)
+        assert is_safe_word(abh3_id, last)
 
 
 def test_an_exception_in_the_block_still_stops_the_drives(tmp_path: Path) -> None:
@@ -71,7 +81,7 @@ def test_an_exception_in_the_block_still_stops_the_drives(tmp_path: Path) -> Non
 
     with pytest.raises(RuntimeError, match="boom"):
         asyncio.run(scenario())
-    assert not commands_in(record, 1)[-1].inputs & flags.SERVO_BITS
+    assert is_safe_word(1, commands_in(record, 1)[-1])
 
 
 def test_a_fatal_internal_error_ends_the_run_with_exit_1_after_stopping(
@@ -92,7 +102,7 @@ def test_a_fatal_internal_error_ends_the_run_with_exit_1_after_stopping(
         code = asyncio.run(run_headless(CONFIG, duration=30, record=record, status_interval=0))
     assert code == 1
     assert "stopping after an internal error" in caplog.text
-    assert not commands_in(record, 3)[-1].inputs & flags.SERVO_BITS
+    assert is_safe_word(3, commands_in(record, 3)[-1])
 
 
 def test_a_missing_device_is_a_clear_error() -> None:

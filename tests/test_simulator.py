@@ -9,8 +9,10 @@ from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.simulator import SimDrive
 
-SERVO_START = flags.SERVO_BITS | flags.START_BITS
+L21, L23 = flags.LAYOUT_2021, flags.LAYOUT_2023
+SERVO_START = L21.servo.both | L21.start.both
 SELECT_0 = 0x00070070  # written 7 on both axes = data set #0
+assert L21.select(7, 7) == SELECT_0
 
 
 def command(
@@ -75,7 +77,7 @@ def test_ramp_rate_is_the_configured_acceleration() -> None:
 
 @pytest.mark.parametrize(
     "inputs",
-    [flags.START_BITS | SELECT_0, flags.SERVO_BITS | SELECT_0, SERVO_START],
+    [L21.start.both | SELECT_0, L21.servo.both | SELECT_0, SERVO_START],
     ids=["no servo", "no start", "select 0 = #7 & STOP"],
 )
 def test_gating_keeps_the_motor_still(inputs: int) -> None:
@@ -94,20 +96,54 @@ def test_travel_model_converts_y_x_to_the_motors() -> None:
     assert reply == frames.Dp0Reply2021(120.0, 80.0, 100.0, 20.0)
     control = brd(drive, 1, 0.1)
     assert isinstance(control, frames.Brd1) and control.control is not None
-    assert control.control & flags.TRAVEL_MODEL
+    assert control.control & L21.travel_model
 
 
 def test_2023_generation_reply_and_broadcast_1() -> None:
     drive = SimDrive(
         1, generation=Generation.G2023, model=VelocityModel.MOTOR, cfg=SimConfig(accel=1e5)
     )
-    run(drive, 0.0, 0.1, 50, 0, SERVO_START | SELECT_0)
-    _, data = command(drive, 0.1, 50, 0, SERVO_START | SELECT_0)[0]
+    word = 0x00007373  # the maker's v2.0 sample: servo + start + select 7 on both axes
+    run(drive, 0.0, 0.1, 50, 0, word)
+    _, data = command(drive, 0.1, 50, 0, word)[0]
     reply = frames.decode_dp0_reply(data, Generation.G2023)
-    assert reply == frames.Dp0Reply2023(10.0, 0.0, SERVO_START | SELECT_0)
+    assert isinstance(reply, frames.Dp0Reply2023) and (reply.vel_ay, reply.vel_bx) == (10.0, 0.0)
+    status = ["AY_READY", "AY_BUSY", "BX_READY", "BRAKE_RELEASE_OUT"]  # bits 25-31
+    assert L23.control.names(reply.control & ~word) == status
+    assert reply.control & word == word
     b1 = brd(drive, 1, 0.1)
-    assert isinstance(b1, frames.Brd1) and b1.inputs == SERVO_START | SELECT_0
-    assert b1.io & flags.IO.mask("AY_READY") and b1.io & flags.IO.mask("AY_BUSY")
+    assert isinstance(b1, frames.Brd1) and b1.inputs == word and b1.control is None
+    assert b1.io == 0  # 2023 I/O is the wired digital I/O; the simulator has none
+
+
+def test_2023_drive_obeys_the_2023_layout_only() -> None:
+    def drive_with(word: int, ay: int = 500, bx: int = 500) -> SimDrive:
+        drive = SimDrive(
+            1, generation=Generation.G2023, model=VelocityModel.MOTOR, cfg=SimConfig(accel=1e5)
+        )
+        run(drive, 0.0, 0.2, ay, bx, word)
+        return drive
+
+    both = drive_with(L23.servo.both | L23.start.both | L23.select(7, 7))
+    assert both.vel == [100.0, 100.0]  # both wheels turn
+    # the same request written in the 2021 layout: B/X servo and start stay off, and
+    # select 7 on B lands on torque A/B and master/slave
+    old = SERVO_START | SELECT_0
+    assert L23.input.names(old) == [
+        "AY_SERVO_ON",
+        "AY_START",
+        "AY_SELECT0",
+        "AY_SELECT1",
+        "AY_SELECT2",
+        "BX_SELECT0",
+        "BX_SELECT1",
+        "AY_TORQUE",
+        "BX_TORQUE",
+        "MASTER_SLAVE",
+    ]
+    misread = drive_with(old)
+    assert misread.vel[1] == 0.0  # the B/X axis never moves
+    assert misread.control_word() & L23.torque.both == L23.torque.both  # torque mode
 
 
 def test_command_zero_timeout_stops_and_raises_alarm_22_then_error_22() -> None:
@@ -137,11 +173,11 @@ def test_latched_error_needs_reset_rising_edge_and_servo_goes_off() -> None:
     run(drive, 0.1, 0.2, 500, 0, SERVO_START | SELECT_0)
     assert drive.vel[0] == 0.0  # an error turns the servo off
     assert brd(drive, 0, 0.2) == frames.Brd0(flags.FAULT.mask("A_OVERCURRENT"), 0)
-    run(drive, 0.2, 0.3, 500, 0, SERVO_START | SELECT_0 | flags.ERROR_RESET)
+    run(drive, 0.2, 0.3, 500, 0, SERVO_START | SELECT_0 | L21.error_reset)
     assert brd(drive, 0, 0.3) == frames.Brd0(0, 0)
     run(drive, 0.3, 0.4, 500, 0, SERVO_START | SELECT_0)
     assert drive.vel[0] == 0.0  # after reset the servo stays off until re-asserted
-    run(drive, 0.4, 0.5, 500, 0, flags.START_BITS | SELECT_0)
+    run(drive, 0.4, 0.5, 500, 0, L21.start.both | SELECT_0)
     run(drive, 0.5, 0.6, 500, 0, SERVO_START | SELECT_0)
     assert drive.vel[0] == pytest.approx(100.0)
 
@@ -151,7 +187,7 @@ def test_pulse_counting_and_clear() -> None:
     run(drive, 0.0, 1.0, 300, 0, SERVO_START | SELECT_0)  # 60 min⁻¹ = 1 rev/s
     b4 = brd(drive, 4, 1.0)
     assert isinstance(b4, frames.Brd4) and b4.pulse_a == pytest.approx(4096, abs=2)
-    run(drive, 1.0, 1.05, 300, 0, SERVO_START | SELECT_0 | flags.A_PULSE_CLEAR_MASK)
+    run(drive, 1.0, 1.05, 300, 0, SERVO_START | SELECT_0 | L21.pulse_clear.ay)
     b4 = brd(drive, 4, 1.05)
     assert isinstance(b4, frames.Brd4) and b4.pulse_a < 300
 

@@ -19,7 +19,7 @@ from tests.conftest import TWO_UNITS, Rig
 def last_command(rig: Rig, unit: str) -> frames.Dp0Command:
     abh3 = rig.config.units[unit].abh3_id
     frame = [f for f in rig.timeline.frames if f.arbitration_id == ids.dp0_command_id(abh3, 2)][-1]
-    cmd = frames.decode_dp0_command(frame.data)
+    cmd = frames.decode_dp0_command(frame.data, rig.config.units[unit].protocol)
     assert isinstance(cmd, frames.Dp0Command)
     return cmd
 
@@ -74,15 +74,16 @@ def test_command_language_responses(rig: Rig) -> None:
     assert rig.sup.apply_text("left", "SERVO ON ON") == ""
     assert rig.sup.apply_text("left", "FOO") == "Invalid Command."
     assert rig.sup.apply_text("left", "SERVO ON") == "Invalid Command."
-    assert rig.sup.units["left"].inputs & flags.SERVO_BITS == flags.SERVO_BITS
+    servo = flags.LAYOUT_2021.servo.both
+    assert rig.sup.units["left"].inputs & servo == servo
     with pytest.raises(CommandError, match="no unit named 'middle'"):
         rig.sup.apply_text("middle", "SERVO ON ON")
 
 
 def test_input_data_and_mask_like_the_seed_topic(rig: Rig) -> None:
     before = rig.sup.units["left"].inputs
-    rig.sup.set_inputs("left", 0xFFFFFFFF, flags.AY_SERVO_ON)
-    assert rig.sup.units["left"].inputs == before | flags.AY_SERVO_ON
+    rig.sup.set_inputs("left", 0xFFFFFFFF, flags.LAYOUT_2021.servo.ay)
+    assert rig.sup.units["left"].inputs == before | flags.LAYOUT_2021.servo.ay
 
 
 def test_current_needs_torque_mode_and_mode_change_zeroes_the_command(rig: Rig) -> None:
@@ -109,7 +110,8 @@ def test_emergency_stop_latches_until_cleared(rig: Rig) -> None:
     for unit in ("left", "right"):
         cmd = last_command(rig, unit)
         assert (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
-        assert not cmd.inputs & flags.START_BITS and cmd.inputs & flags.SERVO_BITS
+        lay = rig.sup.units[unit].layout
+        assert not cmd.inputs & lay.start.both and cmd.inputs & lay.servo.both
     with pytest.raises(CommandError, match="emergency stop is latched"):
         rig.sup.set_velocity("left", 10, 0)
     assert rig.sup.apply_text("left", "START ON ON") == "Packet Error: 3"
@@ -183,7 +185,8 @@ def test_safe_state_is_zero_servo_and_start_off(rig: Rig) -> None:
     for unit in ("left", "right"):
         cmd = last_command(rig, unit)
         assert (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
-        assert not cmd.inputs & (flags.START_BITS | flags.SERVO_BITS)
+        lay = rig.sup.units[unit].layout
+        assert not cmd.inputs & (lay.start.both | lay.servo.both)
 
 
 def test_a_failing_observer_does_not_stop_the_others(rig: Rig) -> None:

@@ -74,7 +74,7 @@ def test_estop_from_every_screen_stops_both_units() -> None:
         assert sup.estop
         for state in sup.units.values():
             assert (state.setpoint.ay, state.setpoint.bx) == (0, 0)
-            assert not state.inputs & flags.START_BITS
+            assert not state.inputs & state.layout.start.both
         app.refresh_view()
         assert app.query_one("#estop").has_class("latched")
         await pilot.press("E")  # clearing asks first
@@ -110,12 +110,13 @@ def test_risky_toggles_ask_first_and_arrows_drive_the_selected_unit() -> None:
             await app.workers.wait_for_complete()
 
         await press("v", "n")  # servo on? no
-        assert not sup.units["left"].inputs & flags.SERVO_BITS
+        left = sup.units["left"].layout
+        assert not sup.units["left"].inputs & left.servo.both
         await press("v", "y", "s", "y")
-        assert sup.units["left"].inputs & flags.START_BITS
+        assert sup.units["left"].inputs & left.start.both
         assert not isinstance(app.screen, ConfirmScreen)
         await press("d", "y")  # data select: written 7 → 6 (set #1) on both axes
-        assert flags.data_select(sup.units["left"].inputs) == (6, 6)
+        assert left.data_select(sup.units["left"].inputs) == (6, 6)
         driven: list[tuple[str, float, float]] = []
         real = sup.set_twist
 
@@ -230,14 +231,16 @@ def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig:
 
     from abh3_supervisor.protocol import frames, ids
 
+    layouts = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # as in TWO_UNITS
     last = {}
     for msg in can.LogReader(str(record)):
-        if msg.arbitration_id in (ids.dp0_command_id(1, 2), ids.dp0_command_id(3, 2)):
-            last[msg.arbitration_id] = frames.decode_dp0_command(bytes(msg.data))
+        for abh3, lay in layouts.items():
+            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
+                last[abh3] = frames.decode_dp0_command(bytes(msg.data), lay.generation)
     assert len(last) == 2
-    for cmd in last.values():
+    for abh3, cmd in last.items():
         assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
-        assert not cmd.inputs & (flags.SERVO_BITS | flags.START_BITS)
+        assert cmd.inputs & ~layouts[abh3].select_mask == 0  # the safe word
 
 
 class StartLogger:

@@ -64,8 +64,10 @@ class BroadcastConfig:
 
 @dataclass(frozen=True)
 class Limits:
-    velocity: float = VELOCITY.maximum  # min⁻¹, applied to each of AY/BX
-    current: float = CURRENT.maximum  # %
+    # min⁻¹ and % per axis, either sign; the default is the whole wire range (−6553.6 …
+    # 6553.4 min⁻¹, −327.68 … 327.67 %): a limit never widens it
+    velocity: float = VELOCITY.largest
+    current: float = CURRENT.largest
 
 
 @dataclass(frozen=True)

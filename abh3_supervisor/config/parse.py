@@ -228,8 +228,8 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
             pulses_per_rev=g.number("pulses_per_rev", 0.0, 0, 1e9),
         ),
         limits=Limits(
-            velocity=lim.number("velocity", VELOCITY.maximum, 0, VELOCITY.maximum, lo_open=True),
-            current=lim.number("current", CURRENT.maximum, 0, CURRENT.maximum, lo_open=True),
+            velocity=lim.number("velocity", VELOCITY.largest, 0, VELOCITY.largest, lo_open=True),
+            current=lim.number("current", CURRENT.largest, 0, CURRENT.largest, lo_open=True),
         ),
         data_select=(sel.integer("ay", 7, 0, 7), sel.integer("bx", 7, 0, 7)),
         startup=_startup(u),

@@ -86,7 +86,7 @@ def classify(
         if cid.sa in book.hosts:
             return DecodedFrame(
                 Kind.DP0_COMMAND,
-                decode_dp0_command(data),
+                decode_dp0_command(data, book.generation(cid.ps)),
                 cid.priority,
                 Direction.TO_DRIVE,
                 abh3=cid.ps,

@@ -9,19 +9,11 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from enum import StrEnum
 
-from abh3_supervisor.protocol import flags
+from abh3_supervisor.protocol.flags import layout
+from abh3_supervisor.protocol.generation import Generation as Generation
 from abh3_supervisor.protocol.ids import PF_BROADCAST, PF_SINGLE
 from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
-
-
-class Generation(StrEnum):
-    """Protocol generation: 2021 is the seed's; 2023 is the "new CAN specification"."""
-
-    G2021 = "2021"
-    G2023 = "2023"
-
 
 _HHI = struct.Struct("<hhI")  # DP0 command, 2023 reply
 _HHHH = struct.Struct("<hhhh")  # 2021 reply, broadcast 2
@@ -50,14 +42,8 @@ class Dp0Command:
     cmd_ay: float
     cmd_bx: float
     inputs: int
-
-    @property
-    def ay_is_current(self) -> bool:
-        return bool(self.inputs & flags.AY_TORQUE)
-
-    @property
-    def bx_is_current(self) -> bool:
-        return bool(self.inputs & flags.BX_TORQUE)
+    ay_is_current: bool = False
+    bx_is_current: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -215,13 +201,20 @@ def unpack_dp0_command(data: bytes) -> tuple[int, int, int]:
     return ay, bx, inputs
 
 
-def decode_dp0_command(data: bytes) -> Dp0Command | Unknown:
+def decode_dp0_command(data: bytes, generation: Generation) -> Dp0Command | Unknown:
+    """The torque bits of the drive's generation say whether a field is a current."""
     if bad := _short(data, 8, "DP0 command"):
         return bad
     ay, bx, inputs = _HHI.unpack_from(data)
-    scale_ay = CURRENT if inputs & flags.AY_TORQUE else VELOCITY
-    scale_bx = CURRENT if inputs & flags.BX_TORQUE else VELOCITY
-    return Dp0Command(scale_ay.to_physical(ay), scale_bx.to_physical(bx), inputs)
+    torque = layout(generation).torque
+    current_ay, current_bx = bool(inputs & torque.ay), bool(inputs & torque.bx)
+    return Dp0Command(
+        (CURRENT if current_ay else VELOCITY).to_physical(ay),
+        (CURRENT if current_bx else VELOCITY).to_physical(bx),
+        inputs,
+        current_ay,
+        current_bx,
+    )
 
 
 def decode_dp0_reply(data: bytes, generation: Generation) -> Dp0Reply | Unknown:

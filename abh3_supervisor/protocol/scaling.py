@@ -30,6 +30,11 @@ class Scale:
     def maximum(self) -> float:
         return self.raw_max * self.lsb
 
+    @property
+    def largest(self) -> float:
+        """The largest magnitude the field holds (int16 reaches one LSB further below 0)."""
+        return max(-self.minimum, self.maximum)
+
     def to_raw(self, value: float) -> tuple[int, bool]:
         """Return ``(raw, clamped)``; raise :class:`CodecError` on NaN or infinity."""
         if not isinstance(value, int | float) or isinstance(value, bool):

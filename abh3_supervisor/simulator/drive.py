@@ -45,6 +45,7 @@ class SimDrive:
         now: float = 0.0,
     ) -> None:
         self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
+        self.layout = flags.layout(generation)  # a word of the other generation misleads it
         self.cfg = cfg or SimConfig()
         self.inputs = 0
         self.cmd_raw = (0, 0)  # last AY/BX command as written
@@ -138,16 +139,16 @@ class SimDrive:
 
     def _apply_command(self, data: bytes, now: float) -> None:
         ay, bx, inputs = frames.unpack_dp0_command(data)
+        lay = self.layout
         rising = inputs & ~self.inputs
-        if rising & flags.ERROR_RESET:
+        if rising & lay.error_reset:
             self.errors = 0
             self.servo_blocked = True
-        if not inputs & flags.SERVO_BITS:
+        if not inputs & lay.servo.both:
             self.servo_blocked = False
-        if rising & flags.A_PULSE_CLEAR_MASK:
-            self.pulses[0] = 0.0
-        if rising & flags.B_PULSE_CLEAR_MASK:
-            self.pulses[1] = 0.0
+        for axis in (0, 1):
+            if rising & lay.pulse_clear.of(axis):
+                self.pulses[axis] = 0.0
         self.inputs, self.cmd_raw, self.last_command = inputs, (ay, bx), now
 
     def _silence(self, timeout_ms: int) -> bool:
@@ -167,33 +168,40 @@ class SimDrive:
         return self.alarms | (flags.CAN_COMM_ERROR if cz else 0)
 
     def _servo(self, axis: int) -> bool:
-        bit = flags.AY_SERVO_ON if axis == 0 else flags.BX_SERVO_ON
+        bit = self.layout.servo.of(axis)
         return bool(self.inputs & bit) and not self.error_word() and not self.servo_blocked
 
     def _started(self, axis: int) -> bool:
-        bit = flags.AY_START if axis == 0 else flags.BX_START
         cz = self._silence(self.cfg.command_zero_timeout_ms)
-        return self._servo(axis) and bool(self.inputs & bit) and not cz
+        return self._servo(axis) and bool(self.inputs & self.layout.start.of(axis)) and not cz
+
+    def _brake_released(self) -> bool:
+        return self._servo(0) or bool(self.inputs & self.layout.brake_release)
 
     def control_word(self) -> int:
-        word = self.inputs & ~(flags.SERVO_BITS | flags.START_BITS)
-        for axis, (servo, start) in enumerate(
-            ((flags.AY_SERVO_ON, flags.AY_START), (flags.BX_SERVO_ON, flags.BX_START))
-        ):
-            word |= servo if self._servo(axis) else 0
-            word |= start if self._started(axis) else 0
-        return word | (flags.TRAVEL_MODEL if self.model is VelocityModel.TRAVEL else 0)
+        """The input bits the drive acts on (SERVO/START as they are in effect), plus the
+        model bit; in 2023 also ready, busy, brake output and error (bits 25–31)."""
+        lay = self.layout
+        word = self.inputs & lay.input.defined & ~(lay.servo.both | lay.start.both)
+        for axis in (0, 1):
+            if self._servo(axis):
+                word |= lay.servo.of(axis) | lay.ready.of(axis)
+                word |= lay.busy.of(axis) if self._axis_target(axis)[0] != 0.0 else 0
+            word |= lay.start.of(axis) if self._started(axis) else 0
+        if self.generation is Generation.G2023:
+            word |= lay.control.mask("BRAKE_RELEASE_OUT") if self._brake_released() else 0
+            word |= lay.control.mask("ERROR") if self.error_word() else 0
+        return word | (lay.travel_model if self.model is VelocityModel.TRAVEL else 0)
 
     def _axis_target(self, axis: int) -> tuple[float, bool]:
         """(command for this command axis, is_current) after gating and polarity."""
         raw = self.cmd_raw[axis]
-        torque = bool(self.inputs & (flags.AY_TORQUE if axis == 0 else flags.BX_TORQUE))
-        polarity = flags.INPUT.mask("AY_CMD_POLARITY" if axis == 0 else "BX_CMD_POLARITY")
-        select = flags.data_select(self.inputs)[axis]
+        torque = bool(self.inputs & self.layout.torque.of(axis))
+        select = self.layout.data_select(self.inputs)[axis]
         if not self._started(axis) or select == 0:  # written 0 = set #7 & STOP
             return 0.0, torque
         value = (CURRENT if torque else VELOCITY).to_physical(raw)
-        return (-value if self.inputs & polarity else value), torque
+        return (-value if self.inputs & self.layout.reverse.of(axis) else value), torque
 
     def advance(self, now: float) -> None:
         dt = now - self.t
@@ -238,16 +246,20 @@ class SimDrive:
         return min(255.0, 3.0 + abs(self.vel[axis]) / 40)
 
     def io_word(self) -> int:
-        word = (flags.IO.mask("ERROR") if self.error_word() else 0) | (
-            flags.IO.mask("ALARM") if self.alarm_word() else 0
+        """2021: status bits; 2023: the wired digital I/O, of which the simulator has none."""
+        if self.generation is Generation.G2023:
+            return 0
+        io = self.layout.io
+        word = (io.mask("ERROR") if self.error_word() else 0) | (
+            io.mask("ALARM") if self.alarm_word() else 0
         )
         for axis, (ready, busy) in enumerate((("AY_READY", "AY_BUSY"), ("BX_READY", "BX_BUSY"))):
             if self._servo(axis):
-                word |= flags.IO.mask(ready)
+                word |= io.mask(ready)
                 if self._axis_target(axis)[0] != 0.0:
-                    word |= flags.IO.mask(busy)
-        if self._servo(0) or self.inputs & flags.INPUT.mask("BRAKE_RELEASE"):
-            word |= flags.IO.mask("BRAKE_RELEASED")
+                    word |= io.mask(busy)
+        if self._brake_released():
+            word |= io.mask("BRAKE_RELEASED")
         return word
 
     def broadcast(self, n: int) -> bytes:
@@ -255,8 +267,8 @@ class SimDrive:
         if n == 0:
             return frames.encode_words(self.error_word(), self.alarm_word())
         if n == 1:
-            if self.generation is Generation.G2023:
-                return frames.encode_words(self.io_word(), self.inputs)
+            if self.generation is Generation.G2023:  # the input word as the drive sees it
+                return frames.encode_words(self.io_word(), self.inputs & self.layout.input.defined)
             return frames.encode_words(self.control_word(), self.io_word())
         if n == 2:
             cmd = [self._axis_target(i)[0] for i in range(2)]

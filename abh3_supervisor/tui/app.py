@@ -38,7 +38,6 @@ from abh3_supervisor.eventlog import describe
 from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.planner import plan
 from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import STOP_SIGNALS, Runtime
 from abh3_supervisor.runtime_thread import RuntimeThread
 from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
@@ -275,7 +274,7 @@ class SupervisorApp(App[None]):
         words = {"inputs": unit.inputs, **unit.words}
         for word in ("inputs", "control", "io", "error", "alarm"):
             text = Text(f"{word} 0x{words.get(word, 0):08X}\n", style="bold")
-            for on, label in flag_lines(word, words.get(word)):
+            for on, label in flag_lines(unit.layout, word, words.get(word)):
                 style = (
                     (
                         "bold red"
@@ -364,11 +363,12 @@ class SupervisorApp(App[None]):
 
     def action_flip(self, what: str) -> None:
         unit = self.sup.units[self.unit]
+        lay = unit.layout
         bits = {
-            "SERVO": flags.SERVO_BITS,
-            "START": flags.START_BITS,
-            "BRAKE": flags.INPUT.mask("BRAKE_RELEASE"),
-            "TORQUE": flags.AY_TORQUE | flags.BX_TORQUE,
+            "SERVO": lay.servo.both,
+            "START": lay.start.both,
+            "BRAKE": lay.brake_release,
+            "TORQUE": lay.torque.both,
         }[what]
         on = not unit.inputs & bits
         command = f"{what} {'ON ON' if on else 'OFF OFF'}"
@@ -384,7 +384,8 @@ class SupervisorApp(App[None]):
 
     def action_data_select(self) -> None:
         """Step both axes to the next preset table (written 7 = set #0 … 0 = #7 & STOP)."""
-        ay, _ = flags.data_select(self.sup.units[self.unit].inputs)
+        unit = self.sup.units[self.unit]
+        ay, _ = unit.layout.data_select(unit.inputs)
         written = (ay - 1) % 8
         command = f"SELECT {written} {written}"
         table = f"#{7 - written}" + (" & STOP" if written == 0 else "")

@@ -49,8 +49,8 @@ def overview_row(sup: Supervisor, name: str) -> dict[str, str]:
         "state": status,
         "proto": unit.cfg.protocol.value,
         "mode": f"{unit.setpoint.kind.value}/{unit.cfg.velocity_model.value}",
-        "servo": pair(control, flags.AY_SERVO_ON, flags.BX_SERVO_ON),
-        "start": pair(control, flags.AY_START, flags.BX_START),
+        "servo": pair(control, *unit.layout.servo),
+        "start": pair(control, *unit.layout.start),
         "cmd": f"{fmt(unit.setpoint.ay)} {fmt(unit.setpoint.bx)}",
         "fbk A/B": f"{fmt(fb.vel_a if fb else None)} {fmt(fb.vel_b if fb else None)}",
         "fbk Y/X": f"{fmt(fb.vel_y if fb else None)} {fmt(fb.vel_x if fb else None)}",
@@ -92,15 +92,9 @@ COLUMNS = [
 ]
 
 
-def flag_lines(word_name: str, value: int | None) -> list[tuple[bool, str]]:
-    """Every bit of a word, set or not, with its name: (set, "bit  name  label")."""
-    word = {
-        "inputs": flags.INPUT,
-        "control": flags.CONTROL,
-        "io": flags.IO,
-        "error": flags.FAULT,
-        "alarm": flags.FAULT,
-    }[word_name]
+def flag_lines(layout: flags.Layout, word_name: str, value: int | None) -> list[tuple[bool, str]]:
+    """Every bit of a word in the unit's generation, set or not: (set, "bit name")."""
+    word = layout.words[word_name]
     value = value or 0
     return [(bool(value & b.mask), f"{b.bit:>2} {b.name}") for b in word.bits]
 

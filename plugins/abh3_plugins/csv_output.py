@@ -23,13 +23,8 @@ from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.state import Feedback, Setpoint
 from abh3_supervisor.supervisor import Supervisor
 
-FLAG_WORDS = {
-    "error": flags.FAULT,
-    "alarm": flags.FAULT,
-    "control": flags.CONTROL,
-    "io": flags.IO,
-    "inputs": flags.INPUT,
-}
+# flag-word columns; each unit's bits are named in its generation's layout
+FLAG_WORDS = ("error", "alarm", "control", "io", "inputs")
 STATUS_FIELDS = [
     "vel_cmd_ay",
     "vel_cmd_bx",
@@ -112,6 +107,7 @@ class CsvPlugin:
         self.files: dict[str, _File] = {}
         self.latest: dict[str, dict[str, Any]] = {}  # unit → latest status values
         self.last_row: dict[str, float] = {}
+        self.layouts: dict[str, flags.Layout] = {}
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
@@ -127,6 +123,7 @@ class CsvPlugin:
 
     @hookimpl
     def abh3_start(self, supervisor: Supervisor) -> None:
+        self.layouts = {name: unit.layout for name, unit in supervisor.units.items()}
         names = supervisor.units if "{unit}" in str(self.path) else ["*"]
         for name in names:
             path = Path(str(self.path).replace("{unit}", name))
@@ -146,10 +143,11 @@ class CsvPlugin:
     @hookimpl
     def abh3_status(self, unit: str, record: frames.Broadcast) -> None:
         values = self.latest.setdefault(unit, {})
+        words = self.layouts[unit].words
         for key, value in asdict(record).items():
             if key in FLAG_WORDS and value is not None:
                 values[key] = f"0x{value:08X}"
-                values[f"{key}_names"] = " ".join(FLAG_WORDS[key].names(value))
+                values[f"{key}_names"] = " ".join(words[key].names(value))
             elif key in STATUS_FIELDS:
                 values[key] = value
 
@@ -173,7 +171,8 @@ class CsvPlugin:
         }
         if feedback.control is not None:
             row["control"] = f"0x{feedback.control:08X}"
-            row["control_names"] = " ".join(flags.CONTROL.names(feedback.control))
+            control = self.layouts[unit].control
+            row["control_names"] = " ".join(control.names(feedback.control))
         with self.lock:
             self._file(unit).write(row)
 

@@ -36,7 +36,7 @@ from abh3_supervisor.hookspecs import hookimpl
 from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.protocol import frames
-from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 from abh3_supervisor.state import Feedback, UnitState
 from abh3_supervisor.supervisor import Supervisor
 
@@ -48,12 +48,15 @@ class Refused(ValueError):
     """An incoming value that must not reach a drive."""
 
 
-def _within(limit: float, *values: float) -> None:
+def _within(scale: Scale | None, *values: float) -> None:
+    """Finite, and within ``scale``'s wire range when given."""
     for v in values:
         if not math.isfinite(v):
             raise Refused(f"{v} is not a finite number")
-        if abs(v) > limit:
-            raise Refused(f"{v:g} is beyond the protocol's range ±{limit:g}")
+        if scale is not None and not scale.minimum <= v <= scale.maximum:
+            raise Refused(
+                f"{v:g} is beyond the protocol's range {scale.minimum:g} … {scale.maximum:g}"
+            )
 
 
 def _int32(value: int) -> int:
@@ -93,7 +96,7 @@ def twist(msg: Any, linear_x: float, angular_z: float) -> Any:
 def _twist_values(m: Any) -> tuple[float, float]:
     """linear.x and angular.z of a Twist; every component must be finite."""
     values = (m.linear.x, m.linear.y, m.linear.z, m.angular.x, m.angular.y, m.angular.z)
-    _within(math.inf, *values)
+    _within(None, *values)
     return m.linear.x, m.angular.z
 
 
@@ -168,13 +171,13 @@ class UnitBridge(InputSource):
         t, msg = self.t, self.t.msg
 
         def vel_cmd(m: Any) -> None:
-            _within(VELOCITY.maximum, m.vel_ay, m.vel_bx)
+            _within(VELOCITY, m.vel_ay, m.vel_bx)
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.velocity(m.vel_ay, m.vel_bx)
 
         def cur_cmd(m: Any) -> None:
-            _within(CURRENT.maximum, m.cur_ay, m.cur_bx)
+            _within(CURRENT, m.cur_ay, m.cur_bx)
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.current(m.cur_ay, m.cur_bx)
@@ -182,12 +185,16 @@ class UnitBridge(InputSource):
         def cmd_vel(m: Any) -> None:
             linear_x, angular_z = _twist_values(m)
             y, x = kinematics.twist_to_yx(linear_x, angular_z, self.cfg.geometry)
-            _within(VELOCITY.maximum, *kinematics.yx_to_ab(y, x))
+            _within(VELOCITY, *kinematics.yx_to_ab(y, x))
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.twist(linear_x, angular_z)
 
         def inp_data(m: Any) -> None:
+            if undefined := self.unit.layout.undefined(m.data & m.mask):
+                raise Refused(
+                    f"bits 0x{undefined:08X} are not defined for protocol {self.cfg.protocol}"
+                )
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.inputs(m.data, m.mask)
@@ -232,12 +239,12 @@ class UnitBridge(InputSource):
             out["xa_ab"](velocity(*kinematics.yx_to_ab(y, x)))
 
         def from_yx(m: Any) -> None:
-            _within(math.inf, m.vel_ay, m.vel_bx)
+            _within(None, m.vel_ay, m.vel_bx)
             out["yx_xa"](twist(msg, *kinematics.yx_to_twist(m.vel_ay, m.vel_bx, g)))
             out["yx_ab"](velocity(*kinematics.yx_to_ab(m.vel_ay, m.vel_bx)))
 
         def from_ab(m: Any) -> None:
-            _within(math.inf, m.vel_ay, m.vel_bx)
+            _within(None, m.vel_ay, m.vel_bx)
             out["ab_yx"](velocity(*kinematics.ab_to_yx(m.vel_ay, m.vel_bx)))
             out["ab_xa"](twist(msg, *kinematics.ab_to_twist(m.vel_ay, m.vel_bx, g)))
 
