@@ -101,7 +101,9 @@ def test_commands_only_with_allow_commands_and_never_for_a_monitor() -> None:
         ("vel_cmd", types.Abh3Velocity(math.nan, 0.0)),
         ("vel_cmd", types.Abh3Velocity(0.0, math.inf)),
         ("vel_cmd", types.Abh3Velocity(6553.6, 0.0)),  # beyond what the frame can carry
+        ("vel_cmd", types.Abh3Velocity(-6553.8, 0.0)),
         ("cur_cmd", types.Abh3Current(-400.0, 0.0)),
+        ("inp_data", types.Abh3Input(1 << 9, 1 << 9)),  # bit 9 is not defined in 2021
         ("cmd_vel", types.Twist(types.Vector3(math.nan), types.Vector3())),
         ("cmd_vel", types.Twist(types.Vector3(), types.Vector3(y=math.inf))),
         ("cmd_vel", types.Twist(types.Vector3(100.0), types.Vector3())),  # 191,000 min⁻¹
@@ -120,11 +122,13 @@ def test_bad_values_never_reach_the_feed(
 def test_good_values_reach_the_feed_as_the_seed_means_them() -> None:
     _, t, feed = bridge(Settings(allow_commands=True))
     t.handlers["/left/vel_cmd"](types.Abh3Velocity(300.0, -20.0))
+    t.handlers["/left/vel_cmd"](types.Abh3Velocity(-6553.6, 6553.4))  # the whole int16 range
     t.handlers["/left/cur_cmd"](types.Abh3Current(12.5, 0.0))
     t.handlers["/left/cmd_vel"](types.Twist(types.Vector3(0.2), types.Vector3(z=0.5)))
     t.handlers["/left/inp_data"](types.Abh3Input(-1, 0x3))  # int32 on the wire
     assert feed.calls == [
         ("velocity", 300.0, -20.0),
+        ("velocity", -6553.6, 6553.4),
         ("current", 12.5, 0.0),
         ("twist", 0.2, 0.5),
         ("inputs", -1, 0x3),
