@@ -10,7 +10,7 @@ from pathlib import Path
 from abh3_supervisor.config.model import Config, VelocityModel
 from abh3_supervisor.eventlog import describe
 from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
 from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
 
 log = logging.getLogger("abh3")
@@ -58,8 +58,10 @@ async def run_headless(
     stop = asyncio.Event()
     for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, stop.set)
+    code = 0
+    rt = Runtime(config, record=record, plugins=plugins)
     try:
-        async with Runtime(config, record=record, plugins=plugins) as rt:
+        async with rt:
             sup = rt.supervisor
 
             def on_event(event: SupervisorEvent) -> None:
@@ -82,14 +84,18 @@ async def run_headless(
             assert rt.fatal is not None
             if rt.fatal.done():
                 log.critical("stopping after an internal error: %s", rt.fatal.result())
-                return 1
-            for line in status_lines(sup):
-                log.info("final %s", line)
-            log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
+                code = 1
+            else:
+                for line in status_lines(sup):
+                    log.info("final %s", line)
+                log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
     finally:
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
-    return 0
+    if not rt.stops_confirmed:
+        log.error("not every drive confirmed its stop frame: check them (exit code 3)")
+        return code or EXIT_STOP_UNCONFIRMED
+    return code
 
 
 async def _report(sup: Supervisor, interval: float) -> None:

@@ -193,6 +193,8 @@ class InputArbiter:
     current: dict[str, tuple[str, InputCommand] | None] = field(default_factory=dict)
     on_change: Callable[[], None] | None = None  # re-arm the deadline timer
     closed: bool = False  # inputs stopped: submissions are ignored from now on
+    # per unit: what was heard before this time no longer counts (the drive stopped itself)
+    held: dict[str, float] = field(default_factory=dict)
 
     def add(self, source: InputSource) -> None:
         self.sources[source.name] = _SourceState(
@@ -212,6 +214,12 @@ class InputArbiter:
         before, state.units = state.units, units
         self._decide(tuple(sorted(set(before) | set(units))), self.clock())
 
+    def hold(self, unit: str, since: float) -> None:
+        """The drive stopped itself (gap, offline): only a command heard after ``since``
+        may move it again; a value that was fresh before is never resumed."""
+        self.held[unit] = since
+        self.current[unit] = None
+
     def poll(self, now: float) -> None:
         """Expire silent sources (call at :meth:`next_deadline`)."""
         units = {u for s in self.sources.values() if s.command is not None for u in s.units}
@@ -225,7 +233,12 @@ class InputArbiter:
 
     def _decide(self, units: tuple[str, ...], now: float) -> None:
         for unit in units:
-            candidates = [s for s in self.sources.values() if unit in s.units and s.fresh(now)]
+            since = self.held.get(unit, -math.inf)
+            candidates = [
+                s
+                for s in self.sources.values()
+                if unit in s.units and s.fresh(now) and s.heard > since
+            ]
             if candidates:
                 best = max(candidates, key=lambda s: (s.priority, s.heard))
                 assert best.command is not None

@@ -33,7 +33,7 @@ from abh3_supervisor.inputs import (
     Twist,
     VelocityYX,
 )
-from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
+from abh3_supervisor.scheduler.core import FeedbackEvent, GapEvent, HealthEvent, StatusEvent
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
 
@@ -224,6 +224,14 @@ class PluginHost:
                 timer.cancel()
 
         arbiter.on_change = rearm
+
+        def hold(event: SupervisorEvent) -> None:
+            if (isinstance(event, GapEvent) and event.started) or (
+                isinstance(event, HealthEvent) and not event.online
+            ):
+                arbiter.hold(event.unit, event.t)
+
+        sup.subscribe(hold)
         for source in self.sources:
             unknown = [u for u in source.units if u not in sup.units]
             if unknown:

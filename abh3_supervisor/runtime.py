@@ -2,8 +2,10 @@
 
 ``async with Runtime(config) as rt:`` opens every bus, attaches simulators, and starts the
 schedulers; leaving the block by any path (normal end, Ctrl-C, SIGTERM, an exception)
-commands zero with START and SERVO off on every unit, waits briefly for the drives to
-answer that frame, then closes the recording and the buses.
+sends every commanded unit its stop frame (zero, the safe word: SERVO, START, brake and
+every other switch off), repeated until the drive answers it or ``STOP_DEADLINE_S``
+passes, whatever else fails (a recorder, a plugin, a UI); then the recording and the
+buses are closed. :attr:`Runtime.stop_report` says per unit what became of its stop.
 """
 
 from __future__ import annotations
@@ -26,7 +28,10 @@ from abh3_supervisor.simulator.bus import SimBus
 from abh3_supervisor.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
-STOP_CONFIRM_S = 0.5  # longest wait for the drives to answer the stop frame
+STOP_DEADLINE_S = 1.0  # stop frames are repeated until answered, at most this long
+STOP_RETRY_S = 0.05  # a stop frame not answered within this is sent again
+EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame
+CONFIRMED, SENT = "confirmed", "sent, not confirmed"  # else "NOT sent: <reason>"
 # every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
@@ -47,13 +52,46 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
         ) from exc
 
 
-def open_recorder(path: Path) -> can.Listener:
+class GuardedRecorder(can.Listener):
+    """``--record``'s writer, which may fail (disk full) without touching the bus path:
+    the first failure is reported once, recording stops, the drives go on being driven."""
+
+    def __init__(self, path: Path, writer: can.Listener) -> None:
+        self.path, self.writer = path, writer
+        self.failed: str | None = None
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.failed is not None:
+            return
+        try:
+            self.writer.on_message_received(msg)
+        except Exception as exc:
+            self._fail("writing", exc)
+
+    def _fail(self, doing: str, exc: Exception) -> None:
+        self.failed = str(exc)
+        log.error(
+            "--record %s: %s failed (%s): the recording ends here; the drives are unaffected",
+            self.path,
+            doing,
+            exc,
+        )
+
+    def stop(self) -> None:
+        try:
+            self.writer.stop()  # flushes and closes the file
+        except Exception as exc:
+            self._fail("closing", exc)
+
+
+def open_recorder(path: Path) -> GuardedRecorder:
     try:
-        return can.Logger(str(path))  # format from the extension: .log .asc .blf .csv …
+        writer = can.Logger(str(path))  # format from the extension: .log .asc .blf .csv …
     except ValueError as exc:
         raise BusOpenError(f"--record {path}: {exc} (use .log, .asc, .blf or .csv)") from exc
     except OSError as exc:
         raise BusOpenError(f"--record {path}: cannot write: {exc.strerror}") from exc
+    return GuardedRecorder(path, writer)
 
 
 class Runtime:
@@ -68,8 +106,9 @@ class Runtime:
         self.pumps: dict[str, BusPump] = {}
         self._sim_pumps: list[BusPump] = []
         self._buses: list[can.BusABC] = []
-        self._recorder: can.Listener | None = None
+        self._recorder: GuardedRecorder | None = None
         self.fatal: asyncio.Future[object] | None = None
+        self.stop_report: dict[str, str] = {}  # unit → CONFIRMED, SENT or "NOT sent: …"
 
     async def __aenter__(self) -> Runtime:
         loop = asyncio.get_running_loop()
@@ -124,7 +163,10 @@ class Runtime:
     ) -> None:
         try:
             if self.plugins is not None:
-                self.plugins.stop_inputs()  # nothing may command motion from here on
+                try:
+                    self.plugins.stop_inputs()  # nothing may command motion from here on
+                except Exception:  # never a reason not to stop the drives
+                    log.exception("stopping the inputs failed; stopping the drives anyway")
             await self.stop_drives()
         finally:
             try:
@@ -145,37 +187,61 @@ class Runtime:
         finally:
             stopped.cancel()
 
+    @property
+    def stops_confirmed(self) -> bool:
+        return all(outcome == CONFIRMED for outcome in self.stop_report.values())
+
     async def stop_drives(self) -> None:
-        """Zero, START and SERVO off on every commanded unit, sent now and confirmed."""
+        """The stop frame to every commanded unit, repeated until each drive answers one or
+        ``STOP_DEADLINE_S`` passes; the outcome per unit is logged and kept in
+        :attr:`stop_report`."""
         sup = self.supervisor
         sup.safe_state()
         loop = asyncio.get_running_loop()
         since = loop.time()
-        waits: dict[str, asyncio.Future[bool]] = {}
-        for bus, scheduler in sup.schedulers.items():
-            pump = self.pumps.get(bus)
-            if pump is None:
-                continue
-            for name, slot in scheduler.slots.items():
-                if slot.commanding and slot.online:
-                    waits[name] = sup.expect_exchange(name, since)
-            for arbitration_id, data in scheduler.flush(since):
-                pump.send(arbitration_id, data)
-        if not waits:
-            return
-        _, pending = await asyncio.wait(waits.values(), timeout=STOP_CONFIRM_S)
-        for name, future in waits.items():
-            if future in pending:
-                future.cancel()
-                log.warning("unit %s: stop frame sent, not confirmed by the drive", name)
-            else:
-                log.info("unit %s: stop frame confirmed by the drive", name)
+        deadline = since + STOP_DEADLINE_S
+        waits = {
+            name: (bus, sup.expect_exchange(name, since))
+            for bus, scheduler in sup.schedulers.items()
+            for name, slot in scheduler.slots.items()
+            if slot.commanding
+        }
+        sent: set[str] = set()
+        refused: dict[str, str] = {}
+        try:
+            while True:
+                for name, (bus, answered) in waits.items():
+                    if answered.done():
+                        continue
+                    pump = self.pumps.get(bus)
+                    if pump is None:
+                        refused[name] = "the bus did not open"
+                        continue
+                    if pump.send(*sup.schedulers[bus].send_now(name, loop.time())):
+                        sent.add(name)
+                    else:
+                        refused[name] = pump.last_send_error or "the bus refused the frame"
+                waiting = [answered for _, answered in waits.values() if not answered.done()]
+                if not waiting or loop.time() >= deadline:
+                    break
+                await asyncio.wait(waiting, timeout=min(STOP_RETRY_S, deadline - loop.time()))
+        finally:
+            for name, (_, answered) in waits.items():
+                if answered.done() and not answered.cancelled():
+                    outcome = CONFIRMED
+                else:
+                    answered.cancel()
+                    outcome = SENT if name in sent else f"NOT sent: {refused.get(name, '?')}"
+                self.stop_report[name] = outcome
+                level = logging.INFO if outcome == CONFIRMED else logging.ERROR
+                by = " by the drive" if outcome == CONFIRMED else ""
+                log.log(level, "unit %s: stop frame %s%s", name, outcome, by)
 
     def _close(self) -> None:
         for pump in [*self.pumps.values(), *self._sim_pumps]:
             pump.stop()
         if self._recorder is not None:
-            self._recorder.stop()  # flushes and closes the file: no lost recording
+            self._recorder.stop()  # after the stop frames: flushed and closed
             self._recorder = None
         for bus in self._buses:
             bus.shutdown()

@@ -31,10 +31,13 @@ from abh3_supervisor.scheduler.core import (
     BusScheduler,
     Event,
     FeedbackEvent,
+    GapEvent,
     HealthEvent,
+    MalformedEvent,
     StatusEvent,
 )
 from abh3_supervisor.state import Feedback, Setpoint, UnitState
+from abh3_supervisor.throttle import Throttle, held_note
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +93,7 @@ class Supervisor:
         self.stopping = False  # set by safe_state(): every later command is refused
         # per bus: step the scheduler now (set by the runtime; absent on a fake clock)
         self.wakers: dict[str, Callable[[], None]] = {}
+        self._throttle = Throttle(1.0)
         for unit in self.units.values():
             self._push(unit)
 
@@ -144,6 +148,32 @@ class Supervisor:
                 # a lost drive stops itself (command-zero timeout); do not resume it moving
                 # on return with a stale setpoint: its command drops to zero
                 self._zero(unit)
+        elif isinstance(event, GapEvent):
+            self._gap(unit, event)
+        elif isinstance(event, MalformedEvent):
+            held = self._throttle.allow((unit.name, event.kind), event.t)
+            if held is not None:
+                self.notice(
+                    unit.name,
+                    logging.WARNING,
+                    f"malformed {event.kind} ignored: {event.reason}{held_note(held)}",
+                )
+
+    def _gap(self, unit: UnitState, event: GapEvent) -> None:
+        """The drive stopped itself for want of commands: it must not restart on its own."""
+        ms = unit.cfg.drive_timeout_ms
+        if event.started:
+            moving = bool(unit.setpoint.ay or unit.setpoint.bx)
+            self._zero(unit)
+            self.notice(
+                unit.name,
+                logging.WARNING,
+                f"no exchange completed for {ms} ms (drive_timeout_ms): the drive has stopped "
+                f"on its command-zero timeout; command "
+                + ("set to zero: nothing moves until a new command" if moving else "stays zero"),
+            )
+        else:
+            self.notice(unit.name, logging.INFO, "exchanges again after the gap; command zero")
 
     def _word(self, unit: UnitState, t: float, word: str, value: int) -> None:
         old = unit.words.get(word)

@@ -64,6 +64,9 @@ class SeedNode:
     def on_send_failed(self, arbitration_id: int) -> None:
         self.waiting_since = None
 
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        pass
+
 
 def _units(n: int, rate: float) -> list[UnitConfig]:
     return [

@@ -81,6 +81,8 @@ class UnitConfig:
     protocol: Generation = Generation.G2021
     timeout_ms: int = 1000
     reply_timeout_ms: int = 100
+    # the drive's command-zero timeout (seed setting 500 ms; drive parameter 0x4117)
+    drive_timeout_ms: int = 500
     command_rate_hz: float = 50.0
     control: ControlMode = ControlMode.VELOCITY
     velocity_model: VelocityModel = VelocityModel.TRAVEL

@@ -53,7 +53,31 @@ class HealthEvent:
     online: bool
 
 
-Event = FeedbackEvent | StatusEvent | HealthEvent
+@dataclass(frozen=True, slots=True)
+class GapEvent:
+    """No DP0 exchange completed for the drive's timeout (``started``), or one did again.
+
+    The drive has then stopped itself (command-zero timeout, doc §6); it must not resume
+    with the old setpoint when frames flow again.
+    """
+
+    unit: str
+    t: float
+    started: bool
+
+
+@dataclass(frozen=True, slots=True)
+class MalformedEvent:
+    """A frame with one of the unit's reply ids that is not a valid reply: not counted."""
+
+    unit: str
+    t: float
+    kind: str  # "dp0 reply" or "broadcast N"
+    reason: str
+
+
+Event = FeedbackEvent | StatusEvent | HealthEvent | GapEvent | MalformedEvent
+VALID_LENGTH = 8  # every DP0 reply and broadcast 0-6 carries 8 bytes (doc §3)
 
 
 class UnitSlot:
@@ -91,6 +115,11 @@ class UnitSlot:
         self.poll_packet = -1  # the packet asked for by the request in flight
         self.asked: list[int] = []  # on-demand requests (seed brd_num), before the polls
         self.online: bool | None = None  # None until first heard or first timed out
+        # the drive's command-zero timeout, counted from the send time of the last answered
+        # command (the latest instant the drive surely had it): never later than the drive's
+        self.drive_timeout = cfg.drive_timeout_ms / 1000 if cfg.drive_timeout_ms else math.inf
+        self.heard_at: float | None = None
+        self.gap = False
         self.since = start
         self.stats = UnitStats(cfg.command_rate_hz)
 
@@ -108,6 +137,11 @@ class UnitSlot:
         if self.dp0_sent_at is None:
             return self.next_command
         return max(self.next_command, self.dp0_sent_at + self.exchange_timeout)
+
+    def gap_due(self) -> float:
+        if not self.commanding or self.gap or self.heard_at is None:
+            return math.inf
+        return self.heard_at + self.drive_timeout
 
     def command_interval(self) -> float:
         # an offline unit is only probed once per timeout, so it costs the bus little
@@ -148,11 +182,21 @@ class BusScheduler:
             return
         slot, packet = route
         cfg = slot.cfg
+        if packet == 7:  # not defined by the spec: kept for whoever reads it, proves nothing
+            self.events.append(StatusEvent(cfg.name, now, 7, frames.Brd7(data)))
+            return
+        if len(data) != VALID_LENGTH:
+            self._malformed(slot, packet, now, f"{len(data)} data bytes, expected 8")
+            return
         if packet < 0:
             # DP0 replies carry no sequence number: a reply answers the one request in flight
             sent_at, slot.dp0_sent_at = slot.dp0_sent_at, None
             if sent_at is not None:
                 slot.stats.on_reply(now, now - sent_at)
+                slot.heard_at = sent_at
+                if slot.gap:
+                    slot.gap = False
+                    self.events.append(GapEvent(cfg.name, now, False))
             else:
                 slot.stats.unsolicited += 1
                 slot.stats.last_seen = now
@@ -171,6 +215,18 @@ class BusScheduler:
             if slot.last_sent is not None:
                 slot.next_command = min(slot.next_command, max(now, slot.last_sent + slot.period))
             self.events.append(HealthEvent(cfg.name, now, True))
+
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        """A frame with one of our reply ids that is no data frame we can use (an FD or a
+        remote frame): counted, never taken as a reply."""
+        route = self._routes.get(arbitration_id & MATCH_MASK)
+        if route is not None:
+            self._malformed(route[0], route[1], now, reason)
+
+    def _malformed(self, slot: UnitSlot, packet: int, now: float, reason: str) -> None:
+        slot.stats.malformed += 1
+        kind = "dp0 reply" if packet < 0 else f"broadcast {packet}"
+        self.events.append(MalformedEvent(slot.cfg.name, now, kind, reason))
 
     def on_send_failed(self, arbitration_id: int) -> None:
         """The bus refused a frame we returned from :meth:`poll`: it is not in flight."""
@@ -223,18 +279,20 @@ class BusScheduler:
         if packet not in slot.asked:
             slot.asked.append(packet)
 
-    def flush(self, now: float) -> list[OutFrame]:
-        """Every commanding unit's DP0 frame, due now regardless of schedule (stop frames)."""
-        out: list[OutFrame] = []
-        for slot in self.slots.values():
-            if slot.commanding:
-                out.append((slot.command_id, slot.payload))
-                slot.dp0_sent_at = slot.last_sent = now
-                slot.stats.commands_sent += 1
-                slot.next_command = now + slot.command_interval()
-        return out
+    def send_now(self, unit: str, now: float) -> OutFrame:
+        """The unit's DP0 frame, due now regardless of schedule (stop frames); in flight
+        from now, so its reply confirms it."""
+        slot = self.slots[unit]
+        slot.dp0_sent_at = slot.last_sent = now
+        slot.stats.commands_sent += 1
+        slot.next_command = now + slot.command_interval()
+        return slot.command_id, slot.payload
 
     def _check_health(self, slot: UnitSlot, now: float) -> None:
+        if now >= slot.gap_due():  # as in next_deadline
+            slot.gap = True
+            slot.stats.gaps += 1
+            self.events.append(GapEvent(slot.cfg.name, now, True))
         last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
         if slot.online is not False and now >= last + slot.timeout:  # as in next_deadline
             slot.online = False
@@ -244,7 +302,7 @@ class BusScheduler:
         deadline = math.inf
         for slot in self.slots.values():
             deadline = min(deadline, slot.command_due())
-            deadline = min(deadline, slot.poll_due())
+            deadline = min(deadline, slot.poll_due(), slot.gap_due())
             if slot.online is not False:
                 last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
                 deadline = min(deadline, last + slot.timeout)

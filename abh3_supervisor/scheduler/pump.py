@@ -27,6 +27,7 @@ class Machine(Protocol):
     def poll(self, now: float) -> list[tuple[int, bytes]]: ...
     def next_deadline(self) -> float: ...
     def on_send_failed(self, arbitration_id: int) -> None: ...
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None: ...
 
 
 class BusPump(can.Listener):
@@ -51,6 +52,7 @@ class BusPump(can.Listener):
         self.frames_sent = 0
         self.frames_received = 0
         self.send_errors = 0
+        self.last_send_error: str | None = None
         self.bus_errors = 0
 
     def start(self) -> None:
@@ -74,7 +76,11 @@ class BusPump(can.Listener):
         if msg.is_error_frame:
             self.bus_errors += 1
             return
-        if not msg.is_extended_id or msg.is_remote_frame:
+        if not msg.is_extended_id:
+            return
+        if msg.is_remote_frame or msg.is_fd:  # an ABH3 sends neither: never a reply
+            why = "remote frame" if msg.is_remote_frame else "CAN FD frame"
+            self._guard(self.machine.on_bad_frame, msg.arbitration_id, self.loop.time(), why)
             return
         self.frames_received += 1
         self._guard(self._receive_and_step, msg.arbitration_id, bytes(msg.data))
@@ -130,6 +136,7 @@ class BusPump(can.Listener):
             self.bus.send(msg, timeout=0)
         except can.CanError as exc:
             self.send_errors += 1
+            self.last_send_error = str(exc) or type(exc).__name__
             if math.log2(self.send_errors).is_integer():  # 1st, 2nd, 4th, 8th … failure
                 log.warning("bus %s: send failed (%s); %d so far", self.name, exc, self.send_errors)
             self.machine.on_send_failed(arbitration_id)

@@ -25,6 +25,8 @@ class UnitStats:
     send_errors: int = 0
     polls_sent: int = 0
     broadcasts: int = 0
+    malformed: int = 0  # frames with our ids but the wrong length or kind: never counted
+    gaps: int = 0  # times no exchange completed within the drive's timeout
     last_seen: float | None = None
     _rtts: deque[float] = field(default_factory=lambda: deque(maxlen=1024))
     _reply_times: deque[float] = field(default_factory=lambda: deque(maxlen=256))

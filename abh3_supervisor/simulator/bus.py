@@ -61,3 +61,6 @@ class SimBus:
 
     def on_send_failed(self, arbitration_id: int) -> None:
         """A drive's reply was refused by the bus: like a real drive, it does not retry."""
+
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        """A drive ignores remote and FD frames."""

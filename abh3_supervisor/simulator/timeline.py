@@ -43,6 +43,15 @@ class Timeline:
         self._on_wire: tuple[int, int, bytes, float] | None = None
         self._busy_until = -math.inf
         self.busy_time = 0.0
+        self.refusals: list[tuple[int, float, float]] = []  # (node, from, until)
+
+    def refuse_sends(self, node: int, start: float, end: float) -> None:
+        """The bus refuses ``node``'s frames from ``start`` until ``end`` (a full transmit
+        queue, a loose connector): the machine is told, as :class:`BusPump` tells it."""
+        self.refusals.append((node, start, end))
+
+    def _refused(self, index: int) -> bool:
+        return any(n == index and a <= self.now < b for n, a, b in self.refusals)
 
     def clock(self) -> float:
         return self.now
@@ -53,7 +62,11 @@ class Timeline:
 
     def _step(self, index: int) -> None:
         node = self.nodes[index]
-        node.queue.extend(node.machine.poll(self.now))
+        for frame in node.machine.poll(self.now):
+            if self.refusals and self._refused(index):
+                node.machine.on_send_failed(frame[0])
+            else:
+                node.queue.append(frame)
         if node.after_step is not None:
             node.after_step()
 

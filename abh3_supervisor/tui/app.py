@@ -38,7 +38,7 @@ from abh3_supervisor.eventlog import describe
 from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.planner import plan
 from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
 from abh3_supervisor.runtime_thread import RuntimeThread
 from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.tui.model import (
@@ -503,5 +503,7 @@ async def run_tui(
     finally:
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
-        bridge.stop()  # leaves the runtime: zero, START/SERVO off, confirmed
-    return app.return_code or (1 if bridge.error is not None else 0)
+        bridge.stop()  # leaves the runtime: the stop frames, repeated until confirmed
+    if app.return_code or bridge.error is not None:
+        return app.return_code or 1
+    return 0 if runtime.stops_confirmed else EXIT_STOP_UNCONFIRMED
