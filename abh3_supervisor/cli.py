@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
 from abh3_supervisor.config import Config, load_config
-from abh3_supervisor.errors import Abh3Error, BusOpenError, ConfigError
+from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
 
 if TYPE_CHECKING:
     from abh3_supervisor.plugin_host import PluginHost
@@ -104,7 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for problem in exc.problems:
             print(f"error: {problem}", file=sys.stderr)
         return EXIT_USAGE
-    except BusOpenError as exc:
+    except RunError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
     except Abh3Error as exc:

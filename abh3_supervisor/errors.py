@@ -23,5 +23,14 @@ class CommandError(Abh3Error):
     """A supervisor command was refused (unknown unit, wrong mode, e-stop latched)."""
 
 
-class BusOpenError(Abh3Error):
+class RunError(Abh3Error):
+    """What only the run itself can find out failed (a device, an output, a plugin's start):
+    exit 1, and before any drive is commanded where it is found at start-up."""
+
+
+class BusOpenError(RunError):
     """A CAN bus could not be opened (missing device, interface not installed)."""
+
+
+class PluginError(RunError):
+    """A plugin could not start (or blocked starting)."""

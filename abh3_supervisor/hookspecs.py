@@ -2,9 +2,10 @@
 
 Call conventions: hooks are called with keyword arguments, and an implementation may
 accept fewer arguments than its spec (pluggy's rule), so specs can grow without breaking
-plugins. Configuration, start, stop and input-source hooks run on the event loop; the
-observation hooks (``abh3_feedback`` … ``abh3_notice``) run in the plugin's own worker
-thread, so a slow plugin never delays the bus.
+plugins. Configuration runs while the file loads; start, input-source and stop hooks run
+on a thread of their own with a deadline (a plugin failing to start fails the run before
+any frame is sent); the observation hooks (``abh3_feedback`` … ``abh3_notice``) run in the
+plugin's own worker thread, so a slow plugin never delays the bus.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ def abh3_configure(section: Section, config: Config) -> None:
 
 @hookspec
 def abh3_start(supervisor: Supervisor) -> None:
-    """The supervisor runs: open files, start threads. On the event loop; keep it short."""
+    """Before the first frame: open files, start threads; raise if you cannot (the run fails)."""
 
 
 @hookspec

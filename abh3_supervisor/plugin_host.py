@@ -6,6 +6,9 @@ loaded. Every hook call is isolated per plugin: an exception is logged with the 
 name, and after ``MAX_FAILURES`` failures in one run the plugin is disabled. Observation
 hooks are queued to a worker thread per plugin, so a slow plugin never delays the bus;
 when its queue is full, events for it are dropped and counted, never waited for.
+Lifecycle hooks (start, input sources, stop) run on a thread of their own with a deadline:
+a plugin that fails or blocks while starting fails the run before any drive is commanded;
+one that blocks while stopping is abandoned, so the way out always ends.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import pluggy
 from abh3_supervisor import hookspecs
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.source import Section, Source
-from abh3_supervisor.errors import CommandError, ConfigError
+from abh3_supervisor.errors import CommandError, ConfigError, PluginError
 from abh3_supervisor.inputs import (
     InputArbiter,
     InputCommand,
@@ -41,6 +44,8 @@ log = logging.getLogger(__name__)
 GROUP = "abh3_supervisor"
 MAX_FAILURES = 5
 QUEUE_SIZE = 10_000
+START_DEADLINE_S = 5.0  # abh3_start and abh3_input_sources, per plugin
+STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
 _STOP = object()
 
 
@@ -97,6 +102,7 @@ class PluginHost:
         self.arbiter: InputArbiter | None = None
         self._timer: DeadlineTimer | None = None
         self._inputs_stopped = False
+        self.started: list[str] = []  # plugins whose abh3_start ran: they get abh3_stop
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._load(config, installed() if available is None else available)
@@ -189,6 +195,26 @@ class PluginHost:
                 "plugin %s disabled after %d failures; the others keep running", name, MAX_FAILURES
             )
 
+    def _bounded(self, name: str, hook: str, deadline: float, **kwargs: Any) -> str | None:
+        """Run one plugin's lifecycle hook on a thread of its own for at most ``deadline``
+        seconds; what went wrong, or None. A plugin that blocks is left behind (its thread
+        is a daemon), so it can hold up neither the buses nor the way out."""
+        failure: list[str] = []
+
+        def run() -> None:
+            try:
+                self._caller(name, hook)(**kwargs)
+            except Exception as exc:
+                failure.append(repr(exc))
+                log.debug("plugin %s failed in %s", name, hook, exc_info=True)
+
+        thread = threading.Thread(target=run, name=f"plugin {name} {hook}", daemon=True)
+        thread.start()
+        thread.join(deadline)
+        if thread.is_alive():
+            return f"did not return within {deadline:g} s"
+        return failure[0] if failure else None
+
     def _has(self, name: str, hook: str) -> bool:
         caller = getattr(self.pm.hook, hook)
         return any(impl.plugin_name == name for impl in caller.get_hookimpls())
@@ -202,12 +228,17 @@ class PluginHost:
             for hook in observing:
                 self._caller(name, hook)
         for name in self.names:
-            self.call_one(name, "abh3_start", supervisor=sup)
+            self.started.append(name)  # even if it fails half way: it may hold resources
+            for hook, kwargs in (
+                ("abh3_start", {"supervisor": sup}),
+                ("abh3_input_sources", {"register": self.sources.append, "supervisor": sup}),
+            ):
+                problem = self._bounded(name, hook, START_DEADLINE_S, **kwargs)
+                if problem is not None:  # the user asked for it: run without it, never
+                    raise PluginError(f"plugin {name} could not start ({hook}): {problem}")
             if any(self._has(name, hook) for hook in observing):
                 self.workers[name] = _Worker(self, name)
         sup.subscribe(self._observe)
-        for name in self.names:
-            self.call_one(name, "abh3_input_sources", register=self.sources.append, supervisor=sup)
         if self.sources:
             self._start_inputs(sup, loop)
 
@@ -293,8 +324,10 @@ class PluginHost:
         for worker in self.workers.values():
             worker.close(timeout)
         self.workers.clear()
-        for name in self.names:
-            self.call_one(name, "abh3_stop", supervisor=sup)
+        for name in self.started:
+            problem = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=sup)
+            if problem is not None:
+                log.error("plugin %s failed in abh3_stop: %s", name, problem)
 
 
 def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:

@@ -116,7 +116,11 @@ class Runtime:
         try:
             self._start(loop)
         except BaseException:
-            self._close()
+            try:
+                if self.plugins is not None and self.plugins.started:
+                    self.plugins.stop(self.supervisor)  # those that started get abh3_stop
+            finally:
+                self._close()
             raise
         return self
 
@@ -144,11 +148,11 @@ class Runtime:
                 recorder=self._recorder,
                 on_fatal=self._on_fatal,
             )
+        if self.plugins is not None:  # before any frame: a plugin that cannot start
+            self.plugins.start(self.supervisor, loop)  # fails the run before motion
         for name, pump in self.pumps.items():
             self.supervisor.wakers[name] = pump.wake
             pump.start()
-        if self.plugins is not None:
-            self.plugins.start(self.supervisor, loop)
         for name, unit in self.config.units.items():
             for text in unit.startup:  # validated when the file loaded
                 response = self.supervisor.apply_text(name, text)

@@ -1,0 +1,125 @@
+"""Plugins cannot hold the drives hostage: start before motion, deadlines on every hook."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from abh3_supervisor import plugin_host
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.errors import PluginError
+from abh3_supervisor.hookspecs import hookimpl
+from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.runtime import CONFIRMED, Runtime
+from tests.conftest import TWO_UNITS
+
+CONFIG = parse_config(TWO_UNITS, "t.yaml")
+
+
+class Good:
+    def __init__(self) -> None:
+        self.started = self.stopped = False
+
+    @hookimpl
+    def abh3_start(self) -> None:
+        self.started = True
+
+    @hookimpl
+    def abh3_stop(self) -> None:
+        self.stopped = True
+
+
+class FailsToStart:
+    @hookimpl
+    def abh3_start(self) -> None:
+        raise PermissionError(13, "Permission denied", "/proc/out.csv")
+
+
+class Blocks:
+    """Blocks in one hook until released (the test releases it: no thread outlives it)."""
+
+    def __init__(self, hook: str) -> None:
+        self.hook, self.release = hook, threading.Event()
+
+    def _maybe_block(self, hook: str) -> None:
+        if hook == self.hook:
+            self.release.wait()
+
+    @hookimpl
+    def abh3_start(self) -> None:
+        self._maybe_block("abh3_start")
+
+    @hookimpl
+    def abh3_stop(self) -> None:
+        self._maybe_block("abh3_stop")
+
+
+def host_with(*plugins: tuple[str, object]) -> PluginHost:
+    host = PluginHost(CONFIG)
+    for name, plugin in plugins:
+        host.register(plugin, name)
+    return host
+
+
+def test_a_plugin_that_cannot_start_fails_the_run_before_any_frame() -> None:
+    good = Good()
+    host = host_with(("good", good), ("out", FailsToStart()))
+    rt = Runtime(CONFIG, plugins=host)
+
+    async def scenario() -> None:
+        async with rt:
+            pytest.fail("the run must not start")
+
+    with pytest.raises(PluginError, match=r"plugin out could not start \(abh3_start\).*Perm"):
+        asyncio.run(scenario())
+    assert good.started and good.stopped  # what did start is closed again
+    assert all(d.frames_received == 0 for d in rt.sims["b"].drives.values())  # nothing sent
+
+
+def test_a_plugin_blocking_in_start_fails_the_run_at_its_deadline(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(plugin_host, "START_DEADLINE_S", 0.2)
+    blocks = Blocks("abh3_start")
+    rt = Runtime(CONFIG, plugins=host_with(("slow", blocks)))
+
+    async def scenario() -> None:
+        async with rt:
+            pytest.fail("the run must not start")
+
+    try:
+        with pytest.raises(PluginError, match=r"did not return within 0\.2 s"):
+            asyncio.run(scenario())
+        assert all(d.frames_received == 0 for d in rt.sims["b"].drives.values())
+    finally:
+        blocks.release.set()
+
+
+def test_a_plugin_blocking_in_stop_is_left_behind_with_the_drives_stopped(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, tmp_path: Path
+) -> None:
+    monkeypatch.setattr(plugin_host, "STOP_DEADLINE_S", 0.2)
+    blocks = Blocks("abh3_stop")
+    rt = Runtime(CONFIG, plugins=host_with(("stuck", blocks)), record=tmp_path / "r.log")
+
+    async def scenario() -> None:
+        async with rt:
+            sup = rt.supervisor
+            since = sup.clock()
+            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
+
+    start = time.monotonic()
+    try:
+        with caplog.at_level(logging.INFO):
+            asyncio.run(scenario())
+        assert time.monotonic() - start < 5
+        assert rt.stop_report == {"left": CONFIRMED, "right": CONFIRMED}
+        assert "plugin stuck failed in abh3_stop: did not return within 0.2 s" in caplog.text
+        assert (tmp_path / "r.log").stat().st_size > 0  # closed after the stop frames
+    finally:
+        blocks.release.set()
