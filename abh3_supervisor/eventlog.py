@@ -7,6 +7,7 @@ import logging
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+from abh3_supervisor.throttle import Throttle, held_note
 
 LOGGED_WORDS = ("error", "alarm")
 
@@ -29,3 +30,23 @@ def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
     if isinstance(event, Notice):
         return event.level, (f"unit {event.unit}: " if event.unit else "") + event.message
     return None
+
+
+class EventLog:
+    """:func:`describe` with a memory: a word that keeps changing (a flapping input, spoofed
+    status frames) gives at most one line per unit and word per second; the next line
+    says how many were not shown. The current words are always on the TUI."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        self.sup = sup
+        self._throttle = Throttle(1.0)
+
+    def line(self, event: SupervisorEvent) -> tuple[int, str] | None:
+        described = describe(event, self.sup)
+        if described is None or not isinstance(event, FlagChange):
+            return described
+        held = self._throttle.allow((event.unit, event.word), event.t)
+        if held is None:
+            return None
+        level, text = described
+        return level, text + held_note(held)

@@ -8,7 +8,7 @@ import logging
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
-from abh3_supervisor.eventlog import describe
+from abh3_supervisor.eventlog import EventLog
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
 from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
@@ -63,9 +63,10 @@ async def run_headless(
     try:
         async with rt:
             sup = rt.supervisor
+            events = EventLog(sup)
 
             def on_event(event: SupervisorEvent) -> None:
-                line = describe(event, sup)
+                line = events.line(event)
                 if line is not None:
                     log.log(*line)
 

@@ -14,13 +14,14 @@ import asyncio
 import functools
 import logging
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 import can
 
-from abh3_supervisor.config.model import BusConfig, Config
+from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.scheduler.pump import BusPump
@@ -94,6 +95,14 @@ def open_recorder(path: Path) -> GuardedRecorder:
     return GuardedRecorder(path, writer)
 
 
+def _send_faults(sim: SimConfig | None, start: float) -> Callable[[float], bool] | None:
+    """The simulator's scripted ``bus_send_error`` windows, as the host pump sees them."""
+    windows = [f for f in (sim.faults if sim else ()) if f.kind is FaultKind.BUS_SEND_ERROR]
+    if not windows:
+        return None
+    return lambda now: any(f.active(now - start) for f in windows)
+
+
 class Runtime:
     def __init__(
         self, config: Config, *, record: Path | None = None, plugins: PluginHost | None = None
@@ -147,6 +156,7 @@ class Runtime:
                 after_step=functools.partial(self.supervisor.dispatch, name),
                 recorder=self._recorder,
                 on_fatal=self._on_fatal,
+                refuse=_send_faults(cfg.simulate, loop.time()),
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start
             self.plugins.start(self.supervisor, loop)  # fails the run before motion

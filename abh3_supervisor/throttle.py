@@ -22,4 +22,4 @@ class Throttle:
 
 
 def held_note(held: int) -> str:
-    return f" ({held} more like it in the last second not shown)" if held else ""
+    return f" ({held} more like it since the last line not shown)" if held else ""

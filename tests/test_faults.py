@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
 import logging
 
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.protocol import frames, ids
-from abh3_supervisor.scheduler.core import GapEvent, MalformedEvent
-from abh3_supervisor.supervisor import Notice
-from tests.conftest import Rig
+from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.scheduler.core import GapEvent, HealthEvent, MalformedEvent
+from abh3_supervisor.supervisor import FlagChange, Notice
+from tests.conftest import TWO_UNITS, Rig
 
 SCHEDULER = 0  # the Rig adds the scheduler first, the simulated drives second
 
@@ -79,3 +84,105 @@ def test_broadcast_7_proves_nothing(rig: Rig) -> None:
     rig.sup.dispatch("b")
     assert rig.sup.units["left"].online is None
     assert rig.sup.units["left"].status[7][1] == frames.Brd7(b"\x01")
+
+
+def test_a_flapping_flag_word_gives_one_line_per_second(rig: Rig) -> None:
+    from abh3_supervisor.eventlog import EventLog
+    from abh3_supervisor.supervisor import FlagChange
+
+    events = EventLog(rig.sup)
+    lines = []
+    for i in range(100):  # error bit 0 toggling every 10 ms for a second
+        change = FlagChange("left", i * 0.01, "error", i % 2, (i + 1) % 2)
+        if (line := events.line(change)) is not None:
+            lines.append(line[1])
+    assert lines == ["unit left: error +A_MECH_LOCK (A mechanical lock)"]
+    line = events.line(FlagChange("left", 1.0, "error", 0, 1))
+    assert line is not None and line[1].endswith("(99 more like it since the last line not shown)")
+    other = events.line(FlagChange("right", 0.5, "error", 0, 1))  # another unit: its own
+    assert other is not None
+
+
+def rig_with(*faults: Fault) -> Rig:
+    config = parse_config(TWO_UNITS, "two.yaml")
+    bus = config.buses["b"]
+    assert bus.simulate is not None
+    sim = dataclasses.replace(bus.simulate, faults=faults)
+    return Rig(dataclasses.replace(config, buses={"b": dataclasses.replace(bus, simulate=sim)}))
+
+
+def test_scripted_silence_takes_a_unit_offline_and_back() -> None:
+    rig = rig_with(Fault(FaultKind.SILENT, at_s=1.0, for_s=2.0, unit="left"))
+    rig.run(4.0)
+    health = [(e.unit, e.online) for e in rig.events if isinstance(e, HealthEvent)]
+    assert ("left", False) in health and health[-1] == ("left", True)
+    assert ("right", False) not in health  # only the unit named
+
+
+def test_scripted_malformed_replies_are_counted_never_taken() -> None:
+    rig = rig_with(Fault(FaultKind.MALFORMED_REPLIES, at_s=0.5, for_s=1.2))
+    rig.run(0.5)
+    replies = {u: rig.scheduler.slots[u].stats.replies for u in ("left", "right")}
+    rig.run(1.2)
+    for unit in ("left", "right"):
+        stats = rig.scheduler.slots[unit].stats
+        assert stats.malformed >= 10  # an exchange waits reply_timeout_ms for each
+        assert stats.replies == replies[unit]  # not one taken as a reply
+        assert rig.sup.units[unit].online is False  # junk only: offline, as if silent
+    rig.run(1.2)  # an offline unit is probed once per timeout_ms
+    assert all(rig.sup.units[u].online for u in ("left", "right"))  # back with the fault
+
+
+def test_scripted_error_bits_stop_the_drive_while_present() -> None:
+    rig = rig_with(Fault(FaultKind.ERROR_BITS, at_s=1.0, for_s=1.0, unit="right", bits=1 << 7))
+    drive_both(rig)
+    rig.run(1.5)
+    assert rig.drive("right").vel == [0.0, 0.0] or max(map(abs, rig.drive("right").vel)) < 200
+    errors = [e for e in rig.events if isinstance(e, FlagChange) and e.word == "error"]
+    assert any(e.unit == "right" and e.set_bits == 1 << 7 for e in errors)
+    rig.run(1.0)
+    assert rig.sup.units["right"].words["error"] == 0  # gone with the fault
+
+
+def test_scripted_slow_replies_count_as_timeouts() -> None:
+    rig = rig_with(Fault(FaultKind.SLOW_REPLIES, at_s=0.5, for_s=1.0, delay_ms=60))
+    rig.run(0.5)
+    assert (rig.scheduler.slots["left"].stats.rtt_ms(99) or 0) < 5
+    rig.run(1.5)
+    stats = rig.scheduler.slots["left"].stats
+    assert (stats.rtt_ms(99) or 0) > 55 and stats.timeouts == 0  # slow, within reply_timeout_ms
+
+
+def test_a_scripted_send_outage_on_the_virtual_bus_stops_and_does_not_restart() -> None:
+    config = parse_config(TWO_UNITS, "two.yaml")
+    bus = config.buses["b"]
+    assert bus.simulate is not None
+    outage = Fault(FaultKind.BUS_SEND_ERROR, at_s=0.6, for_s=0.8)
+    sim = dataclasses.replace(bus.simulate, faults=(outage,))
+    config = dataclasses.replace(config, buses={"b": dataclasses.replace(bus, simulate=sim)})
+    rt = Runtime(config)
+    seen: dict[str, list[float]] = {"during": [], "after": []}
+
+    async def scenario() -> None:
+        async with rt:
+            sup, loop = rt.supervisor, asyncio.get_running_loop()
+            start = loop.time()
+            for text in ("SERVO ON ON", "START ON ON", "VEL 300 0"):
+                assert await sup.command("left", text) == ""
+            gap = asyncio.Event()
+            sup.subscribe(lambda e: gap.set() if isinstance(e, GapEvent) and e.started else None)
+            await asyncio.wait_for(gap.wait(), 5)
+            seen["during"] = list(rt.sims["b"].drives[1].vel)
+            resumed = asyncio.Event()
+            sup.subscribe(
+                lambda e: resumed.set() if isinstance(e, GapEvent) and not e.started else None
+            )
+            await asyncio.wait_for(resumed.wait(), 5)
+            assert loop.time() - start >= 1.4  # the outage ended
+            await sup.wait_exchange("left", loop.time(), 1.0)
+            seen["after"] = list(rt.sims["b"].drives[1].vel)
+            assert sup.units["left"].setpoint.ay == 0.0
+
+    asyncio.run(scenario())
+    assert max(map(abs, seen["after"])) < max(map(abs, seen["during"])) or seen["after"] == [0, 0]
+    assert rt.sims["b"].drives[1].cmd_raw == (0, 0)  # the drive was never told the old speed

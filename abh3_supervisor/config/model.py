@@ -29,6 +29,29 @@ class Role(StrEnum):
     MONITOR = "monitor"  # we only ask for DP0 replies (request PGN): never moves a motor
 
 
+class FaultKind(StrEnum):
+    SILENT = "silent"  # the drive hears, never answers
+    MALFORMED_REPLIES = "malformed_replies"  # its replies carry no data bytes (DLC 0)
+    ERROR_BITS = "error_bits"  # error bits present (servo off) while the fault lasts
+    BUS_SEND_ERROR = "bus_send_error"  # the bus refuses the supervisor's frames
+    SLOW_REPLIES = "slow_replies"  # replies come ``delay_ms`` late
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A scripted fault of the simulator, from ``at_s`` after start for ``for_s``."""
+
+    kind: FaultKind
+    at_s: float
+    for_s: float
+    unit: str | None = None  # None: every simulated drive on the bus
+    bits: int = 1 << 6  # error_bits: which error bits (default A overcurrent)
+    delay_ms: float = 50.0  # slow_replies
+
+    def active(self, since_start: float) -> bool:
+        return self.at_s <= since_start < self.at_s + self.for_s
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Built-in simulator options (see docs/configuration.md)."""
@@ -39,6 +62,7 @@ class SimConfig:
     reply_latency_ms: float = 0.2
     dp0_period_ms: int = 0  # > 0: the drive also sends DP0 replies periodically
     broadcast_period_ms: int = 0  # > 0: the drive also sends its broadcasts periodically
+    faults: tuple[Fault, ...] = ()  # scripted faults, to rehearse them (and for tests)
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ class SimBus:
                 model=u.velocity_model,
                 cfg=cfg,
                 now=now,
+                faults=tuple(f for f in cfg.faults if f.unit in (None, u.name)),
             )
             for u in units
         )

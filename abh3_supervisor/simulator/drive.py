@@ -5,7 +5,8 @@ Modelled on the protocol doc: servo and start gating per axis, data select 0 wri
 command-zero timeout raises alarm bit 22 and stops (START off), the error timeout raises
 error bit 22, both clear when commands flow again (as §8 observed), other errors latch until
 an error-reset rising edge, which also turns the servo off until SERVO is re-asserted.
-Fault injection (``silent``, ``extra_delay``, ``inject_error``) is for tests and demos.
+Fault injection (``silent``, ``extra_delay``, ``inject_error``) is for tests and demos;
+scripted faults (``faults``, from the YAML) switch the same behaviours on and off in time.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import heapq
 import itertools
 import math
 
-from abh3_supervisor.config.model import SimConfig, VelocityModel
+from abh3_supervisor.config.model import Fault, FaultKind, SimConfig, VelocityModel
 from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.frames import Generation
@@ -43,6 +44,7 @@ class SimDrive:
         model: VelocityModel = VelocityModel.TRAVEL,
         cfg: SimConfig | None = None,
         now: float = 0.0,
+        faults: tuple[Fault, ...] = (),
     ) -> None:
         self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
         self.layout = flags.layout(generation)  # a word of the other generation misleads it
@@ -61,6 +63,7 @@ class SimDrive:
         # fault injection
         self.silent = False
         self.extra_delay = 0.0
+        self.faults = tuple(f for f in faults if f.kind is not FaultKind.BUS_SEND_ERROR)
         self._out: list[tuple[float, int, int, bytes]] = []
         self._seq = itertools.count()
         self._next_dp0 = now + self.cfg.dp0_period_ms / 1000 if self.cfg.dp0_period_ms else math.inf
@@ -101,10 +104,20 @@ class SimDrive:
                     self.broadcast(target[1]),
                 )
 
+    def _fault(self, kind: FaultKind, now: float) -> Fault | None:
+        for fault in self.faults:
+            if fault.kind is kind and fault.active(now - self.started):
+                return fault
+        return None
+
     def _queue(self, now: float, arbitration_id: int, data: bytes) -> None:
-        if self.silent:
+        if self.silent or self._fault(FaultKind.SILENT, now):
             return
-        due = now + self.cfg.reply_latency_ms / 1000 + self.extra_delay
+        if self._fault(FaultKind.MALFORMED_REPLIES, now):
+            data = b""
+        slow = self._fault(FaultKind.SLOW_REPLIES, now)
+        delay = self.extra_delay + (slow.delay_ms / 1000 if slow else 0.0)
+        due = now + self.cfg.reply_latency_ms / 1000 + delay
         heapq.heappush(self._out, (due, next(self._seq), arbitration_id, data))
 
     def poll(self, now: float) -> list[tuple[int, bytes]]:
@@ -159,8 +172,11 @@ class SimDrive:
         return self.t >= last + timeout_ms / 1000 or self.last_command is None
 
     def error_word(self) -> int:
-        return self.errors | (
-            flags.CAN_COMM_ERROR if self._silence(self.cfg.error_timeout_ms) else 0
+        scripted = self._fault(FaultKind.ERROR_BITS, self.t)
+        return (
+            self.errors
+            | (scripted.bits if scripted else 0)
+            | (flags.CAN_COMM_ERROR if self._silence(self.cfg.error_timeout_ms) else 0)
         )
 
     def alarm_word(self) -> int:

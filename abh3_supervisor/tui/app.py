@@ -34,7 +34,7 @@ from textual.widgets import (
 )
 
 from abh3_supervisor.config.model import Config, Role
-from abh3_supervisor.eventlog import describe
+from abh3_supervisor.eventlog import EventLog
 from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.planner import plan
 from abh3_supervisor.plugin_host import PluginHost
@@ -177,6 +177,7 @@ class SupervisorApp(App[None]):
         self.plans = {p.bus: p for p in plan(runtime.config)}  # static: computed once
         self.pending_log: deque[Text] = deque(maxlen=2000)
         self.overview_rows: dict[str, dict[str, str]] = {}
+        self.events = EventLog(self.sup)
         self.sup.subscribe(self._on_event)
         self._log_handler = _PaneHandler(self.pending_log)
 
@@ -221,7 +222,7 @@ class SupervisorApp(App[None]):
         logging.getLogger().handlers = self._saved_handlers
 
     def _on_event(self, event: SupervisorEvent) -> None:
-        line = describe(event, self.sup)
+        line = self.events.line(event)
         if line is not None:
             self.pending_log.append(_styled(*line))
 
