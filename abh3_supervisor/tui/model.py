@@ -108,7 +108,8 @@ def detail_lines(sup: Supervisor, name: str) -> list[str]:
         f"bus {unit.cfg.bus}, group {unit.cfg.brd_group}, protocol {unit.cfg.protocol}",
         f"exchanges {st.replies}/{st.commands_sent}, timeouts {st.timeouts}, "
         f"send errors {st.send_errors}, rtt p50 {fmt(st.rtt_ms(50), 2)} ms, "
-        f"p99 {fmt(st.rtt_ms(99), 2)} ms, status packets {st.broadcasts}",
+        f"p99 {fmt(st.rtt_ms(99), 2)} ms, status packets {st.broadcasts}, "
+        f"malformed {st.malformed}, gaps {st.gaps}",
     ]
     status = {n: r for n, (_, r) in dict(unit.status).items()}  # copy: another thread writes
     b4, b5, b6 = status.get(4), status.get(5), status.get(6)
@@ -171,6 +172,7 @@ def bus_lines(rt: Runtime, plans: dict[str, BusPlan], last: dict[str, BusSample]
             st = slot.stats
             lines.append(
                 f"    {unit:<12} timeouts {st.timeouts:<6} send errors "
-                f"{st.send_errors:<4} replies {st.replies:<8} status {st.broadcasts}"
+                f"{st.send_errors:<4} replies {st.replies:<8} status {st.broadcasts:<8} "
+                f"malformed {st.malformed:<4} gaps {st.gaps}"
             )
     return lines
