@@ -95,6 +95,10 @@ def test_command_line_answers_exactly_as_the_seed() -> None:
         await pilot.press("colon", *"FOO", "enter")
         await app.workers.wait_for_complete()
         assert response(app) == "left ← 'FOO' → 'Invalid Command.'"
+        for text in ("SELECT ² 7", "VEL ١٠ 0", "SERVO\x00 ON ON"):  # once crashed the TUI
+            app.run_command(text)  # a worker, as the command line starts it
+            await app.workers.wait_for_complete()
+            assert response(app) == f"left ← {text!r} → 'Invalid Command.'"
 
     run_app(check)
 
