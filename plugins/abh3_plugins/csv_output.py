@@ -10,7 +10,10 @@ happens on this plugin's worker thread, never on the bus path.
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
+import os
 import threading
 import time
 from dataclasses import asdict
@@ -57,44 +60,71 @@ COLUMNS = [
 
 
 class _File:
+    """One CSV file (and its rotations), written whole rows at a time: rows gather in
+    memory and go out at each flush; a write that fails (disk full) is cut back to the
+    last whole row, so the file never ends in a partial row."""
+
     def __init__(self, path: Path, rotate_bytes: int, rotate_s: float) -> None:
         self.base, self.rotate_bytes, self.rotate_s = path, rotate_bytes, rotate_s
         self.index = 0
-        self.handle: IO[str] | None = None
-        self.writer: Any = None
+        self.handle: IO[bytes] | None = None
+        self.size = 0  # bytes of whole rows on disk
+        self.pending = io.StringIO()
+        self.writer: Any = csv.DictWriter(self.pending, COLUMNS)
         self.opened = 0.0
         self._open()
 
-    def _name(self) -> Path:
+    @property
+    def name(self) -> Path:
         if not (self.rotate_bytes or self.rotate_s):
             return self.base
         return self.base.with_name(f"{self.base.stem}-{self.index:04d}{self.base.suffix}")
 
     def _open(self) -> None:
         self.base.parent.mkdir(parents=True, exist_ok=True)
-        self.handle = open(self._name(), "w", newline="", encoding="utf-8")  # noqa: SIM115
-        self.writer = csv.DictWriter(self.handle, COLUMNS)
-        self.writer.writeheader()
+        self.handle = open(self.name, "wb", buffering=0)  # noqa: SIM115
+        self.size = 0
         self.opened = time.monotonic()
+        self.writer.writeheader()
+        self.flush()
 
     def write(self, row: dict[str, Any]) -> None:
         assert self.handle is not None
-        if (self.rotate_bytes and self.handle.tell() >= self.rotate_bytes) or (
+        if (self.rotate_bytes and self.size + self.pending.tell() >= self.rotate_bytes) or (
             self.rotate_s and time.monotonic() - self.opened >= self.rotate_s
         ):
+            self.flush()
             self.handle.close()
             self.index += 1
             self._open()
         self.writer.writerow(row)
 
     def flush(self) -> None:
-        if self.handle is not None:
-            self.handle.flush()
+        if self.handle is None:
+            return
+        data = self.pending.getvalue().encode("utf-8")
+        self.pending.seek(0)
+        self.pending.truncate()
+        if not data:
+            return
+        try:
+            written = 0
+            while written < len(data):
+                written += self.handle.write(data[written:]) or 0
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self.handle.fileno(), self.size)  # back to the last whole row
+                self.handle.seek(self.size)
+            raise OSError(exc.errno, exc.strerror, str(self.name)) from exc
+        self.size += len(data)
 
     def close(self) -> None:
         if self.handle is not None:
-            self.handle.close()
-            self.handle = None
+            try:
+                self.flush()
+            finally:
+                self.handle.close()
+                self.handle = None
 
 
 class CsvPlugin:
@@ -111,6 +141,7 @@ class CsvPlugin:
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
+        self.failure: OSError | None = None  # the output failed: raised to the host
 
     @hookimpl
     def abh3_configure(self, section: Section) -> None:
@@ -136,12 +167,21 @@ class CsvPlugin:
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_s):
-            with self.lock:
-                for f in self.files.values():
-                    f.flush()
+            try:
+                with self.lock:
+                    for f in self.files.values():
+                        f.flush()
+            except OSError as exc:  # the host hears of it with the next event
+                self.failure = exc
+                return
+
+    def _check(self) -> None:
+        if self.failure is not None:
+            raise self.failure
 
     @hookimpl
     def abh3_status(self, unit: str, record: frames.Broadcast) -> None:
+        self._check()
         values = self.latest.setdefault(unit, {})
         words = self.layouts[unit].words
         for key, value in asdict(record).items():
@@ -153,6 +193,7 @@ class CsvPlugin:
 
     @hookimpl
     def abh3_feedback(self, unit: str, feedback: Feedback, setpoint: Setpoint) -> None:
+        self._check()
         if self.period_s and feedback.t - self.last_row.get(unit, -1e18) < self.period_s:
             return
         self.last_row[unit] = feedback.t
