@@ -56,10 +56,12 @@ async def run_headless(
 ) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    for sig in STOP_SIGNALS:
-        loop.add_signal_handler(sig, stop.set)
     try:
         async with Runtime(config, record=record, plugins=plugins) as rt:
+            # only now: a signal while buses or the recording open must interrupt the open
+            # (the caller's handlers do), which a loop handler cannot
+            for sig in STOP_SIGNALS:
+                loop.add_signal_handler(sig, stop.set)
             sup = rt.supervisor
 
             def on_event(event: SupervisorEvent) -> None:
