@@ -106,9 +106,11 @@ def _positive(text: str) -> float:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    command = ""
     try:
         with _interruptible() as release:
             args = _parser().parse_args(argv)
+            command = args.cmd
             logging.basicConfig(
                 level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
                 format="%(asctime)s.%(msecs)03d %(levelname)-7s %(message)s",
@@ -118,7 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _command(args, release)
     except Interrupted as exc:
         name = signal.Signals(exc.signum).name
-        print(f"abh3: stopped by {name} while starting; no drive was started", file=sys.stderr)
+        starting = " while starting; no drive was started" if command == "run" else ""
+        print(f"abh3: stopped by {name}{starting}", file=sys.stderr)
         return 128 + exc.signum
     except ConfigError as exc:
         report(exc.problems)
@@ -162,9 +165,9 @@ def report(problems: Sequence[str]) -> None:
 def _interruptible() -> Iterator[Callable[[], None]]:
     """Until the runtime installs its own handlers, a stop signal ends the program at once.
 
-    Python's default would print a KeyboardInterrupt traceback (SIGINT) and ignore none of
-    the rest; and the runtime's handlers cannot interrupt a bus or a recording that blocks
-    while it opens. Yields a function that gives the previous handlers back early.
+    Python's default turns SIGINT into a KeyboardInterrupt traceback, and the runtime's
+    loop handlers cannot interrupt a bus or a recording that blocks while it opens.
+    Yields a function that gives the previous handlers back early (for the TUI).
     """
     if threading.current_thread() is not threading.main_thread():
         yield lambda: None  # signals are only ever delivered to the main thread
