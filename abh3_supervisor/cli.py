@@ -1,31 +1,55 @@
 """The ``abh3`` command: ``run``, ``check``, ``decode``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
-plan), 2 a user's mistake in the configuration or the command line.
+plan), 2 a user's mistake in the configuration or the command line, 128 + N stopped by
+signal N before anything was started.
 """
 
 from __future__ import annotations
 
-import argparse
-import asyncio
-import json
+# Only what is needed to catch signals is imported here: the rest (asyncio, YAML, the
+# configuration, ~0.1 s) loads after main() has its handlers in place.
+import contextlib
 import logging
+import os
+import signal
 import sys
-from collections.abc import Sequence
-from pathlib import Path
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
-from abh3_supervisor.config import Config, load_config
 from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
 
 if TYPE_CHECKING:
+    import argparse
+    from types import FrameType
+
+    from abh3_supervisor.config import Config
     from abh3_supervisor.plugin_host import PluginHost
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
+MAX_SHOWN = 20  # problems printed; the rest are counted (one mistake can repeat 10 000 times)
+# the same as runtime.STOP_SIGNALS, without importing python-can before they are caught
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+log = logging.getLogger("abh3")
+
+
+class Interrupted(BaseException):
+    """A stop signal before the runtime took over signals: nothing has been started.
+
+    A BaseException, so no ``except Exception`` on the way (plugin loading) swallows it.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
 
 
 def _parser() -> argparse.ArgumentParser:
+    import argparse
+    from pathlib import Path
+
     p = argparse.ArgumentParser(prog="abh3", description="Supervise ABH3 drives on CAN buses.")
     p.add_argument("--version", action="version", version=f"abh3-supervisor {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
@@ -70,6 +94,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _positive(text: str) -> float:
+    import argparse
+
     try:
         value = float(text)
     except ValueError:
@@ -80,29 +106,25 @@ def _positive(text: str) -> float:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
-        format="%(asctime)s.%(msecs)03d %(levelname)-7s %(message)s",
-        datefmt="%H:%M:%S",
-        stream=sys.stderr,
-    )
+    command = ""
     try:
-        if args.cmd == "check":
-            config = load_config(args.config)
-            _plugins(config)  # plugin sections are validated like the core's
-            return _check(config, args.json)
-        if args.cmd == "decode":
-            from abh3_supervisor.decoding import decode_file
-
-            known = load_config(args.config) if args.config else None
-            for out in decode_file(args.file, known, args.json):
-                print(out)
-            return EXIT_OK
-        return _run(args)
+        with _interruptible() as release:
+            args = _parser().parse_args(argv)
+            command = args.cmd
+            logging.basicConfig(
+                level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
+                format="%(asctime)s.%(msecs)03d %(levelname)-7s %(message)s",
+                datefmt="%H:%M:%S",
+                stream=sys.stderr,
+            )
+            return _command(args, release)
+    except Interrupted as exc:
+        name = signal.Signals(exc.signum).name
+        starting = " while starting; no drive was started" if command == "run" else ""
+        print(f"abh3: stopped by {name}{starting}", file=sys.stderr)
+        return 128 + exc.signum
     except ConfigError as exc:
-        for problem in exc.problems:
-            print(f"error: {problem}", file=sys.stderr)
+        report(exc.problems)
         return EXIT_USAGE
     except RunError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -114,26 +136,120 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
 
 
-def _run(args: argparse.Namespace) -> int:
+def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
+    from abh3_supervisor.config import load_config
+
+    if args.cmd == "check":
+        config = load_config(args.config)
+        _plugins(config)  # plugin sections are validated exactly as `run` does
+        return _check(config, args.json)
+    if args.cmd == "decode":
+        from abh3_supervisor.decoding import decode_file
+
+        known = load_config(args.config) if args.config else None
+        for out in decode_file(args.file, known, args.json):
+            print(out)
+        return EXIT_OK
+    return _run(args, release)
+
+
+def report(problems: Sequence[str]) -> None:
+    """Print problems on stderr, at most MAX_SHOWN of them."""
+    for problem in problems[:MAX_SHOWN]:
+        print(f"error: {problem}", file=sys.stderr)
+    if len(problems) > MAX_SHOWN:
+        print(f"error: and {len(problems) - MAX_SHOWN} more", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _interruptible() -> Iterator[Callable[[], None]]:
+    """Until the runtime installs its own handlers, a stop signal ends the program at once.
+
+    Python's default turns SIGINT into a KeyboardInterrupt traceback, and the runtime's
+    loop handlers cannot interrupt a bus or a recording that blocks while it opens.
+    Yields a function that gives the previous handlers back early (for the TUI).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None  # signals are only ever delivered to the main thread
+        return
+    saved = {sig: signal.signal(sig, _interrupt) for sig in STOP_SIGNALS}
+
+    def release() -> None:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+    try:
+        yield release
+    finally:
+        release()
+
+
+def _interrupt(signum: int, frame: FrameType | None) -> None:
+    if _in_machinery(frame):
+        # raised here it could leave the event loop half built (a traceback at exit): ask
+        # again in a moment, when our own code runs or the runtime's handler has taken over
+        threading.Timer(0.01, os.kill, (os.getpid(), signum)).start()
+        return
+    raise Interrupted(signum)
+
+
+_STDLIB = os.path.dirname(os.__file__)
+
+
+def _in_machinery(frame: FrameType | None) -> bool:
+    """Is the innermost code that is not plain library code the event loop's?"""
+    # where a raised signal would corrupt state: the event loop's code and what it uses
+    machinery = tuple(
+        os.path.dirname(module.__file__) if name == "asyncio" else module.__file__
+        for name in ("asyncio", "selectors", "threading")
+        if (module := sys.modules.get(name)) is not None and module.__file__
+    )
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if name.startswith(machinery):
+            return True
+        library = name.startswith("<") or (name.startswith(_STDLIB) and "-packages" not in name)
+        if not library:  # ours, python-can, PyYAML, a plugin: safe to raise through
+            return False
+        frame = frame.f_back
+    return False
+
+
+def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
+    import asyncio
+
+    from abh3_supervisor.config import load_config
     from abh3_supervisor.headless import run_headless
+    from abh3_supervisor.planner import overloads, plan
 
     config = load_config(args.config)
     plugins = _plugins(config)
+    plans = plan(config)
+    refused = overloads(config, plans)
+    if refused:  # the same lines `abh3 check` prints
+        report(refused)
+        return EXIT_RUNTIME
+    for p in plans:
+        if p.warning:
+            log.warning("bus %s: %s", p.bus, p.warning)
     if not args.headless and sys.stdin.isatty() and sys.stdout.isatty():
         from abh3_supervisor.tui.app import run_tui
 
+        release()  # the TUI handles its own keys and signals
         return asyncio.run(
             run_tui(config, record=args.record, plugins=plugins, duration=args.duration)
         )
-    return asyncio.run(
-        run_headless(
-            config,
-            duration=args.duration,
-            record=args.record,
-            status_interval=args.status_interval,
-            plugins=plugins,
-        )
+    running = run_headless(
+        config,
+        duration=args.duration,
+        record=args.record,
+        status_interval=args.status_interval,
+        plugins=plugins,
     )
+    try:
+        return asyncio.run(running)
+    finally:
+        running.close()  # a signal before it started: no "never awaited" warning
 
 
 def _plugins(config: Config) -> PluginHost:
@@ -143,22 +259,28 @@ def _plugins(config: Config) -> PluginHost:
 
 
 def _check(config: Config, as_json: bool) -> int:
-    from abh3_supervisor.planner import plan
+    import json
+
+    from abh3_supervisor.planner import overloads, plan
 
     plans = plan(config)
+    refused = overloads(config, plans)
     if as_json:
         print(
             json.dumps(
                 {
                     "file": config.file,
+                    "ok": not refused,
                     "units": len(config.units),
                     "buses": [p.to_json() for p in plans],
+                    "errors": refused,
                 },
                 indent=2,
             )
         )
     else:
-        print(f"{config.file}: OK, {len(config.units)} unit(s) on {len(config.buses)} bus(es)")
+        verdict = "" if refused else " OK,"
+        print(f"{config.file}:{verdict} {len(config.units)} unit(s) on {len(config.buses)} bus(es)")
         for p in plans:
             print(
                 f"bus {p.bus}: {p.bitrate} bit/s, {p.frames_per_s:.0f} frames/s, "
@@ -171,4 +293,5 @@ def _check(config: Config, as_json: bool) -> int:
                 )
             if p.warning:
                 print(f"  warning: {p.warning}")
-    return EXIT_RUNTIME if any(p.worst_load_percent > 100 for p in plans) else EXIT_OK
+    report(refused)
+    return EXIT_RUNTIME if refused else EXIT_OK

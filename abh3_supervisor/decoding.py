@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterator
+import sys
+from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,11 +37,135 @@ def unit_names(config: Config | None) -> dict[tuple[str, int], str]:
     return names
 
 
-def read_messages(path: Path) -> Iterator[can.Message]:
+def read_messages(path: Path, report: Callable[[str], None] | None = None) -> Iterator[can.Message]:
+    """The frames of a recording, reading past what cannot be read.
+
+    In the text formats (.log, .asc, .csv) a line that cannot be read is reported with its
+    number and skipped; a binary file (.blf) is read up to where it breaks off. Then the
+    count of what was skipped. Reports go to ``report`` (stderr by default), at most SHOWN
+    one by one. Raises Abh3Error when the file cannot be opened, or when it has content
+    and not one frame could be read from it (it is not a recording of that format; .asc
+    readers pass over lines they do not know without a word).
+    """
+    say = report or _to_stderr
+    kind = _TEXT_READERS.get(path.suffix.lower())
     try:
-        yield from can.LogReader(str(path))
-    except (OSError, ValueError) as exc:
+        if kind is not None:
+            read, unread = yield from _text_frames(path, kind, say)
+        else:
+            read, unread = yield from _binary_frames(path, say)
+    except OSError as exc:
+        raise Abh3Error(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
+    except ValueError as exc:  # python-can has no reader for this extension
         raise Abh3Error(f"{path}: cannot read recording: {exc}") from exc
+    if unread and not read:
+        raise Abh3Error(f"{path}: no frame could be read: is it a {path.suffix} recording?")
+
+
+SHOWN = 20  # unreadable lines reported one by one; the rest are only counted
+_TEXT_READERS: dict[str, type[can.io.generic.TextIOMessageReader]] = {
+    ".log": can.CanutilsLogReader,
+    ".asc": can.ASCReader,
+    ".csv": can.CSVReader,
+}
+# what a reader started in the middle of a file consumes before its first frame line
+_PREAMBLE = {can.ASCReader: "\n", can.CSVReader: "header\n"}
+
+
+def _to_stderr(text: str) -> None:
+    print(text, file=sys.stderr)
+
+
+class _Lines:
+    """A file's lines for python-can's readers, numbered; a line can be put in front."""
+
+    def __init__(self, lines: Iterator[str]) -> None:
+        self._lines = lines
+        self._front: list[str] = []
+        self.number = 0
+        self.last = ""
+        self.content = False  # a line that is not blank was seen
+
+    def __iter__(self) -> _Lines:
+        return self
+
+    def __next__(self) -> str:
+        if self._front:
+            return self._front.pop()
+        self.last = next(self._lines)
+        self.number += 1
+        self.content = self.content or not self.last.isspace()
+        return self.last
+
+    def put_front(self, line: str) -> None:
+        self._front.append(line)
+
+    def close(self) -> None:
+        """Readers close their file when done; this one is closed by its owner."""
+
+
+def _text_frames(
+    path: Path, kind: type[can.io.generic.TextIOMessageReader], say: Callable[[str], None]
+) -> Generator[can.Message, None, tuple[int, int]]:
+    read = skipped = 0
+    with open(path, encoding="utf-8", errors="replace") as f:
+        lines = _Lines(f)
+        reader = kind(lines)  # type: ignore[arg-type]
+        while True:
+            try:
+                for msg in reader:
+                    read += 1
+                    yield msg
+                break
+            except Exception as exc:  # python-can's parsers fail on garbage in many ways
+                skipped += 1
+                if skipped <= SHOWN:
+                    say(
+                        f"{path}:{lines.number}: cannot read {lines.last.strip()[:60]!r} "
+                        f"({exc or type(exc).__name__}), skipped"
+                    )
+                reader = _resumed(kind, reader, lines)
+    if skipped:
+        say(f"{path}: {skipped} unreadable line(s) skipped, {read} frame(s) read")
+    return read, skipped or int(lines.content)  # unread: something, if there was text
+
+
+def _resumed(
+    kind: type[can.io.generic.TextIOMessageReader],
+    old: can.io.generic.TextIOMessageReader,
+    lines: _Lines,
+) -> can.io.generic.TextIOMessageReader:
+    """A reader that goes on after the bad line, with what the old one knew (ASC base)."""
+    preamble = _PREAMBLE.get(kind)
+    if preamble is not None:
+        lines.put_front(preamble)
+    reader = kind(lines)  # type: ignore[arg-type]
+    reader.__dict__.update({k: v for k, v in vars(old).items() if k != "file"})
+    return reader
+
+
+def _binary_frames(
+    path: Path, say: Callable[[str], None]
+) -> Generator[can.Message, None, tuple[int, int]]:
+    """.blf and whatever else python-can reads: up to where the file breaks off."""
+    read = 0
+    try:
+        reader = can.LogReader(str(path))
+    except (OSError, ValueError):
+        raise  # cannot open it, or no reader for the extension: the caller says so
+    except Exception as exc:  # not this format at all (a BLF without its header)
+        say(f"{path}: not a {path.suffix} recording ({exc or type(exc).__name__})")
+        return 0, 1
+    try:
+        for msg in reader:
+            read += 1
+            yield msg
+    except Exception as exc:  # truncated or damaged: struct, zlib and parser errors
+        say(f"{path}: cannot read past frame {read} ({exc or type(exc).__name__}), rest skipped")
+        return read, 1
+    finally:
+        reader.stop()
+    return read, 0
 
 
 def record(

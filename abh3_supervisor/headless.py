@@ -56,12 +56,14 @@ async def run_headless(
 ) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    for sig in STOP_SIGNALS:
-        loop.add_signal_handler(sig, stop.set)
     code = 0
     rt = Runtime(config, record=record, plugins=plugins)
     try:
         async with rt:
+            # only now: a signal while buses or the recording open must interrupt the open
+            # (the caller's handlers do), which a loop handler cannot
+            for sig in STOP_SIGNALS:
+                loop.add_signal_handler(sig, stop.set)
             sup = rt.supervisor
             events = EventLog(sup)
 

@@ -116,3 +116,22 @@ def plan(config: Config) -> list[BusPlan]:
             )
         )
     return plans
+
+
+def overloads(config: Config, plans: list[BusPlan]) -> list[str]:
+    """A bus planned above 100 %: ``abh3 check`` fails on it and ``abh3 run`` refuses it.
+
+    No ``--force``: the plan follows from the file alone, so the fix is always there (lower
+    rates or a higher bitrate), and on an overloaded bus the lowest-priority drives miss
+    their keepalive and stop themselves at random.
+    """
+    out = []
+    for p in plans:
+        if p.worst_load_percent > 100:
+            line = config.source.line(("buses", p.bus)) if config.source else 1
+            out.append(
+                f"{config.file}:{line}: buses.{p.bus}: worst-case load "
+                f"{p.worst_load_percent:.1f} % exceeds the bus at {p.bitrate} bit/s: lower "
+                "command_rate_hz or broadcast.rate_hz, or raise the bitrate"
+            )
+    return out

@@ -127,16 +127,19 @@ class PluginHost:
         src.raise_if_problems()
         for name in config.plugins:
             if self.pm.get_plugin(name) is not None:
-                section = config.plugins[name]
-                # the plugin checks its own keys with section.only(...)
-                self.call_one(
-                    name,
-                    "abh3_configure",
-                    section=Section(src, ("plugins", name), section, None),
-                    config=config,
-                )
-        if src.problems:
-            raise ConfigError(src.problems)
+                self._configure(name, config, src)
+        src.raise_if_problems()
+
+    def _configure(self, name: str, config: Config, src: Source) -> None:
+        """The plugin checks its own section (keys with section.only(...)); whatever it
+        raises is a problem with that section, reported like the core's (`check` too)."""
+        section = Section(src, ("plugins", name), config.plugins[name], None)
+        try:
+            self._caller(name, "abh3_configure")(section=section, config=config)
+        except ConfigError as exc:  # its own problems, unless already collected
+            src.problems.extend(p for p in exc.problems if p not in src.problems)
+        except Exception as exc:
+            src.error(("plugins", name), f"plugin '{name}' cannot use these settings: {exc!r}")
 
     def add_source(self, source: InputSource) -> None:
         """An input source of the host program itself (the TUI), arbitrated like the rest."""

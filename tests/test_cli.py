@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -106,14 +107,49 @@ def test_check_prints_the_bus_load_plan(tmp_path: Path) -> None:
     assert "bus demo: 500000 bit/s" in text.stdout
 
 
-def test_check_warns_and_fails_on_an_overloaded_plan(tmp_path: Path) -> None:
+def test_an_overloaded_plan_fails_check_and_run_refuses_it_with_the_same_message(
+    tmp_path: Path,
+) -> None:
     cfg = tmp_path / "busy.yaml"
     units = "\n".join(
         f"  - {{name: u{i}, abh3_id: {i + 10}, command_rate_hz: 500}}" for i in range(4)
     )
-    cfg.write_text(f"buses:\n  can0: {{bitrate: 250000}}\nunits:\n{units}\n")
+    cfg.write_text(
+        f"buses:\n  can0: {{interface: virtual, bitrate: 250000, simulate: true}}\n"
+        f"units:\n{units}\n"
+    )
+    message = (
+        f"error: {cfg}:2: buses.can0: worst-case load 260.3 % exceeds the bus at 250000 "
+        "bit/s: lower command_rate_hz or broadcast.rate_hz, or raise the bitrate\n"
+    )
+    check = abh3("check", str(cfg))
+    assert check.returncode == 1 and "OK" not in check.stdout
+    assert "bus can0: 250000 bit/s" in check.stdout and check.stderr == message
+    run = abh3("run", str(cfg), "--headless", "--duration", "1")
+    assert run.returncode == 1 and run.stderr == message
+    as_json = json.loads(abh3("check", str(cfg), "--json").stdout)
+    assert as_json["ok"] is False and as_json["errors"] == [message[7:-1]]
+
+
+def test_a_plan_with_little_headroom_runs_with_a_warning(tmp_path: Path) -> None:
+    cfg = tmp_path / "busy.yaml"
+    cfg.write_text(
+        "buses:\n  slow: {interface: virtual, channel: c, bitrate: 250000, simulate: true}\n"
+        "units:\n  - {name: u0, abh3_id: 10, command_rate_hz: 400, broadcast: {rate_hz: 200}}\n"
+    )
+    check = abh3("check", str(cfg))
+    assert check.returncode == 0 and "warning: worst-case load 72.8 % is above 70 %" in check.stdout
+    run = abh3("run", str(cfg), "--headless", "--duration", "0.5")
+    assert run.returncode == 0 and "WARNING bus slow: worst-case load 72.8 %" in run.stderr
+
+
+def test_at_most_twenty_problems_are_printed(tmp_path: Path) -> None:
+    cfg = tmp_path / "many.yaml"
+    units = "".join(f"  - {{name: u{i}, abh3_id: {i + 10}, priority: 9}}\n" for i in range(25))
+    cfg.write_text(f"buses:\n  can0: {{}}\nunits:\n{units}")
     out = abh3("check", str(cfg))
-    assert out.returncode == 1 and "exceeds the bus" in out.stdout
+    lines = out.stderr.splitlines()
+    assert out.returncode == 2 and len(lines) == 21 and lines[-1] == "error: and 5 more"
 
 
 def test_decode_without_config_uses_seed_defaults(tmp_path: Path) -> None:
@@ -153,3 +189,59 @@ def test_every_shipped_configuration_checks_clean(config: str) -> None:
     out = abh3("check", f"configs/{config}")
     assert out.returncode == 0, out.stdout + out.stderr
     assert "OK" in out.stdout
+
+
+# ---------------------------------------------------------------- signals while starting
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_loading_ends_at_once_and_starts_nothing(tmp_path: Path, sig: int) -> None:
+    fifo = tmp_path / "config.yaml"
+    os.mkfifo(fifo)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", str(fifo), "--headless"],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    with open(fifo, "w"):  # opens once the program reads it, its handlers in place
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 128 + sig, err
+    name = signal.Signals(sig).name
+    assert err == f"abh3: stopped by {name} while starting; no drive was started\n"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_a_recording_blocks_opening_ends_at_once_and_sends_nothing(
+    tmp_path: Path, sig: int
+) -> None:
+    record = tmp_path / "blocked.log"
+    os.mkfifo(record)  # opening it for writing blocks until someone reads: it never happens
+    config = tmp_path / "busy.yaml"  # a plan warning is logged just before the runtime starts
+    config.write_text(
+        "buses:\n  slow: {interface: virtual, channel: c, bitrate: 250000, simulate: true}\n"
+        "units:\n  - {name: u0, abh3_id: 10, command_rate_hz: 400, broadcast: {rate_hz: 200},\n"
+        "     startup: ['SERVO ON ON']}\n"
+    )
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "abh3_supervisor",
+            "run",
+            str(config),
+            "--headless",
+            "--record",
+            str(record),
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert proc.stderr is not None
+    assert "worst-case load" in proc.stderr.readline()
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err and "startup" not in err and "running" not in err

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
 
 from abh3_supervisor.cli import main
 from abh3_supervisor.config import ControlMode, Role, VelocityModel, load_config, parse_config
+from abh3_supervisor.config.source import MAX_BYTES, MAX_VALUES
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.protocol.frames import Generation
 
@@ -114,7 +116,7 @@ plugins:
         (MINIMAL + "    broadcast: {mask: 0x80}\n", "units[0].broadcast.mask: 128 is out of range"),
         (
             MINIMAL + "    command_rate_hz: 0\n",
-            "command_rate_hz: 0 is out of range (allowed more than 0, up to 1000)",
+            "command_rate_hz: 0 is out of range (allowed 1–1000)",
         ),
         (MINIMAL + "    command_rate_hz: .nan\n", "command_rate_hz: nan is not a finite number"),
         (
@@ -184,3 +186,190 @@ def test_cli_reports_config_errors_with_exit_2_and_no_traceback(
 def test_cli_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", str(tmp_path / "nope.yaml"), "--headless"]) == 2
     assert "cannot read configuration" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- loader limits
+
+
+def read_problems(path: Path) -> list[str]:
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    return info.value.problems
+
+
+def test_a_file_above_the_size_limit_is_refused_without_reading_it_all(tmp_path: Path) -> None:
+    big = tmp_path / "big.yaml"
+    big.write_bytes(MINIMAL.encode() + b"#" * MAX_BYTES)
+    assert read_problems(big) == [
+        f"{big}:1: file: larger than 512 KiB, not a configuration (is this the right file?)"
+    ]
+
+
+def test_text_must_be_utf8_and_the_bad_byte_is_located(tmp_path: Path) -> None:
+    latin1 = tmp_path / "latin1.yaml"
+    latin1.write_bytes(MINIMAL.replace("drive", "gr\xfcn").encode("latin-1"))
+    assert read_problems(latin1) == [
+        f"{latin1}:4: encoding: byte 0xFC in column 13 is not UTF-8 (save the file as UTF-8)"
+    ]
+    bom = tmp_path / "bom.yaml"
+    bom.write_bytes(b"\xef\xbb\xbf" + MINIMAL.encode())
+    assert list(load_config(bom).units) == ["drive"]
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (
+            MINIMAL + "    host_id: \x00\n",
+            "robot.yaml:5: invalid YAML: character 0x00 is not allowed",
+        ),
+        ("x: " + "{a: " * 40 + "1" + "}" * 40 + "\n" + MINIMAL, "robot.yaml:1: nesting: more than"),
+        ("x: &x [*x]\n" + MINIMAL, "robot.yaml:1: x[0]: this alias refers to the value it is"),
+        (
+            MINIMAL + "    name: !!binary aGVsbG8=\n",
+            "robot.yaml:5: units[0].name: the tag !!binary",
+        ),
+        (
+            MINIMAL + "    x: !!set {a, b}\n",
+            "robot.yaml:5: units[0].x: the tag !!set is not allowed",
+        ),
+        (MINIMAL + "    ? !!python/name:os.system\n    : 1\n", "the tag !!python/name:os.system"),
+        (MINIMAL + "    abh3_id: !custom 3\n", "units[0].abh3_id: the tag !custom is not allowed"),
+        (
+            "d: &d {host_id: 3}\n" + MINIMAL + "    <<: *d\n",
+            "robot.yaml:6: units[0].<<: merge keys",
+        ),
+        (MINIMAL + "    ? {a: 1}\n    : x\n", "robot.yaml:5: units[0]: a key must be a plain name"),
+        (MINIMAL + "    ? [a]\n    : x\n", "units[0]: a key must be a plain name, not a list"),
+        (MINIMAL + "    abh3_id: 2001-13-45\n", "robot.yaml:5: units[0].abh3_id: cannot read"),
+        ("- a\n- b\n", "robot.yaml:1: (top level): expected a mapping with buses, units"),
+        ("hello\n", "robot.yaml:1: (top level): expected a mapping"),
+    ],
+)
+def test_hostile_yaml_gets_a_located_message(text: str, expected: str) -> None:
+    found = problems(text)
+    assert any(expected in p for p in found), found
+
+
+def test_alias_expansion_is_bounded_and_fast() -> None:
+    rows = ["a0: &a0 [" + ", ".join(["lol"] * 9) + "]"]
+    rows += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]" for i in range(1, 10)]
+    started = time.monotonic()
+    found = problems("\n".join(rows) + "\n" + MINIMAL)
+    assert time.monotonic() - started < 1.0
+    assert (
+        len(found) == 1 and f"more than {MAX_VALUES} values once aliases are expanded" in found[0]
+    )
+    assert found[0].startswith("robot.yaml:1: a")
+
+
+def test_aliases_within_the_limit_are_fine() -> None:
+    cfg = parse_config(
+        "buses:\n  can0: {}\nunits:\n"
+        "  - {name: a, abh3_id: 1, startup: &s ['SERVO ON ON']}\n"
+        "  - {name: b, abh3_id: 3, startup: *s}\n",
+        "alias.yaml",
+    )
+    assert cfg.units["b"].startup == ("SERVO ON ON",)
+
+
+# ---------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (
+            "buses:\n  can0:\n    simulate:\nunits: [{name: a}]\n",
+            "robot.yaml:3: buses.can0.simulate: expected true, false or a mapping of simulator "
+            "options, got None",
+        ),
+        (
+            "buses:\n  can0: {channel: [a, b]}\nunits: [{name: a}]\n",
+            "buses.can0.channel: expected one channel name or number, got ['a', 'b']",
+        ),
+        (
+            "buses:\n  can0: {options: 5}\nunits: [{name: a}]\n",
+            "buses.can0.options: expected a mapping, got int",
+        ),
+        (
+            "buses:\n  can0: {options: {channel: can1}}\nunits: [{name: a}]\n",
+            "buses.can0.options.channel: set channel on the bus itself, not in its options",
+        ),
+        ("buses:\n  can0: {}\nunits: [{name: 12}]\n", "units[0].name: expected a non-empty string"),
+        ("buses: [can0]\nunits: [{name: a}]\n", "robot.yaml:1: buses: expected a mapping"),
+        ("buses:\n  can0: {}\nunits: [{name: a}]\nplugins: 5\n", "plugins: expected a mapping"),
+        (MINIMAL + "    command_rate_hz: 1e-300\n", "YAML reads 1e-300 as text: write it with a"),
+        (MINIMAL + "    command_rate_hz: 1.0e-300\n", "1e-300 is out of range (allowed 1–1000)"),
+        (MINIMAL + "    broadcast: {rate_hz: 0.001}\n", "rate_hz: 0.001 is out of range"),
+        (MINIMAL + "    geometry: {wheel: 1.0e-300}\n", "geometry.wheel: 1e-300 is out of range"),
+        (MINIMAL + "    drive_timeout_ms: 0\n", "drive_timeout_ms: 0 is out of range (allowed 10–"),
+        (MINIMAL + "    command_rate_hz: 2001-12-14\n", "got a date '2001-12-14'"),
+    ],
+)
+def test_values_of_the_wrong_kind(text: str, expected: str) -> None:
+    found = problems(text)
+    assert any(expected in p for p in found), found
+
+
+def test_one_mistake_gives_one_message() -> None:
+    assert problems("buses:\n  can0: {}\nunits: [{name: 12}]\n") == [
+        "robot.yaml:3: units[0].name: expected a non-empty string, got 12"
+    ]
+    assert problems("units: [{name: a}]\n") == [
+        "robot.yaml:1: buses: missing: declare at least one bus"
+    ]
+
+
+# ---------------------------------------------------------------- timing rules
+
+
+def test_drive_timeout_defaults_to_the_seeds_drive_setting() -> None:
+    assert parse_config(MINIMAL, "m.yaml").units["drive"].drive_timeout_ms == 500
+    cfg = parse_config(MINIMAL + "    drive_timeout_ms: 750\n    command_rate_hz: 5\n", "m.yaml")
+    assert cfg.units["drive"].drive_timeout_ms == 750
+
+
+@pytest.mark.parametrize(
+    ("keys", "expected"),
+    [
+        (
+            "command_rate_hz: 4",
+            "robot.yaml:5: units[0].command_rate_hz: 4 Hz sends a command every 250 ms: not under "
+            "half of drive_timeout_ms 500 (the drive stops itself after that long without one); "
+            "use more than 4 Hz",
+        ),
+        (
+            "reply_timeout_ms: 60000",
+            "robot.yaml:5: units[0].reply_timeout_ms: 60000 ms is not below drive_timeout_ms 500",
+        ),
+        (
+            "drive_timeout_ms: 100",
+            "robot.yaml:5: units[0].reply_timeout_ms: 100 ms is not below drive_timeout_ms 100",
+        ),
+        (
+            "timeout_ms: 150",
+            "robot.yaml:5: units[0].timeout_ms: 150 ms would take the unit offline after one lost "
+            "reply: use at least 200 ms (twice the longer of the command period 20 ms and "
+            "reply_timeout_ms 100)",
+        ),
+        (
+            "timeout_ms: 5001",
+            "robot.yaml:5: units[0].timeout_ms: 5001 ms is more than 10 × drive_timeout_ms 500",
+        ),
+    ],
+)
+def test_timing_rules_keep_the_drive_alive(keys: str, expected: str) -> None:
+    found = problems(MINIMAL + f"    {keys}\n")
+    assert any(p.startswith(expected) for p in found), found
+
+
+def test_a_monitor_does_not_feed_the_drive_timeout_but_offline_still_means_silent() -> None:
+    monitor = MINIMAL + "    role: monitor\n    command_rate_hz: 2\n"
+    assert parse_config(monitor + "    timeout_ms: 20000\n", "m.yaml").units["drive"]
+    assert "at least 1000 ms" in problems(monitor + "    timeout_ms: 999\n")[0]
+
+
+def test_timing_rules_wait_for_sound_values() -> None:
+    # a broken rate is reported once, not again as a broken period
+    assert len(problems(MINIMAL + "    command_rate_hz: fast\n")) == 1

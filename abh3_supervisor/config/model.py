@@ -105,7 +105,8 @@ class UnitConfig:
     protocol: Generation = Generation.G2021
     timeout_ms: int = 1000
     reply_timeout_ms: int = 100
-    # the drive's command-zero timeout (seed setting 500 ms; drive parameter 0x4117)
+    # the drive's own command-zero timeout, parameter 0x4117 (the seed's drive: 500 ms):
+    # no command for this long and the drive stops itself
     drive_timeout_ms: int = 500
     command_rate_hz: float = 50.0
     control: ControlMode = ControlMode.VELOCITY

@@ -18,7 +18,7 @@ from abh3_supervisor.config.model import (
     UnitConfig,
     VelocityModel,
 )
-from abh3_supervisor.config.source import Section, load_source
+from abh3_supervisor.config.source import Section, load_source, read_text
 from abh3_supervisor.errors import CommandError, ConfigError
 from abh3_supervisor.kinematics import Geometry
 from abh3_supervisor.protocol.frames import Generation
@@ -30,6 +30,7 @@ BITRATES = (250_000, 500_000, 1_000_000)  # what the ABH3 supports (§1)
 
 TOP_KEYS = {"buses", "units", "plugins"}
 BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options"}
+BUS_ARGUMENTS = {"interface", "channel", "bitrate"}  # can.Bus(...) takes them from the bus
 SIM_KEYS = {
     "command_zero_timeout_ms",
     "error_timeout_ms",
@@ -48,6 +49,7 @@ UNIT_KEYS = {
     "protocol",
     "timeout_ms",
     "reply_timeout_ms",
+    "drive_timeout_ms",
     "command_rate_hz",
     "control",
     "velocity_model",
@@ -62,24 +64,25 @@ BROADCAST_KEYS = {"mask", "rate_hz", "listen_only"}
 GEOMETRY_KEYS = {"rate_num", "rate_den", "wheel", "width", "pulses_per_rev"}
 LIMIT_KEYS = {"velocity", "current"}
 SELECT_KEYS = {"ay", "bx"}
+# offline (timeout_ms) at most this many drive timeouts: see _timing
+OFFLINE_PER_DRIVE_TIMEOUT = 10
 
 
 def load_config(path: str | FsPath) -> Config:
     """Read and validate a YAML file; raise :class:`ConfigError` listing every problem."""
-    file = str(path)
-    try:
-        text = FsPath(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError([f"{file}: cannot read configuration: {exc.strerror}"]) from exc
-    return parse_config(text, file)
+    return parse_config(read_text(path), str(path))
 
 
 def parse_config(text: str, file: str = "<config>") -> Config:
     src = load_source(file, text)
+    if not isinstance(src.data, dict):
+        src.error((), "expected a mapping with buses, units and plugins")
+    src.raise_if_problems()  # nothing below means anything without a sound document
     top = Section(src, (), src.data, TOP_KEYS)
     buses = _buses(top)
     units = _units(top, buses)
-    plugins = top.sub("plugins", {str(k) for k in (top.data.get("plugins") or {})})
+    src.unit_names = tuple(units)
+    plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     src.raise_if_problems()
     return Config(
         file=file,
@@ -109,11 +112,13 @@ def _buses(top: Section) -> dict[str, BusConfig]:
             b.error(
                 "bitrate", f"{bitrate} is not an ABH3 bitrate (allowed: 250000, 500000, 1000000)"
             )
-        options = b.sub("options", {str(k) for k in (b.data.get("options") or {})})
+        options = b.sub("options", None)
+        for key in BUS_ARGUMENTS & set(options.data):
+            options.error(key, f"set {key} on the bus itself, not in its options")
         buses[name] = BusConfig(
             name=name,
             interface=b.text("interface", "socketcan"),
-            channel=str(b.data.get("channel", "can0")),
+            channel=_channel(b),
             bitrate=bitrate,
             simulate=_simulate(b),
             options=dict(options.items()),
@@ -123,12 +128,26 @@ def _buses(top: Section) -> dict[str, BusConfig]:
     return buses
 
 
+def _channel(b: Section) -> str:
+    value = b.data.get("channel", "can0")
+    # python-can takes a name ("can0", "PCAN_USBBUS1") or a number (kvaser, vector)
+    if isinstance(value, bool) or not isinstance(value, str | int) or value == "":
+        b.error("channel", f"expected one channel name or number, got {value!r}")
+        return "can0"
+    return str(value)
+
+
 def _simulate(b: Section) -> SimConfig | None:
     value = b.data.get("simulate", False)
     if value is False:
         return None
     if value is True:
         return SimConfig()
+    if not isinstance(value, dict):  # `simulate:` with no value is a mistake, never "on"
+        b.error(
+            "simulate", f"expected true, false or a mapping of simulator options, got {value!r}"
+        )
+        return None
     s = b.sub("simulate", SIM_KEYS)
     d = SimConfig()
     return SimConfig(
@@ -153,9 +172,12 @@ def _units(top: Section, buses: dict[str, BusConfig]) -> dict[str, UnitConfig]:
     index_of: dict[str, int] = {}
     for i, item in enumerate(raw):
         u = Section(top.src, ("units", i), item, UNIT_KEYS)
-        unit = _unit(u, buses, i)
+        before = len(top.src.problems)
+        unit = _unit(u, buses)
         if unit is None:
             continue
+        if len(top.src.problems) == before:  # rules over values only once each is sound
+            _timing(u, unit)
         if unit.name in units:
             u.error("name", f"duplicate unit name '{unit.name}'")
         elif (unit.bus, unit.abh3_id) in addresses:
@@ -176,10 +198,12 @@ def _units(top: Section, buses: dict[str, BusConfig]) -> dict[str, UnitConfig]:
     return units
 
 
-def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | None:
+def _unit(u: Section, buses: dict[str, BusConfig]) -> UnitConfig | None:
+    if not u.has("name"):
+        u.error("name", "missing: every unit needs a name")
+        return None
     name = u.text("name", "")
     if not name:
-        u.error("name", "missing: every unit needs a name")
         return None
     if not NAME.match(name):
         u.error("name", f"'{name}': unit names are letters, digits and '_', starting with a letter")
@@ -192,7 +216,8 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
     elif len(buses) == 1:
         bus = next(iter(buses))
     else:
-        u.error("bus", "missing: several buses are declared, say which one this unit is on")
+        if buses:  # with none, the missing buses were reported already
+            u.error("bus", "missing: several buses are declared, say which one this unit is on")
         bus = ""
     d = UnitConfig(name=name, bus=bus)
     b = u.sub("broadcast", BROADCAST_KEYS)
@@ -209,7 +234,8 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
         protocol=Generation(u.choice("protocol", d.protocol, [g.value for g in Generation])),
         timeout_ms=u.integer("timeout_ms", d.timeout_ms, 1, 60_000),
         reply_timeout_ms=u.integer("reply_timeout_ms", d.reply_timeout_ms, 1, 60_000),
-        command_rate_hz=u.number("command_rate_hz", d.command_rate_hz, 0, 1000, lo_open=True),
+        drive_timeout_ms=u.integer("drive_timeout_ms", d.drive_timeout_ms, 10, 60_000),
+        command_rate_hz=u.number("command_rate_hz", d.command_rate_hz, 1, 1000),
         control=ControlMode(u.choice("control", d.control, [m.value for m in ControlMode])),
         velocity_model=VelocityModel(
             u.choice("velocity_model", d.velocity_model, [m.value for m in VelocityModel])
@@ -217,14 +243,15 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
         role=Role(u.choice("role", d.role, [r.value for r in Role])),
         broadcast=BroadcastConfig(
             mask=b.integer("mask", 0x7F, 0, 0x7F),
-            rate_hz=b.number("rate_hz", 10.0, 0, 1000, lo_open=True),
+            rate_hz=b.number("rate_hz", 10.0, 0.01, 1000),
             listen_only=b.boolean("listen_only", False),
         ),
         geometry=Geometry(
-            rate_num=g.number("rate_num", 1.0, 0, 1e6, lo_open=True),
-            rate_den=g.number("rate_den", 10.0, 0, 1e6, lo_open=True),
-            wheel=g.number("wheel", 0.1, 0, 100, lo_open=True),
-            width=g.number("width", 0.5, 0, 100, lo_open=True),
+            # lower bounds keep every conversion finite (1e-300 would overflow to inf)
+            rate_num=g.number("rate_num", 1.0, 1e-6, 1e6),
+            rate_den=g.number("rate_den", 10.0, 1e-6, 1e6),
+            wheel=g.number("wheel", 0.1, 0.001, 100),
+            width=g.number("width", 0.5, 0.001, 100),
             pulses_per_rev=g.number("pulses_per_rev", 0.0, 0, 1e9),
         ),
         limits=Limits(
@@ -234,6 +261,53 @@ def _unit(u: Section, buses: dict[str, BusConfig], index: int) -> UnitConfig | N
         data_select=(sel.integer("ay", 7, 0, 7), sel.integer("bx", 7, 0, 7)),
         startup=_startup(u),
     )
+
+
+def _timing(u: Section, unit: UnitConfig) -> None:
+    """Rules that keep a drive alive and make "offline" mean silent (docs: Timing rules)."""
+    period = 1000 / unit.command_rate_hz  # ms between DP0 exchanges
+    drive, reply, offline = unit.drive_timeout_ms, unit.reply_timeout_ms, unit.timeout_ms
+    if unit.role is Role.COMMAND:
+        if period >= drive / 2:
+            _rule(
+                u,
+                ("command_rate_hz", "drive_timeout_ms"),
+                f"{unit.command_rate_hz:g} Hz sends a command every {period:g} ms: not under "
+                f"half of drive_timeout_ms {drive} (the drive stops itself after that long "
+                f"without one); use more than {2000 / drive:g} Hz",
+            )
+        if reply >= drive:
+            _rule(
+                u,
+                ("reply_timeout_ms", "drive_timeout_ms"),
+                f"{reply} ms is not below drive_timeout_ms {drive}: waiting that long for a "
+                "lost reply holds the next command back until the drive has stopped itself",
+            )
+        if offline > OFFLINE_PER_DRIVE_TIMEOUT * drive:
+            _rule(
+                u,
+                ("timeout_ms", "drive_timeout_ms"),
+                f"{offline} ms is more than {OFFLINE_PER_DRIVE_TIMEOUT} × drive_timeout_ms "
+                f"{drive}: a drive silent that long has stopped itself yet would count as "
+                "online and get its last command again when it answers; use at most "
+                f"{OFFLINE_PER_DRIVE_TIMEOUT * drive} ms",
+            )
+    shortest = 2 * max(period, reply)
+    if offline < shortest:
+        _rule(
+            u,
+            ("timeout_ms", "reply_timeout_ms", "command_rate_hz"),
+            f"{offline} ms would take the unit offline after one lost reply: use at least "
+            f"{shortest:g} ms (twice the longer of the command period {period:g} ms and "
+            f"reply_timeout_ms {reply})",
+        )
+
+
+def _rule(u: Section, keys: tuple[str, ...], message: str) -> None:
+    """Report on the first key, at the line of the first of ``keys`` the file sets."""
+    written = [key for key in keys if u.has(key)]
+    line = u.src.line((*u.path, written[0])) if written else None
+    u.src.error((*u.path, keys[0]), message, line)
 
 
 def _startup(u: Section) -> tuple[str, ...]:

@@ -1,11 +1,23 @@
-"""YAML with positions: every value keeps the line it came from, for error messages."""
+"""YAML with positions: every value keeps the line it came from, for error messages.
+
+The loader is safe on any file: its size, nesting depth and number of values (aliases
+expanded) are bounded, the text must be UTF-8, and only plain YAML values are accepted
+(no custom tags, no merge keys, no mappings or lists as keys). Every refusal names the
+file and line; the limits are documented in docs/configuration.md.
+"""
 
 from __future__ import annotations
 
+import codecs
+import datetime
 import difflib
 import math
-from collections.abc import Callable, Iterator
+import os
+import re
+import tempfile
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path as FsPath
 from typing import Any, TypeVar
 
 import yaml
@@ -14,6 +26,19 @@ from abh3_supervisor.errors import ConfigError
 
 Path = tuple[str | int, ...]
 T = TypeVar("T")
+
+# Four full buses (4 × 254 drives) written out key by key are about 250 KiB; at this
+# limit the worst file still loads in about a second, and a wrong path (a log, a
+# device) is refused at once
+MAX_BYTES = 512 << 10
+MAX_DEPTH = 32  # ours nests 4 deep, plugin sections a few more
+MAX_VALUES = 100_000  # after alias expansion: bounds memory and time (billion laughs)
+# libyaml when built in: ~10× faster, so even a file at MAX_BYTES loads in about a second
+_LOADER: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_CORE = "tag:yaml.org,2002:"
+SCALAR_TAGS = {_CORE + t for t in ("str", "int", "float", "bool", "null", "timestamp")}
+MERGE_TAG = _CORE + "merge"
+EXPONENT_ONLY = re.compile(r"^[-+]?\d+[eE][-+]?\d+$")  # YAML 1.1 reads 1e3 as text
 
 
 def dotted(path: Path) -> str:
@@ -31,49 +56,172 @@ class Source:
     data: Any
     lines: dict[Path, int] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    # the units the document declares, once known: plugin sections may name only these
+    unit_names: tuple[str, ...] = ()
 
     def line(self, path: Path) -> int:
         while path not in self.lines and path:
             path = path[:-1]
         return self.lines.get(path, 1)
 
-    def error(self, path: Path, message: str) -> None:
-        self.problems.append(f"{self.file}:{self.line(path)}: {dotted(path)}: {message}")
+    def error(self, path: Path, message: str, line: int | None = None) -> None:
+        where = self.line(path) if line is None else line
+        self.problems.append(f"{self.file}:{where}: {dotted(path)}: {message}")
 
     def raise_if_problems(self) -> None:
         if self.problems:
             raise ConfigError(self.problems)
 
 
+def read_text(path: str | os.PathLike[str]) -> str:
+    """The file as text: at most MAX_BYTES, UTF-8 (a BOM is fine), else a ConfigError."""
+    file = str(path)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_BYTES + 1)  # never more: /dev/zero or a huge log is refused
+    except OSError as exc:
+        raise ConfigError([f"{file}: cannot read configuration: {exc.strerror or exc}"]) from exc
+    if len(raw) > MAX_BYTES:
+        raise ConfigError(
+            [
+                f"{file}:1: file: larger than {MAX_BYTES >> 10} KiB, not a configuration "
+                "(is this the right file?)"
+            ]
+        )
+    return decode_text(file, raw)
+
+
+def decode_text(file: str, raw: bytes) -> str:
+    raw = raw.removeprefix(codecs.BOM_UTF8)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - raw.rfind(b"\n", 0, exc.start)
+        raise ConfigError(
+            [
+                f"{file}:{line}: encoding: byte 0x{raw[exc.start]:02X} in column {column} is "
+                "not UTF-8 (save the file as UTF-8)"
+            ]
+        ) from None
+
+
 def load_source(file: str, text: str) -> Source:
     """Parse YAML keeping line numbers; syntax errors and duplicate keys are reported."""
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        _check_depth(file, text)
+        node = yaml.compose(text, Loader=_LOADER)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else 1
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError([f"{file}:{line}: invalid YAML: {problem}"]) from exc
+        line, problem = _syntax_error(exc, text)
+        raise ConfigError([f"{file}:{line}: invalid YAML: {problem}"]) from None
     src = Source(file, None)
-    loader = yaml.SafeLoader("")
-    src.data = {} if node is None else _construct(node, (), src, loader)
+    src.data = {} if node is None else _Builder(src).value(node, ())
     return src
 
 
-def _construct(node: yaml.Node, path: Path, src: Source, loader: yaml.SafeLoader) -> Any:
-    src.lines[path] = node.start_mark.line + 1
-    if isinstance(node, yaml.MappingNode):
+def _check_depth(file: str, text: str) -> None:
+    """Refuse deep nesting from the event stream, before anything recurses over it."""
+    depth = 0
+    for event in yaml.parse(text, Loader=_LOADER):
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_DEPTH:
+                line = event.start_mark.line + 1 if event.start_mark else 1
+                raise ConfigError(
+                    [
+                        f"{file}:{line}: nesting: more than {MAX_DEPTH} "
+                        "levels of mappings and lists (a configuration needs a few)"
+                    ]
+                )
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
+
+
+def _syntax_error(exc: yaml.YAMLError, text: str) -> tuple[int, str]:
+    if isinstance(exc, yaml.reader.ReaderError):  # a control character: an offset, no mark
+        # libyaml counts UTF-8 bytes, the pure-Python reader characters
+        if _LOADER is yaml.SafeLoader:
+            newlines = text.count("\n", 0, exc.position)
+        else:
+            newlines = text.encode().count(b"\n", 0, exc.position)
+        return newlines + 1, f"character {exc.character:#04x} is not allowed (control character)"
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    last = text.count("\n", 0, len(text.rstrip("\n"))) + 1  # libyaml may point past it
+    return (min(mark.line + 1, last) if mark is not None else 1), problem
+
+
+class _Builder:
+    """Plain values from composed nodes, bounded: aliases count each time they expand."""
+
+    def __init__(self, src: Source) -> None:
+        self.src = src
+        self.loader = yaml.SafeLoader("")
+        self.count = 0
+        self.inside: set[int] = set()  # nodes being built: meeting one again is a cycle
+
+    def value(self, node: yaml.Node, path: Path) -> Any:
+        self.src.lines[path] = node.start_mark.line + 1
+        self.count += 1
+        if self.count > MAX_VALUES:
+            self._fatal(path, f"more than {MAX_VALUES} values once aliases are expanded")
+        if id(node) in self.inside:
+            self._fatal(path, "this alias refers to the value it is inside of (a cycle)")
+        self.inside.add(id(node))
+        try:
+            if isinstance(node, yaml.MappingNode):
+                self._plain(node, path, (_CORE + "map",))
+                return self._mapping(node, path)
+            if isinstance(node, yaml.SequenceNode):
+                self._plain(node, path, (_CORE + "seq",))
+                return [self.value(item, (*path, i)) for i, item in enumerate(node.value)]
+            return self._scalar(node, path)
+        finally:
+            self.inside.discard(id(node))
+
+    def _fatal(self, path: Path, message: str) -> None:
+        raise ConfigError([f"{self.src.file}:{self.src.line(path)}: {dotted(path)}: {message}"])
+
+    def _plain(self, node: yaml.Node, path: Path, allowed: Collection[str]) -> bool:
+        if node.tag in allowed:
+            return True
+        message = f"the tag {_short(node.tag)} is not allowed: write a plain value"
+        self.src.error(path, message, node.start_mark.line + 1)
+        return False
+
+    def _mapping(self, node: yaml.MappingNode, path: Path) -> dict[Any, Any]:
         out: dict[Any, Any] = {}
         for key_node, value_node in node.value:
-            key = loader.construct_object(key_node)  # scalar keys only
+            line = key_node.start_mark.line + 1
+            if not isinstance(key_node, yaml.ScalarNode):
+                kind = "a mapping" if isinstance(key_node, yaml.MappingNode) else "a list"
+                self.src.error(path, f"a key must be a plain name, not {kind}", line)
+                continue
+            if key_node.tag == MERGE_TAG:
+                self.src.error(
+                    (*path, "<<"), "merge keys are not supported: write the keys out", line
+                )
+                continue
+            key = self._scalar(key_node, (*path, str(key_node.value) or "(key)"))
+            here = (*path, str(key))
             if key in out:
-                src.lines[(*path, str(key))] = key_node.start_mark.line + 1
-                src.error((*path, str(key)), "duplicate key (the later one would win silently)")
-            out[key] = _construct(value_node, (*path, str(key)), src, loader)
+                self.src.lines[here] = line
+                self.src.error(here, "duplicate key (the later one would win silently)")
+            out[key] = self.value(value_node, here)
         return out
-    if isinstance(node, yaml.SequenceNode):
-        return [_construct(item, (*path, i), src, loader) for i, item in enumerate(node.value)]
-    return loader.construct_object(node)
+
+    def _scalar(self, node: yaml.Node, path: Path) -> Any:
+        if not self._plain(node, path, SCALAR_TAGS):
+            return str(node.value)
+        try:
+            return self.loader.construct_object(node)
+        except (yaml.YAMLError, ValueError, OverflowError) as exc:  # e.g. a 13th month
+            self.src.error(path, f"cannot read {node.value!r}: {exc}", node.start_mark.line + 1)
+            return str(node.value)
+
+
+def _short(tag: str) -> str:
+    return "!!" + tag.removeprefix(_CORE) if tag.startswith(_CORE) else tag
 
 
 class Section:
@@ -127,7 +275,7 @@ class Section:
     def integer(self, key: str, default: int, lo: int, hi: int) -> int:
         def check(v: Any) -> str | None:
             if isinstance(v, bool) or not isinstance(v, int):
-                return f"expected an integer {lo}–{hi}, got {_kind(v)} {v!r}"
+                return f"expected an integer {lo}–{hi}, got {_kind(v)} {_shown(v)}"
             return None if lo <= v <= hi else f"{v} is out of range (allowed {lo}–{hi})"
 
         return self._get(key, default, check)
@@ -138,8 +286,10 @@ class Section:
         allowed = f"more than {lo:g}, up to {hi:g}" if lo_open else f"{lo:g}–{hi:g}"
 
         def check(v: Any) -> str | None:
+            if isinstance(v, str) and EXPONENT_ONLY.match(v):
+                return f"YAML reads {v} as text: write it with a dot, e.g. {_with_dot(v)}"
             if isinstance(v, bool) or not isinstance(v, int | float):
-                return f"expected a number ({allowed}), got {_kind(v)} {v!r}"
+                return f"expected a number ({allowed}), got {_kind(v)} {_shown(v)}"
             if not math.isfinite(v):
                 return f"{v} is not a finite number"
             ok = (v > lo if lo_open else v >= lo) and v <= hi
@@ -172,6 +322,28 @@ class Section:
         value = self._get(key, default, check)
         return tuple(value)
 
+    def units(self, key: str) -> tuple[str, ...]:
+        """Names of units the document declares (an input's targets, for example)."""
+        names = self.strings(key, ())
+        for i, name in enumerate(names):
+            if name not in self.src.unit_names:
+                declared = ", ".join(self.src.unit_names) or "none"
+                self.src.error((*self.path, key, i), f"no unit named {name!r} (units: {declared})")
+        return names
+
+    def output_path(self, key: str, default: str) -> str:
+        """A file to write, checked now so `check` finds what `run` would fail on.
+
+        ``{unit}`` in it stands for each unit's name. The file's nearest existing folder
+        must take a new file (its missing folders are created at run time).
+        """
+        text = self.text(key, default)
+        path = FsPath(text.replace("{unit}", "unit"))
+        problem = _unwritable(path)
+        if problem:
+            self.error(key, f"{text!r}: {problem}")
+        return text
+
     def choice(self, key: str, default: str, choices: list[str]) -> str:
         def check(v: Any) -> str | None:
             return None if str(v) in choices else f"{v!r} is not one of: {', '.join(choices)}"
@@ -180,6 +352,33 @@ class Section:
 
 
 def _kind(value: Any) -> str:
+    if isinstance(value, datetime.date):  # YAML reads 2001-12-14 as a date
+        return "a date"
     return {dict: "a mapping", list: "a list", str: "a string", type(None): "nothing"}.get(
         type(value), type(value).__name__
     )
+
+
+def _with_dot(number: str) -> str:
+    mantissa, _, exponent = number.lower().partition("e")
+    return f"{mantissa}.0e{exponent}"
+
+
+def _unwritable(path: FsPath) -> str | None:
+    if path.is_dir():
+        return "is a folder: name a file in it"
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        return f"{str(folder)!r} is not a folder"
+    try:  # permissions alone do not tell (root, read-only or virtual file systems)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        return f"cannot create a file in {str(folder)!r}: {exc.strerror or exc}"
+    return None
+
+
+def _shown(value: Any) -> str:
+    return f"'{value}'" if isinstance(value, datetime.date) else repr(value)

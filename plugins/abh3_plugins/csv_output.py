@@ -146,7 +146,7 @@ class CsvPlugin:
     @hookimpl
     def abh3_configure(self, section: Section) -> None:
         section.only({"path", "period_s", "flush_s", "rotate_bytes", "rotate_s"})
-        self.path = Path(section.text("path", str(self.path)))
+        self.path = Path(section.output_path("path", str(self.path)))
         self.period_s = section.number("period_s", 0.0, 0.0, 3600.0)
         self.flush_s = section.number("flush_s", 1.0, 0.0, 1.0, lo_open=True)
         self.rotate_bytes = section.integer("rotate_bytes", 0, 0, 2**40)

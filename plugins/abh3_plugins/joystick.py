@@ -213,7 +213,7 @@ class JoystickPlugin:
                 "timeout",
             }
         )
-        self.units = section.strings("units", ())
+        self.units = section.units("units")
         if not self.units:
             section.error("units", "missing: name the units the joystick drives, e.g. [left]")
         self.device = section.text("device", self.device)

@@ -123,7 +123,7 @@ class KeyboardPlugin:
     @hookimpl
     def abh3_configure(self, section: Section) -> None:
         section.only({"units", "speed", "turn", "priority", "timeout"})
-        self.units = section.strings("units", ())
+        self.units = section.units("units")
         if not self.units:
             section.error("units", "missing: name the units the keyboard drives, e.g. [left]")
         self.settings = {

@@ -1,0 +1,159 @@
+"""`abh3 decode` reads past what it cannot read, says where, and never shows a traceback."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from abh3_supervisor.cli import main
+from abh3_supervisor.decoding import SHOWN, decode_file, read_messages
+from abh3_supervisor.errors import Abh3Error
+from abh3_supervisor.protocol import ids
+
+FORMATS = (".log", ".asc", ".blf", ".csv")
+# DP0 command and reply of drive 1 (host 2), as `abh3 run --record` writes them
+GOOD_LOG = (
+    "(1.000000) can0 00EF0102#F401000001100000 T\n(1.001000) can0 00EF0201#F3FF0000FAFF0D00 R\n"
+)
+
+
+def frames(count: int) -> Iterator[can.Message]:
+    for i in range(count):
+        reply = i % 2 == 1
+        yield can.Message(
+            timestamp=1000.0 + i / 100,
+            arbitration_id=ids.dp0_reply_id(1, 2) if reply else ids.dp0_command_id(1, 2),
+            data=bytes([i % 256, 1, 0, 0, 0x11, 0, 0, i % 7]),
+            is_extended_id=True,
+            is_rx=reply,
+            channel="can0",
+        )
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, bytes]:
+    """40 frames in each format, written by python-can's writers as --record does."""
+    out = {}
+    for suffix in FORMATS:
+        path = tmp_path_factory.mktemp("rec") / f"rec{suffix}"
+        writer = can.Logger(str(path))
+        for msg in frames(40):
+            writer.on_message_received(msg)
+        writer.stop()
+        out[suffix] = path.read_bytes()
+    return out
+
+
+def decode(path: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str], list[str]]:
+    code = main(["decode", str(path)])
+    out = capsys.readouterr()
+    assert "Traceback" not in out.err
+    return code, out.out.splitlines(), out.err.splitlines()
+
+
+def test_bad_lines_are_reported_by_number_and_the_rest_is_decoded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    mixed = tmp_path / "mixed.log"
+    mixed.write_text("garbage\n" + GOOD_LOG + "(1.002000) can0 00EF0102#zz T\n\n" + GOOD_LOG)
+    code, out, err = decode(mixed, capsys)
+    assert code == 0 and len(out) == 4 and all("dp0_" in line for line in out)
+    assert err[0].startswith(f"{mixed}:1: cannot read 'garbage'")
+    assert err[1].startswith(f"{mixed}:4: cannot read '(1.002000) can0 00EF0102#zz T'")
+    assert err[2] == f"{mixed}: 2 unreadable line(s) skipped, 4 frame(s) read"
+
+
+def test_an_asc_file_goes_on_with_its_header_settings_after_a_bad_frame(
+    tmp_path: Path, recordings: dict[str, bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    lines = recordings[".asc"].decode().splitlines(keepends=True)
+    first = next(i for i, line in enumerate(lines) if " Rx " in line or " Tx " in line)
+    lines[first + 1] = lines[first + 1].replace(" d 8 ", " d 8 zz ")  # a byte that is not hex
+    broken = tmp_path / "broken.asc"
+    broken.write_text("".join(lines))
+    code, out, err = decode(broken, capsys)
+    assert code == 0 and len(out) == 39
+    assert err[0].startswith(f"{broken}:{first + 2}: cannot read")
+    assert err[-1] == f"{broken}: 1 unreadable line(s) skipped, 39 frame(s) read"
+
+
+def test_only_the_first_lines_are_shown_then_the_count(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    noisy = tmp_path / "noisy.csv"
+    noisy.write_text(
+        "timestamp,id,ext,rtr,err,dlc,data\n" + "x\n" * 30 + "1.0,18EF0102,1,0,0,1,AA==\n"
+    )
+    code, out, err = decode(noisy, capsys)
+    assert code == 0 and len(out) == 1
+    assert (
+        len(err) == SHOWN + 1
+        and err[-1] == f"{noisy}: 30 unreadable line(s) skipped, 1 frame(s) read"
+    )
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+def test_a_file_with_nothing_readable_is_an_error(
+    suffix: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    junk = tmp_path / f"junk{suffix}"
+    junk.write_bytes(b"\x7fELF\x02\x01\x01\x00 not a recording \xff\xfe\n" * 3)
+    code, out, err = decode(junk, capsys)
+    assert code == 2 and out == []
+    assert err[-1] == f"error: {junk}: no frame could be read: is it a {suffix} recording?"
+
+
+def test_an_empty_recording_decodes_to_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    empty = tmp_path / "empty.log"
+    empty.write_text("")
+    assert decode(empty, capsys) == (0, [], [])
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(data=st.data())
+def test_a_recording_cut_anywhere_decodes_what_it_holds(
+    suffix: str, data: st.DataObject, recordings: dict[str, bytes], tmp_path: Path
+) -> None:
+    whole = recordings[suffix]
+    cut = data.draw(st.integers(0, len(whole)), label="cut")
+    path = tmp_path / f"cut{suffix}"
+    path.write_bytes(whole[:cut])
+    reports: list[str] = []
+    try:
+        got = list(read_messages(path, reports.append))
+        text = list(decode_file(path, None, as_json=True))
+    except Abh3Error as exc:  # nothing left to read: said, not raised as a traceback
+        assert "no frame could be read" in str(exc)
+        return
+    expected = list(frames(40))
+    assert len(got) == len(text) <= len(expected)
+    for msg, want in zip(got[:-1], expected, strict=False):  # the last may be cut short
+        assert (msg.arbitration_id, bytes(msg.data)) == (want.arbitration_id, bytes(want.data))
+    assert len(reports) <= SHOWN + 1
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(junk=st.binary(max_size=600), at=st.integers(0, 4000))
+def test_garbage_anywhere_never_raises_anything_but_a_clear_error(
+    suffix: str, junk: bytes, at: int, recordings: dict[str, bytes], tmp_path: Path
+) -> None:
+    whole = recordings[suffix]
+    path = tmp_path / f"mixed{suffix}"
+    path.write_bytes(whole[:at] + junk + whole[at:])
+    try:
+        list(decode_file(path, None, as_json=False))
+    except Abh3Error as exc:
+        assert "no frame could be read" in str(exc)
