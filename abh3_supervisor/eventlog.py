@@ -34,12 +34,15 @@ def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
 
 class EventLog:
     """:func:`describe` with a memory: a word that keeps changing (a flapping input, spoofed
-    status frames) gives at most one line per unit and word per second; the next line
-    says how many were not shown. The current words are always on the TUI."""
+    status frames) gives at most ``FLAG_LINES_PER_S`` lines per unit and word per second
+    (so a set and its clear both show); the next line says how many were not shown. The
+    current words are always on the TUI."""
+
+    FLAG_LINES_PER_S = 4
 
     def __init__(self, sup: Supervisor) -> None:
         self.sup = sup
-        self._throttle = Throttle(1.0)
+        self._throttle = Throttle(1.0, burst=self.FLAG_LINES_PER_S)
 
     def line(self, event: SupervisorEvent) -> tuple[int, str] | None:
         described = describe(event, self.sup)

@@ -5,9 +5,14 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+from pathlib import Path
 
-from abh3_supervisor.config import parse_config
+import pytest
+
+from abh3_supervisor.config import load_config, parse_config
 from abh3_supervisor.config.model import Fault, FaultKind
+from abh3_supervisor.errors import ConfigError
+from abh3_supervisor.headless import run_headless
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.scheduler.core import GapEvent, HealthEvent, MalformedEvent
@@ -86,7 +91,7 @@ def test_broadcast_7_proves_nothing(rig: Rig) -> None:
     assert rig.sup.units["left"].status[7][1] == frames.Brd7(b"\x01")
 
 
-def test_a_flapping_flag_word_gives_one_line_per_second(rig: Rig) -> None:
+def test_a_flapping_flag_word_gives_a_few_lines_per_second(rig: Rig) -> None:
     from abh3_supervisor.eventlog import EventLog
     from abh3_supervisor.supervisor import FlagChange
 
@@ -96,9 +101,16 @@ def test_a_flapping_flag_word_gives_one_line_per_second(rig: Rig) -> None:
         change = FlagChange("left", i * 0.01, "error", i % 2, (i + 1) % 2)
         if (line := events.line(change)) is not None:
             lines.append(line[1])
-    assert lines == ["unit left: error +A_MECH_LOCK (A mechanical lock)"]
+    assert (
+        lines
+        == [
+            "unit left: error +A_MECH_LOCK (A mechanical lock)",
+            "unit left: error -A_MECH_LOCK (A mechanical lock)",
+        ]
+        * 2
+    )  # a set and its clear both show
     line = events.line(FlagChange("left", 1.0, "error", 0, 1))
-    assert line is not None and line[1].endswith("(99 more like it since the last line not shown)")
+    assert line is not None and line[1].endswith("(96 more like it since the last line not shown)")
     other = events.line(FlagChange("right", 0.5, "error", 0, 1))  # another unit: its own
     assert other is not None
 
@@ -186,3 +198,94 @@ def test_a_scripted_send_outage_on_the_virtual_bus_stops_and_does_not_restart() 
     asyncio.run(scenario())
     assert max(map(abs, seen["after"])) < max(map(abs, seen["during"])) or seen["after"] == [0, 0]
     assert rt.sims["b"].drives[1].cmd_raw == (0, 0)  # the drive was never told the old speed
+
+
+FAULTY = """
+buses:
+  b:
+    interface: virtual
+    channel: faults-{name}
+    simulate:
+      faults: {faults}
+units:
+  - {{name: left, abh3_id: 1, startup: ["SERVO ON ON", "START ON ON", "VEL 300 0"]}}
+  - {{name: right, abh3_id: 3, protocol: "2023"}}
+"""
+
+
+def faulty(faults: str, name: str = "t") -> str:
+    return FAULTY.format(faults=faults, name=name)
+
+
+def test_faults_from_the_yaml() -> None:
+    config = parse_config(
+        faulty(
+            "[{kind: bus_send_error, at_s: 2, for_s: 0.8},"
+            " {kind: error_bits, at_s: 1, for_s: 2, unit: left, bits: 0x80},"
+            " {kind: slow_replies, at_s: 0, for_s: 1, delay_ms: 20}]"
+        ),
+        "f.yaml",
+    )
+    sim = config.buses["b"].simulate
+    assert sim is not None
+    assert sim.faults == (
+        Fault(FaultKind.BUS_SEND_ERROR, 2.0, 0.8),
+        Fault(FaultKind.ERROR_BITS, 1.0, 2.0, unit="left", bits=0x80),
+        Fault(FaultKind.SLOW_REPLIES, 0.0, 1.0, delay_ms=20.0),
+    )
+
+
+def test_shipped_faults_config_is_valid() -> None:
+    path = Path(__file__).parent.parent / "configs" / "faults.yaml"
+    sim = load_config(path).buses["sim"].simulate
+    assert sim is not None and {f.kind for f in sim.faults} == set(FaultKind)
+
+
+@pytest.mark.parametrize(
+    ("faults", "message"),
+    [
+        ("[{kind: meltdown, at_s: 1, for_s: 1}]", "faults[0].kind: 'meltdown' is not one of"),
+        ("[{kind: silent, for_s: 1}]", "faults[0].at_s: missing"),
+        ("[{kind: silent, at_s: 1, for_s: 0}]", "faults[0].for_s: 0 is out of range"),
+        ("[{kind: silent, at_s: 1, for_s: 1, unit: middle}]", "no unit 'middle' on bus b"),
+        ("[{kind: silent, at_s: 1, for_s: 1, bits: 4}]", "bits: does not apply to kind silent"),
+        ("[{kind: bus_send_error, at_s: 1, for_s: 1, unit: left}]", "a fault of the whole bus"),
+        ("{kind: silent}", "faults: expected a list"),
+    ],
+)
+def test_bad_faults_are_config_errors(faults: str, message: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(faulty(faults), "f.yaml")
+    assert any(p.startswith("f.yaml:") and message in p for p in info.value.problems), info.value
+
+
+def test_headless_shows_each_fault_and_recovers_with_exit_0(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = parse_config(
+        faulty(
+            "[{kind: bus_send_error, at_s: 0.5, for_s: 0.8},"
+            " {kind: malformed_replies, at_s: 1.6, for_s: 0.2, unit: right}]",
+            "ok",
+        ),
+        "f.yaml",
+    )
+    with caplog.at_level(logging.INFO):
+        code = asyncio.run(run_headless(config, duration=2.5, record=None, status_interval=0))
+    assert code == 0
+    text = caplog.text
+    assert "send failed (simulated fault" in text
+    assert "unit left: no exchange completed for 500 ms" in text
+    assert "nothing moves until a new command" in text
+    assert "unit left: exchanges again after the gap" in text
+    assert "unit right: malformed dp0 reply ignored" in text
+    assert text.count("stop frame confirmed by the drive") == 2
+
+
+def test_a_fault_that_prevents_a_stop_ends_with_exit_3(caplog: pytest.LogCaptureFixture) -> None:
+    config = parse_config(faulty("[{kind: silent, at_s: 0.5, for_s: 100, unit: right}]", "x"))
+    with caplog.at_level(logging.INFO):
+        code = asyncio.run(run_headless(config, duration=1.0, record=None, status_interval=0))
+    assert code == 3
+    assert "unit right: stop frame sent, not confirmed" in caplog.text
+    assert "unit left: stop frame confirmed by the drive" in caplog.text

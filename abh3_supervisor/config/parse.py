@@ -7,6 +7,7 @@ from pathlib import Path as FsPath
 from typing import Any
 
 from abh3_supervisor.commands import parse_command
+from abh3_supervisor.config.faults import check_fault_units, parse_faults
 from abh3_supervisor.config.model import (
     BroadcastConfig,
     BusConfig,
@@ -38,6 +39,7 @@ SIM_KEYS = {
     "reply_latency_ms",
     "dp0_period_ms",
     "broadcast_period_ms",
+    "faults",
 }
 UNIT_KEYS = {
     "name",
@@ -81,6 +83,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     top = Section(src, (), src.data, TOP_KEYS)
     buses = _buses(top)
     units = _units(top, buses)
+    check_fault_units(top, buses, units)
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     src.raise_if_problems()
@@ -159,6 +162,7 @@ def _simulate(b: Section) -> SimConfig | None:
         reply_latency_ms=s.number("reply_latency_ms", d.reply_latency_ms, 0, 10_000),
         dp0_period_ms=s.integer("dp0_period_ms", d.dp0_period_ms, 0, 1000),
         broadcast_period_ms=s.integer("broadcast_period_ms", d.broadcast_period_ms, 0, 1000),
+        faults=parse_faults(s),
     )
 
 

@@ -1,0 +1,66 @@
+"""``simulate.faults``: scripted faults of the built-in simulator, to rehearse them."""
+
+from __future__ import annotations
+
+from abh3_supervisor.config.model import BusConfig, Fault, FaultKind, UnitConfig
+from abh3_supervisor.config.source import Section
+
+FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms"}
+KIND_KEYS = {  # what each kind reads besides kind, at_s, for_s and unit
+    FaultKind.ERROR_BITS: {"bits"},
+    FaultKind.SLOW_REPLIES: {"delay_ms"},
+}
+MAX_S = 7 * 86400.0
+
+
+def parse_faults(sim: Section) -> tuple[Fault, ...]:
+    if not sim.has("faults"):
+        return ()
+    raw = sim.data["faults"]
+    if not isinstance(raw, list):
+        sim.error("faults", "expected a list of faults, e.g. [{kind: silent, at_s: 2, for_s: 1}]")
+        return ()
+    faults = []
+    for i, item in enumerate(raw):
+        f = Section(sim.src, (*sim.path, "faults", i), item, FAULT_KEYS)
+        if not f.has("kind"):
+            f.error("kind", f"missing (one of: {', '.join(k.value for k in FaultKind)})")
+            continue
+        kind = FaultKind(f.choice("kind", "silent", [k.value for k in FaultKind]))
+        for key in FAULT_KEYS - {"kind", "at_s", "for_s", "unit"} - KIND_KEYS.get(kind, set()):
+            if f.has(key):
+                f.error(key, f"does not apply to kind {kind.value}")
+        for key in ("at_s", "for_s"):
+            if not f.has(key):
+                f.error(key, "missing: when the fault starts and how long it lasts [s]")
+        unit = f.text("unit", "") or None
+        if unit is not None and kind is FaultKind.BUS_SEND_ERROR:
+            f.error("unit", "bus_send_error is a fault of the whole bus: no unit")
+        faults.append(
+            Fault(
+                kind=kind,
+                at_s=f.number("at_s", 0.0, 0.0, MAX_S),
+                for_s=f.number("for_s", 1.0, 0.0, MAX_S, lo_open=True),
+                unit=unit,
+                bits=f.integer("bits", Fault.bits, 1, 0xFFFFFFFF),
+                delay_ms=f.number("delay_ms", Fault.delay_ms, 0.0, 10_000.0, lo_open=True),
+            )
+        )
+    return tuple(faults)
+
+
+def check_fault_units(
+    top: Section, buses: dict[str, BusConfig], units: dict[str, UnitConfig]
+) -> None:
+    """A fault naming a unit must name one simulated on that bus."""
+    for name, bus in buses.items():
+        for i, fault in enumerate(bus.simulate.faults if bus.simulate else ()):
+            if fault.unit is None:
+                continue
+            unit = units.get(fault.unit)
+            if unit is None or unit.bus != name:
+                here = [u.name for u in units.values() if u.bus == name]
+                top.src.error(
+                    ("buses", name, "simulate", "faults", i, "unit"),
+                    f"no unit '{fault.unit}' on bus {name} (units there: {', '.join(here)})",
+                )
