@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
+from abh3_supervisor.errors import PluginError
 from abh3_supervisor.eventlog import EventLog
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
@@ -86,7 +87,11 @@ async def run_headless(
                 reporter.cancel()
             assert rt.fatal is not None
             if rt.fatal.done():
-                log.critical("stopping after an internal error: %s", rt.fatal.result())
+                why = rt.fatal.result()
+                if isinstance(why, PluginError):
+                    log.critical("stopping: %s", why)
+                else:
+                    log.critical("stopping after an internal error: %s", why)
                 code = 1
             else:
                 for line in status_lines(sup):

@@ -18,6 +18,7 @@ import logging
 import math
 import queue
 import threading
+from collections.abc import Callable
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, cast
 
@@ -44,6 +45,8 @@ log = logging.getLogger(__name__)
 GROUP = "abh3_supervisor"
 MAX_FAILURES = 5
 QUEUE_SIZE = 10_000
+# what an output failure (an OSError: disk full, device gone) of a plugin does to the run
+ON_ERROR = ("continue", "stop")
 START_DEADLINE_S = 5.0  # abh3_start and abh3_input_sources, per plugin
 STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
 _STOP = object()
@@ -103,6 +106,9 @@ class PluginHost:
         self._timer: DeadlineTimer | None = None
         self._inputs_stopped = False
         self.started: list[str] = []  # plugins whose abh3_start ran: they get abh3_stop
+        self.on_error: dict[str, str] = {}  # plugin → "continue" (default) or "stop"
+        # set by the runtime: end the run, drives stopped (an output failed, on_error: stop)
+        self.request_stop: Callable[[str], None] | None = None
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._load(config, installed() if available is None else available)
@@ -132,8 +138,14 @@ class PluginHost:
 
     def _configure(self, name: str, config: Config, src: Source) -> None:
         """The plugin checks its own section (keys with section.only(...)); whatever it
-        raises is a problem with that section, reported like the core's (`check` too)."""
-        section = Section(src, ("plugins", name), config.plugins[name], None)
+        raises is a problem with that section, reported like the core's (`check` too).
+        ``on_error`` is the host's key, valid in every section: the plugin never sees it."""
+        raw = config.plugins[name]
+        if isinstance(raw, dict) and "on_error" in raw:
+            host = Section(src, ("plugins", name), raw, None)
+            self.on_error[name] = host.choice("on_error", "continue", list(ON_ERROR))
+            raw = {k: v for k, v in raw.items() if k != "on_error"}
+        section = Section(src, ("plugins", name), raw, None)
         try:
             self._caller(name, "abh3_configure")(section=section, config=config)
         except ConfigError as exc:  # its own problems, unless already collected
@@ -177,6 +189,9 @@ class PluginHost:
             self._failed(name, hook, exc)
 
     def _failed(self, name: str, hook: str, exc: Exception) -> None:
+        if isinstance(exc, OSError):
+            self._output_failed(name, exc)
+            return
         count = self.failures[name] = self.failures.get(name, 0) + 1
         log.error(
             "plugin %s failed in %s (failure %d of %d): %r",
@@ -217,6 +232,27 @@ class PluginHost:
         if thread.is_alive():
             return f"did not return within {deadline:g} s"
         return failure[0] if failure else None
+
+    def _output_failed(self, name: str, exc: OSError) -> None:
+        """Its output failed (disk full): one clear line, no traceback; the plugin writes
+        no more; the run goes on, or ends with the drives stopped under on_error: stop."""
+        if name in self.disabled:
+            return
+        self.disabled.add(name)
+        policy = self.on_error.get(name, "continue")
+        outcome = (
+            "stopping the run (on_error: stop)"
+            if policy == "stop"
+            else "it is switched off; the run goes on (on_error: continue)"
+        )
+        message = f"plugin {name}: output failed: {exc}; {outcome}"
+        if self._sup is not None and self._loop is not None and not self._loop.is_closed():
+            # the operator's log (headless, TUI) shows notices: said once, there
+            self._loop.call_soon_threadsafe(self._sup.notice, None, logging.ERROR, message)
+        else:
+            log.error("%s", message)
+        if policy == "stop" and self.request_stop is not None:
+            self.request_stop(f"the output of plugin {name} failed (on_error: stop)")
 
     def _has(self, name: str, hook: str) -> bool:
         caller = getattr(self.pm.hook, hook)

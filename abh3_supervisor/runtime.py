@@ -22,7 +22,7 @@ from typing import Any
 import can
 
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
-from abh3_supervisor.errors import BusOpenError
+from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
@@ -159,6 +159,11 @@ class Runtime:
                 refuse=_send_faults(cfg.simulate, loop.time()),
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start
+
+            def request_stop(why: str) -> None:  # from a plugin's worker thread
+                loop.call_soon_threadsafe(self._on_fatal, PluginError(why))
+
+            self.plugins.request_stop = request_stop
             self.plugins.start(self.supervisor, loop)  # fails the run before motion
         for name, pump in self.pumps.items():
             self.supervisor.wakers[name] = pump.wake

@@ -2,14 +2,21 @@
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import errno
+import logging
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from abh3_plugins.csv_output import COLUMNS, _File
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.errors import ConfigError
+from abh3_supervisor.headless import run_headless
+from abh3_supervisor.plugin_host import PluginHost
+from tests.conftest import TWO_UNITS
 
 
 class FillsUp:
@@ -49,3 +56,43 @@ def test_a_full_disk_leaves_whole_rows_and_names_the_file(tmp_path: Path) -> Non
     assert text.endswith("\n")  # cut back to the last whole row
     rows = list(csv.DictReader(text.splitlines()))
     assert [r["unit"] for r in rows] == [str(i) for i in range(10)]
+
+
+@pytest.mark.parametrize(("policy", "code"), [("stop", 1), ("continue", 0)])
+def test_on_error_decides_whether_the_run_goes_on(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+    policy: str,
+    code: int,
+) -> None:
+    real_flush = _File.flush
+    calls = {"n": 0}
+
+    def flush(self: _File) -> None:  # the header goes out, then the disk is full
+        calls["n"] += 1
+        if calls["n"] > 1:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.name))
+        real_flush(self)
+
+    monkeypatch.setattr(_File, "flush", flush)
+    path = tmp_path / "out.csv"
+    text = TWO_UNITS + f"plugins:\n  csv: {{path: '{path}', flush_s: 0.1, on_error: {policy}}}\n"
+    config = parse_config(text, "c.yaml")
+    host = PluginHost(config)
+    with caplog.at_level(logging.INFO):
+        result = asyncio.run(
+            run_headless(config, duration=1.5, record=None, status_interval=0, plugins=host)
+        )
+    assert result == code
+    assert caplog.text.count("plugin csv: output failed: [Errno 28] No space left") == 1
+    assert "Traceback" not in caplog.text
+    assert caplog.text.count("stop frame confirmed by the drive") == 2
+    stopping = "stopping: the output of plugin csv failed (on_error: stop)" in caplog.text
+    assert stopping == (policy == "stop")
+
+
+def test_on_error_is_checked_like_any_key() -> None:
+    text = TWO_UNITS + "plugins:\n  csv: {path: out.csv, on_error: ignore}\n"
+    with pytest.raises(ConfigError, match=r"plugins\.csv\.on_error: 'ignore' is not one of"):
+        PluginHost(parse_config(text, "c.yaml"))

@@ -118,10 +118,11 @@ class _File:
             raise OSError(exc.errno, exc.strerror, str(self.name)) from exc
         self.size += len(data)
 
-    def close(self) -> None:
+    def close(self, flush: bool = True) -> None:
         if self.handle is not None:
             try:
-                self.flush()
+                if flush:
+                    self.flush()
             finally:
                 self.handle.close()
                 self.handle = None
@@ -224,4 +225,4 @@ class CsvPlugin:
             self._flusher.join(2)
         with self.lock:
             for f in self.files.values():
-                f.close()
+                f.close(flush=self.failure is None)  # after a failure: what is whole stays
