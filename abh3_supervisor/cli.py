@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 
     from abh3_supervisor.config import Config
     from abh3_supervisor.plugin_host import PluginHost
+    from abh3_supervisor.service.server import ServiceOptions
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
 MAX_SHOWN = 20  # problems printed; the rest are counted (one mistake can repeat 10 000 times)
@@ -80,7 +81,35 @@ def _parser() -> argparse.ArgumentParser:
         metavar="S",
         help="log a status line per unit every S seconds (0: off; default 5)",
     )
+    run.add_argument(
+        "--socket",
+        type=Path,
+        metavar="PATH",
+        help="serve the control socket here (default: $XDG_RUNTIME_DIR/abh3/CONFIG.sock, "
+        "else /tmp/abh3-UID/CONFIG.sock)",
+    )
+    run.add_argument("--no-socket", action="store_true", help="serve no control socket")
+    run.add_argument(
+        "--socket-group", metavar="GROUP", help="members of GROUP may use the socket too"
+    )
+    run.add_argument(
+        "--read-only-socket",
+        type=Path,
+        metavar="PATH",
+        help="also serve a read-only socket (state and events; no commands)",
+    )
     run.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
+    status = sub.add_parser("status", help="the state of a running supervisor (exit 0: all online)")
+    status.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
+    status.add_argument("--json", action="store_true", help="the whole state as JSON")
+
+    send = sub.add_parser("send", help="send a command to a running supervisor")
+    send.add_argument("text", help="a command of the seed's language, e.g. 'SERVO ON ON'")
+    send.add_argument(
+        "--unit", action="append", default=[], help="a unit (repeat; default: all commanded)"
+    )
+    send.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
 
     check = sub.add_parser("check", help="validate a configuration and print the bus-load plan")
     check.add_argument("config", type=Path)
@@ -139,6 +168,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
     from abh3_supervisor.config import load_config
 
+    if args.cmd in ("status", "send"):
+        from abh3_supervisor.service import client
+
+        path = client.find_socket(args.connect)
+        if args.cmd == "status":
+            return client.status(path, args.json)
+        return client.send(path, args.text, args.unit)
     if args.cmd == "check":
         config = load_config(args.config)
         _plugins(config)  # plugin sections are validated exactly as `run` does
@@ -245,11 +281,22 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
         record=args.record,
         status_interval=args.status_interval,
         plugins=plugins,
+        service=_service(args),
     )
     try:
         return asyncio.run(running)
     finally:
         running.close()  # a signal before it started: no "never awaited" warning
+
+
+def _service(args: argparse.Namespace) -> ServiceOptions | None:
+    from abh3_supervisor.service.paths import default_socket
+    from abh3_supervisor.service.server import ServiceOptions
+
+    if args.no_socket:
+        return None
+    path = args.socket or default_socket(str(args.config))
+    return ServiceOptions(path, args.socket_group, args.read_only_socket)
 
 
 def _plugins(config: Config) -> PluginHost:

@@ -12,6 +12,7 @@ from abh3_supervisor.errors import PluginError
 from abh3_supervisor.eventlog import EventLog
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
+from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight
 from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
 
 log = logging.getLogger("abh3")
@@ -54,10 +55,13 @@ async def run_headless(
     record: Path | None,
     status_interval: float,
     plugins: PluginHost | None = None,
+    service: ServiceOptions | None = None,
 ) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     code = 0
+    if service is not None:
+        preflight(service)  # a socket that cannot be served fails the run before motion
     rt = Runtime(config, record=record, plugins=plugins)
     try:
         async with rt:
@@ -80,11 +84,14 @@ async def run_headless(
                 len(config.buses),
                 f" for {duration:g} s" if duration is not None else "",
             )
+            servers = await _serve(rt, plugins, service)
             reporter = asyncio.ensure_future(_report(sup, status_interval))
             try:
                 await rt.run_until(stop, duration)
             finally:
                 reporter.cancel()
+                for server in servers:  # clients hear "bye" before the drives stop
+                    await server.close()
             assert rt.fatal is not None
             if rt.fatal.done():
                 why = rt.fatal.result()
@@ -104,6 +111,26 @@ async def run_headless(
         log.error("not every drive confirmed its stop frame: check them (exit code 3)")
         return code or EXIT_STOP_UNCONFIRMED
     return code
+
+
+async def _serve(
+    rt: Runtime, plugins: PluginHost | None, service: ServiceOptions | None
+) -> list[ControlServer]:
+    if service is None:
+        return []
+    servers = [ControlServer(rt, plugins, service.path, group=service.group)]
+    if service.read_only_path is not None:
+        servers.append(ControlServer(rt, plugins, service.read_only_path, read_only=True))
+    started: list[ControlServer] = []
+    try:
+        for server in servers:
+            await server.start()
+            started.append(server)
+    except BaseException:
+        for server in started:
+            await server.close()
+        raise
+    return servers
 
 
 async def _report(sup: Supervisor, interval: float) -> None:

@@ -201,6 +201,12 @@ class InputArbiter:
             source.name, source.units, source.priority, source.timeout
         )
 
+    def remove(self, name: str, now: float) -> None:
+        """A source that goes away for good (a client disconnects): it lets go first."""
+        if name in self.sources:
+            self.submit(name, None, now)
+            del self.sources[name]
+
     def submit_now(self, name: str, command: InputCommand | None) -> None:
         self.submit(name, command, self.clock())
 

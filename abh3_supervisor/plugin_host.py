@@ -278,8 +278,7 @@ class PluginHost:
             if any(self._has(name, hook) for hook in observing):
                 self.workers[name] = _Worker(self, name)
         sup.subscribe(self._observe)
-        if self.sources:
-            self._start_inputs(sup, loop)
+        self._start_inputs(sup, loop)  # always: service clients may attach sources later
 
     def _start_inputs(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
         arbiter = self.arbiter = InputArbiter(apply=lambda u, c: _apply(sup, u, c), clock=loop.time)
@@ -312,6 +311,21 @@ class PluginHost:
                 source.start(InputFeed(loop, arbiter, source.name, sup))
             except Exception as exc:
                 log.error("input %s failed to start: %r", source.name, exc)
+
+    def attach(self, source: InputSource) -> InputFeed | None:
+        """A source that comes and goes during the run (a service client), on the loop;
+        None once the inputs have stopped."""
+        if self.arbiter is None or self.arbiter.closed or self._sup is None or self._loop is None:
+            return None
+        self.arbiter.add(source)
+        feed = InputFeed(self._loop, self.arbiter, source.name, self._sup)
+        source.start(feed)
+        return feed
+
+    def detach(self, name: str) -> None:
+        """The source lets go (its units stop if it drove them) and is forgotten."""
+        if self.arbiter is not None and self._loop is not None:
+            self.arbiter.remove(name, self._loop.time())
 
     def _observe(self, event: SupervisorEvent) -> None:
         """On the loop: translate an event into hook calls and queue them, never block."""

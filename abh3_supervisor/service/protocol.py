@@ -1,0 +1,111 @@
+"""The control endpoint's wire protocol: JSON-RPC 2.0, one JSON object per line.
+
+Why this encoding: JSON-RPC 2.0 is a published standard with request ids, notifications
+and error codes already defined, so any language's stock library speaks it; one object per
+line (UTF-8, ``\\n``-terminated) needs no framing beyond ``readline`` and can be typed by
+hand into ``socat - UNIX-CONNECT:…``. The state we carry (a few kB at a few Hz) gains
+nothing from a binary encoding. ``PROTOCOL`` is bumped on any incompatible change and
+said in ``hello``; docs/service.md is the reference.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+PROTOCOL = 1
+MAX_LINE = 64 * 1024  # a request is a few hundred bytes; anything longer is refused
+
+# JSON-RPC 2.0's codes, and ours in its server-error range
+PARSE_ERROR = -32700
+INVALID_REQUEST = -32600
+METHOD_NOT_FOUND = -32601
+INVALID_PARAMS = -32602
+READ_ONLY = -32001  # a command on a read-only connection
+REFUSED = -32002  # the supervisor refused it (unknown unit, e-stop latched, stopping, …)
+
+
+class RpcError(Exception):
+    def __init__(self, code: int, message: str) -> None:
+        super().__init__(message)
+        self.code, self.message = code, message
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    id: int | str | None  # None: a notification (no reply wanted)
+    method: str
+    params: dict[str, Any]
+
+
+def parse_request(line: bytes) -> Request:
+    """One line from a client; :class:`RpcError` says what is wrong with it."""
+    try:
+        message = json.loads(line)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise RpcError(PARSE_ERROR, f"not JSON: {exc}") from None
+    if not isinstance(message, dict) or message.get("jsonrpc") != "2.0":
+        raise RpcError(INVALID_REQUEST, 'expected a JSON-RPC 2.0 object ("jsonrpc": "2.0")')
+    method, params, rid = message.get("method"), message.get("params", {}), message.get("id")
+    if not isinstance(method, str):
+        raise RpcError(INVALID_REQUEST, "'method' must be a string")
+    if rid is not None and (isinstance(rid, bool) or not isinstance(rid, int | str)):
+        raise RpcError(INVALID_REQUEST, "'id' must be a number or a string")
+    if not isinstance(params, dict):
+        raise RpcError(INVALID_PARAMS, "'params' must be an object")
+    return Request(rid, method, params)
+
+
+def request_id(line: bytes) -> int | str | None:
+    """The id of a request we could not accept, if one can be read (for the error reply)."""
+    try:
+        rid = json.loads(line).get("id")
+    except Exception:
+        return None
+    return rid if isinstance(rid, int | str) and not isinstance(rid, bool) else None
+
+
+def encode(message: dict[str, Any]) -> bytes:
+    return json.dumps(message, separators=(",", ":"), allow_nan=False).encode() + b"\n"
+
+
+def result(rid: int | str | None, value: Any) -> bytes:
+    return encode({"jsonrpc": "2.0", "id": rid, "result": value})
+
+
+def error(rid: int | str | None, code: int, message: str) -> bytes:
+    return encode({"jsonrpc": "2.0", "id": rid, "error": {"code": code, "message": message}})
+
+
+def notification(method: str, params: dict[str, Any]) -> bytes:
+    return encode({"jsonrpc": "2.0", "method": method, "params": params})
+
+
+# ---------------------------------------------------------------- reading params
+
+
+def text(params: dict[str, Any], key: str) -> str:
+    value = params.get(key)
+    if not isinstance(value, str):
+        raise RpcError(INVALID_PARAMS, f"'{key}' must be a string")
+    return value
+
+
+def number(params: dict[str, Any], key: str) -> float:
+    value = params.get(key)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise RpcError(INVALID_PARAMS, f"'{key}' must be a finite number")
+    return float(value)
+
+
+def units(params: dict[str, Any], known: tuple[str, ...]) -> tuple[str, ...]:
+    """``unit`` (one name) or ``units`` (a list), each a declared unit."""
+    raw = params.get("units", [params["unit"]] if "unit" in params else None)
+    if not isinstance(raw, list) or not raw or not all(isinstance(u, str) for u in raw):
+        raise RpcError(INVALID_PARAMS, "give 'unit' (a name) or 'units' (a list of names)")
+    unknown = [u for u in raw if u not in known]
+    if unknown:
+        raise RpcError(REFUSED, f"no unit named {unknown[0]!r} (units: {', '.join(known)})")
+    return tuple(dict.fromkeys(raw))

@@ -1,0 +1,337 @@
+"""The local control endpoint: a Unix socket serving the protocol of :mod:`.protocol`.
+
+It runs on the runtime's event loop and never blocks it: requests are handled as they
+come, every reply and notification is queued to the client's socket, and a client that
+stops reading (its buffer passes ``MAX_BUFFER``) is disconnected rather than waited for.
+Each client's motion commands (twist, velocity, current) come from an input source of
+its own in the usual arbitration — fresh for ``CLIENT_TIMEOUT_S``, then zero; leaving
+lets go. Command-language text, e-stop and clear act at once. A read-only listener
+answers only ``hello``, ``state`` and ``subscribe``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import itertools
+import logging
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from abh3_supervisor import __version__
+from abh3_supervisor.commands import RESPONSE_OK
+from abh3_supervisor.config.model import Role
+from abh3_supervisor.errors import CommandError
+from abh3_supervisor.eventlog import EventLog
+from abh3_supervisor.inputs import InputFeed, InputSource
+from abh3_supervisor.service import paths
+from abh3_supervisor.service import protocol as rpc
+from abh3_supervisor.service.snapshot import state
+
+if TYPE_CHECKING:
+    from abh3_supervisor.plugin_host import PluginHost
+    from abh3_supervisor.runtime import Runtime
+    from abh3_supervisor.supervisor import SupervisorEvent
+
+log = logging.getLogger(__name__)
+MAX_CLIENTS = 32
+MAX_BUFFER = 1 << 20  # bytes queued for one client before it is dropped as too slow
+MAX_STATE_HZ = 20.0
+CLIENT_TIMEOUT_S = 0.5  # a client's motion command is fresh this long (as the seed's topics)
+CLIENT_PRIORITY = 50  # below the TUI in the same process (100), above plugins' default 0
+READ_ONLY_METHODS = {"hello", "state", "subscribe"}
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    """Where `abh3 run --headless` serves: the control socket, a group that may use it,
+    and an optional second, read-only socket (status for a wider audience)."""
+
+    path: Path
+    group: str | None = None
+    read_only_path: Path | None = None
+
+
+def preflight(options: ServiceOptions) -> None:
+    """Everything about the sockets that can fail, checked before any drive is commanded."""
+    gid = paths.group_id(options.group)
+    for path in (options.path, options.read_only_path):
+        if path is not None:
+            paths.prepare_directory(path, gid)
+            paths.remove_stale(path)
+
+
+class ClientSource(InputSource):
+    """One client's motion commands, retargeted to the units each command names."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name, (), priority=CLIENT_PRIORITY, timeout=CLIENT_TIMEOUT_S)
+        self.feed: InputFeed | None = None
+
+    def start(self, feed: InputFeed) -> None:
+        self.feed = feed
+
+    def stop(self) -> None:
+        self.feed = None
+
+
+class _Client:
+    def __init__(
+        self,
+        server: ControlServer,
+        n: int,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        read_only: bool,
+    ) -> None:
+        self.server, self.n, self.reader, self.writer = server, n, reader, writer
+        self.read_only = read_only
+        self.events = False
+        self.state_task: asyncio.Task[None] | None = None
+        self.source: ClientSource | None = None
+
+    @property
+    def name(self) -> str:
+        return f"client{self.n}"
+
+    def send(self, data: bytes) -> None:
+        if self.writer.is_closing():
+            return
+        if self.writer.transport.get_write_buffer_size() > MAX_BUFFER:
+            log.warning("control %s: not reading its messages; disconnected", self.name)
+            self.writer.close()
+            return
+        self.writer.write(data)
+
+    async def serve(self) -> None:
+        while True:
+            try:
+                line = await self.reader.readline()
+            except (ValueError, asyncio.LimitOverrunError):
+                self.send(rpc.error(None, rpc.INVALID_REQUEST, f"line over {rpc.MAX_LINE} bytes"))
+                return
+            except (ConnectionError, OSError):
+                return
+            if not line:
+                return
+            if line.strip():
+                await self.handle(line)
+
+    async def handle(self, line: bytes) -> None:
+        try:
+            request = rpc.parse_request(line)
+        except rpc.RpcError as exc:
+            self.send(rpc.error(rpc.request_id(line), exc.code, exc.message))
+            return
+        try:
+            value = await self.server.call(self, request)
+        except rpc.RpcError as exc:
+            if request.id is not None:
+                self.send(rpc.error(request.id, exc.code, exc.message))
+            return
+        if request.id is not None:
+            self.send(rpc.result(request.id, value))
+
+    def close(self) -> None:
+        if self.state_task is not None:
+            self.state_task.cancel()
+        if self.source is not None and self.server.host is not None:
+            self.server.host.detach(self.source.name)
+            self.source = None
+        with contextlib.suppress(Exception):
+            self.writer.close()
+
+
+class ControlServer:
+    def __init__(
+        self,
+        rt: Runtime,
+        host: PluginHost | None,
+        path: Path,
+        *,
+        read_only: bool = False,
+        group: str | None = None,
+    ) -> None:
+        self.rt, self.host, self.path = rt, host, path
+        self.read_only = read_only
+        self.gid = paths.group_id(group)
+        self.clients: set[_Client] = set()
+        self._ids = itertools.count(1)
+        self._server: asyncio.AbstractServer | None = None
+        self._events = EventLog(rt.supervisor)
+        self._methods: dict[str, Callable[[_Client, dict[str, Any]], Awaitable[Any]]] = {
+            "hello": self._hello,
+            "state": self._state,
+            "subscribe": self._subscribe,
+            "command": self._command,
+            **{name: functools.partial(self._motion, name) for name in _FIELDS},
+            "release": self._release,
+            "estop": self._estop,
+            "clear_estop": self._clear_estop,
+        }
+
+    async def start(self) -> None:
+        paths.prepare_directory(self.path, self.gid)
+        paths.remove_stale(self.path)
+        self._server = await asyncio.start_unix_server(
+            self._connected, path=str(self.path), limit=rpc.MAX_LINE
+        )
+        paths.restrict(self.path, self.gid)
+        self.rt.supervisor.subscribe(self._on_event)
+        kind = "read-only " if self.read_only else ""
+        log.info("serving the %scontrol socket %s", kind, self.path)
+
+    async def close(self, reason: str = "the supervisor is stopping") -> None:
+        if self._server is not None:
+            self._server.close()
+        for client in list(self.clients):
+            client.send(rpc.notification("bye", {"reason": reason}))
+            client.close()
+        self.clients.clear()
+        if self._server is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+            self._server = None
+        self.path.unlink(missing_ok=True)
+
+    async def _connected(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        client = _Client(self, next(self._ids), reader, writer, self.read_only)
+        if len(self.clients) >= MAX_CLIENTS:
+            client.send(rpc.error(None, rpc.REFUSED, f"more than {MAX_CLIENTS} clients"))
+            client.close()
+            return
+        self.clients.add(client)
+        try:
+            await client.serve()
+        finally:
+            self.clients.discard(client)
+            client.close()
+
+    async def call(self, client: _Client, request: rpc.Request) -> Any:
+        method = self._methods.get(request.method)
+        if method is None:
+            raise rpc.RpcError(rpc.METHOD_NOT_FOUND, f"no method {request.method!r}")
+        if client.read_only and request.method not in READ_ONLY_METHODS:
+            raise rpc.RpcError(rpc.READ_ONLY, "this connection is read-only")
+        try:
+            return await method(client, request.params)
+        except CommandError as exc:
+            raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
+
+    # ------------------------------------------------------------ events
+
+    def _on_event(self, event: SupervisorEvent) -> None:
+        listeners = [c for c in self.clients if c.events]
+        if not listeners:
+            return
+        line = self._events.line(event)
+        if line is None:
+            return
+        level, text = line
+        unit = getattr(event, "unit", None)
+        params = {"t": getattr(event, "t", None), "level": logging.getLevelName(level)}
+        data = rpc.notification("event", {**params, "unit": unit, "text": text})
+        for client in listeners:
+            client.send(data)
+
+    # ------------------------------------------------------------ methods
+
+    async def _hello(self, client: _Client, params: dict[str, Any]) -> Any:
+        config = self.rt.config
+        return {
+            "protocol": rpc.PROTOCOL,
+            "version": __version__,
+            "config": config.file,
+            "read_only": client.read_only,
+            "units": list(config.units),
+            "buses": list(config.buses),
+        }
+
+    async def _state(self, client: _Client, params: dict[str, Any]) -> Any:
+        return state(self.rt)
+
+    async def _subscribe(self, client: _Client, params: dict[str, Any]) -> Any:
+        events = params.get("events", True)
+        hz = params.get("state_hz", 0)
+        if not isinstance(events, bool):
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'events' must be true or false")
+        if isinstance(hz, bool) or not isinstance(hz, int | float) or not 0 <= hz <= MAX_STATE_HZ:
+            raise rpc.RpcError(rpc.INVALID_PARAMS, f"'state_hz' must be 0–{MAX_STATE_HZ:g}")
+        client.events = events
+        if client.state_task is not None:
+            client.state_task.cancel()
+            client.state_task = None
+        if hz:
+            client.state_task = asyncio.ensure_future(self._push_state(client, 1 / hz))
+        return {"events": events, "state_hz": hz}
+
+    async def _push_state(self, client: _Client, period: float) -> None:
+        while not client.writer.is_closing():
+            client.send(rpc.notification("state", state(self.rt)))
+            await asyncio.sleep(period)
+
+    def _commanded(self, params: dict[str, Any]) -> tuple[str, ...]:
+        sup = self.rt.supervisor
+        units = rpc.units(params, tuple(sup.units))
+        for unit in units:
+            if sup.units[unit].cfg.role is not Role.COMMAND:
+                raise rpc.RpcError(rpc.REFUSED, f"unit {unit!r} is role: monitor")
+        return units
+
+    async def _command(self, client: _Client, params: dict[str, Any]) -> Any:
+        units = self._commanded(params)
+        text = rpc.text(params, "text")
+        responses = [await self.rt.supervisor.command(unit, text) for unit in units]
+        response = next((r for r in responses if r != RESPONSE_OK), RESPONSE_OK)
+        log.info("control %s: %r on %s → %r", client.name, text, ",".join(units), response)
+        return {"response": response}
+
+    def _feed(self, client: _Client, units: tuple[str, ...]) -> InputFeed:
+        if client.source is None:
+            if self.host is None:
+                raise rpc.RpcError(rpc.REFUSED, "this supervisor runs without inputs")
+            client.source = ClientSource(client.name)
+            if self.host.attach(client.source) is None:
+                client.source = None
+                raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
+        feed = client.source.feed
+        if feed is None:
+            raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
+        if units != client.source.units:
+            feed.retarget(units)
+        return feed
+
+    async def _motion(self, method: str, client: _Client, params: dict[str, Any]) -> Any:
+        values = [rpc.number(params, key) for key in _FIELDS[method]]  # checked before use
+        units = self._commanded(params)
+        if self.rt.supervisor.estop and any(values):
+            raise rpc.RpcError(rpc.REFUSED, "emergency stop is latched: clear it first")
+        feed = self._feed(client, units)
+        getattr(feed, method)(*values)
+        return {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
+
+    async def _release(self, client: _Client, params: dict[str, Any]) -> Any:
+        if client.source is not None and client.source.feed is not None:
+            client.source.feed.release()
+        return {"ok": True}
+
+    async def _estop(self, client: _Client, params: dict[str, Any]) -> Any:
+        self.rt.supervisor.emergency_stop()  # on every unit's next command frame
+        log.warning("control %s: EMERGENCY STOP", client.name)
+        return {"ok": True}
+
+    async def _clear_estop(self, client: _Client, params: dict[str, Any]) -> Any:
+        self.rt.supervisor.clear_emergency_stop()
+        log.warning("control %s: emergency stop cleared", client.name)
+        return {"ok": True}
+
+
+_FIELDS = {
+    "twist": ("linear_x", "angular_z"),
+    "velocity_yx": ("y", "x"),
+    "velocity": ("ay", "bx"),
+    "current": ("ay", "bx"),
+}

@@ -1,0 +1,86 @@
+"""The live state of every unit and bus as plain JSON values (the ``state`` method)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import TYPE_CHECKING, Any
+
+from abh3_supervisor.protocol import frames
+
+if TYPE_CHECKING:
+    from abh3_supervisor.runtime import Runtime
+    from abh3_supervisor.state import UnitState
+    from abh3_supervisor.supervisor import Supervisor
+
+
+def _finite(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
+def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
+    slot = sup.schedulers[unit.cfg.bus].slots[unit.name]
+    st, fb, now = slot.stats, unit.feedback, sup.clock()
+    words = dict(unit.words)  # copied at once: the bus side may write meanwhile
+    status: dict[str, Any] = {}
+    for packet, (_, record) in dict(unit.status).items():
+        if not isinstance(record, frames.Brd7):
+            status[str(packet)] = dataclasses.asdict(record)
+    return {
+        "bus": unit.cfg.bus,
+        "abh3_id": unit.cfg.abh3_id,
+        "protocol": unit.cfg.protocol.value,
+        "role": unit.cfg.role.value,
+        "online": unit.online,
+        "setpoint": {
+            "kind": unit.setpoint.kind.value,
+            "ay": unit.setpoint.ay,
+            "bx": unit.setpoint.bx,
+        },
+        "feedback": None
+        if fb is None
+        else {
+            "t": fb.t,
+            "vel_a": fb.vel_a,
+            "vel_b": fb.vel_b,
+            "vel_y": fb.vel_y,
+            "vel_x": fb.vel_x,
+        },
+        "inputs": {"value": unit.inputs, "names": unit.layout.input.names(unit.inputs)},
+        "words": {
+            name: {"value": value, "names": unit.layout.words[name].names(value)}
+            for name, value in words.items()
+            if name in unit.layout.words
+        },
+        "status": status,
+        "stats": {
+            "rate_hz": st.achieved_rate_hz(now),
+            "requested_rate_hz": st.requested_rate_hz,
+            "replies": st.replies,
+            "timeouts": st.timeouts,
+            "send_errors": st.send_errors,
+            "malformed": st.malformed,
+            "gaps": st.gaps,
+            "rtt_p50_ms": _finite(st.rtt_ms(50)),
+            "rtt_p99_ms": _finite(st.rtt_ms(99)),
+        },
+    }
+
+
+def state(rt: Runtime) -> dict[str, Any]:
+    sup = rt.supervisor
+    return {
+        "t": sup.clock(),
+        "estop": sup.estop,
+        "stopping": sup.stopping,
+        "units": {name: unit_state(sup, unit) for name, unit in sup.units.items()},
+        "buses": {
+            name: {
+                "frames_sent": pump.frames_sent,
+                "frames_received": pump.frames_received,
+                "send_errors": pump.send_errors,
+                "bus_errors": pump.bus_errors,
+            }
+            for name, pump in rt.pumps.items()
+        },
+    }

@@ -1,0 +1,299 @@
+"""The control endpoint: protocol, arbitration, read-only, e-stop, permissions, fuzzing."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import stat
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.errors import RunError
+from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.service import paths
+from abh3_supervisor.service import protocol as rpc
+from abh3_supervisor.service.client import ControlClient, status_lines
+from abh3_supervisor.service.server import CLIENT_PRIORITY, CLIENT_TIMEOUT_S, ControlServer
+from tests.conftest import TWO_UNITS
+
+
+class Served:
+    """A runtime on simulated drives with a control socket (and a read-only one), on a
+    thread of its own, so tests talk to it with blocking clients as a script would."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.path, self.ro_path = tmp / "ctl" / "t.sock", tmp / "ctl" / "t-ro.sock"
+        self.config = parse_config(TWO_UNITS, "t.yaml")
+        self.ready = threading.Event()
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.stop: asyncio.Event | None = None
+        self.rt: Runtime | None = None
+        self.thread = threading.Thread(target=lambda: asyncio.run(self._main()), daemon=True)
+
+    async def _main(self) -> None:
+        self.loop, self.stop = asyncio.get_running_loop(), asyncio.Event()
+        host = PluginHost(self.config)
+        async with Runtime(self.config, plugins=host) as rt:
+            self.rt = rt
+            servers = [
+                ControlServer(rt, host, self.path),
+                ControlServer(rt, host, self.ro_path, read_only=True),
+            ]
+            for server in servers:
+                await server.start()
+            self.servers = servers
+            self.ready.set()
+            await self.stop.wait()
+            for server in servers:
+                await server.close()
+
+    def on_loop(self, fn: Any, *args: Any) -> Any:
+        """Run fn on the runtime's loop and return its result (state is the loop's)."""
+        assert self.loop is not None
+
+        async def run() -> Any:
+            return fn(*args)
+
+        return asyncio.run_coroutine_threadsafe(run(), self.loop).result(5)
+
+    def __enter__(self) -> Served:
+        self.thread.start()
+        assert self.ready.wait(10)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        assert self.loop is not None and self.stop is not None
+        self.loop.call_soon_threadsafe(self.stop.set)
+        self.thread.join(10)
+
+
+@pytest.fixture
+def served(tmp_path: Path) -> Iterator[Served]:
+    with Served(tmp_path) as s:
+        yield s
+
+
+def raw(path: Path, *lines: bytes) -> list[dict[str, Any]]:
+    """Send raw lines; read one reply per line (JSON-RPC notifications get none)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(5)
+        sock.connect(str(path))
+        sock.sendall(b"".join(lines))
+        reader = sock.makefile("rb")
+        return [json.loads(reader.readline()) for _ in lines]
+
+
+def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None:
+    client = ControlClient(served.path)
+    try:
+        hello = client.call("hello")
+        assert hello["protocol"] == rpc.PROTOCOL and hello["units"] == ["left", "right"]
+        assert client.call("command", unit="left", text="SERVO ON ON") == {"response": ""}
+        assert client.call("command", units=["left"], text="FOO") == {
+            "response": "Invalid Command."
+        }
+        state = client.call("state")
+        left = state["units"]["left"]
+        assert "AY_SERVO_ON" in left["inputs"]["names"] and left["protocol"] == "2021"
+        assert state["units"]["right"]["protocol"] == "2023"
+        assert all(line.startswith(("left:", "right:")) for line in status_lines(state))
+        with pytest.raises(RunError, match="no unit named 'middle'"):
+            client.call("command", unit="middle", text="SERVO ON ON")
+    finally:
+        client.close()
+
+
+def test_a_clients_motion_is_an_arbitrated_input_that_lets_go_when_it_leaves(
+    served: Served,
+) -> None:
+    client = ControlClient(served.path)
+    for text in ("SERVO ON ON", "START ON ON"):
+        client.call("command", units=["left", "right"], text=text)
+    reply = client.call("velocity", unit="right", ay=120.0, bx=-30.0)
+    assert reply == {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
+    assert served.rt is not None
+    sup = served.rt.supervisor
+    arbiter = served.rt.plugins.arbiter if served.rt.plugins else None
+    assert arbiter is not None
+    source = served.on_loop(lambda: arbiter.sources["client1"])
+    assert (source.units, source.priority, source.timeout) == (
+        ("right",),
+        CLIENT_PRIORITY,
+        CLIENT_TIMEOUT_S,
+    )
+    assert served.on_loop(
+        lambda: (sup.units["right"].setpoint.ay, sup.units["right"].setpoint.bx)
+    ) == (
+        120.0,
+        -30.0,
+    )
+    with pytest.raises(RunError, match="'ay' must be a finite number"):
+        client.call("velocity", unit="right", ay="fast", bx=0)
+    client.close()  # leaving lets go: its unit stops at once
+
+    def settled() -> bool:
+        return "client1" not in arbiter.sources
+
+    for _ in range(1000):  # the loop notices the closed socket; no timing involved
+        if served.on_loop(settled):
+            break
+    assert served.on_loop(lambda: sup.units["right"].setpoint.ay) == 0.0
+
+
+def test_read_only_clients_see_but_cannot_command(served: Served) -> None:
+    replies = raw(
+        served.ro_path,
+        b'{"jsonrpc":"2.0","id":1,"method":"hello"}\n',
+        b'{"jsonrpc":"2.0","id":2,"method":"command","params":{"unit":"left","text":"SERVO ON ON"}}\n',
+        b'{"jsonrpc":"2.0","id":3,"method":"estop"}\n',
+    )
+    assert replies[0]["result"]["read_only"] is True
+    assert replies[1]["error"]["code"] == rpc.READ_ONLY == replies[2]["error"]["code"]
+    assert served.rt is not None and not served.rt.supervisor.estop
+
+
+def test_estop_from_a_client_reaches_every_unit(served: Served) -> None:
+    assert served.rt is not None
+    rt, sup = served.rt, served.rt.supervisor
+    client = ControlClient(served.path)
+    for text in ("SERVO ON ON", "START ON ON", "VEL 100 100"):
+        client.call("command", units=["left", "right"], text=text)
+    client.call("estop")
+
+    async def next_exchanges() -> bool:
+        since = sup.clock()
+        return all(await asyncio.gather(*(sup.wait_exchange(u, since, 1) for u in sup.units)))
+
+    assert served.loop is not None
+    assert asyncio.run_coroutine_threadsafe(next_exchanges(), served.loop).result(5)
+    for drive in rt.sims["b"].drives.values():  # what the drives were last told
+        assert drive.cmd_raw == (0, 0) and not drive.inputs & drive.layout.start.both
+    with pytest.raises(RunError, match="emergency stop is latched"):
+        client.call("twist", units=["left"], linear_x=0.1, angular_z=0.0)
+    assert client.call("command", unit="left", text="START ON ON") == {
+        "response": "Packet Error: 3"
+    }
+    client.call("clear_estop")
+    client.close()
+
+
+def test_events_and_state_are_pushed_to_subscribers(served: Served) -> None:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(5)
+        sock.connect(str(served.path))
+        reader = sock.makefile("rb")
+        sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe",
+                                 "params": {"events": True, "state_hz": 20}}))  # fmt: skip
+        assert json.loads(reader.readline())["result"] == {"events": True, "state_hz": 20}
+        sock.sendall(b'{"jsonrpc":"2.0","method":"estop"}\n')  # a notification: no reply
+        states, events = 0, list[dict[str, Any]]()
+        while not states or not any("EMERGENCY STOP" in e["text"] for e in events):
+            message = json.loads(reader.readline())
+            if message["method"] == "state":
+                states += 1
+                assert set(message["params"]["units"]) == {"left", "right"}
+            else:
+                assert message["method"] == "event"
+                events.append(message["params"])
+        assert all(e["level"] in {"INFO", "WARNING", "ERROR", "CRITICAL"} for e in events)
+
+
+# ---------------------------------------------------------------- hostile input
+
+JUNK = st.one_of(
+    st.binary(max_size=300).map(lambda b: b.replace(b"\n", b" ") + b"\n"),
+    st.recursive(
+        st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+        max_leaves=12,
+    ).map(lambda v: json.dumps({"jsonrpc": "2.0", "id": 7, "method": "command", "params": v}).encode() + b"\n"),
+    st.builds(
+        lambda m, p: json.dumps({"jsonrpc": "2.0", "id": 7, "method": m, "params": p}).encode() + b"\n",
+        st.sampled_from(["twist", "velocity", "current", "command", "subscribe", "x", ""]),
+        st.dictionaries(
+            st.sampled_from(["unit", "units", "ay", "bx", "linear_x", "angular_z", "text", "state_hz"]),
+            st.none() | st.booleans() | st.floats() | st.text(max_size=10) | st.lists(st.text(max_size=5)),
+            max_size=5,
+        ),
+    ),
+)  # fmt: skip
+
+
+def test_malformed_messages_get_an_error_never_a_crash(served: Served) -> None:
+    @settings(max_examples=150, deadline=None)
+    @given(lines=st.lists(JUNK, min_size=1, max_size=5))
+    def attack(lines: list[bytes]) -> None:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(5)
+            sock.connect(str(served.path))
+            reader = sock.makefile("rb")
+            for line in lines:
+                sock.sendall(line)
+                if not line.strip():
+                    continue  # blank lines are skipped, as between messages
+                reply = json.loads(reader.readline())
+                assert ("error" in reply) != ("result" in reply)
+                if "error" in reply:
+                    assert isinstance(reply["error"]["code"], int) and reply["error"]["message"]
+
+    attack()
+    client = ControlClient(served.path)  # and it still serves
+    assert client.call("hello")["protocol"] == rpc.PROTOCOL
+    client.close()
+
+
+def test_an_over_long_line_is_refused(served: Served) -> None:
+    reply = raw(served.path, b"x" * (rpc.MAX_LINE + 10) + b"\n")[0]
+    assert reply["error"]["code"] == rpc.INVALID_REQUEST
+
+
+# ---------------------------------------------------------------- who may connect
+
+
+def test_the_socket_is_private_to_its_owner(served: Served) -> None:
+    assert stat.S_IMODE(served.path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(served.path.parent.stat().st_mode) == 0o700
+    if os.getuid() != 0:
+        return  # only root can become another user to try
+    os.chmod(served.path.parent.parent, 0o755)  # pytest's tmp dirs are private themselves
+    pid = os.fork()
+    if pid == 0:  # the child becomes nobody and tries
+        code = 1
+        try:
+            os.setgid(65534)
+            os.setuid(65534)
+            with socket.socket(socket.AF_UNIX) as sock:
+                sock.connect(str(served.path))
+        except PermissionError:
+            code = 3
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 3  # refused by the file's permissions
+
+
+def test_a_live_socket_is_not_taken_over_and_a_stale_one_is_removed(
+    served: Served, tmp_path: Path
+) -> None:
+    with pytest.raises(RunError, match="another supervisor is serving it"):
+        paths.remove_stale(served.path)
+    stale = tmp_path / "stale.sock"
+    sock = socket.socket(socket.AF_UNIX)
+    sock.bind(str(stale))
+    sock.close()  # bound, never listening: what a killed supervisor leaves
+    paths.remove_stale(stale)
+    assert not stale.exists()
+    not_a_socket = tmp_path / "file.sock"
+    not_a_socket.write_text("x")
+    with pytest.raises(RunError, match="not a socket"):
+        paths.remove_stale(not_a_socket)
