@@ -297,3 +297,60 @@ def test_a_live_socket_is_not_taken_over_and_a_stale_one_is_removed(
     not_a_socket.write_text("x")
     with pytest.raises(RunError, match="not a socket"):
         paths.remove_stale(not_a_socket)
+
+
+def test_status_and_send_against_a_headless_run(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    root = Path(__file__).parent.parent
+    sock = tmp_path / "run" / "demo.sock"
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "abh3_supervisor",
+            "run",
+            "configs/demo.yaml",
+            "--headless",
+            "--socket",
+            str(sock),
+            "--status-interval",
+            "0",
+        ],  # fmt: skip
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=root,
+    )
+    assert run.stderr is not None
+    try:
+        for line in run.stderr:
+            if "unit right: online" in line:  # serving starts before: both are up now
+                break
+
+        def abh3(*args: str) -> subprocess.CompletedProcess[str]:
+            cmd = [sys.executable, "-m", "abh3_supervisor", *args, "--connect", str(sock)]
+            return subprocess.run(cmd, capture_output=True, text=True, cwd=root, timeout=30)
+
+        status = abh3("status")
+        assert status.returncode == 0, status.stderr
+        assert status.stdout.startswith("left: online")
+        sent = abh3("send", "VEL 100 0", "--unit", "left")
+        assert (sent.returncode, sent.stdout) == (0, "''\n")
+        bad = abh3("send", "SELECT ² 7", "--unit", "left")
+        assert (bad.returncode, bad.stdout) == (1, "'Invalid Command.'\n")
+        state = json.loads(abh3("status", "--json").stdout)
+        assert state["units"]["left"]["setpoint"]["ay"] == 100.0
+    finally:
+        run.terminate()
+        rest = run.stderr.read()
+        assert run.wait(30) == 0, rest
+    assert rest.count("stop frame confirmed by the drive") == 2
+    assert not sock.exists()  # removed on the way out
+    gone = subprocess.run(
+        [sys.executable, "-m", "abh3_supervisor", "status", "--connect", str(sock)],
+        capture_output=True,
+        text=True,
+        cwd=root,
+    )
+    assert gone.returncode == 1 and "no supervisor serves" in gone.stderr
