@@ -305,19 +305,9 @@ def test_status_and_send_against_a_headless_run(tmp_path: Path) -> None:
 
     root = Path(__file__).parent.parent
     sock = tmp_path / "run" / "demo.sock"
+    serve = ["--headless", "--socket", str(sock), "--status-interval", "0"]
     run = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "abh3_supervisor",
-            "run",
-            "configs/demo.yaml",
-            "--headless",
-            "--socket",
-            str(sock),
-            "--status-interval",
-            "0",
-        ],  # fmt: skip
+        [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", *serve],
         stderr=subprocess.PIPE,
         text=True,
         cwd=root,
