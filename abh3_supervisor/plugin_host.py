@@ -18,6 +18,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from collections.abc import Callable
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, cast
@@ -214,24 +215,10 @@ class PluginHost:
             )
 
     def _bounded(self, name: str, hook: str, deadline: float, **kwargs: Any) -> str | None:
-        """Run one plugin's lifecycle hook on a thread of its own for at most ``deadline``
-        seconds; what went wrong, or None. A plugin that blocks is left behind (its thread
-        is a daemon), so it can hold up neither the buses nor the way out."""
-        failure: list[str] = []
-
-        def run() -> None:
-            try:
-                self._caller(name, hook)(**kwargs)
-            except Exception as exc:
-                failure.append(repr(exc))
-                log.debug("plugin %s failed in %s", name, hook, exc_info=True)
-
-        thread = threading.Thread(target=run, name=f"plugin {name} {hook}", daemon=True)
-        thread.start()
-        thread.join(deadline)
-        if thread.is_alive():
-            return f"did not return within {deadline:g} s"
-        return failure[0] if failure else None
+        """Run one plugin's lifecycle hook with a deadline (see :func:`bounded`)."""
+        return bounded(
+            f"plugin {name} {hook}", deadline, lambda: self._caller(name, hook)(**kwargs)
+        )
 
     def _output_failed(self, name: str, exc: OSError) -> None:
         """Its output failed (disk full): one clear line, no traceback; the plugin writes
@@ -365,15 +352,15 @@ class PluginHost:
             self._timer.close()
         if self.arbiter is not None:
             self.arbiter.closed = True  # calls still queued are dropped
-        for source in self.sources:
-            try:
-                source.stop()
-            except Exception as exc:
-                log.error("input %s failed to stop: %r", source.name, exc)
 
     def stop(self, sup: Supervisor, timeout: float = 5.0) -> None:
-        """Last on the way out (drives already stopped): drain queues, then abh3_stop."""
+        """Last on the way out (drives already stopped): input sources let go of their
+        devices, queues drain, then abh3_stop — each with a deadline."""
         self.stop_inputs()
+        for source in self.sources:  # after the stop frames: a source stuck here delays
+            problem = bounded(f"input {source.name} stop", STOP_DEADLINE_S, source.stop)
+            if problem is not None:  # nothing that moves a motor
+                log.error("input %s failed to stop: %s", source.name, problem)
         for worker in self.workers.values():
             worker.close(timeout)
         self.workers.clear()
@@ -381,6 +368,29 @@ class PluginHost:
             problem = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=sup)
             if problem is not None:
                 log.error("plugin %s failed in abh3_stop: %s", name, problem)
+
+
+def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None:
+    """Run ``fn`` on a thread of its own for at most ``deadline`` seconds; what went wrong,
+    or None. What blocks is left behind (a daemon thread), so it can hold up neither the
+    buses nor the way out; the wait is sliced so a signal is handled at once."""
+    failure: list[str] = []
+
+    def run() -> None:
+        try:
+            fn()
+        except Exception as exc:
+            failure.append(repr(exc))
+            log.debug("%s failed", label, exc_info=True)
+
+    thread = threading.Thread(target=run, name=label, daemon=True)
+    thread.start()
+    end = time.monotonic() + deadline
+    while thread.is_alive() and (left := end - time.monotonic()) > 0:
+        thread.join(min(left, 0.05))
+    if thread.is_alive():
+        return f"did not return within {deadline:g} s"
+    return failure[0] if failure else None
 
 
 def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:

@@ -26,13 +26,11 @@ from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
+from abh3_supervisor.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
-STOP_DEADLINE_S = 1.0  # stop frames are repeated until answered, at most this long
-STOP_RETRY_S = 0.05  # a stop frame not answered within this is sent again
 EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame
-CONFIRMED, SENT = "confirmed", "sent, not confirmed"  # else "NOT sent: <reason>"
 # every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
@@ -211,50 +209,8 @@ class Runtime:
         return all(outcome == CONFIRMED for outcome in self.stop_report.values())
 
     async def stop_drives(self) -> None:
-        """The stop frame to every commanded unit, repeated until each drive answers one or
-        ``STOP_DEADLINE_S`` passes; the outcome per unit is logged and kept in
-        :attr:`stop_report`."""
-        sup = self.supervisor
-        sup.safe_state()
-        loop = asyncio.get_running_loop()
-        since = loop.time()
-        deadline = since + STOP_DEADLINE_S
-        waits = {
-            name: (bus, sup.expect_exchange(name, since))
-            for bus, scheduler in sup.schedulers.items()
-            for name, slot in scheduler.slots.items()
-            if slot.commanding
-        }
-        sent: set[str] = set()
-        refused: dict[str, str] = {}
-        try:
-            while True:
-                for name, (bus, answered) in waits.items():
-                    if answered.done():
-                        continue
-                    pump = self.pumps.get(bus)
-                    if pump is None:
-                        refused[name] = "the bus did not open"
-                        continue
-                    if pump.send(*sup.schedulers[bus].send_now(name, loop.time())):
-                        sent.add(name)
-                    else:
-                        refused[name] = pump.last_send_error or "the bus refused the frame"
-                waiting = [answered for _, answered in waits.values() if not answered.done()]
-                if not waiting or loop.time() >= deadline:
-                    break
-                await asyncio.wait(waiting, timeout=min(STOP_RETRY_S, deadline - loop.time()))
-        finally:
-            for name, (_, answered) in waits.items():
-                if answered.done() and not answered.cancelled():
-                    outcome = CONFIRMED
-                else:
-                    answered.cancel()
-                    outcome = SENT if name in sent else f"NOT sent: {refused.get(name, '?')}"
-                self.stop_report[name] = outcome
-                level = logging.INFO if outcome == CONFIRMED else logging.ERROR
-                by = " by the drive" if outcome == CONFIRMED else ""
-                log.log(level, "unit %s: stop frame %s%s", name, outcome, by)
+        """The stop path (:mod:`.stopping`); the outcome per unit in :attr:`stop_report`."""
+        self.stop_report = await stop_drives(self.supervisor, self.pumps)
 
     def _close(self) -> None:
         for pump in [*self.pumps.values(), *self._sim_pumps]:

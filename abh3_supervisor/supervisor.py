@@ -102,6 +102,9 @@ class Supervisor:
     def subscribe(self, observer: Observer) -> None:
         self._observers.append(observer)
 
+    def unsubscribe(self, observer: Observer) -> None:
+        self._observers.remove(observer)
+
     def _emit(self, event: SupervisorEvent) -> None:
         for observer in list(self._observers):
             try:

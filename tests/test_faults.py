@@ -15,7 +15,7 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.headless import run_headless
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.scheduler.core import GapEvent, HealthEvent, MalformedEvent
+from abh3_supervisor.scheduler.core import BusScheduler, GapEvent, HealthEvent, MalformedEvent
 from abh3_supervisor.supervisor import FlagChange, Notice
 from tests.conftest import TWO_UNITS, Rig
 
@@ -289,3 +289,74 @@ def test_a_fault_that_prevents_a_stop_ends_with_exit_3(caplog: pytest.LogCapture
     assert code == 3
     assert "unit right: stop frame sent, not confirmed" in caplog.text
     assert "unit left: stop frame confirmed by the drive" in caplog.text
+
+
+@pytest.mark.parametrize("outage", [0.41, 0.45, 0.49, 0.6])
+def test_the_first_frame_after_a_gap_never_carries_the_old_command(outage: float) -> None:
+    """At 10 Hz the first frame after an outage may be the one that reveals the gap."""
+    config = parse_config(
+        """
+buses: {b: {interface: virtual, channel: t, simulate: true}}
+units:
+  - {name: u, abh3_id: 1, command_rate_hz: 10, broadcast: {mask: 0x01, rate_hz: 1}}
+""",
+        "g.yaml",
+    )
+    rig = Rig(config)
+    for text in ("SERVO ON ON", "START ON ON", "VEL 300 0"):
+        assert rig.sup.apply_text("u", text) == ""
+    rig.run(1.0)
+    assert rig.drive("u").vel[0] > 250
+    start = rig.timeline.now
+    rig.timeline.refuse_sends(SCHEDULER, start, start + outage)
+    rig.run(2.0)
+    cmd_id = ids.dp0_command_id(1, 2)
+    after = [
+        frames.decode_dp0_command(f.data, rig.config.units["u"].protocol)
+        for f in rig.timeline.frames
+        if f.arbitration_id == cmd_id and f.start >= start + 0.495
+    ]
+    assert after and all(isinstance(c, frames.Dp0Command) and c.cmd_ay == 0 for c in after)
+    assert max(map(abs, rig.drive("u").vel)) < 1.0
+
+
+def test_a_stalled_host_sends_zero_first_when_it_wakes_after_the_gap() -> None:
+    """kill -STOP, a frozen loop: the poll that reveals the gap also sends a command."""
+    config = parse_config(TWO_UNITS, "two.yaml")
+    sched = BusScheduler(config.units_on("b"), 0.0)
+    moving = frames.encode_dp0_command(1500, 0, 0x00073073)  # 300 min⁻¹, servo + start
+    sched.set_payload("left", moving)
+    sent = dict(sched.poll(0.0))
+    assert sent[ids.dp0_command_id(1, 2)] == moving
+    sched.on_frame(ids.dp0_reply_id(1, 2), bytes(8), 0.001)  # answered: the drive had it
+    late = dict(sched.poll(1.2))  # the host wakes 1.2 s later: past the drive's timeout
+    assert late[ids.dp0_command_id(1, 2)] == bytes(4) + moving[4:]  # zero, inputs kept
+    assert any(isinstance(e, GapEvent) and e.started for e in sched.drain_events())
+
+
+def test_the_simulated_drive_keeps_its_units_drive_timeout() -> None:
+    config = parse_config(
+        """
+buses: {b: {interface: virtual, channel: t, simulate: true}}
+units:
+  - {name: u, abh3_id: 1, drive_timeout_ms: 750}
+  - {name: v, abh3_id: 3}
+""",
+        "d.yaml",
+    )
+    rig = Rig(config)
+    assert (rig.drive("u").command_zero_ms, rig.drive("v").command_zero_ms) == (750, 500)
+    for text in ("SERVO ON ON", "START ON ON", "VEL 300 0"):
+        rig.sup.apply_text("u", text)
+    rig.run(1.0)
+    start = rig.timeline.now
+    rig.timeline.refuse_sends(SCHEDULER, start, start + 0.6)  # within 750 ms: no gap
+    rig.run(1.0)
+    gaps = [e.unit for e in rig.events if isinstance(e, GapEvent) and e.started]
+    assert gaps == ["v"]  # 500 ms: v's drive stopped itself; u's (750 ms) did not
+    assert rig.drive("u").vel[0] > 250  # so u runs on
+    rig.timeline.refuse_sends(SCHEDULER, rig.timeline.now, rig.timeline.now + 0.9)
+    rig.run(2.0)
+    gaps = [e.unit for e in rig.events if isinstance(e, GapEvent) and e.started]
+    assert sorted(gaps) == ["u", "v", "v"]
+    assert max(map(abs, rig.drive("u").vel)) < 1.0  # and after a longer one it stays put

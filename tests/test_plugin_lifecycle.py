@@ -7,6 +7,7 @@ import logging
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -14,8 +15,10 @@ from abh3_supervisor import plugin_host
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import PluginError
 from abh3_supervisor.hookspecs import hookimpl
+from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import CONFIRMED, Runtime
+from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.stopping import CONFIRMED
 from tests.conftest import TWO_UNITS
 
 CONFIG = parse_config(TWO_UNITS, "t.yaml")
@@ -123,3 +126,54 @@ def test_a_plugin_blocking_in_stop_is_left_behind_with_the_drives_stopped(
         assert (tmp_path / "r.log").stat().st_size > 0  # closed after the stop frames
     finally:
         blocks.release.set()
+
+
+class StuckSource(InputSource):
+    """An input whose device will not let go."""
+
+    def __init__(self) -> None:
+        super().__init__("stuck", ("left",))
+        self.release = threading.Event()
+        self.feed: InputFeed | None = None
+
+    def start(self, feed: InputFeed) -> None:
+        self.feed = feed
+
+    def stop(self) -> None:
+        self.release.wait()
+
+
+class ProvidesStuck:
+    def __init__(self) -> None:
+        self.source = StuckSource()
+
+    @hookimpl
+    def abh3_input_sources(self, register: Any) -> None:
+        register(self.source)
+
+
+def test_an_input_whose_stop_blocks_cannot_keep_the_drives_running(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(plugin_host, "STOP_DEADLINE_S", 0.2)
+    plugin = ProvidesStuck()
+    rt = Runtime(CONFIG, plugins=host_with(("stuck", plugin)))
+
+    async def scenario() -> None:
+        async with rt:
+            sup = rt.supervisor
+            for text in ("SERVO ON ON", "START ON ON"):
+                assert await sup.command("left", text) == ""
+            assert plugin.source.feed is not None
+            plugin.source.feed.velocity(100.0, 0.0)
+            await sup.wait_exchange("left", sup.clock(), 1)
+
+    try:
+        with caplog.at_level(logging.INFO):
+            asyncio.run(scenario())
+        assert rt.stop_report == {"left": CONFIRMED, "right": CONFIRMED}  # stopped first
+        left = rt.sims["b"].drives[1]
+        assert left.cmd_raw == (0, 0) and not left.inputs & left.layout.servo.both
+        assert "input stuck failed to stop: did not return within 0.2 s" in caplog.text
+    finally:
+        plugin.source.release.set()

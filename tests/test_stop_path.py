@@ -11,8 +11,9 @@ import can
 import pytest
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.runtime import CONFIRMED, SENT, Runtime
+from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.simulator.drive import SimDrive
+from abh3_supervisor.stopping import CONFIRMED, SENT
 from tests.conftest import TWO_UNITS
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
@@ -128,3 +129,28 @@ def test_stops_that_cannot_be_confirmed_say_so_per_unit() -> None:
     assert_safe(rt.sims["b"].drives[3])  # it heard the stop, though it did not answer
     left = rt.sims["b"].drives[1]
     assert left.inputs & left.layout.start.both  # never heard: only its own timeout stops it
+
+
+def test_a_late_reply_to_an_earlier_command_does_not_confirm_the_stop() -> None:
+    """A slow drive answers a command sent before the stop after the stop frame went out:
+    that reply shows the drive still running, so it confirms nothing."""
+    rt = Runtime(CONFIG)
+
+    async def scenario() -> None:
+        async with rt:
+            await moving(rt)
+            for drive in drives(rt):
+                drive.extra_delay = 0.5  # replies come late from now on
+            stats = rt.supervisor.schedulers["b"].slots["left"].stats
+            sent = stats.commands_sent
+            while stats.commands_sent < sent + 3:  # commands go out whose late replies
+                await asyncio.sleep(0.01)  # will arrive during the stop
+            for drive in drives(rt):
+                drive.extra_delay = 2.0  # and the stop frames' replies after the deadline
+
+    asyncio.run(scenario())
+    # within the 1 s deadline only replies to commands before the stop arrive, reporting
+    # the drives still running: not confirmed (before, any reply counted)
+    assert rt.stop_report == {"left": SENT, "right": SENT}
+    for drive in drives(rt):
+        assert_safe(drive)  # though the drives did take the stop

@@ -56,7 +56,9 @@ class Fault:
 class SimConfig:
     """Built-in simulator options (see docs/configuration.md)."""
 
-    command_zero_timeout_ms: int = 500
+    # None: each simulated drive has its unit's drive_timeout_ms (what the file says the
+    # drive is set to); a number sets every drive on the bus, e.g. to rehearse a mismatch
+    command_zero_timeout_ms: int | None = None
     error_timeout_ms: int = 1000
     accel: float = 3000.0  # min⁻¹ per second, both directions
     reply_latency_ms: float = 0.2

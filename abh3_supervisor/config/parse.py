@@ -154,8 +154,10 @@ def _simulate(b: Section) -> SimConfig | None:
     s = b.sub("simulate", SIM_KEYS)
     d = SimConfig()
     return SimConfig(
-        command_zero_timeout_ms=s.integer(
-            "command_zero_timeout_ms", d.command_zero_timeout_ms, 0, 60_000
+        command_zero_timeout_ms=(
+            s.integer("command_zero_timeout_ms", 0, 0, 60_000)
+            if s.has("command_zero_timeout_ms")
+            else d.command_zero_timeout_ms
         ),
         error_timeout_ms=s.integer("error_timeout_ms", d.error_timeout_ms, 0, 60_000),
         accel=s.number("accel", d.accel, 0, 1e6, lo_open=True),

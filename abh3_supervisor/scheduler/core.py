@@ -78,6 +78,9 @@ class MalformedEvent:
 
 Event = FeedbackEvent | StatusEvent | HealthEvent | GapEvent | MalformedEvent
 VALID_LENGTH = 8  # every DP0 reply and broadcast 0-6 carries 8 bytes (doc §3)
+# a gap is declared this much before the drive's own timeout would fire, so a frame on its
+# way when the timeout passes cannot reach a drive that has already stopped itself
+GAP_MARGIN = 0.005
 
 
 class UnitSlot:
@@ -141,7 +144,14 @@ class UnitSlot:
     def gap_due(self) -> float:
         if not self.commanding or self.gap or self.heard_at is None:
             return math.inf
-        return self.heard_at + self.drive_timeout
+        return self.heard_at + self.drive_timeout - GAP_MARGIN
+
+    def zero_command(self) -> None:
+        """The drive stopped itself (gap, offline): the very next frame must not carry the
+        old command, so its command fields are zeroed here, before anything is sent; the
+        input bits stay (the supervisor zeroes its setpoint too, when it hears of it)."""
+        if self.commanding:
+            self.payload = bytes(4) + self.payload[4:]
 
     def command_interval(self) -> float:
         # an offline unit is only probed once per timeout, so it costs the bus little
@@ -292,10 +302,12 @@ class BusScheduler:
         if now >= slot.gap_due():  # as in next_deadline
             slot.gap = True
             slot.stats.gaps += 1
+            slot.zero_command()
             self.events.append(GapEvent(slot.cfg.name, now, True))
         last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
         if slot.online is not False and now >= last + slot.timeout:  # as in next_deadline
             slot.online = False
+            slot.zero_command()
             self.events.append(HealthEvent(slot.cfg.name, now, False))
 
     def next_deadline(self) -> float:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import replace
 
 from abh3_supervisor.config.model import SimConfig, UnitConfig
 from abh3_supervisor.protocol.ids import ADDR_ALL
@@ -23,13 +24,18 @@ class SimBus:
 
     @classmethod
     def for_units(cls, units: Iterable[UnitConfig], cfg: SimConfig, now: float) -> SimBus:
+        def drive_cfg(u: UnitConfig) -> SimConfig:
+            if cfg.command_zero_timeout_ms is not None:
+                return cfg
+            return replace(cfg, command_zero_timeout_ms=u.drive_timeout_ms)
+
         return cls(
             SimDrive(
                 u.abh3_id,
                 group=u.brd_group,
                 generation=u.protocol,
                 model=u.velocity_model,
-                cfg=cfg,
+                cfg=drive_cfg(u),
                 now=now,
                 faults=tuple(f for f in cfg.faults if f.unit in (None, u.name)),
             )

@@ -14,6 +14,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+from dataclasses import replace
 
 from abh3_supervisor.config.model import Fault, FaultKind, SimConfig, VelocityModel
 from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
@@ -48,7 +49,11 @@ class SimDrive:
     ) -> None:
         self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
         self.layout = flags.layout(generation)  # a word of the other generation misleads it
-        self.cfg = cfg or SimConfig()
+        cfg = cfg or SimConfig()
+        if cfg.command_zero_timeout_ms is None:  # a drive on its own: the seed's setting
+            cfg = replace(cfg, command_zero_timeout_ms=500)
+        self.cfg = cfg
+        self.command_zero_ms: int = cfg.command_zero_timeout_ms or 0
         self.inputs = 0
         self.cmd_raw = (0, 0)  # last AY/BX command as written
         self.vel = [0.0, 0.0]  # motor A, B [min⁻¹]
@@ -143,7 +148,7 @@ class SimDrive:
         # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
         last = self.last_command if self.last_command is not None else self.started
         deadline = math.inf
-        for ms in (self.cfg.command_zero_timeout_ms, self.cfg.error_timeout_ms):
+        for ms in (self.command_zero_ms, self.cfg.error_timeout_ms):
             if ms and self.t < last + ms / 1000 < deadline:
                 deadline = last + ms / 1000
         return deadline
@@ -180,7 +185,7 @@ class SimDrive:
         )
 
     def alarm_word(self) -> int:
-        cz = self._silence(self.cfg.command_zero_timeout_ms)
+        cz = self._silence(self.command_zero_ms)
         return self.alarms | (flags.CAN_COMM_ERROR if cz else 0)
 
     def _servo(self, axis: int) -> bool:
@@ -188,7 +193,7 @@ class SimDrive:
         return bool(self.inputs & bit) and not self.error_word() and not self.servo_blocked
 
     def _started(self, axis: int) -> bool:
-        cz = self._silence(self.cfg.command_zero_timeout_ms)
+        cz = self._silence(self.command_zero_ms)
         return self._servo(axis) and bool(self.inputs & self.layout.start.of(axis)) and not cz
 
     def _brake_released(self) -> bool:

@@ -1,0 +1,110 @@
+"""The stop path: every commanded unit's stop frame, repeated until its drive reports the
+stop, or the deadline passes; what became of each unit is said, never assumed.
+
+A reply alone proves nothing: DP0 replies carry no sequence number, and a slow drive's
+reply to a command sent before the stop can arrive after it. A stop is *confirmed* when
+the drive itself reports SERVO and START off in its control word — the 2023 DP0 reply
+carries it; a 2021 drive is asked for broadcast 1 with every stop frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import TYPE_CHECKING
+
+from abh3_supervisor.protocol import frames
+from abh3_supervisor.scheduler.core import FeedbackEvent, StatusEvent
+
+if TYPE_CHECKING:
+    from abh3_supervisor.scheduler.pump import BusPump
+    from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
+
+log = logging.getLogger(__name__)
+STOP_DEADLINE_S = 1.0  # stop frames are repeated until confirmed, at most this long
+STOP_RETRY_S = 0.05  # a stop not confirmed within this is sent again
+CONFIRMED, SENT = "confirmed", "sent, not confirmed"  # else "NOT sent: <reason>"
+
+
+def reported_control(event: SupervisorEvent) -> int | None:
+    """The control word a drive reports in this event, if it carries one."""
+    if isinstance(event, FeedbackEvent) and isinstance(event.reply, frames.Dp0Reply2023):
+        return event.reply.control
+    if isinstance(event, StatusEvent) and isinstance(event.record, frames.Brd1):
+        return event.record.control  # 2021 (None in 2023: its broadcast 1 has none)
+    return None
+
+
+async def stop_drives(sup: Supervisor, pumps: dict[str, BusPump]) -> dict[str, str]:
+    """Zero in the safe word to every commanded unit, until confirmed or the deadline;
+    the outcome per unit (:data:`CONFIRMED`, :data:`SENT` or ``NOT sent: …``), logged."""
+    sup.safe_state()
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + STOP_DEADLINE_S
+    units = {
+        name: bus
+        for bus, scheduler in sup.schedulers.items()
+        for name, slot in scheduler.slots.items()
+        if slot.commanding
+    }
+    confirmed = {name: loop.create_future() for name in units}
+
+    def watch(event: SupervisorEvent) -> None:
+        control = reported_control(event)
+        unit = getattr(event, "unit", None)
+        if control is None or unit not in confirmed or confirmed[unit].done():
+            return
+        layout = sup.units[unit].layout
+        if not control & (layout.servo.both | layout.start.both):
+            confirmed[unit].set_result(True)
+
+    sup.subscribe(watch)
+    sent: set[str] = set()
+    refused: dict[str, str] = {}
+    try:
+        while True:
+            for name, bus in units.items():
+                if not confirmed[name].done():
+                    _send_stop(sup, pumps.get(bus), name, sent, refused)
+            waiting = [f for f in confirmed.values() if not f.done()]
+            if not waiting or loop.time() >= deadline:
+                break
+            await asyncio.wait(waiting, timeout=min(STOP_RETRY_S, deadline - loop.time()))
+    finally:
+        sup.unsubscribe(watch)
+    return _report(confirmed, sent, refused)
+
+
+def _send_stop(
+    sup: Supervisor, pump: BusPump | None, name: str, sent: set[str], refused: dict[str, str]
+) -> None:
+    if pump is None:
+        refused[name] = "the bus did not open"
+        return
+    unit = sup.units[name]
+    scheduler = sup.schedulers[unit.cfg.bus]
+    if pump.send(*scheduler.send_now(name, pump.loop.time())):
+        sent.add(name)
+    else:
+        refused[name] = pump.last_send_error or "the bus refused the frame"
+        return
+    if unit.layout.brd1_inputs is None:  # 2021: the control word is in broadcast 1
+        pump.send(*scheduler.slots[name].poll_frames[1])
+
+
+def _report(
+    confirmed: dict[str, asyncio.Future[bool]], sent: set[str], refused: dict[str, str]
+) -> dict[str, str]:
+    report = {}
+    for name, future in confirmed.items():
+        if future.done():
+            outcome = CONFIRMED
+        else:
+            future.cancel()
+            outcome = SENT if name in sent else f"NOT sent: {refused.get(name, '?')}"
+        report[name] = outcome
+        if outcome == CONFIRMED:
+            log.info("unit %s: stop frame confirmed by the drive (SERVO and START off)", name)
+        else:
+            log.error("unit %s: stop frame %s", name, outcome)
+    return report
