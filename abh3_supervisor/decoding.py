@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
@@ -17,13 +18,27 @@ from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.classify import AddressBook, DecodedFrame, Kind, classify
 
 
-def address_book(config: Config | None) -> AddressBook:
+def address_books(config: Config | None) -> dict[str, AddressBook]:
+    """One book per bus channel (addresses repeat across buses), and under ``""`` one for
+    frames that name no known channel: there an id counts only where all buses agree."""
     if config is None:
-        return AddressBook()
-    return AddressBook(
-        hosts=frozenset(u.host_id for u in config.units.values()),
-        generations={u.abh3_id: u.protocol for u in config.units.values()},
-    )
+        return {"": AddressBook()}
+    books: dict[str, AddressBook] = {}
+    for bus in config.buses.values():
+        units = config.units_on(bus.name)
+        books[bus.channel] = AddressBook(
+            hosts=frozenset(u.host_id for u in units) or frozenset({2}),
+            generations={u.abh3_id: u.protocol for u in units},
+        )
+    every = list(config.units.values())
+    generations = {u.abh3_id: u.protocol for u in every}
+    agreed = {
+        a: g
+        for a, g in generations.items()
+        if all(u.protocol is g for u in every if u.abh3_id == a)
+    }
+    books[""] = AddressBook(hosts=frozenset(u.host_id for u in every), generations=agreed)
+    return books
 
 
 def unit_names(config: Config | None) -> dict[tuple[str, int], str]:
@@ -169,11 +184,15 @@ def _binary_frames(
 
 
 def record(
-    msg: can.Message, book: AddressBook, names: dict[tuple[str, int], str]
+    msg: can.Message, books: dict[str, AddressBook], names: dict[tuple[str, int], str]
 ) -> dict[str, Any]:
+    book = books.get(str(msg.channel or "")) or books[""]
     frame = classify(msg.arbitration_id, bytes(msg.data), msg.is_extended_id, book)
+    if msg.is_remote_frame or msg.is_error_frame:  # an ABH3 sends neither: no payload
+        what = "remote frame" if msg.is_remote_frame else "error frame"
+        frame = DecodedFrame(Kind.UNKNOWN, frames.Unknown(what), frame.priority)
     out: dict[str, Any] = {
-        "t": msg.timestamp,
+        "t": msg.timestamp if math.isfinite(msg.timestamp) else None,  # JSON has no NaN
         "id": f"{msg.arbitration_id:08X}",
         "data": bytes(msg.data).hex(),
         "kind": frame.kind.value,
@@ -235,11 +254,12 @@ def line(rec: dict[str, Any]) -> str:
     named = " ".join(f"{k}[{','.join(v)}]" for k, v in rec["flags"].items() if v)
     arrow = {"host->drive": "→", "drive->host": "←"}.get(rec["direction"] or "", " ")
     kind = rec["kind"] + (f"{rec['packet']}" if rec["kind"] == Kind.BROADCAST else "")
-    return f"{rec['t']:.6f} {rec['id']} {arrow} {who:<8} {kind:<12} {vals} {named}".rstrip()
+    t = "?" if rec["t"] is None else f"{rec['t']:.6f}"
+    return f"{t} {rec['id']} {arrow} {who:<8} {kind:<12} {vals} {named}".rstrip()
 
 
 def decode_file(path: Path, config: Config | None, as_json: bool) -> Iterator[str]:
-    book, names = address_book(config), unit_names(config)
+    books, names = address_books(config), unit_names(config)
     for msg in read_messages(path):
-        rec = record(msg, book, names)
+        rec = record(msg, books, names)
         yield json.dumps(rec) if as_json else line(rec)

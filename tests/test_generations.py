@@ -90,3 +90,36 @@ def test_the_whole_wire_range_is_reachable(rig: Rig) -> None:
     assert rig.sup.set_current("left", -327.68, 327.67).clamped is False
     result = rig.sup.set_current("left", -400, 0)  # beyond the wire: scaled to it
     assert result.clamped and result.ay == pytest.approx(-327.68)
+
+
+def test_decode_keeps_buses_apart(tmp_path: Path) -> None:
+    """The same address on two buses, with different generations and hosts."""
+    config = parse_config(
+        """
+buses:
+  left: {interface: virtual, channel: dec-left, simulate: true}
+  right: {interface: virtual, channel: dec-right, simulate: true}
+units:
+  - {name: l21, bus: left, abh3_id: 1}
+  - {name: r23, bus: right, abh3_id: 1, host_id: 7, protocol: "2023"}
+  - {name: r2, bus: right, abh3_id: 2, host_id: 7, protocol: "2023"}
+""",
+        "two-buses.yaml",
+    )
+    record = tmp_path / "buses.log"
+
+    async def scenario() -> None:
+        async with Runtime(config, record=record) as rt:
+            sup = rt.supervisor
+            since = sup.clock()
+            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
+
+    asyncio.run(scenario())
+    decoded = [json.loads(line) for line in decode_file(record, config, as_json=True)]
+    commands = {r["unit"]: r for r in decoded if r["kind"] == "dp0_command"}
+    assert set(commands) == {"l21", "r23", "r2"}
+    for unit in ("l21", "r23", "r2"):
+        names = commands[unit]["flags"]["inputs"]
+        assert "AY_TORQUE" not in names and not any(n.startswith("bit") for n in names), unit
+    replies = {r["unit"] for r in decoded if r["kind"] == "dp0_reply"}
+    assert replies == {"l21", "r23", "r2"}  # r2's reply is no command to a drive "id7"

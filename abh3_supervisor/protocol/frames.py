@@ -190,7 +190,9 @@ def encode_monitors(monitor0: float, monitor1: float) -> bytes:
 
 
 def _short(data: bytes, need: int, what: str) -> Unknown | None:
-    if len(data) < need:
+    """8-byte frames are exactly 8 (a longer one is CAN FD or garbage, never a reply);
+    a request needs its 3 PGN bytes."""
+    if len(data) < need or (need == 8 and len(data) != 8):
         return Unknown(f"{what}: {len(data)} data bytes, expected {need}")
     return None
 
