@@ -75,7 +75,7 @@ units:
     geometry: {rate_num: 1, rate_den: 20, wheel: 0.2, width: 0.4}
     limits: {velocity: 1000, current: 50}
     data_select: {ay: 6, bx: 5}
-    startup: ["SERVO ON ON"]
+    startup: []  # a monitor unit takes no commands
 plugins:
   csv: {path: out.csv}
 """,
@@ -373,3 +373,18 @@ def test_a_monitor_does_not_feed_the_drive_timeout_but_offline_still_means_silen
 def test_timing_rules_wait_for_sound_values() -> None:
     # a broken rate is reported once, not again as a broken period
     assert len(problems(MINIMAL + "    command_rate_hz: fast\n")) == 1
+
+
+@pytest.mark.parametrize(
+    ("unit", "why"),
+    [
+        ("control: current, startup: ['VEL 100 100']", "needs TORQUE OFF OFF first"),
+        ("role: monitor, startup: ['SERVO ON ON']", "role: monitor and takes no commands"),
+        ("startup: ['TORQUE ON ON', 'VEL 1 1']", r"startup\[1\]: would be refused at start"),
+    ],
+)
+def test_startup_commands_that_would_be_refused_are_config_errors(unit: str, why: str) -> None:
+    text = f"buses: {{b: {{interface: virtual, channel: x}}}}\nunits:\n  - {{name: u, {unit}}}\n"
+    with pytest.raises(ConfigError, match=why) as info:
+        parse_config(text, "s.yaml")
+    assert info.value.problems[0].startswith("s.yaml:3: units[0].startup")

@@ -6,7 +6,7 @@ import re
 from pathlib import Path as FsPath
 from typing import Any
 
-from abh3_supervisor.commands import parse_command
+from abh3_supervisor.commands import RESPONSE_OK, parse_command
 from abh3_supervisor.config.faults import check_fault_units, parse_faults
 from abh3_supervisor.config.model import (
     BroadcastConfig,
@@ -19,7 +19,7 @@ from abh3_supervisor.config.model import (
     UnitConfig,
     VelocityModel,
 )
-from abh3_supervisor.config.source import Section, load_source, read_text
+from abh3_supervisor.config.source import Section, Source, load_source, read_text
 from abh3_supervisor.errors import CommandError, ConfigError
 from abh3_supervisor.kinematics import Geometry
 from abh3_supervisor.protocol.frames import Generation
@@ -87,7 +87,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     src.raise_if_problems()
-    return Config(
+    config = Config(
         file=file,
         buses=buses,
         units=units,
@@ -95,6 +95,31 @@ def parse_config(text: str, file: str = "<config>") -> Config:
         plugin_lines={name: src.line(("plugins", name)) for name, _ in plugins.items()},
         source=src,
     )
+    _dry_run_startup(src, config)
+    src.raise_if_problems()
+    return config
+
+
+def _dry_run_startup(src: Source, config: Config) -> None:
+    """Run every unit's ``startup:`` on a supervisor that sends nothing: a command that
+    would be refused at start (VEL in current control, anything on a monitor unit, VEL
+    after TORQUE ON ON) is a mistake in the file, said now rather than logged at start."""
+    from abh3_supervisor.supervisor import Notice, Supervisor, SupervisorEvent
+
+    sup = Supervisor(config, clock=lambda: 0.0)
+    reasons: list[str] = []
+
+    def keep(event: SupervisorEvent) -> None:
+        if isinstance(event, Notice):
+            reasons.append(event.message)
+
+    sup.subscribe(keep)
+    for index, (name, unit) in enumerate(config.units.items()):
+        for i, text in enumerate(unit.startup):
+            reasons.clear()
+            if sup.apply_text(name, text) != RESPONSE_OK:
+                why = reasons[-1] if reasons else "not a command"
+                src.error(("units", index, "startup", i), f"would be refused at start: {why}")
 
 
 def _buses(top: Section) -> dict[str, BusConfig]:
