@@ -13,6 +13,7 @@ one that blocks while stopping is abandoned, so the way out always ends.
 
 from __future__ import annotations
 
+import _thread
 import asyncio
 import logging
 import math
@@ -375,6 +376,10 @@ def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None
     or None. What blocks is left behind (a daemon thread), so it can hold up neither the
     buses nor the way out; the wait is sliced so a signal is handled at once."""
     failure: list[str] = []
+    # a bare lock, not Thread.join: a stop signal raised while we wait must land in this
+    # code, not inside the threading module (where the CLI defers it)
+    done = _thread.allocate_lock()
+    done.acquire()
 
     def run() -> None:
         try:
@@ -382,15 +387,15 @@ def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None
         except Exception as exc:
             failure.append(repr(exc))
             log.debug("%s failed", label, exc_info=True)
+        finally:
+            done.release()
 
-    thread = threading.Thread(target=run, name=label, daemon=True)
-    thread.start()
+    threading.Thread(target=run, name=label, daemon=True).start()
     end = time.monotonic() + deadline
-    while thread.is_alive() and (left := end - time.monotonic()) > 0:
-        thread.join(min(left, 0.05))
-    if thread.is_alive():
-        return f"did not return within {deadline:g} s"
-    return failure[0] if failure else None
+    while (left := end - time.monotonic()) > 0:
+        if done.acquire(timeout=min(left, 0.05)):
+            return failure[0] if failure else None
+    return f"did not return within {deadline:g} s"
 
 
 def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:

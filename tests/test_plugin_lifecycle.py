@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -177,3 +181,60 @@ def test_an_input_whose_stop_blocks_cannot_keep_the_drives_running(
         assert "input stuck failed to stop: did not return within 0.2 s" in caplog.text
     finally:
         plugin.source.release.set()
+
+
+SLOW_PLUGIN = """
+import sys, threading
+from abh3_supervisor.hookspecs import hookimpl
+
+class Slow:
+    @hookimpl
+    def abh3_configure(self, section):
+        pass
+
+    @hookimpl
+    def abh3_start(self):
+        print("slow: starting", file=sys.stderr, flush=True)
+        threading.Event().wait()
+"""
+RUN_WITH_SLOW = """
+import sys
+from importlib.metadata import EntryPoint
+import abh3_supervisor.plugin_host as host
+host.installed = lambda: {"slow": EntryPoint("slow", "slowplugin:Slow", "abh3_supervisor")}
+from abh3_supervisor.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_while_a_plugin_blocks_starting_ends_the_run_at_once(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    (tmp_path / "slowplugin.py").write_text(SLOW_PLUGIN)
+    (tmp_path / "run.py").write_text(RUN_WITH_SLOW)
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        TWO_UNITS.replace("channel: t", "channel: slowstart") + "plugins:\n  slow: {}\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, str(tmp_path / "run.py"), "run", str(config), "--headless",
+         "--no-socket", "--record", str(tmp_path / "r.log")],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"},
+    )  # fmt: skip
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if "slow: starting" in line:
+            break
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    rest = proc.stderr.read()
+    code = proc.wait(10)
+    assert time.monotonic() - sent < 1.5, rest  # at once, not at the 5 s start deadline
+    assert code == 128 + sig, rest
+    assert f"stopped by {sig.name} while starting; no drive was started" in rest
+    assert "Traceback" not in rest and "Exception ignored" not in rest
+    assert b"EF0" not in (tmp_path / "r.log").read_bytes().upper()  # not one command frame
