@@ -60,7 +60,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--headless",
         action="store_true",
-        help="no TUI: log events to stderr (the only mode so far)",
+        help="no TUI: log events to stderr (the default when stdin, stdout or stderr is "
+        "not a terminal)",
     )
     run.add_argument(
         "--duration",
@@ -268,12 +269,24 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
     for p in plans:
         if p.warning:
             log.warning("bus %s: %s", p.bus, p.warning)
-    if not args.headless and sys.stdin.isatty() and sys.stdout.isatty():
-        from abh3_supervisor.tui.app import run_tui
+    if args.record is not None:
+        from abh3_supervisor.recording import recording
 
-        release()  # the TUI handles its own keys and signals
-        return asyncio.run(
-            run_tui(config, record=args.record, plugins=plugins, duration=args.duration)
+        log.info("%s", recording(args.record))
+    if not args.headless:
+        # the TUI draws on stdout and stderr and reads stdin: all three must be terminals
+        streams = {"stdin": sys.stdin, "stdout": sys.stdout, "stderr": sys.stderr}
+        redirected = [name for name, s in streams.items() if s is None or not s.isatty()]
+        if not redirected:
+            from abh3_supervisor.tui.run import run_tui
+
+            release()  # the TUI handles its own keys and signals
+            return asyncio.run(
+                run_tui(config, record=args.record, plugins=plugins, duration=args.duration)
+            )
+        print(
+            f"abh3: {'/'.join(redirected)} not a terminal: running headless (--headless)",
+            file=sys.stderr,
         )
     running = run_headless(
         config,

@@ -1,15 +1,33 @@
-"""One line per event an operator should see: shared by the headless log and the TUI."""
+"""One line per event an operator should see: shared by the headless log and the TUI.
+
+That includes the audit trail: every operator action (:class:`OperatorAction`: a key, a
+command line, an answer to a question, an e-stop) and every change of a unit's state as
+the drive reports it (online/offline; servo, start, torque, brake in its control word).
+"""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Hashable
 
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.scheduler.core import HealthEvent
-from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+from abh3_supervisor.supervisor import (
+    FlagChange,
+    Notice,
+    OperatorAction,
+    Supervisor,
+    SupervisorEvent,
+)
 from abh3_supervisor.throttle import Throttle, held_note
 
 LOGGED_WORDS = ("error", "alarm")
+
+
+def state_bits(layout: flags.Layout) -> int:
+    """The control-word bits that are a unit's state for an operator (not busy/ready,
+    which follow every command)."""
+    return layout.servo.both | layout.start.both | layout.torque.both | layout.brake_release
 
 
 def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
@@ -27,16 +45,29 @@ def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
             return None
         level = logging.ERROR if event.word == "error" and event.set_bits else logging.WARNING
         return level, f"unit {event.unit}: {event.word} " + ", ".join(parts)
+    if isinstance(event, FlagChange) and event.word == "control":
+        layout = sup.units[event.unit].layout
+        mask = state_bits(layout)
+        parts = []
+        for sign, bits in (("+", event.set_bits & mask), ("-", event.cleared_bits & mask)):
+            parts += [f"{sign}{name}" for name in layout.control.names(bits)]
+        if not parts:
+            return None
+        return logging.INFO, f"unit {event.unit}: drive reports " + " ".join(parts)
     if isinstance(event, Notice):
         return event.level, (f"unit {event.unit}: " if event.unit else "") + event.message
+    if isinstance(event, OperatorAction):
+        where = f" on {event.unit}" if event.unit else ""
+        return logging.INFO, f"operator ({event.source}){where}: {event.action}"
     return None
 
 
 class EventLog:
     """:func:`describe` with a memory: a word that keeps changing (a flapping input, spoofed
-    status frames) gives at most ``FLAG_LINES_PER_S`` lines per unit and word per second
-    (so a set and its clear both show); the next line says how many were not shown. The
-    current words are always on the TUI."""
+    status frames) gives at most ``FLAG_LINES_PER_S`` lines per unit, word and set of
+    changed bits per second (so a set and its clear both show); the next line says how many
+    were not shown. The current words are always on the TUI. Operator actions are never
+    held back."""
 
     FLAG_LINES_PER_S = 4
 
@@ -48,7 +79,13 @@ class EventLog:
         described = describe(event, self.sup)
         if described is None or not isinstance(event, FlagChange):
             return described
-        held = self._throttle.allow((event.unit, event.word), event.t)
+        key: Hashable = (event.unit, event.word)
+        if event.word == "control":  # a servo change must not hide a start change after it
+            changed = (event.set_bits | event.cleared_bits) & state_bits(
+                self.sup.units[event.unit].layout
+            )
+            key = (event.unit, event.word, changed)
+        held = self._throttle.allow(key, event.t)
         if held is None:
             return None
         level, text = described

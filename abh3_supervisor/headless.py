@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import signal
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
 from abh3_supervisor.errors import PluginError
 from abh3_supervisor.eventlog import EventLog
 from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.recording import recorded
 from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
 from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight
 from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
@@ -65,11 +67,16 @@ async def run_headless(
     rt = Runtime(config, record=record, plugins=plugins)
     try:
         async with rt:
+            sup = rt.supervisor
+
+            def on_signal(sig: signal.Signals) -> None:
+                sup.audit("signal", None, f"{sig.name}: stop")
+                stop.set()
+
             # only now: a signal while buses or the recording open must interrupt the open
             # (the caller's handlers do), which a loop handler cannot
             for sig in STOP_SIGNALS:
-                loop.add_signal_handler(sig, stop.set)
-            sup = rt.supervisor
+                loop.add_signal_handler(sig, on_signal, signal.Signals(sig))
             events = EventLog(sup)
 
             def on_event(event: SupervisorEvent) -> None:
@@ -107,6 +114,8 @@ async def run_headless(
     finally:
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
+    if record is not None:
+        log.info("%s", recorded(rt, record))
     if not rt.stops_confirmed:
         log.error("not every drive confirmed its stop frame: check them (exit code 3)")
         return code or EXIT_STOP_UNCONFIRMED

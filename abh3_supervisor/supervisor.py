@@ -69,7 +69,18 @@ class Notice:
     message: str
 
 
-SupervisorEvent = Event | FlagChange | Notice
+@dataclass(frozen=True, slots=True)
+class OperatorAction:
+    """Something an operator did (a key, a command line, an answer to a question): the
+    audit trail, logged by the TUI and headless alike."""
+
+    unit: str | None
+    t: float
+    source: str  # who acted: "tui", "signal", an input's name
+    action: str
+
+
+SupervisorEvent = Event | FlagChange | Notice | OperatorAction
 Observer = Callable[[SupervisorEvent], None]
 
 
@@ -114,6 +125,10 @@ class Supervisor:
 
     def notice(self, unit: str | None, level: int, message: str) -> None:
         self._emit(Notice(unit, self.clock(), level, message))
+
+    def audit(self, source: str, unit: str | None, action: str) -> None:
+        """Record an operator's action for every observer (the event logs, plugins)."""
+        self._emit(OperatorAction(unit, self.clock(), source, action))
 
     def dispatch(self, bus: str) -> None:
         """Apply the events one bus's scheduler recorded (called after each pump step)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -39,6 +40,10 @@ def test_headless_run_records_what_was_commanded_at_the_configured_rate(tmp_path
     assert run.returncode == 0, run.stderr
     assert "unit left: online" in run.stderr and "unit right: online" in run.stderr
     rows = decoded(record)
+    # --record says where at the start and how many frames at the end
+    assert f"recording all bus traffic to {record.resolve()}" in run.stderr
+    counted = re.search(r"recorded (\d+) frames \(\d+ sent, \d+ received\) to ", run.stderr)
+    assert counted is not None and int(counted[1]) == len(rows)
     for unit, mask, commanded in (("left", 0x7F, (300.0, 20.0)), ("right", 0x0F, (150.0, -150.0))):
         mine = [r for r in rows if r["unit"] == unit]
         cmds = [r for r in mine if r["kind"] == "dp0_command"]

@@ -10,6 +10,7 @@ import threading
 import pytest
 
 from abh3_plugins.keyboard import KeyboardSource, Teleop
+from abh3_supervisor import terminal
 
 
 def test_teleop_twist_keyboard_layout() -> None:
@@ -61,3 +62,21 @@ def test_keys_typed_in_a_terminal_drive_and_the_terminal_is_restored() -> None:
     assert termios.tcgetattr(slave) == before
     stream.close()
     os.close(master)
+
+
+def test_under_a_terminal_owner_it_reads_nothing_and_takes_the_keys_it_is_given() -> None:
+    terminal.claim("the TUI")
+    try:
+        source = KeyboardSource(("left",), 0, 0.6, Teleop(0.2, 0.5), stream=object())
+        feed = Feed(want=2)
+        source.start(feed)  # type: ignore[arg-type]  # a stream it touched would raise
+        keys = source.key_map({"q", "e", " "})  # the owner's own keys
+        assert "q" not in keys and "e" not in keys and " " not in keys
+        assert keys["Q"] == "all speeds ×1.1" and keys["C"] == "angular speed ×1.1"
+        for key in ("i", "Q", "i", "x"):  # x: linear ×0.9 sends nothing
+            source.press(key)
+        source.stop()
+        source.press("i")  # after stop: ignored
+    finally:
+        terminal.release()
+    assert feed.sent == [(0.2, 0.0), pytest.approx((0.22, 0.0))]

@@ -193,15 +193,27 @@ def run_csv(tmp_path: Path, plugin_yaml: str, seconds: float = 1.0) -> Any:
 def test_csv_rows_match_what_the_drives_report(tmp_path: Path) -> None:
     path = tmp_path / "run.csv"
     sim = run_csv(tmp_path, f"  csv: {{path: '{path}'}}\n")
-    rows = list(csv.DictReader(path.open()))
+    text = path.read_text()
+    assert text.splitlines()[0].startswith("time [s],note,unit,kind,cmd_ay [min-1 or %],")
+    assert "vel_a [min-1]" in text.splitlines()[0] and "main_volt [V]" in text.splitlines()[0]
+    assert "-0.0," not in text  # rounded to what the frames carry, never a negative zero
+    rows = [{k.split(" ")[0]: v for k, v in r.items()} for r in csv.DictReader(path.open())]
     left = [r for r in rows if r["unit"] == "left"]
     assert {r["unit"] for r in rows} == {"left", "right"}
-    steady = [r for r in left if r["cmd_ay"] == "100.0" and float(r["vel_y"]) == 100.0]
-    assert steady and float(steady[-1]["vel_x"]) == 10.0
+    steady = [r for r in left if r["cmd_ay"] == "100.0" and r["vel_y"] == "100.0"]
+    assert steady and steady[-1]["vel_x"] == "10.0" and steady[-1]["load_a"].isdigit()
     assert steady[-1]["error"] == "0x00000000" and "TRAVEL_MODEL" in steady[-1]["control_names"]
     assert float(steady[-1]["main_volt"]) < 23.7 and steady[-1]["pulse_a"]
-    last = left[-1]  # the file is complete: the confirmed stop frame's reply is in it
-    assert (last["cmd_ay"], last["cmd_bx"]) == ("0.0", "0.0")
+    assert "AY_START" in steady[-1]["inputs_names"]  # the commanded input word
+    assert all(r["inputs"].startswith("0x") for r in rows)
+    right = [r for r in rows if r["unit"] == "right"]
+    assert right[-2]["drive_inputs"].startswith("0x")  # 2023: the word the drive sees
+    for unit in (left, right):  # a last row after the stop, showing it
+        last = unit[-1]
+        assert last["note"] == "after the stop" and all(not r["note"] for r in unit[:-1])
+        assert (last["cmd_ay"], last["cmd_bx"]) == ("0.0", "0.0")
+        assert "SERVO" not in last["inputs_names"]  # the safe word
+    assert "SERVO" not in right[-1]["control_names"]  # 2023: in the reply to the stop
     drive = sim.drives[1]
     assert int(steady[-1]["pulse_a"]) <= drive.pulses[0]
 
@@ -233,11 +245,12 @@ def test_csv_file_is_complete_after_sigterm(tmp_path: Path) -> None:
     proc.terminate()
     rest = proc.stderr.read()
     assert proc.wait(30) == 0, rest
-    rows = list(csv.DictReader(path.open()))
+    rows = [{k.split(" ")[0]: v for k, v in r.items()} for r in csv.DictReader(path.open())]
     assert len(rows) >= 80
     for unit in ("left", "right"):
         last = [r for r in rows if r["unit"] == unit][-1]
         assert (last["cmd_ay"], last["cmd_bx"]) == ("0.0", "0.0")  # the stop is recorded
+        assert last["note"] == "after the stop"
 
 
 def test_example_third_party_plugin_installs_and_is_picked_up(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ import re
 import select
 import signal
 import struct
+import subprocess
 import sys
 import termios
 from pathlib import Path
@@ -22,40 +23,55 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from textual.widgets import Static
+from textual.widgets import RichLog, Static
 
+from abh3_supervisor import terminal
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.hookspecs import hookimpl
+from abh3_supervisor.kinematics import twist_to_yx
 from abh3_supervisor.plugin_host import PluginHost
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime import Runtime
 from abh3_supervisor.runtime_thread import RuntimeThread
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.supervisor import SetResult
-from abh3_supervisor.tui.app import SupervisorApp, TuiSource, start_logged
+from abh3_supervisor.tui import operator, overview, plots
+from abh3_supervisor.tui.app import SupervisorApp, TuiSource
+from abh3_supervisor.tui.model import Trace, overview_row
+from abh3_supervisor.tui.run import key_inputs, start_logged
 from abh3_supervisor.tui.screens import ConfirmScreen
 from tests.conftest import TWO_UNITS, Rig
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 
 
-def run_app(check: Any) -> None:
+def run_app(
+    check: Any,
+    config: str = TWO_UNITS,
+    size: tuple[int, int] = (160, 45),
+    own_terminal: bool = False,
+) -> None:
     """Run the app on the real runtime (virtual bus, simulated drives) and a pilot."""
-    cfg = parse_config(TWO_UNITS, "t.yaml")
+    cfg = parse_config(config, "t.yaml")
     host = PluginHost(cfg)
     source = TuiSource(tuple(cfg.units))
     host.add_source(source)
+    if own_terminal:
+        terminal.claim("the TUI")
 
     async def scenario() -> None:
         async with Runtime(cfg, plugins=host) as rt:
             sup = rt.supervisor
             since = sup.clock()
             assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
-            app = SupervisorApp(rt, source)
-            async with app.run_test(size=(180, 40)) as pilot:
+            app = SupervisorApp(rt, source, key_inputs=key_inputs(host))
+            async with app.run_test(size=size) as pilot:
                 await check(app, pilot, rt)
 
-    asyncio.run(scenario())
+    try:
+        asyncio.run(scenario())
+    finally:
+        terminal.release()
 
 
 def response(app: SupervisorApp) -> str:
@@ -155,8 +171,12 @@ def test_a_silenced_unit_turns_offline_on_screen() -> None:
         await pilot.press("n", "f")  # silence the simulated right unit
         assert await asyncio.wait_for(gone, 3) == "right"
         app.refresh_view()
-        assert app.overview_rows["right"]["state"] == "OFFLINE"
+        assert overview_row(rt.supervisor, "right")["state"] == "OFFLINE"
         assert "OFFLINE" in str(app.query_one("#table", Static).render())
+        await pilot.press("v")  # a key that cannot act says so at once and asks nothing
+        await pilot.pause()
+        assert not isinstance(app.screen, ConfirmScreen)
+        assert "right is OFFLINE" in response(app)
         await pilot.press("f")
 
     run_app(check)
@@ -174,18 +194,39 @@ def snapshot(name: str, svg: str) -> None:
     assert svg == path.read_text(encoding="utf-8"), f"{name} layout changed (see {path})"
 
 
-@pytest.mark.parametrize("keys", [[], ["2"], ["question_mark"]], ids=["overview", "unit", "help"])
-def test_layout_snapshots(keys: list[str], request: pytest.FixtureRequest) -> None:
+def snapshot_rig() -> Rig:
+    """Two units after 30 s of fake time: left driven (forward, then back), right servo
+    on but held off by an error, with an alarm too; the plots have their whole window."""
     rig = Rig(parse_config(TWO_UNITS, "t.yaml"))
-    rig.sup.apply_text("left", "SERVO ON ON")
+    for unit in ("left", "right"):
+        rig.sup.apply_text(unit, "SERVO ON ON")
     rig.sup.apply_text("left", "START ON ON")
-    rig.sup.set_velocity("left", 100, 10)
+    rig.sup.set_velocity("left", 300, 20)
     rig.run(1.0)
+    rig.drive("right").errors = flags.FAULT.mask("A_OVERCURRENT")
+    rig.drive("right").alarms = flags.FAULT.mask("CONTROL_UNDERVOLTAGE")
+    rig.run(1.0)
+    return rig
+
+
+@pytest.mark.parametrize("size", [(100, 30), (160, 45)], ids=["100x30", "160x45"])
+@pytest.mark.parametrize(
+    "keys", [[], ["2"], ["5"], ["question_mark"]], ids=["overview", "unit", "plots", "help"]
+)
+def test_layout_snapshots(
+    keys: list[str], size: tuple[int, int], request: pytest.FixtureRequest
+) -> None:
+    rig = snapshot_rig()
     rt = SimpleNamespace(config=rig.config, supervisor=rig.sup, pumps={}, sims={}, plugins=None)
 
     async def scenario() -> str:
         app = SupervisorApp(rt, TuiSource(("left", "right")))  # type: ignore[arg-type]
-        async with app.run_test(size=(160, 40)) as pilot:
+        for step in range(60):  # 30 s, sampled as the app does
+            if step == 30:
+                rig.sup.set_velocity("left", -150, 0)
+            rig.run(0.5)
+            app.sampler.sample()
+        async with app.run_test(size=size) as pilot:
             await pilot.press(*keys)
             await pilot.pause()
             app.refresh_view()
@@ -193,6 +234,30 @@ def test_layout_snapshots(keys: list[str], request: pytest.FixtureRequest) -> No
             return app.export_screenshot()
 
     snapshot(f"tui-{request.node.callspec.id}", asyncio.run(scenario()))
+
+
+def test_the_overview_never_splits_a_field_at_any_width() -> None:
+    rig = snapshot_rig()
+    for width in (60, 98, 120, 158, 200):
+        lines = overview.render(rig.sup, ["left", "right"], 0, width).plain.splitlines()
+        table = [line for line in lines if not line.startswith("    ")][:3]  # header + units
+        assert all(len(line) <= width for line in table), (width, table)
+        assert "✖ A_OVERCURRENT" in "\n".join(lines) and "▲ CONTROL_UNDERVOLTAGE" in "\n".join(
+            lines
+        )
+    assert "off/off!" in overview_row(rig.sup, "right")["servo"]  # commanded on, held off
+
+
+def test_plots_draw_from_zero_with_value_and_scale() -> None:
+    assert plots.bars([300.0, 300.0], 0.0, 300.0, 2) == ["██", "██"]  # steady: a full bar
+    assert plots.bars([-150.0], -150.0, 0.0, 2) == ["█", "█"]  # negative: hangs from zero
+    assert plots.bars([None, 0.0], 0.0, 1.0, 1) == ["  "]
+    rig = snapshot_rig()
+    trace = Trace()
+    for i in range(10):
+        trace.add(float(i), "fbk AY", 100.0 * i)
+    text = plots.render(rig.sup.units["left"], trace, 9.0, 80, 3).plain
+    assert "fbk Y [min⁻¹]" in text and "now 900.0" in text and "0.0 … 900.0" in text
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
@@ -266,3 +331,220 @@ def test_what_plugins_log_at_start_reaches_the_log_pane() -> None:
     assert [line.plain[9:] for line in early] == ["commands from the network ALLOWED"]
     assert str(early[0].style) == "yellow"
     assert logging.getLogger().handlers == handlers  # the capture ends with the start
+
+
+KEYBOARD = TWO_UNITS + "plugins:\n  keyboard: {units: [left]}\n"
+
+
+async def until(pilot: Any, condition: Any, what: str) -> None:
+    """Let the app and the buses run until ``condition()`` holds (bounded)."""
+    for _ in range(300):
+        if condition():
+            return
+        await pilot.pause(0.01)
+    raise AssertionError(f"never happened: {what}")
+
+
+def test_every_e_stop_wins_with_the_keyboard_plugin_configured() -> None:
+    """The keyboard plugin never reads the terminal the TUI owns: the TUI hands it its
+    keys, so 100 e-stops in a row among teleop keys are 100 e-stops."""
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        assert "keyboard" in app.plugin_keys
+        keys = app.plugin_keys["keyboard"]
+        assert "q" not in keys and "e" not in keys  # the TUI's quit and e-stop win
+        assert keys["Q"] == "all speeds ×1.1" and keys["C"] == "angular speed ×1.1"
+        stops: list[object] = []
+        sup.subscribe(
+            lambda e: stops.append(e) if "EMERGENCY" in getattr(e, "message", "") else None
+        )
+        honoured = 0
+        for i in range(100):
+            await pilot.press("i", "ctrl+e" if i % 2 else "e", "l")
+            honoured += sup.estop
+            sup.clear_emergency_stop()
+        assert honoured == 100 and len(stops) == 100
+        driven: list[tuple[str, float, float]] = []
+        real = sup.set_twist
+
+        def spy(name: str, linear_x: float, angular_z: float) -> SetResult:
+            driven.append((name, linear_x, angular_z))
+            return real(name, linear_x, angular_z)
+
+        sup.set_twist = spy  # type: ignore[method-assign]
+        await pilot.press("i")  # a teleop key, handed to the plugin
+        await until(pilot, lambda: driven, "the keyboard plugin drives")
+        assert driven[0][0] == "left" and driven[0][1] == pytest.approx(0.2)
+
+    run_app(check, KEYBOARD, own_terminal=True)
+
+
+def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        left = sup.units["left"]
+        lay = left.layout
+
+        def reported_servo() -> bool:
+            return bool(left.words.get("control", 0) & lay.servo.both)
+
+        for text in ("SERVO ON ON", "START ON ON", "VEL 120 0"):
+            assert await sup.command("left", text) == ""
+        await until(pilot, reported_servo, "servo on")
+        # an error reset from the command line: the drive holds the servo off
+        for text in ("RESET ON ON", "RESET OFF OFF"):
+            app.run_command(text)
+            await app.workers.wait_for_complete()
+        await until(pilot, lambda: not reported_servo(), "servo held off after the reset")
+        app.refresh_view()
+        assert overview_row(sup, "left")["servo"] == "off/off!"  # commanded on, shown off
+        await pilot.press("v")  # shown off: switching on asks, and says why and what
+        await pilot.pause()
+        assert isinstance(app.screen, ConfirmScreen)
+        question = app.screen.question
+        assert "START is on and the setpoint is AY 120.0 BX 0.0 min⁻¹" in question
+        assert "THE MOTOR WILL MOVE" in question and "Send SERVO OFF, then ON?" in question
+        await pilot.press("y")
+        await app.workers.wait_for_complete()
+        await until(pilot, reported_servo, "servo on again")
+        # `r` switches SERVO off with the reset, so what is shown is what is commanded
+        await pilot.press("r")
+        await pilot.pause()
+        assert isinstance(app.screen, ConfirmScreen) and "SERVO OFF" in app.screen.question
+        await pilot.press("y")
+        await app.workers.wait_for_complete()
+        assert not left.inputs & lay.servo.both
+        await until(pilot, lambda: not reported_servo(), "servo off after r")
+        await pilot.press("v")
+        await pilot.pause()
+        assert isinstance(app.screen, ConfirmScreen)
+        assert app.screen.question.endswith("Send SERVO ON ON?")
+        await pilot.press("y")
+        await app.workers.wait_for_complete()
+        await until(pilot, reported_servo, "servo on after v")
+        await pilot.press("v")  # shown on: off at once, nothing asked
+        await pilot.pause()
+        assert not isinstance(app.screen, ConfirmScreen)
+        await app.workers.wait_for_complete()
+        assert not left.inputs & lay.servo.both
+
+    run_app(check)
+
+
+def test_keys_that_cannot_act_say_so_and_ask_nothing() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await pilot.press("ctrl+e")
+        for key in ("up", "s"):
+            await pilot.press(key)
+            await pilot.pause()
+            assert not isinstance(app.screen, ConfirmScreen)
+            assert response(app).startswith("EMERGENCY STOP latched"), key
+
+    run_app(check)
+    rig = Rig(
+        parse_config(
+            TWO_UNITS.replace("velocity_model: motor,", "velocity_model: motor, role: monitor,"),
+            "t.yaml",
+        )
+    )
+    for what in operator.SWITCHES:
+        step = operator.toggle(rig.sup, "right", what)
+        assert not step.commands and "monitor unit" in step.say
+
+
+def test_speed_keys_stop_at_the_units_limit() -> None:
+    rig = Rig(
+        parse_config(
+            TWO_UNITS.replace("{name: left,", "{name: left, limits: {velocity: 3000},"), "t.yaml"
+        )
+    )
+    speed, turn = operator.speed_caps(rig.sup, ("left",))
+    geometry = rig.config.units["left"].geometry
+    assert twist_to_yx(speed, 0, geometry)[0] == pytest.approx(3000)
+    assert abs(twist_to_yx(0, turn, geometry)[1]) == pytest.approx(3000)
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        cap, _ = operator.speed_caps(rt.supervisor, ("left",))
+        for _ in range(40):
+            await pilot.press("plus")
+        assert app.speed == pytest.approx(cap) and "capped" in response(app)
+
+    run_app(check, TWO_UNITS.replace("{name: left,", "{name: left, limits: {velocity: 3000},"))
+
+
+def test_operator_actions_and_state_changes_are_in_the_event_log() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await pilot.press("colon", *"SERVO ON ON", "enter")
+        await app.workers.wait_for_complete()
+        await pilot.press("s", "n")  # START on? no
+        await pilot.press("ctrl+e", "E", "y")
+        await until(pilot, lambda: rt.supervisor.units["left"].words.get("control", 0) & 1, "servo")
+        await pilot.press("4")  # the log tab: the log lays its lines out once shown
+        await pilot.pause(0.1)
+        lines = [line.text for line in app.query_one("#log-scroll", RichLog).lines]
+        text = "\n".join(lines)
+        assert re.search(r"^\d\d:\d\d:\d\d unit left: online$", text, re.M)  # online at start
+        for wanted in (
+            "operator (tui) on left: :'SERVO ON ON' → ''",
+            "operator (tui) on left: key s: START ON on left:",
+            "→ no",
+            "operator (tui): key e-stop: EMERGENCY STOP",
+            "operator (tui): clear the emergency stop? yes",
+            "unit left: drive reports +AY_SERVO_ON",
+        ):
+            assert wanted in text, wanted
+
+    run_app(check)
+
+
+def test_help_lists_every_binding_by_its_readable_key_and_palette_quit_asks() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await pilot.press("question_mark")
+        await pilot.pause()
+        help_text = "\n".join(app.screen.lines)  # type: ignore[attr-defined]
+        for raw in ("question_mark", "equals_sign", "plus,", "colon"):
+            assert raw not in help_text
+        assert "  ?" in help_text and "  +, =" in help_text and "Esc" in help_text
+        assert "  ctrl+e, e" in help_text and help_text.count("EMERGENCY STOP") == 1
+        assert "Plugin keyboard" in help_text and "  Q " in help_text
+        await pilot.press("escape")
+        await app.action_quit()  # what the palette's Quit and ctrl+q run
+        await pilot.pause()
+        assert isinstance(app.screen, ConfirmScreen) and "Quit?" in app.screen.question
+        await pilot.press("n")
+        await pilot.pause()
+        assert app.is_running and not isinstance(app.screen, ConfirmScreen)
+
+    run_app(check, KEYBOARD, own_terminal=True)
+
+
+def test_run_falls_back_to_headless_when_stderr_is_not_a_terminal(tmp_path: Path) -> None:
+    """The TUI would draw on stderr: with it in a file, the run is headless, says so in
+    one line, and the file holds no escape codes."""
+    root = Path(__file__).resolve().parent.parent
+    master, slave = pty.openpty()
+    err = tmp_path / "err.txt"
+    with err.open("w") as stderr:
+        code = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "abh3_supervisor",
+                "run",
+                "configs/demo.yaml",
+                "--duration",
+                "1",
+            ],
+            stdin=slave,
+            stdout=slave,
+            stderr=stderr,
+            cwd=root,
+            timeout=60,
+        ).returncode
+    os.close(slave)
+    os.close(master)
+    text = err.read_text()
+    assert code == 0
+    assert text.splitlines()[0] == "abh3: stderr not a terminal: running headless (--headless)"
+    assert "\x1b[" not in text and "unit left: online" in text

@@ -1,128 +1,240 @@
-"""What the screens show, computed from the Supervisor without any Textual: testable alone."""
+"""What the screens show, computed from the Supervisor without any Textual: testable alone.
+
+State is shown as the drive reports it (its control word) wherever the drive reports
+it; a ``!`` marks a switch the drive reports other than it is commanded.
+"""
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
 
-from abh3_supervisor.config.model import VelocityModel
+from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
 from abh3_supervisor.planner import BusPlan
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.state import UnitState
 from abh3_supervisor.supervisor import Supervisor
 
-HISTORY = 200  # samples kept for the plots: 20 s at the 10 Hz refresh
-
-
-@dataclass
-class Trace:
-    cmd: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
-    fbk: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
-    current: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
-    load: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
+WINDOW_S = 30.0  # what the plots show
+SET, CLEAR = "●", "○"  # a set bit has a symbol as well as a colour
+ERROR_MARK, ALARM_MARK = "✖", "▲"
 
 
 def onoff(value: bool) -> str:
     return "ON" if value else "off"
 
 
-def pair(word: int, ay: int, bx: int) -> str:
-    return f"{onoff(bool(word & ay))}/{onoff(bool(word & bx))}"
-
-
 def fmt(value: float | None, digits: int = 1) -> str:
-    return "–" if value is None else f"{value + 0.0:.{digits}f}"
+    return "–" if value is None else f"{value + 0.0:.{digits}f}"  # + 0.0: never "-0.0"
+
+
+def pair(a: float | None, b: float | None, digits: int = 1, width: int = 7) -> str:
+    """Two numbers, each right-aligned in ``width``: columns line up under a header."""
+    return f"{fmt(a, digits):>{width}} {fmt(b, digits):>{width}}"
+
+
+def status_record(unit: UnitState, packet: int) -> frames.Broadcast | None:
+    entry = unit.status.get(packet)  # one dict read: another thread writes
+    return entry[1] if entry is not None else None
+
+
+def reported(unit: UnitState) -> int | None:
+    """The control word as the drive reports it (None until it has)."""
+    return unit.words.get("control")
+
+
+def switch(unit: UnitState, mask: flags.Pair) -> str:
+    """``ON/off`` per axis as the drive reports it; ``!`` where the command differs,
+    ``?`` when the drive has not reported it (the command is shown then)."""
+    control = reported(unit)
+    word = unit.inputs if control is None else control
+    text = f"{onoff(bool(word & mask.ay))}/{onoff(bool(word & mask.bx))}"
+    if control is None:
+        return text + "?"
+    differs = unit.cfg.role is Role.COMMAND and (control ^ unit.inputs) & mask.both
+    return text + ("!" if differs else "")
+
+
+def unit_of(unit: UnitState) -> str:
+    return "%" if unit.setpoint.kind is ControlMode.CURRENT else "min⁻¹"
 
 
 def overview_row(sup: Supervisor, name: str) -> dict[str, str]:
     unit = sup.units[name]
     slot = sup.schedulers[unit.cfg.bus].slots[name]
-    now = sup.clock()
-    control = unit.words.get("control", unit.inputs)
     fb = unit.feedback
-    status = {True: "online", False: "OFFLINE", None: "waiting"}[unit.online]
-    brd3 = unit.status.get(3, (0.0, None))[1]
-    brd5 = unit.status.get(5, (0.0, None))[1]
+    brd3, brd5 = status_record(unit, 3), status_record(unit, 5)
     error, alarm = unit.words.get("error", 0), unit.words.get("alarm", 0)
+    travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
+    model_fbk = (fb.vel_y, fb.vel_x) if fb and travel else (fb.vel_a, fb.vel_b) if fb else None
+    faults = " ".join(
+        f"{mark}{len(flags.FAULT.names(word))}"
+        for mark, word in ((ERROR_MARK, error), (ALARM_MARK, alarm))
+        if word
+    )
+    sp = unit.setpoint
+    current_mode = sp.kind is ControlMode.CURRENT
     return {
         "unit": name,
-        "state": status,
+        "state": {True: "online", False: "OFFLINE", None: "waiting"}[unit.online],
         "proto": unit.cfg.protocol.value,
-        "mode": f"{unit.setpoint.kind.value}/{unit.cfg.velocity_model.value}",
-        "servo": pair(control, *unit.layout.servo),
-        "start": pair(control, *unit.layout.start),
-        "cmd": f"{fmt(unit.setpoint.ay)} {fmt(unit.setpoint.bx)}",
-        "fbk A/B": f"{fmt(fb.vel_a if fb else None)} {fmt(fb.vel_b if fb else None)}",
-        "fbk Y/X": f"{fmt(fb.vel_y if fb else None)} {fmt(fb.vel_x if fb else None)}",
-        "current %": (
-            f"{fmt(brd3.cur_cmd_ay)} {fmt(brd3.cur_cmd_bx)}"
+        "mode": f"{unit.setpoint.kind.value[:3]} {unit.cfg.velocity_model.value}",
+        "servo": switch(unit, unit.layout.servo),
+        "start": switch(unit, unit.layout.start),
+        "cmd": pair(sp.ay, sp.bx, 2, 6) + " %" if current_mode else pair(sp.ay, sp.bx),
+        "fbk": pair(*model_fbk) if model_fbk else pair(None, None),
+        "fbk A/B": pair(fb.vel_a if fb else None, fb.vel_b if fb else None),
+        "fbk Y/X": pair(fb.vel_y if fb else None, fb.vel_x if fb else None),
+        "current": (
+            pair(brd3.cur_cmd_ay, brd3.cur_cmd_bx, 2, 6)
             if isinstance(brd3, frames.Brd3)
-            else "–"
+            else pair(None, None, 2, 6)
         ),
-        "load %": (
-            f"{fmt(brd3.load_a, 0)} {fmt(brd3.load_b, 0)}" if isinstance(brd3, frames.Brd3) else "–"
+        "load": (
+            pair(brd3.load_a, brd3.load_b, 0, 4)
+            if isinstance(brd3, frames.Brd3)
+            else pair(None, None, 0, 4)
         ),
-        "supply V": (
-            f"{fmt(brd5.main_volt)} {fmt(brd5.control_volt)}"
+        "supply": (
+            pair(brd5.main_volt, brd5.control_volt, 1, 5)
             if isinstance(brd5, frames.Brd5)
-            else "–"
+            else pair(None, None, 1, 5)
         ),
-        "errors": " ".join(flags.FAULT.names(error)) or "–",
-        "alarms": " ".join(flags.FAULT.names(alarm)) or "–",
-        "rate Hz": f"{slot.stats.achieved_rate_hz(now):.1f}/{slot.stats.requested_rate_hz:g}",
+        "faults": faults or "–",
+        "rate": (
+            f"{slot.stats.achieved_rate_hz(sup.clock()):5.1f}/{slot.stats.requested_rate_hz:g}"
+        ),
     }
 
 
-COLUMNS = [
-    "unit",
-    "state",
-    "proto",
-    "mode",
-    "servo",
-    "start",
-    "cmd",
-    "fbk A/B",
-    "fbk Y/X",
-    "current %",
-    "load %",
-    "supply V",
-    "errors",
-    "alarms",
-    "rate Hz",
-]
+def fault_names(sup: Supervisor, name: str) -> list[tuple[str, str]]:
+    """(mark, bit name) of every error and alarm bit set on a unit."""
+    unit = sup.units[name]
+    return [
+        (mark, bit)
+        for mark, word in (("error", "error"), ("alarm", "alarm"))
+        for bit in flags.FAULT.names(unit.words.get(word, 0))
+    ]
 
 
 def flag_lines(layout: flags.Layout, word_name: str, value: int | None) -> list[tuple[bool, str]]:
-    """Every bit of a word in the unit's generation, set or not: (set, "bit name")."""
+    """Every bit of a word in the unit's generation, set or not: (set, "● bit name")."""
     word = layout.words[word_name]
     value = value or 0
-    return [(bool(value & b.mask), f"{b.bit:>2} {b.name}") for b in word.bits]
+    return [
+        (bool(value & b.mask), f"{SET if value & b.mask else CLEAR} {b.bit:>2} {b.name}")
+        for b in word.bits
+    ]
 
 
-def detail_lines(sup: Supervisor, name: str) -> list[str]:
+def fault_lines(error: int | None, alarm: int | None) -> list[tuple[str, str]]:
+    """Every error/alarm bit: (style key, "✖▲ bit name") — error and alarm share a word."""
+    error, alarm = error or 0, alarm or 0
+    lines = []
+    for b in flags.FAULT.bits:
+        e, a = bool(error & b.mask), bool(alarm & b.mask)
+        marks = (ERROR_MARK if e else "·") + (ALARM_MARK if a else "·")
+        lines.append(("error" if e else "alarm" if a else "", f"{marks} {b.bit:>2} {b.name}"))
+    return lines
+
+
+def detail_fields(sup: Supervisor, name: str) -> list[str]:
+    """The unit's figures, one field each: a field is never split across lines."""
     unit = sup.units[name]
     slot = sup.schedulers[unit.cfg.bus].slots[name]
     st = slot.stats
-    lines = [
-        f"unit {name}: abh3_id {unit.cfg.abh3_id}, host {unit.cfg.host_id}, "
-        f"bus {unit.cfg.bus}, group {unit.cfg.brd_group}, protocol {unit.cfg.protocol}",
-        f"exchanges {st.replies}/{st.commands_sent}, timeouts {st.timeouts}, "
-        f"send errors {st.send_errors}, rtt p50 {fmt(st.rtt_ms(50), 2)} ms, "
-        f"p99 {fmt(st.rtt_ms(99), 2)} ms, status packets {st.broadcasts}, "
-        f"malformed {st.malformed}, gaps {st.gaps}",
+    fields = [
+        f"unit {name}",
+        f"abh3_id {unit.cfg.abh3_id}",
+        f"host {unit.cfg.host_id}",
+        f"bus {unit.cfg.bus}",
+        f"group {unit.cfg.brd_group}",
+        f"protocol {unit.cfg.protocol}",
+        f"role {unit.cfg.role.value}",
+        f"rate {st.achieved_rate_hz(sup.clock()):.1f}/{st.requested_rate_hz:g} Hz",
+        f"exchanges {st.replies}/{st.commands_sent}",
+        f"timeouts {st.timeouts}",
+        f"send errors {st.send_errors}",
+        f"rtt p50 {fmt(st.rtt_ms(50), 2)} ms",
+        f"rtt p99 {fmt(st.rtt_ms(99), 2)} ms",
+        f"status packets {st.broadcasts}",
+        f"malformed {st.malformed}",
+        f"gaps {st.gaps}",
     ]
-    status = {n: r for n, (_, r) in dict(unit.status).items()}  # copy: another thread writes
-    b4, b5, b6 = status.get(4), status.get(5), status.get(6)
+    b4, b5, b6 = status_record(unit, 4), status_record(unit, 5), status_record(unit, 6)
     if isinstance(b4, frames.Brd4):
-        lines.append(f"pulses A {b4.pulse_a}  B {b4.pulse_b}")
+        fields += [f"pulses A {b4.pulse_a}", f"pulses B {b4.pulse_b}"]
     if isinstance(b5, frames.Brd5):
-        lines.append(
-            f"analog0 {b5.analog0:.2f} V  analog1 {b5.analog1:.2f} V  "
-            f"main {b5.main_volt:.1f} V  control {b5.control_volt:.1f} V"
-        )
+        fields += [
+            f"analog0 {b5.analog0:.2f} V",
+            f"analog1 {b5.analog1:.2f} V",
+            f"main {b5.main_volt:.1f} V",
+            f"control {b5.control_volt:.1f} V",
+        ]
     if isinstance(b6, frames.Brd6):
-        lines.append(f"monitor0 {b6.monitor0:.4f}  monitor1 {b6.monitor1:.4f}")
+        fields += [f"monitor0 {b6.monitor0:.4f}", f"monitor1 {b6.monitor1:.4f}"]
+    return fields
+
+
+def pack(fields: list[str], width: int, sep: str = " · ") -> list[str]:
+    """Fields joined into lines of at most ``width``, breaking only between fields."""
+    lines: list[str] = []
+    line = ""
+    for f in fields:
+        candidate = f"{line}{sep}{f}" if line else f
+        if line and len(candidate) > width:
+            lines.append(line)
+            line = f
+        else:
+            line = candidate
+    if line:
+        lines.append(line)
     return lines
+
+
+# ---------------------------------------------------------------- plots
+
+SERIES = (
+    ("cmd AY", "velocity or current command, A/Y"),
+    ("cmd BX", "velocity or current command, B/X"),
+    ("fbk AY", "velocity feedback, A/Y"),
+    ("fbk BX", "velocity feedback, B/X"),
+    ("current A", "current command, A/Y [%]"),
+    ("current B", "current command, B/X [%]"),
+    ("load A", "load, A [%]"),
+    ("load B", "load, B [%]"),
+)
+
+
+@dataclass
+class Trace:
+    """One unit's recent values, (time, value) per series, the last WINDOW_S seconds."""
+
+    series: dict[str, deque[tuple[float, float]]] = field(
+        default_factory=lambda: {key: deque() for key, _ in SERIES}
+    )
+
+    def add(self, t: float, key: str, value: float) -> None:
+        samples = self.series[key]
+        samples.append((t, value))
+        while samples and samples[0][0] < t - WINDOW_S:
+            samples.popleft()
+
+
+def series_unit(unit: UnitState, key: str) -> str:
+    if key.startswith("cmd"):
+        return unit_of(unit)
+    return "min⁻¹" if key.startswith("fbk") else "%"
+
+
+def series_label(unit: UnitState, key: str) -> str:
+    """The series' name in the unit's terms: feedback in its velocity model's axes."""
+    if key.startswith("fbk"):
+        travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
+        axis = ("Y" if travel else "A") if key.endswith("AY") else ("X" if travel else "B")
+        return f"fbk {axis}"
+    return key
 
 
 class Sampler:
@@ -133,16 +245,25 @@ class Sampler:
         self.traces = {name: Trace() for name in sup.units}
 
     def sample(self) -> None:
+        now = self.sup.clock()
         for name, unit in self.sup.units.items():
             trace = self.traces[name]
-            fb = unit.feedback
+            sp, fb = unit.setpoint, unit.feedback
             travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
-            trace.cmd.append(unit.setpoint.ay)
-            trace.fbk.append((fb.vel_y if travel else fb.vel_a) if fb else 0.0)
-            brd3 = unit.status.get(3, (0.0, None))[1]
+            trace.add(now, "cmd AY", sp.ay)
+            trace.add(now, "cmd BX", sp.bx)
+            if fb is not None:
+                trace.add(now, "fbk AY", fb.vel_y if travel else fb.vel_a)
+                trace.add(now, "fbk BX", fb.vel_x if travel else fb.vel_b)
+            brd3 = status_record(unit, 3)
             if isinstance(brd3, frames.Brd3):
-                trace.current.append(brd3.cur_cmd_ay)
-                trace.load.append(brd3.load_a)
+                trace.add(now, "current A", brd3.cur_cmd_ay)
+                trace.add(now, "current B", brd3.cur_cmd_bx)
+                trace.add(now, "load A", brd3.load_a)
+                trace.add(now, "load B", brd3.load_b)
+
+
+# ---------------------------------------------------------------- bus view
 
 
 @dataclass
@@ -151,8 +272,11 @@ class BusSample:
     t: float = 0.0
 
 
-def bus_lines(rt: Runtime, plans: dict[str, BusPlan], last: dict[str, BusSample]) -> list[str]:
-    """Frames/s, estimated load % and error counts per bus since the previous call."""
+def bus_fields(
+    rt: Runtime, plans: dict[str, BusPlan], last: dict[str, BusSample]
+) -> list[list[str]]:
+    """Per bus and per unit on it, the fields of one line (frames/s and load % since the
+    previous call, error counts)."""
     lines = []
     for name, pump in rt.pumps.items():
         now = rt.supervisor.clock()
@@ -164,15 +288,26 @@ def bus_lines(rt: Runtime, plans: dict[str, BusPlan], last: dict[str, BusSample]
         bits_per_frame = p.bits_per_s / p.frames_per_s if p.frames_per_s else 0.0
         load = 100 * rate * bits_per_frame / p.bitrate
         lines.append(
-            f"bus {name}: {rate:7.0f} frames/s  ≈{load:5.1f} % of {p.bitrate} bit/s "
-            f"(planned {p.load_percent:.1f} %)  send errors {pump.send_errors}  "
-            f"bus errors {pump.bus_errors}"
+            [
+                f"bus {name}",
+                f"{rate:.0f} frames/s",
+                f"≈{load:.1f} % of {p.bitrate} bit/s",
+                f"planned {p.load_percent:.1f} %",
+                f"send errors {pump.send_errors}",
+                f"bus errors {pump.bus_errors}",
+            ]
         )
         for unit, slot in rt.supervisor.schedulers[name].slots.items():
             st = slot.stats
             lines.append(
-                f"    {unit:<12} timeouts {st.timeouts:<6} send errors "
-                f"{st.send_errors:<4} replies {st.replies:<8} status {st.broadcasts:<8} "
-                f"malformed {st.malformed:<4} gaps {st.gaps}"
+                [
+                    f"  {unit}",
+                    f"timeouts {st.timeouts}",
+                    f"send errors {st.send_errors}",
+                    f"replies {st.replies}",
+                    f"status {st.broadcasts}",
+                    f"malformed {st.malformed}",
+                    f"gaps {st.gaps}",
+                ]
             )
     return lines

@@ -1,10 +1,15 @@
 """``csv``: record each unit's feedback and status in physical units.
 
-One row per DP0 reply (or at most one per ``period_s``) with the setpoint in force, the
-feedback in both velocity models and the latest status packets; flag words as hex plus
-their bit names. ``path`` with ``{unit}`` in it gives one file per unit, else one file
-with a ``unit`` column. Rows are flushed at least every ``flush_s`` (≤ 1 s) and on every
-way out; files rotate by size (``rotate_bytes``) or age (``rotate_s``). All writing
+One row per DP0 reply (or at most one per ``period_s``) with the setpoint in force (as
+sent: rounded to the frame's resolution), the feedback in both velocity models and the
+latest status packets, each at its frame's resolution, units in the header; flag words as
+hex plus their bit names: the input word commanded, and the control, I/O (and in 2023
+input) words the drive reports. After the drives were stopped, one last row per unit
+(note ``after the stop``) holds the state the stop left: the safe word commanded, the
+reply to it, the control word as last reported (2021: broadcast 1, which the stop does
+not wait for). ``path`` with ``{unit}`` in it gives one file per unit, else one file with
+a ``unit`` column. Rows are flushed at least every ``flush_s`` (≤ 1 s) and on every way
+out; files rotate by size (``rotate_bytes``) or age (``rotate_s``). All writing
 happens on this plugin's worker thread, never on the bus path.
 """
 
@@ -20,14 +25,17 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import IO, Any
 
+from abh3_supervisor.config.model import ControlMode
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.hookspecs import hookimpl
 from abh3_supervisor.protocol import flags, frames
-from abh3_supervisor.state import Feedback, Setpoint
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.supervisor import Supervisor
 
-# flag-word columns; each unit's bits are named in its generation's layout
-FLAG_WORDS = ("error", "alarm", "control", "io", "inputs")
+# flag-word columns; each unit's bits are named in its generation's layout. ``inputs`` is
+# the word the host commands; ``drive_inputs`` the one the drive reports (2023 broadcast 1)
+FLAG_WORDS = ("error", "alarm", "control", "io", "inputs", "drive_inputs")
 STATUS_FIELDS = [
     "vel_cmd_ay",
     "vel_cmd_bx",
@@ -46,6 +54,7 @@ STATUS_FIELDS = [
 ]
 COLUMNS = [
     "time",
+    "note",
     "unit",
     "kind",
     "cmd_ay",
@@ -57,6 +66,36 @@ COLUMNS = [
     *STATUS_FIELDS,
     *[c for w in FLAG_WORDS for c in (w, f"{w}_names")],
 ]
+# (unit, decimals) of each number: the resolution its frame carries it in
+FORMATS: dict[str, tuple[str, int | None]] = {
+    "time": ("s", 6),
+    "cmd_ay": ("min-1 or %", None),  # by the setpoint's kind
+    "cmd_bx": ("min-1 or %", None),
+    **{c: ("min-1", 1) for c in ("vel_a", "vel_b", "vel_y", "vel_x", "vel_cmd_ay", "vel_cmd_bx")},
+    "cur_cmd_ay": ("%", 2),
+    "cur_cmd_bx": ("%", 2),
+    "load_a": ("%", 0),
+    "load_b": ("%", 0),
+    "analog0": ("V", 2),
+    "analog1": ("V", 2),
+    "main_volt": ("V", 1),
+    "control_volt": ("V", 1),
+}
+HEADER = {c: f"{c} [{FORMATS[c][0]}]" if c in FORMATS else c for c in COLUMNS}
+MONITOR_DIGITS = 7  # monitors are float32: seven significant digits hold all they carry
+
+
+def number(column: str, value: float) -> str:
+    decimals = FORMATS.get(column, ("", None))[1]
+    if decimals is None:
+        return f"{value:.{MONITOR_DIGITS}g}"
+    return f"{value + 0.0:.{decimals}f}"  # + 0.0: never "-0.0"
+
+
+def command(setpoint: Setpoint, value: float) -> str:
+    """The command as the frame carried it (the LSB of its kind)."""
+    scale = CURRENT if setpoint.kind is ControlMode.CURRENT else VELOCITY
+    return f"{scale.to_physical(scale.to_raw(value)[0]) + 0.0:.{2 if scale is CURRENT else 1}f}"
 
 
 class _File:
@@ -70,7 +109,7 @@ class _File:
         self.handle: IO[bytes] | None = None
         self.size = 0  # bytes of whole rows on disk
         self.pending = io.StringIO()
-        self.writer: Any = csv.DictWriter(self.pending, COLUMNS)
+        self.writer: Any = csv.DictWriter(self.pending, COLUMNS)  # header: with units
         self.opened = 0.0
         self._open()
 
@@ -85,7 +124,7 @@ class _File:
         self.handle = open(self.name, "wb", buffering=0)  # noqa: SIM115
         self.size = 0
         self.opened = time.monotonic()
-        self.writer.writeheader()
+        self.writer.writerow(HEADER)
         self.flush()
 
     def write(self, row: dict[str, Any]) -> None:
@@ -143,6 +182,7 @@ class CsvPlugin:
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self.failure: OSError | None = None  # the output failed: raised to the host
+        self.units: dict[str, UnitState] = {}
 
     @hookimpl
     def abh3_configure(self, section: Section) -> None:
@@ -155,6 +195,7 @@ class CsvPlugin:
 
     @hookimpl
     def abh3_start(self, supervisor: Supervisor) -> None:
+        self.units = dict(supervisor.units)
         self.layouts = {name: unit.layout for name, unit in supervisor.units.items()}
         names = supervisor.units if "{unit}" in str(self.path) else ["*"]
         for name in names:
@@ -186,11 +227,14 @@ class CsvPlugin:
         values = self.latest.setdefault(unit, {})
         words = self.layouts[unit].words
         for key, value in asdict(record).items():
-            if key in FLAG_WORDS and value is not None:
+            if key == "inputs" and value is not None:  # 2023 broadcast 1: as the drive sees
+                values["drive_inputs"] = f"0x{value:08X}"
+                values["drive_inputs_names"] = " ".join(words[key].names(value))
+            elif key in FLAG_WORDS and value is not None:
                 values[key] = f"0x{value:08X}"
                 values[f"{key}_names"] = " ".join(words[key].names(value))
             elif key in STATUS_FIELDS:
-                values[key] = value
+                values[key] = number(key, value)
 
     @hookimpl
     def abh3_feedback(self, unit: str, feedback: Feedback, setpoint: Setpoint) -> None:
@@ -198,25 +242,31 @@ class CsvPlugin:
         if self.period_s and feedback.t - self.last_row.get(unit, -1e18) < self.period_s:
             return
         self.last_row[unit] = feedback.t
-        wall = time.time() - (time.monotonic() - feedback.t)  # event time on the wall clock
-        row = {
-            "time": f"{wall:.6f}",
-            "unit": unit,
-            "kind": setpoint.kind.value,
-            "cmd_ay": setpoint.ay,
-            "cmd_bx": setpoint.bx,
-            "vel_a": feedback.vel_a,
-            "vel_b": feedback.vel_b,
-            "vel_y": feedback.vel_y,
-            "vel_x": feedback.vel_x,
-            **self.latest.get(unit, {}),
-        }
-        if feedback.control is not None:
-            row["control"] = f"0x{feedback.control:08X}"
-            control = self.layouts[unit].control
-            row["control_names"] = " ".join(control.names(feedback.control))
+        row = self._row(unit, feedback, setpoint, feedback.control)
         with self.lock:
             self._file(unit).write(row)
+
+    def _row(
+        self, unit: str, feedback: Feedback, setpoint: Setpoint, control: int | None
+    ) -> dict[str, Any]:
+        wall = time.time() - (time.monotonic() - feedback.t)  # event time on the wall clock
+        layout = self.layouts[unit]
+        inputs = self.units[unit].inputs  # the word commanded now (an int: read whole)
+        row = {
+            "time": number("time", wall),
+            "unit": unit,
+            "kind": setpoint.kind.value,
+            "cmd_ay": command(setpoint, setpoint.ay),
+            "cmd_bx": command(setpoint, setpoint.bx),
+            **{c: number(c, getattr(feedback, c)) for c in ("vel_a", "vel_b", "vel_y", "vel_x")},
+            **self.latest.get(unit, {}),
+            "inputs": f"0x{inputs:08X}",
+            "inputs_names": " ".join(layout.input.names(inputs)),
+        }
+        if control is not None:
+            row["control"] = f"0x{control:08X}"
+            row["control_names"] = " ".join(layout.control.names(control))
+        return row
 
     @hookimpl
     def abh3_stop(self) -> None:
@@ -224,5 +274,19 @@ class CsvPlugin:
         if self._flusher is not None:
             self._flusher.join(2)
         with self.lock:
-            for f in self.files.values():
-                f.close(flush=self.failure is None)  # after a failure: what is whole stays
+            try:
+                if self.failure is None:
+                    self._final_rows()
+            finally:
+                for f in self.files.values():
+                    f.close(flush=self.failure is None)  # after a failure: whole rows stay
+
+    def _final_rows(self) -> None:
+        """The drives were stopped and every reply handed over: the state the stop left,
+        as the drive last reported it, one row per unit that ever answered."""
+        for name, unit in self.units.items():
+            if unit.feedback is None:
+                continue
+            row = self._row(name, unit.feedback, unit.setpoint, unit.words.get("control"))
+            row["note"] = "after the stop"
+            self._file(name).write(row)

@@ -7,7 +7,10 @@
 Each key press sends a robot twist to the configured units; hold a key (the terminal
 repeats it) to keep moving: silence longer than ``timeout`` means zero. The terminal is
 put in cbreak mode (no echo, Ctrl-C still stops the program) and restored on the way out.
-Inside the TUI, the TUI forwards keys instead; this plugin is for headless runs.
+
+Inside the TUI the terminal is the TUI's (see :mod:`abh3_supervisor.terminal`): this
+plugin never reads it then, the TUI hands it the keys. The TUI's own keys win; a teleop
+key the TUI uses moves to its alternative (``q`` → ``Q``, ``e`` → ``C``).
 """
 
 from __future__ import annotations
@@ -19,8 +22,10 @@ import sys
 import termios
 import threading
 import tty
+from collections.abc import Collection
 from typing import Any
 
+from abh3_supervisor import terminal
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.hookspecs import hookimpl
 from abh3_supervisor.inputs import InputFeed, InputSource
@@ -46,6 +51,26 @@ SPEEDS = {
     "x": (0.9, 1.0),
     "e": (1.0, 1.1),
     "c": (1.0, 0.9),
+}
+# where a teleop key goes when the terminal's owner uses the key itself
+ALTERNATIVES = {"q": "Q", "e": "C"}
+MEANING = {
+    "i": "forward",
+    "o": "forward, turning right",
+    "j": "turn left",
+    "l": "turn right",
+    "u": "forward, turning left",
+    ",": "back",
+    ".": "back, turning left",
+    "m": "back, turning right",
+    "k": "stop",
+    " ": "stop",
+    "q": "all speeds ×1.1",
+    "z": "all speeds ×0.9",
+    "w": "linear speed ×1.1",
+    "x": "linear speed ×0.9",
+    "e": "angular speed ×1.1",
+    "c": "angular speed ×0.9",
 }
 
 
@@ -82,8 +107,15 @@ class KeyboardSource(InputSource):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._saved: Any = None
+        self._feed: InputFeed | None = None
+        self._keys: dict[str, str] = {}  # typed key → teleop key, under a terminal owner
 
     def start(self, feed: InputFeed) -> None:
+        owner = terminal.owner()
+        if owner is not None:  # one reader per terminal: the owner hands keys over
+            self._feed = feed
+            log.info("keyboard: the terminal is %s's; it passes the teleop keys on", owner)
+            return
         fd = self.stream.fileno()
         if not os.isatty(fd):
             log.warning("keyboard: standard input is not a terminal; teleop is off")
@@ -106,7 +138,25 @@ class KeyboardSource(InputSource):
             if twist is not None:
                 feed.twist(*twist)
 
+    def key_map(self, taken: Collection[str]) -> dict[str, str]:
+        """Teleop keys the owner does not use, each under its alternative if it does."""
+        self._keys = {}
+        for key in MEANING:
+            typed = key if key not in taken else ALTERNATIVES.get(key)
+            if typed is not None and typed not in taken:
+                self._keys[typed] = key
+        return {typed: MEANING[key] for typed, key in self._keys.items()}
+
+    def press(self, key: str) -> None:
+        feed, teleop_key = self._feed, self._keys.get(key)
+        if feed is None or teleop_key is None:
+            return
+        twist = self.teleop.key(teleop_key)
+        if twist is not None:
+            feed.twist(*twist)
+
     def stop(self) -> None:
+        self._feed = None
         self._stop.set()
         if self._thread is not None:
             self._thread.join(1)

@@ -1,0 +1,168 @@
+"""What an operator's key will do, decided from the state the drive reports: pure logic.
+
+A toggle acts on what the drive reports (its control word), not on what was last
+commanded, and a question says what will happen. A key that cannot act (e-stop latched,
+unit offline, monitor unit, errors present) says so at once and asks nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from abh3_supervisor.config.model import Role, VelocityModel
+from abh3_supervisor.kinematics import twist_to_yx, yx_to_ab
+from abh3_supervisor.protocol import flags
+from abh3_supervisor.protocol.scaling import VELOCITY
+from abh3_supervisor.state import UnitState
+from abh3_supervisor.supervisor import Supervisor
+from abh3_supervisor.tui.model import fmt, reported, unit_of
+
+SWITCHES = ("SERVO", "START", "BRAKE", "TORQUE")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Commands to send in order, after ``question`` is answered yes (None: at once);
+    or, when ``commands`` is empty, only ``say`` (the reason nothing is done)."""
+
+    commands: tuple[str, ...] = ()
+    question: str | None = None
+    say: str = ""
+
+
+def refusal(sup: Supervisor, name: str) -> str | None:
+    """Why no command can reach this unit now, or None."""
+    unit = sup.units[name]
+    if unit.cfg.role is not Role.COMMAND:
+        return f"{name} is a monitor unit (role: monitor): it takes no commands"
+    if sup.stopping:
+        return "the supervisor is stopping: commands are refused"
+    if unit.online is False:
+        return f"{name} is OFFLINE: no command can reach it (f answers again if simulated)"
+    return None
+
+
+def estop_note() -> str:
+    return "EMERGENCY STOP latched: nothing may move until E (shift+e) clears it"
+
+
+def mask(unit: UnitState, what: str) -> int:
+    lay = unit.layout
+    return {
+        "SERVO": lay.servo.both,
+        "START": lay.start.both,
+        "BRAKE": lay.brake_release,
+        "TORQUE": lay.torque.both,
+    }[what]
+
+
+def motion(unit: UnitState) -> str:
+    sp = unit.setpoint
+    return f"AY {fmt(sp.ay)} BX {fmt(sp.bx)} {unit_of(unit)}"
+
+
+def _moving(unit: UnitState) -> bool:
+    return bool(unit.setpoint.ay or unit.setpoint.bx)
+
+
+def _consequence(unit: UnitState, what: str, control: int | None) -> str:
+    """What switching ``what`` on will do, in the drive's reported state."""
+    lay = unit.layout
+    servo_on = bool((unit.inputs if control is None else control) & lay.servo.both)
+    start_on = bool(unit.inputs & lay.start.both)
+    if what == "SERVO":
+        if start_on and _moving(unit):
+            return f"START is on and the setpoint is {motion(unit)}: THE MOTOR WILL MOVE."
+        if start_on:
+            return "START is on, the setpoint is zero: the motor is held at zero speed."
+        return "START is off: the motor is energised and held still."
+    if what == "START":
+        if servo_on and _moving(unit):
+            return f"the servo is on and the setpoint is {motion(unit)}: THE MOTOR WILL MOVE."
+        if servo_on:
+            return "the servo is on, the setpoint is zero: nothing moves until a command."
+        return "the servo is off: nothing moves until SERVO is on."
+    if what == "BRAKE":
+        return "the brake is released: with the servo off, a load can turn the axes freely."
+    return "current (torque) mode: the command is zeroed and then read as % current."
+
+
+def toggle(sup: Supervisor, name: str, what: str) -> Plan:
+    """``v`` ``s`` ``b`` ``T``: the switch as the drive reports it, flipped."""
+    unit = sup.units[name]
+    if (why := refusal(sup, name)) is not None:
+        return Plan(say=why)
+    bits = mask(unit, what)
+    control = reported(unit)
+    shown_on = bool((unit.inputs if control is None else control) & bits)
+    commanded_on = bool(unit.inputs & bits)
+    note = " (the drive has not reported it yet)" if control is None else ""
+    if shown_on:  # switching off never moves a motor: at once
+        return Plan((f"{what} OFF OFF",), say=f"{what} OFF on {name}{note}")
+    if what == "START" and sup.estop:
+        return Plan(say=estop_note())
+    errors = flags.FAULT.names(unit.words.get("error", 0))
+    if what == "SERVO" and errors:
+        return Plan(
+            say=f"{name} reports errors ({' '.join(errors)}): the servo stays off until "
+            "r (error reset) clears them"
+        )
+    head = f"{what} ON on {name}: {_consequence(unit, what, control)}"
+    if commanded_on:  # commanded on, reported off: the drive holds it off
+        why = (
+            "the drive reports it off although it is commanded on (after an error reset "
+            "the drive keeps the servo off until it sees SERVO off)"
+        )
+        return Plan(
+            (f"{what} OFF OFF", f"{what} ON ON"),
+            question=f"{head}\n\n{why}. Send {what} OFF, then ON?{note}",
+        )
+    return Plan((f"{what} ON ON",), question=f"{head}\n\nSend {what} ON ON?{note}")
+
+
+def reset(sup: Supervisor, name: str) -> Plan:
+    """``r``: a rising edge of ERROR RESET, then SERVO off too: the drive keeps the servo off
+    after a reset until it sees SERVO off, so the command matches what it does."""
+    if (why := refusal(sup, name)) is not None:
+        return Plan(say=why)
+    errors = " ".join(flags.FAULT.names(sup.units[name].words.get("error", 0))) or "none"
+    return Plan(
+        ("RESET ON ON", "RESET OFF OFF", "SERVO OFF OFF"),
+        question=(
+            f"Error reset on {name}? Errors now: {errors}.\n\nThe servo goes off (the drive "
+            "keeps it off after a reset until it sees SERVO off, so SERVO OFF is sent too); "
+            "v switches it on again, asking first."
+        ),
+    )
+
+
+def drive_refusal(sup: Supervisor, names: tuple[str, ...], moving: bool) -> str | None:
+    """Why an arrow key cannot drive these units now, or None."""
+    if moving and sup.estop:
+        return estop_note()
+    if not names:
+        return "no unit to drive: every unit is a monitor unit"
+    for name in names:
+        if (why := refusal(sup, name)) is not None:
+            return why
+    return None
+
+
+def speed_caps(sup: Supervisor, names: tuple[str, ...]) -> tuple[float, float]:
+    """The fastest twist the arrow keys may ask of these units within their velocity
+    limits: (linear m/s, angular rad/s); the arrows give one or the other, never both."""
+    speed = turn = float("inf")
+    for name in names:
+        cfg = sup.units[name].cfg
+        limit = min(cfg.limits.velocity, VELOCITY.maximum)
+        per_mps = abs(_axis_max(*twist_to_yx(1.0, 0.0, cfg.geometry), cfg.velocity_model))
+        per_rad = abs(_axis_max(*twist_to_yx(0.0, 1.0, cfg.geometry), cfg.velocity_model))
+        speed = min(speed, limit / per_mps if per_mps else speed)
+        turn = min(turn, limit / per_rad if per_rad else turn)
+    return speed, turn
+
+
+def _axis_max(y: float, x: float, model: VelocityModel) -> float:
+    """The larger axis command [min⁻¹] of a Y/X pair in the drive's model."""
+    a, b = (y, x) if model is VelocityModel.TRAVEL else yx_to_ab(y, x)
+    return max(abs(a), abs(b))

@@ -1,0 +1,117 @@
+"""The overview as one fixed-width text that fits the terminal's width.
+
+An order of magnitude cheaper to render than a table widget, so the UI thread leaves the
+GIL to the buses. Columns never wrap: the widest layout that fits is used, and below it
+the least important columns are left out (the unit tab shows everything). Faults are
+named on a line of their own under their unit, wrapping between names only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rich.text import Text
+
+from abh3_supervisor.supervisor import Supervisor
+from abh3_supervisor.tui.model import ALARM_MARK, ERROR_MARK, fault_names, overview_row
+
+
+@dataclass(frozen=True)
+class Column:
+    key: str
+    header: str
+    width: int
+    priority: int  # the lowest goes first when the width does not suffice
+    right: bool = False
+
+
+COLUMNS = {
+    c.key: c
+    for c in (
+        Column("unit", "unit", 10, 100),
+        Column("state", "state", 7, 95),
+        Column("proto", "gen", 4, 30),
+        Column("mode", "mode", 10, 35),
+        Column("servo", "servo", 8, 90),
+        Column("start", "start", 8, 90),
+        Column("cmd", "cmd AY BX min⁻¹", 15, 85, right=True),
+        Column("fbk", "fbk AY BX min⁻¹", 15, 85, right=True),
+        Column("fbk A/B", "fbk A  B min⁻¹", 15, 80, right=True),
+        Column("fbk Y/X", "fbk Y  X min⁻¹", 15, 80, right=True),
+        Column("current", "current %", 13, 60, right=True),
+        Column("load", "load %", 9, 55, right=True),
+        Column("supply", "supply V", 11, 20, right=True),
+        Column("faults", "faults", 7, 75),
+        Column("rate", "rate Hz", 10, 50, right=True),
+    )
+}
+# the full layout, and the one for narrow terminals: feedback in each unit's own model
+WIDE = [
+    "unit", "state", "mode", "servo", "start", "cmd", "fbk A/B", "fbk Y/X", "current",
+    "load", "supply", "rate", "faults",
+]  # fmt: skip
+NARROW = ["unit", "state", "servo", "start", "cmd", "fbk", "current", "load", "rate", "faults"]
+GAP = 1
+
+
+def fit(width: int) -> list[Column]:
+    """The columns to show in ``width`` characters."""
+    for layout in (WIDE, NARROW):
+        columns = [COLUMNS[k] for k in layout]
+        if _width(columns) <= width:
+            return columns
+    columns = [COLUMNS[k] for k in NARROW]
+    while len(columns) > 1 and _width(columns) > width:
+        columns.remove(min(columns, key=lambda c: c.priority))
+    return columns
+
+
+def _width(columns: list[Column]) -> int:
+    return sum(c.width for c in columns) + GAP * (len(columns) - 1)
+
+
+def _cell(column: Column, value: str) -> str:
+    value = value[: column.width]
+    return f"{value:>{column.width}}" if column.right else f"{value:<{column.width}}"
+
+
+def _style(key: str, value: str, selected: bool) -> str:
+    if key == "state" and value == "OFFLINE":
+        return "bold red"
+    if key == "faults" and value != "–":
+        return "bold red" if ERROR_MARK in value else "yellow"
+    if key in ("servo", "start") and value.endswith("!"):
+        return "bold yellow"
+    if key == "unit" and selected:
+        return "reverse"
+    return ""
+
+
+def render(sup: Supervisor, names: list[str], selected: int, width: int) -> Text:
+    columns = fit(width)
+    text = Text(" ".join(_cell(c, c.header) for c in columns).rstrip() + "\n", style="bold")
+    for i, name in enumerate(names):
+        row = overview_row(sup, name)
+        row["unit"] = ("▶ " if i == selected else "  ") + name
+        for n, column in enumerate(columns):
+            if n:
+                text.append(" " * GAP)
+            text.append(
+                _cell(column, row[column.key]), _style(column.key, row[column.key], i == selected)
+            )
+        text.append("\n")
+        faults = fault_names(sup, name)
+        if faults:
+            text.append("    ")
+            for kind, bit in faults:
+                mark, style = (
+                    (ERROR_MARK, "bold red") if kind == "error" else (ALARM_MARK, "yellow")
+                )
+                text.append(f"{mark} {bit}", style)
+                text.append(" ")
+            text.append("\n")
+    text.append(
+        "\nservo/start as the drive reports them; ! = not as commanded, ? = not reported yet",
+        style="dim",
+    )
+    return text
