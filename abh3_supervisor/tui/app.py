@@ -437,9 +437,8 @@ class SupervisorApp(App[None]):
         self.push_screen(ConfirmScreen(step.question), answer)
 
     def action_flip(self, what: str) -> None:
-        self.act(
-            what.lower()[0] if what != "TORQUE" else "T", operator.toggle(self.sup, self.unit, what)
-        )
+        key = {"SERVO": "v", "START": "s", "BRAKE": "b", "TORQUE": "T"}[what]
+        self.act(key, operator.toggle(self.sup, self.unit, what))
 
     def action_reset(self) -> None:
         self.act("r", operator.reset(self.sup, self.unit))
