@@ -33,7 +33,11 @@ WARMUP, WINDOW = 0.1, 0.5
 class SeedNode:
     """A vendor-style command node: its own handle, one blocking exchange at a time."""
 
-    def __init__(self, abh3_id: int, host_id: int, timeout: float, turnaround: float) -> None:
+    def __init__(
+        self, abh3_id: int, host_id: int, timeout: float, turnaround: float, rate: float = 0.0
+    ) -> None:
+        # rate > 0: fed by a topic at that rate (one message, one blocking exchange)
+        self.period, self.next_message = (1 / rate if rate else 0.0), 0.0
         self.cmd_id = ids.dp0_command_id(abh3_id, host_id)
         self.reply_id = ids.dp0_reply_id(abh3_id, host_id)
         self.payload = frames.encode_dp0_command(0, 0, 0)  # the same frame ours sends
@@ -52,15 +56,16 @@ class SeedNode:
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         if self.waiting_since is not None and now >= self.waiting_since + self.timeout:
             self.waiting_since = None  # timed out: the seed resets its socket and goes on
-        if self.waiting_since is None and now >= self.ready_at:
+        if self.waiting_since is None and now >= max(self.ready_at, self.next_message):
             self.waiting_since = now
+            self.next_message = max(self.next_message + self.period, now)
             return [(self.cmd_id, self.payload)]
         return []
 
     def next_deadline(self) -> float:
         if self.waiting_since is not None:
             return self.waiting_since + self.timeout
-        return self.ready_at
+        return max(self.ready_at, self.next_message)
 
     def on_send_failed(self, arbitration_id: int) -> None:
         self.waiting_since = None
@@ -106,29 +111,6 @@ class SeedPoller:
         pass
 
 
-class PacedSeedNode(SeedNode):
-    """The seed's command node fed at ``rate`` (a velocity topic): a blocking exchange per
-    message, the next message waiting for the previous exchange to end."""
-
-    def __init__(self, unit: UnitConfig, rate: float, timeout: float) -> None:
-        super().__init__(unit.abh3_id, unit.host_id, timeout, 0.0)
-        self.period, self.next_message = 1 / rate, 0.0
-
-    def poll(self, now: float) -> list[tuple[int, bytes]]:
-        if self.waiting_since is not None and now >= self.waiting_since + self.timeout:
-            self.waiting_since = None
-        if self.waiting_since is None and now >= self.next_message:
-            self.waiting_since = now
-            self.next_message = max(self.next_message + self.period, now)
-            return [(self.cmd_id, self.payload)]
-        return []
-
-    def next_deadline(self) -> float:
-        if self.waiting_since is not None:
-            return self.waiting_since + self.timeout
-        return self.next_message
-
-
 def _command_quality(
     timeline: Timeline, units: list[UnitConfig], rate: float, start: float, end: float
 ) -> tuple[float, float]:
@@ -165,7 +147,7 @@ def polling_overload(
     ours_line.run_until(end)
     seed_line = Timeline(bitrate)
     for u in units:
-        seed_line.add(PacedSeedNode(u, rate, timeout=0.1))
+        seed_line.add(SeedNode(u.abh3_id, u.host_id, 0.1, 0.0, rate=rate))
         seed_line.add(SeedPoller(u, timeout=0.1))
     seed_line.add(_sim(units, latency))
     seed_line.run_until(end)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
-from dataclasses import replace
 
 from abh3_supervisor.config.model import Fault, FaultKind, SimConfig, VelocityModel
 from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
@@ -49,11 +48,9 @@ class SimDrive:
     ) -> None:
         self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
         self.layout = flags.layout(generation)  # a word of the other generation misleads it
-        cfg = cfg or SimConfig()
-        if cfg.command_zero_timeout_ms is None:  # a drive on its own: the seed's setting
-            cfg = replace(cfg, command_zero_timeout_ms=500)
-        self.cfg = cfg
-        self.command_zero_ms: int = cfg.command_zero_timeout_ms or 0
+        self.cfg = cfg or SimConfig()
+        zero_ms = self.cfg.command_zero_timeout_ms  # None: a drive on its own, the seed's 500
+        self.command_zero_ms: int = 500 if zero_ms is None else zero_ms
         self.inputs = 0
         self.cmd_raw = (0, 0)  # last AY/BX command as written
         self.vel = [0.0, 0.0]  # motor A, B [min⁻¹]
