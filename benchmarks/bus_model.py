@@ -20,12 +20,12 @@ import math
 from dataclasses import replace
 
 from abh3_supervisor.config.model import BroadcastConfig, Config, SimConfig, UnitConfig
-from abh3_supervisor.planner import plan
+from abh3_supervisor.core.planner import plan
+from abh3_supervisor.core.wire import exact_bits
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.scheduler.core import BusScheduler
 from abh3_supervisor.simulator import SimBus
 from abh3_supervisor.simulator.timeline import Timeline
-from abh3_supervisor.wire import exact_bits
 
 WARMUP, WINDOW = 0.1, 0.5
 

@@ -17,13 +17,13 @@ from collections.abc import Callable
 
 import can
 
+from abh3_supervisor.clients.tui.app import SupervisorApp, TuiSource
 from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, SimConfig, UnitConfig
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames, ids
-from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.runtime_thread import RuntimeThread
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.thread import RuntimeThread
 from abh3_supervisor.scheduler.stats import percentile
-from abh3_supervisor.tui.app import SupervisorApp, TuiSource
 
 
 class TxProbe(can.Listener):

@@ -20,10 +20,10 @@ import time
 import can
 
 from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, UnitConfig
+from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.scheduler.core import FeedbackEvent
 from abh3_supervisor.scheduler.pump import BusPump
-from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
 
 CMD_ID, REPLY_ID = ids.dp0_command_id(1, 2), ids.dp0_reply_id(1, 2)
 

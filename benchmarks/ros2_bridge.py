@@ -20,9 +20,9 @@ import time
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Config
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames, ids
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.stats import percentile
 from benchmarks.cycle_timing import TxProbe
 

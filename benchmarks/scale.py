@@ -15,7 +15,7 @@ import sys
 import time
 
 from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, SimConfig, UnitConfig
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
 
 
 def rss_mb() -> float:

@@ -8,9 +8,9 @@ import pytest
 from can.interfaces import virtual
 
 from abh3_supervisor.config import Config, parse_config
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.simulator import SimBus
 from abh3_supervisor.simulator.timeline import Timeline
-from abh3_supervisor.supervisor import Supervisor
 
 TWO_UNITS = """
 buses:

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from abh3_supervisor.cli import MAX_SHOWN, main
+from abh3_supervisor.clients.cli import MAX_SHOWN, main
 from abh3_supervisor.config.source import MAX_BYTES
 
 DATA = Path(__file__).resolve().parent / "data" / "bad-configs"

@@ -12,7 +12,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from abh3_supervisor.commands import (
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.commands import (
     KEYWORDS,
     CurrentCommand,
     SelectCommand,
@@ -20,7 +21,6 @@ from abh3_supervisor.commands import (
     VelocityCommand,
     parse_command,
 )
-from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import CommandError, ConfigError
 from tests.conftest import TWO_UNITS, Rig
 

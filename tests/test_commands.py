@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from abh3_supervisor.commands import (
+from abh3_supervisor.core.commands import (
     CurrentCommand,
     InputChange,
     SelectCommand,

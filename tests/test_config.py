@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from abh3_supervisor.cli import main
+from abh3_supervisor.clients.cli import main
 from abh3_supervisor.config import ControlMode, Role, VelocityModel, load_config, parse_config
 from abh3_supervisor.config.source import MAX_BYTES, MAX_VALUES
 from abh3_supervisor.errors import ConfigError

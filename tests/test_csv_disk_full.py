@@ -14,8 +14,8 @@ import pytest
 from abh3_plugins.csv_output import COLUMNS, _File
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.headless import run_headless
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.headless import run_headless
 from tests.conftest import TWO_UNITS
 
 

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from abh3_supervisor.cli import main
-from abh3_supervisor.decoding import SHOWN, decode_file, read_messages
+from abh3_supervisor.clients.cli import main
+from abh3_supervisor.clients.decode import SHOWN, decode_file, read_messages
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import ids
 

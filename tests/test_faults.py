@@ -11,12 +11,12 @@ import pytest
 
 from abh3_supervisor.config import load_config, parse_config
 from abh3_supervisor.config.model import Fault, FaultKind
+from abh3_supervisor.core.supervisor import FlagChange, Notice
 from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.headless import run_headless
 from abh3_supervisor.protocol import frames, ids
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler, GapEvent, HealthEvent, MalformedEvent
-from abh3_supervisor.supervisor import FlagChange, Notice
 from tests.conftest import TWO_UNITS, Rig
 
 SCHEDULER = 0  # the Rig adds the scheduler first, the simulated drives second
@@ -92,8 +92,8 @@ def test_broadcast_7_proves_nothing(rig: Rig) -> None:
 
 
 def test_a_flapping_flag_word_gives_a_few_lines_per_second(rig: Rig) -> None:
-    from abh3_supervisor.eventlog import EventLog
-    from abh3_supervisor.supervisor import FlagChange
+    from abh3_supervisor.core.eventlog import EventLog
+    from abh3_supervisor.core.supervisor import FlagChange
 
     events = EventLog(rig.sup)
     lines = []

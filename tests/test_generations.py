@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
+from abh3_supervisor.clients.decode import decode_file
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.decoding import decode_file
+from abh3_supervisor.core.supervisor import SupervisorEvent
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import FeedbackEvent
-from abh3_supervisor.supervisor import SupervisorEvent
 from tests.conftest import TWO_UNITS, Rig
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")  # left: 2021 travel model; right: 2023 motor model

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import asyncio
 
-from abh3_supervisor.commands import CurrentCommand
 from abh3_supervisor.config import ControlMode, parse_config
-from abh3_supervisor.inputs import (
+from abh3_supervisor.core.commands import CurrentCommand
+from abh3_supervisor.core.inputs import (
     ZERO,
     InputArbiter,
     InputCommand,
@@ -15,8 +15,8 @@ from abh3_supervisor.inputs import (
     Twist,
     VelocityYX,
 )
-from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import StatusEvent
 from tests.conftest import TWO_UNITS, Rig
 
@@ -76,7 +76,7 @@ def test_release_means_zero_at_once() -> None:
 
 
 def test_silence_zeroes_a_unit_in_current_mode_too(rig: Rig) -> None:
-    from abh3_supervisor.plugin_host import _apply
+    from abh3_supervisor.plugin_host.host import _apply
 
     arb = InputArbiter(apply=lambda u, c: _apply(rig.sup, u, c), clock=rig.timeline.clock)
     arb.add(Source("net", ("left",), priority=0, timeout=0.5))

@@ -12,8 +12,8 @@ from abh3_plugins.joystick import (
     JsEvent,
     Mapping,
 )
-from abh3_supervisor.inputs import InputArbiter, Twist
-from abh3_supervisor.plugin_host import _apply
+from abh3_supervisor.core.inputs import InputArbiter, Twist
+from abh3_supervisor.plugin_host.host import _apply
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from tests.conftest import Rig

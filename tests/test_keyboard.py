@@ -10,7 +10,7 @@ import threading
 import pytest
 
 from abh3_plugins.keyboard import KeyboardSource, Teleop
-from abh3_supervisor import terminal
+from abh3_supervisor.plugin_host import terminal
 
 
 def test_teleop_twist_keyboard_layout() -> None:

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from abh3_supervisor.kinematics import (
+from abh3_supervisor.core.kinematics import (
     Geometry,
     ab_to_twist,
     ab_to_yx,

@@ -7,8 +7,8 @@ import math
 import pytest
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.kinematics import Geometry
-from abh3_supervisor.odometry import PulseOdometry, yaw_quaternion
+from abh3_supervisor.core.kinematics import Geometry
+from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.scheduler.core import StatusEvent
 from abh3_supervisor.simulator.drive import PULSES_PER_REV

@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from abh3_supervisor import plugin_host
-from abh3_supervisor.cli import main
+from abh3_supervisor.clients.cli import main
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.plugin_host import host as plugin_host
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.host import PluginHost
 from tests.conftest import TWO_UNITS
 
 

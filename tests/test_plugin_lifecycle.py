@@ -15,14 +15,14 @@ from typing import Any
 
 import pytest
 
-from abh3_supervisor import plugin_host
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.errors import PluginError
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.inputs import InputFeed, InputSource
-from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.stopping import CONFIRMED
+from abh3_supervisor.plugin_host import host as plugin_host
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.stopping import CONFIRMED
 from tests.conftest import TWO_UNITS
 
 CONFIG = parse_config(TWO_UNITS, "t.yaml")
@@ -185,7 +185,7 @@ def test_an_input_whose_stop_blocks_cannot_keep_the_drives_running(
 
 SLOW_PLUGIN = """
 import sys, threading
-from abh3_supervisor.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
 
 class Slow:
     @hookimpl
@@ -200,9 +200,9 @@ class Slow:
 RUN_WITH_SLOW = """
 import sys
 from importlib.metadata import EntryPoint
-import abh3_supervisor.plugin_host as host
+import abh3_supervisor.plugin_host.host as host
 host.installed = lambda: {"slow": EntryPoint("slow", "slowplugin:Slow", "abh3_supervisor")}
-from abh3_supervisor.cli import main
+from abh3_supervisor.clients.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 

@@ -16,13 +16,13 @@ from typing import Any
 
 import pytest
 
-from abh3_supervisor import hookspecs
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.state import Feedback
 from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.plugin_host import MAX_FAILURES, PluginHost, installed
-from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.state import Feedback
+from abh3_supervisor.plugin_host import hookspecs
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.host import MAX_FAILURES, PluginHost, installed
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from tests.conftest import TWO_UNITS
 
 ROOT = Path(__file__).resolve().parent.parent

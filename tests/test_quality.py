@@ -32,11 +32,71 @@ def test_mypy_strict() -> None:
 
 
 def test_the_core_never_imports_textual_or_plugin_dependencies() -> None:
+    """Every module outside ``clients/`` loads without a UI or plugin dependency."""
     code = (
-        "import sys, abh3_supervisor.cli, abh3_supervisor.headless, abh3_supervisor.runtime, "
-        "abh3_supervisor.decoding, abh3_supervisor.planner; "
+        "import sys, pkgutil, importlib, abh3_supervisor\n"
+        "for m in pkgutil.walk_packages(abh3_supervisor.__path__, 'abh3_supervisor.'):\n"
+        "    if not m.name.startswith(('abh3_supervisor.clients', 'abh3_supervisor.__main__')):\n"
+        "        importlib.import_module(m.name)\n"
+        "import abh3_supervisor.clients.cli, abh3_supervisor.clients.decode\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
         "{'textual', 'rich', 'cyclonedds', 'rclpy', 'evdev'}); print(bad); sys.exit(bool(bad))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+# what each folder may import of ours (docs/architecture.md, "Package layout")
+ALLOWED = {
+    "protocol": {"errors", "protocol"},
+    "config": {"errors", "protocol", "config", "core"},  # startup: commands are dry-run
+    "core": {"errors", "protocol", "config", "core", "scheduler"},
+    "scheduler": {"errors", "protocol", "config", "core", "scheduler"},
+    "plugin_host": {"errors", "protocol", "config", "core", "scheduler", "plugin_host"},
+    "service": {
+        "errors",
+        "protocol",
+        "config",
+        "core",
+        "scheduler",
+        "runtime",
+        "plugin_host",
+        "service",
+    },
+    "simulator": {"errors", "protocol", "config", "core", "scheduler", "simulator"},
+    "runtime": {
+        "errors",
+        "protocol",
+        "config",
+        "core",
+        "scheduler",
+        "runtime",
+        "plugin_host",
+        "service",
+        "simulator",
+    },
+}
+
+
+def test_each_folder_imports_only_what_the_layout_allows() -> None:
+    import ast
+
+    root = Path(__file__).parent.parent / "abh3_supervisor"
+    wrong: list[str] = []
+    for folder, allowed in ALLOWED.items():
+        for path in (root / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = (
+                    [node.module or ""]
+                    if isinstance(node, ast.ImportFrom)
+                    else [a.name for a in node.names]
+                    if isinstance(node, ast.Import)
+                    else []
+                )
+                for name in names:
+                    if not name.startswith("abh3_supervisor."):
+                        continue
+                    ours = name.removeprefix("abh3_supervisor.")
+                    if not any(ours == a or ours.startswith(a + ".") for a in allowed):
+                        wrong.append(f"{path.relative_to(root)} imports {name}")
+    assert not wrong, "\n".join(wrong)

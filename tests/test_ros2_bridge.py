@@ -28,7 +28,7 @@ from abh3_plugins.ros2 import types
 from abh3_plugins.ros2.bridge import twist
 from abh3_plugins.ros2.dds import LOOPBACK_URI, SERVICE_QOS, qos
 from abh3_plugins.ros2.settings import QosSettings
-from abh3_supervisor.kinematics import Geometry, twist_to_ab, twist_to_yx
+from abh3_supervisor.core.kinematics import Geometry, twist_to_ab, twist_to_yx
 
 ROOT = Path(__file__).resolve().parent.parent
 ROS_DEFAULT = qos(QosSettings())

@@ -22,10 +22,10 @@ from abh3_plugins.ros2.bridge import Ros2Plugin, UnitBridge
 from abh3_plugins.ros2.settings import Settings
 from abh3_plugins.ros2.transport import open_transport
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.state import UnitState
 from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames
-from abh3_supervisor.state import UnitState
 
 UNITS = """
 buses: {b: {interface: virtual, channel: u, simulate: true}}

@@ -11,10 +11,10 @@ import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import BusOpenError
-from abh3_supervisor.headless import run_headless
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.generation import Generation
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler
 from tests.conftest import TWO_UNITS
 

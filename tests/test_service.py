@@ -16,13 +16,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from abh3_supervisor.clients.control import ControlClient, status_lines
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import RunError
-from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
-from abh3_supervisor.service.client import ControlClient, status_lines
 from abh3_supervisor.service.server import CLIENT_PRIORITY, CLIENT_TIMEOUT_S, ControlServer
 from tests.conftest import TWO_UNITS
 

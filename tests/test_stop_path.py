@@ -11,9 +11,9 @@ import can
 import pytest
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.stopping import CONFIRMED, SENT
 from abh3_supervisor.simulator.drive import SimDrive
-from abh3_supervisor.stopping import CONFIRMED, SENT
 from tests.conftest import TWO_UNITS
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")

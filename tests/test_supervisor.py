@@ -8,11 +8,11 @@ import math
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.kinematics import twist_to_yx
+from abh3_supervisor.core.supervisor import FlagChange, Notice
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.kinematics import twist_to_yx
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.scheduler.core import HealthEvent
-from abh3_supervisor.supervisor import FlagChange, Notice
 from tests.conftest import TWO_UNITS, Rig
 
 

@@ -25,21 +25,21 @@ from typing import Any
 import pytest
 from textual.widgets import RichLog, Static
 
-from abh3_supervisor import terminal
+from abh3_supervisor.clients.tui import operator, overview, plots
+from abh3_supervisor.clients.tui.app import SupervisorApp, TuiSource
+from abh3_supervisor.clients.tui.model import Trace, overview_row
+from abh3_supervisor.clients.tui.run import key_inputs, start_logged
+from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.kinematics import twist_to_yx
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.core.kinematics import twist_to_yx
+from abh3_supervisor.core.supervisor import SetResult
+from abh3_supervisor.plugin_host import terminal
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import flags
-from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.runtime_thread import RuntimeThread
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.thread import RuntimeThread
 from abh3_supervisor.scheduler.core import HealthEvent
-from abh3_supervisor.supervisor import SetResult
-from abh3_supervisor.tui import operator, overview, plots
-from abh3_supervisor.tui.app import SupervisorApp, TuiSource
-from abh3_supervisor.tui.model import Trace, overview_row
-from abh3_supervisor.tui.run import key_inputs, start_logged
-from abh3_supervisor.tui.screens import ConfirmScreen
 from tests.conftest import TWO_UNITS, Rig
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"

@@ -5,7 +5,12 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from abh3_supervisor.wire import UNSTUFFED_TAIL, exact_bits, stuffed_region_bits, worst_case_bits
+from abh3_supervisor.core.wire import (
+    UNSTUFFED_TAIL,
+    exact_bits,
+    stuffed_region_bits,
+    worst_case_bits,
+)
 
 
 def test_worst_case_lengths() -> None:

@@ -7,7 +7,7 @@ from enum import StrEnum
 from typing import Any
 
 from abh3_supervisor.config.source import Source
-from abh3_supervisor.kinematics import Geometry
+from abh3_supervisor.core.kinematics import Geometry
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 

@@ -6,7 +6,6 @@ import re
 from pathlib import Path as FsPath
 from typing import Any
 
-from abh3_supervisor.commands import RESPONSE_OK, parse_command
 from abh3_supervisor.config.faults import check_fault_units, parse_faults
 from abh3_supervisor.config.model import (
     BroadcastConfig,
@@ -20,8 +19,9 @@ from abh3_supervisor.config.model import (
     VelocityModel,
 )
 from abh3_supervisor.config.source import Section, Source, load_source, read_text
+from abh3_supervisor.core.commands import RESPONSE_OK, parse_command
+from abh3_supervisor.core.kinematics import Geometry
 from abh3_supervisor.errors import CommandError, ConfigError
-from abh3_supervisor.kinematics import Geometry
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.ids import MAX_ADDRESS
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
@@ -104,7 +104,7 @@ def _dry_run_startup(src: Source, config: Config) -> None:
     """Run every unit's ``startup:`` on a supervisor that sends nothing: a command that
     would be refused at start (VEL in current control, anything on a monitor unit, VEL
     after TORQUE ON ON) is a mistake in the file, said now rather than logged at start."""
-    from abh3_supervisor.supervisor import Notice, Supervisor, SupervisorEvent
+    from abh3_supervisor.core.supervisor import Notice, Supervisor, SupervisorEvent
 
     sup = Supervisor(config, clock=lambda: 0.0)
     reasons: list[str] = []

@@ -14,6 +14,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from abh3_supervisor.config.model import Role, UnitConfig
+from abh3_supervisor.core.timing import next_on_grid
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.ids import (
     MATCH_MASK,
@@ -24,7 +25,6 @@ from abh3_supervisor.protocol.ids import (
     without_priority,
 )
 from abh3_supervisor.scheduler.stats import UnitStats
-from abh3_supervisor.timing import next_on_grid
 
 OutFrame = tuple[int, bytes]
 _DP0_REQUEST = frames.encode_request(frames.PGN_DP0)

@@ -22,19 +22,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor import __version__
-from abh3_supervisor.commands import RESPONSE_OK
 from abh3_supervisor.config.model import Role
+from abh3_supervisor.core.commands import RESPONSE_OK
+from abh3_supervisor.core.eventlog import EventLog
+from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.eventlog import EventLog
-from abh3_supervisor.inputs import InputFeed, InputSource
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.snapshot import state
 
 if TYPE_CHECKING:
-    from abh3_supervisor.plugin_host import PluginHost
-    from abh3_supervisor.runtime import Runtime
-    from abh3_supervisor.supervisor import SupervisorEvent
+    from abh3_supervisor.core.supervisor import SupervisorEvent
+    from abh3_supervisor.plugin_host.host import PluginHost
+    from abh3_supervisor.runtime.bus_runtime import Runtime
 
 log = logging.getLogger(__name__)
 MAX_CLIENTS = 32

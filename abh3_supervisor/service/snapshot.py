@@ -9,9 +9,9 @@ from typing import TYPE_CHECKING, Any
 from abh3_supervisor.protocol import frames
 
 if TYPE_CHECKING:
-    from abh3_supervisor.runtime import Runtime
-    from abh3_supervisor.state import UnitState
-    from abh3_supervisor.supervisor import Supervisor
+    from abh3_supervisor.core.state import UnitState
+    from abh3_supervisor.core.supervisor import Supervisor
+    from abh3_supervisor.runtime.bus_runtime import Runtime
 
 
 def _finite(value: float | None) -> float | None:

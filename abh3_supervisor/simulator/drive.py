@@ -16,7 +16,8 @@ import itertools
 import math
 
 from abh3_supervisor.config.model import Fault, FaultKind, SimConfig, VelocityModel
-from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.timing import next_on_grid
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.ids import (
@@ -28,7 +29,6 @@ from abh3_supervisor.protocol.ids import (
     dp0_reply_id,
 )
 from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
-from abh3_supervisor.timing import next_on_grid
 
 PULSES_PER_REV = 4096
 TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode

@@ -14,8 +14,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from abh3_supervisor.core.wire import exact_bits
 from abh3_supervisor.scheduler.pump import Machine
-from abh3_supervisor.wire import exact_bits
 
 
 @dataclass

@@ -27,11 +27,11 @@ from typing import IO, Any
 
 from abh3_supervisor.config.model import ControlMode
 from abh3_supervisor.config.source import Section
-from abh3_supervisor.hookspecs import hookimpl
+from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
+from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
-from abh3_supervisor.state import Feedback, Setpoint, UnitState
-from abh3_supervisor.supervisor import Supervisor
 
 # flag-word columns; each unit's bits are named in its generation's layout. ``inputs`` is
 # the word the host commands; ``drive_inputs`` the one the drive reports (2023 broadcast 1)

@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from abh3_supervisor.config.source import Section
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.inputs import Feed, InputFeed, InputSource
-from abh3_supervisor.supervisor import Supervisor
+from abh3_supervisor.core.inputs import Feed, InputFeed, InputSource
+from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
 
 log = logging.getLogger(__name__)
 JS_EVENT = struct.Struct("<IhBB")  # time ms, value, type, number (linux/joystick.h)

@@ -8,7 +8,7 @@ Each key press sends a robot twist to the configured units; hold a key (the term
 repeats it) to keep moving: silence longer than ``timeout`` means zero. The terminal is
 put in cbreak mode (no echo, Ctrl-C still stops the program) and restored on the way out.
 
-Inside the TUI the terminal is the TUI's (see :mod:`abh3_supervisor.terminal`): this
+Inside the TUI the terminal is the TUI's (see :mod:`abh3_supervisor.plugin_host.terminal`): this
 plugin never reads it then, the TUI hands it the keys. The TUI's own keys win; a teleop
 key the TUI uses moves to its alternative (``q`` → ``Q``, ``e`` → ``C``).
 """
@@ -25,11 +25,11 @@ import tty
 from collections.abc import Collection
 from typing import Any
 
-from abh3_supervisor import terminal
 from abh3_supervisor.config.source import Section
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.inputs import InputFeed, InputSource
-from abh3_supervisor.supervisor import Supervisor
+from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.plugin_host import terminal
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
 
 log = logging.getLogger(__name__)
 MOVES = {

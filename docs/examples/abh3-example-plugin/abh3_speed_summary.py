@@ -15,9 +15,9 @@ import logging
 from pathlib import Path
 
 from abh3_supervisor.config.source import Section
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.state import Feedback
-from abh3_supervisor.supervisor import Supervisor
+from abh3_supervisor.core.state import Feedback
+from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
 
 log = logging.getLogger(__name__)
 

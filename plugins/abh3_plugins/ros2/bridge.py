@@ -28,17 +28,17 @@ from typing import Any
 
 from abh3_plugins.ros2.settings import Settings, parse
 from abh3_plugins.ros2.transport import Transport, open_transport, problem
-from abh3_supervisor import kinematics
-from abh3_supervisor.commands import RESPONSE_INVALID
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.config.source import Section
-from abh3_supervisor.hookspecs import hookimpl
-from abh3_supervisor.inputs import InputFeed, InputSource
-from abh3_supervisor.odometry import PulseOdometry, yaw_quaternion
+from abh3_supervisor.core import kinematics
+from abh3_supervisor.core.commands import RESPONSE_INVALID
+from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
+from abh3_supervisor.core.state import Feedback, UnitState
+from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
-from abh3_supervisor.state import Feedback, UnitState
-from abh3_supervisor.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 MAX_COMMAND_TEXT = 256  # longer than any command of the language

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from abh3_supervisor.config.model import ControlMode, UnitConfig, VelocityModel
-from abh3_supervisor.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
 from abh3_supervisor.protocol import flags, frames
 
 

@@ -22,12 +22,12 @@ from typing import Any
 import can
 
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
-from abh3_supervisor.plugin_host import PluginHost
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
-from abh3_supervisor.stopping import CONFIRMED, stop_drives
-from abh3_supervisor.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame

@@ -17,8 +17,8 @@ from abh3_supervisor.protocol import frames
 from abh3_supervisor.scheduler.core import FeedbackEvent, StatusEvent
 
 if TYPE_CHECKING:
+    from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
     from abh3_supervisor.scheduler.pump import BusPump
-    from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
 
 log = logging.getLogger(__name__)
 STOP_DEADLINE_S = 1.0  # stop frames are repeated until confirmed, at most this long

@@ -18,10 +18,10 @@ import pluggy
 if TYPE_CHECKING:
     from abh3_supervisor.config.model import Config
     from abh3_supervisor.config.source import Section
-    from abh3_supervisor.inputs import InputSource
+    from abh3_supervisor.core.inputs import InputSource
+    from abh3_supervisor.core.state import Feedback, Setpoint
+    from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor
     from abh3_supervisor.protocol.frames import Broadcast
-    from abh3_supervisor.state import Feedback, Setpoint
-    from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor
 
 PROJECT = "abh3_supervisor"
 hookspec = pluggy.HookspecMarker(PROJECT)

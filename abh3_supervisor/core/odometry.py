@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from abh3_supervisor.kinematics import Geometry
+from abh3_supervisor.core.kinematics import Geometry
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,11 +26,9 @@ from typing import Any, cast
 
 import pluggy
 
-from abh3_supervisor import hookspecs
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.source import Section, Source
-from abh3_supervisor.errors import CommandError, ConfigError, PluginError
-from abh3_supervisor.inputs import (
+from abh3_supervisor.core.inputs import (
     InputArbiter,
     InputCommand,
     InputFeed,
@@ -39,9 +37,11 @@ from abh3_supervisor.inputs import (
     Twist,
     VelocityYX,
 )
+from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+from abh3_supervisor.errors import CommandError, ConfigError, PluginError
+from abh3_supervisor.plugin_host import hookspecs
 from abh3_supervisor.scheduler.core import FeedbackEvent, GapEvent, HealthEvent, StatusEvent
 from abh3_supervisor.scheduler.timer import DeadlineTimer
-from abh3_supervisor.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
 
 log = logging.getLogger(__name__)
 GROUP = "abh3_supervisor"

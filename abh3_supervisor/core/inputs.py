@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
-from abh3_supervisor.commands import (
+from abh3_supervisor.core.commands import (
     RESPONSE_INVALID,
     RESPONSE_OK,
     CurrentCommand,
@@ -28,7 +28,7 @@ from abh3_supervisor.commands import (
 from abh3_supervisor.errors import CommandError
 
 if TYPE_CHECKING:
-    from abh3_supervisor.supervisor import Supervisor
+    from abh3_supervisor.core.supervisor import Supervisor
 
 DEFAULT_TIMEOUT = 0.5
 

@@ -9,13 +9,13 @@ import signal
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
+from abh3_supervisor.core.eventlog import EventLog
+from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.errors import PluginError
-from abh3_supervisor.eventlog import EventLog
-from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.recording import recorded
-from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.bus_runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime.recording import recorded
 from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight
-from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
 
 log = logging.getLogger("abh3")
 

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from types import FrameType
 
     from abh3_supervisor.config import Config
-    from abh3_supervisor.plugin_host import PluginHost
+    from abh3_supervisor.plugin_host.host import PluginHost
     from abh3_supervisor.service.server import ServiceOptions
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
@@ -170,7 +170,7 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
     from abh3_supervisor.config import load_config
 
     if args.cmd in ("status", "send"):
-        from abh3_supervisor.service import client
+        from abh3_supervisor.clients import control as client
 
         path = client.find_socket(args.connect)
         if args.cmd == "status":
@@ -181,7 +181,7 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
     if args.cmd == "decode":
-        from abh3_supervisor.decoding import decode_file
+        from abh3_supervisor.clients.decode import decode_file
 
         known = load_config(args.config) if args.config else None
         for out in decode_file(args.file, known, args.json):
@@ -256,8 +256,8 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
     import asyncio
 
     from abh3_supervisor.config import load_config
-    from abh3_supervisor.headless import run_headless
-    from abh3_supervisor.planner import overloads, plan
+    from abh3_supervisor.core.planner import overloads, plan
+    from abh3_supervisor.runtime.headless import run_headless
 
     config = load_config(args.config)
     plugins = _plugins(config)
@@ -270,7 +270,7 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
         if p.warning:
             log.warning("bus %s: %s", p.bus, p.warning)
     if args.record is not None:
-        from abh3_supervisor.recording import recording
+        from abh3_supervisor.runtime.recording import recording
 
         log.info("%s", recording(args.record))
     if not args.headless:
@@ -278,7 +278,7 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
         streams = {"stdin": sys.stdin, "stdout": sys.stdout, "stderr": sys.stderr}
         redirected = [name for name, s in streams.items() if s is None or not s.isatty()]
         if not redirected:
-            from abh3_supervisor.tui.run import run_tui
+            from abh3_supervisor.clients.tui.run import run_tui
 
             release()  # the TUI handles its own keys and signals
             return asyncio.run(
@@ -313,7 +313,7 @@ def _service(args: argparse.Namespace) -> ServiceOptions | None:
 
 
 def _plugins(config: Config) -> PluginHost:
-    from abh3_supervisor.plugin_host import PluginHost
+    from abh3_supervisor.plugin_host.host import PluginHost
 
     return PluginHost(config)
 
@@ -321,7 +321,7 @@ def _plugins(config: Config) -> PluginHost:
 def _check(config: Config, as_json: bool) -> int:
     import json
 
-    from abh3_supervisor.planner import overloads, plan
+    from abh3_supervisor.core.planner import overloads, plan
 
     plans = plan(config)
     refused = overloads(config, plans)

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 from rich.text import Text
 
-from abh3_supervisor.supervisor import Supervisor
-from abh3_supervisor.tui.model import ALARM_MARK, ERROR_MARK, fault_names, overview_row
+from abh3_supervisor.clients.tui.model import ALARM_MARK, ERROR_MARK, fault_names, overview_row
+from abh3_supervisor.core.supervisor import Supervisor
 
 
 @dataclass(frozen=True)

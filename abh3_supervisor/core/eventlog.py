@@ -10,16 +10,16 @@ from __future__ import annotations
 import logging
 from collections.abc import Hashable
 
-from abh3_supervisor.protocol import flags
-from abh3_supervisor.scheduler.core import HealthEvent
-from abh3_supervisor.supervisor import (
+from abh3_supervisor.core.supervisor import (
     FlagChange,
     Notice,
     OperatorAction,
     Supervisor,
     SupervisorEvent,
 )
-from abh3_supervisor.throttle import Throttle, held_note
+from abh3_supervisor.core.throttle import Throttle, held_note
+from abh3_supervisor.protocol import flags
+from abh3_supervisor.scheduler.core import HealthEvent
 
 LOGGED_WORDS = ("error", "alarm")
 

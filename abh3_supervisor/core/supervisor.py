@@ -13,8 +13,9 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from abh3_supervisor import commands
-from abh3_supervisor.commands import (
+from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
+from abh3_supervisor.core import commands
+from abh3_supervisor.core.commands import (
     Command,
     CurrentCommand,
     InputChange,
@@ -22,9 +23,10 @@ from abh3_supervisor.commands import (
     SwitchCommand,
     VelocityCommand,
 )
-from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
+from abh3_supervisor.core.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
+from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
+from abh3_supervisor.core.throttle import Throttle, held_note
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 from abh3_supervisor.scheduler.core import (
@@ -36,8 +38,6 @@ from abh3_supervisor.scheduler.core import (
     MalformedEvent,
     StatusEvent,
 )
-from abh3_supervisor.state import Feedback, Setpoint, UnitState
-from abh3_supervisor.throttle import Throttle, held_note
 
 log = logging.getLogger(__name__)
 

@@ -10,14 +10,14 @@ from pathlib import Path
 
 from rich.text import Text
 
-from abh3_supervisor import terminal
+from abh3_supervisor.clients.tui.app import PaneHandler, SupervisorApp, TuiSource
 from abh3_supervisor.config.model import Config
-from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.recording import recorded
-from abh3_supervisor.runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
-from abh3_supervisor.runtime_thread import RuntimeThread
-from abh3_supervisor.terminal import KeyInput
-from abh3_supervisor.tui.app import PaneHandler, SupervisorApp, TuiSource
+from abh3_supervisor.plugin_host import terminal
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.plugin_host.terminal import KeyInput
+from abh3_supervisor.runtime.bus_runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime.recording import recorded
+from abh3_supervisor.runtime.thread import RuntimeThread
 
 log = logging.getLogger("abh3")
 

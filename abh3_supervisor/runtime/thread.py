@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from abh3_supervisor.config.model import Config
-from abh3_supervisor.plugin_host import PluginHost
-from abh3_supervisor.runtime import Runtime
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.bus_runtime import Runtime
 
 T = TypeVar("T")
 # Python hands the GIL over every 5 ms by default; the bus thread waking on its timer

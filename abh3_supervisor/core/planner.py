@@ -11,8 +11,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 from abh3_supervisor.config.model import Config, ControlMode, Role, UnitConfig
+from abh3_supervisor.core.wire import exact_bits, worst_case_bits
 from abh3_supervisor.protocol import flags, frames, ids
-from abh3_supervisor.wire import exact_bits, worst_case_bits
 
 # Keep planned load at or below 70 %: queueing delay for the lowest-priority frame grows
 # steeply as a CAN bus nears saturation, and the plan cannot see frames the drives send

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from abh3_supervisor.clients.tui.model import fmt, reported, unit_of
 from abh3_supervisor.config.model import Role, VelocityModel
-from abh3_supervisor.kinematics import twist_to_yx, yx_to_ab
+from abh3_supervisor.core.kinematics import twist_to_yx, yx_to_ab
+from abh3_supervisor.core.state import UnitState
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.protocol.scaling import VELOCITY
-from abh3_supervisor.state import UnitState
-from abh3_supervisor.supervisor import Supervisor
-from abh3_supervisor.tui.model import fmt, reported, unit_of
 
 SWITCHES = ("SERVO", "START", "BRAKE", "TORQUE")
 

@@ -2,9 +2,9 @@
 
 It is a client of the Supervisor API and drives through the same input arbitration as
 the plugins (an input source named ``tui`` with the highest priority). The runtime wraps
-the app (see :mod:`abh3_supervisor.tui.run`), so every way out of the app stops the
+the app (see :mod:`abh3_supervisor.clients.tui.run`), so every way out of the app stops the
 drives. The app owns the terminal: input plugins that read keys get theirs from it
-(:mod:`abh3_supervisor.terminal`), after its own — e-stop, tabs and quit always win.
+(:mod:`abh3_supervisor.plugin_host.terminal`), after its own — e-stop, tabs and quit always win.
 Every operator action goes to the supervisor's audit trail, and so to the event log.
 """
 
@@ -26,19 +26,9 @@ from textual.css.query import NoMatches
 from textual.keys import _character_to_key, format_key, key_to_character
 from textual.widgets import Footer, Header, Input, RichLog, Static, TabbedContent, TabPane
 
-from abh3_supervisor.commands import RESPONSE_OK
-from abh3_supervisor.config.model import Role
-from abh3_supervisor.eventlog import EventLog
-from abh3_supervisor.inputs import InputFeed, InputSource
-from abh3_supervisor.planner import plan
-from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.runtime_thread import RuntimeThread
-from abh3_supervisor.scheduler.core import HealthEvent
-from abh3_supervisor.supervisor import Supervisor, SupervisorEvent
-from abh3_supervisor.terminal import KeyInput
-from abh3_supervisor.tui import operator, overview, plots
-from abh3_supervisor.tui.help import help_lines
-from abh3_supervisor.tui.model import (
+from abh3_supervisor.clients.tui import operator, overview, plots
+from abh3_supervisor.clients.tui.help import help_lines
+from abh3_supervisor.clients.tui.model import (
     SERIES,
     BusSample,
     Sampler,
@@ -49,7 +39,17 @@ from abh3_supervisor.tui.model import (
     pack,
     reported,
 )
-from abh3_supervisor.tui.screens import ConfirmScreen, HelpScreen
+from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen
+from abh3_supervisor.config.model import Role
+from abh3_supervisor.core.commands import RESPONSE_OK
+from abh3_supervisor.core.eventlog import EventLog
+from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.planner import plan
+from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
+from abh3_supervisor.plugin_host.terminal import KeyInput
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.thread import RuntimeThread
+from abh3_supervisor.scheduler.core import HealthEvent
 
 REFRESH_S = 0.1
 T = TypeVar("T")

@@ -8,8 +8,15 @@ from collections.abc import Sequence
 
 from rich.text import Text
 
-from abh3_supervisor.state import UnitState
-from abh3_supervisor.tui.model import SERIES, WINDOW_S, Trace, fmt, series_label, series_unit
+from abh3_supervisor.clients.tui.model import (
+    SERIES,
+    WINDOW_S,
+    Trace,
+    fmt,
+    series_label,
+    series_unit,
+)
+from abh3_supervisor.core.state import UnitState
 
 UP = " ▁▂▃▄▅▆▇█"  # eighths of a cell, filled from the bottom
 DOWN = " ▔▔▀▀▀██"  # from the top: Unicode has fewer steps that way

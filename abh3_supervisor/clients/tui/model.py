@@ -10,11 +10,11 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
-from abh3_supervisor.planner import BusPlan
+from abh3_supervisor.core.planner import BusPlan
+from abh3_supervisor.core.state import UnitState
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.protocol import flags, frames
-from abh3_supervisor.runtime import Runtime
-from abh3_supervisor.state import UnitState
-from abh3_supervisor.supervisor import Supervisor
+from abh3_supervisor.runtime.bus_runtime import Runtime
 
 WINDOW_S = 30.0  # what the plots show
 SET, CLEAR = "●", "○"  # a set bit has a symbol as well as a colour

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from abh3_supervisor.runtime import GuardedRecorder, Runtime
+from abh3_supervisor.runtime.bus_runtime import GuardedRecorder, Runtime
 
 
 def recording(path: Path) -> str:

@@ -1,0 +1,1 @@
+"""The plugin host: hook specifications, plugin lifecycle with deadlines, terminal ownership."""

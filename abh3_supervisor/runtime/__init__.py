@@ -1,0 +1,1 @@
+"""Running the core: buses, pumps, the stop path, the headless loop and recordings."""
