@@ -4,6 +4,9 @@ Measures, per unit, the achieved command rate against the requested one, the jit
 the command period (|interval − period|, p50/p99 over all units), and the input-to-frame
 latency: a setpoint is changed at random moments and timed until the first frame that
 carries it leaves the host. Baseline: the same run with one unit (no contention).
+With ``tuis`` the supervisor serves its control socket and that many TUIs attach from
+processes of their own (headless Textual, state at 10 Hz, cycling tabs), as operators'
+would.
 """
 
 from __future__ import annotations
@@ -11,19 +14,21 @@ from __future__ import annotations
 import asyncio
 import itertools
 import random
+import subprocess
+import sys
+import tempfile
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from pathlib import Path
 
 import can
 
-from abh3_supervisor.clients.tui.app import SupervisorApp, TuiSource
-from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, SimConfig, UnitConfig
+from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from abh3_supervisor.runtime.thread import RuntimeThread
 from abh3_supervisor.scheduler.stats import percentile
+from abh3_supervisor.service.server import ControlServer
 
 
 class TxProbe(can.Listener):
@@ -37,32 +42,30 @@ class TxProbe(can.Listener):
             self.sent[msg.arbitration_id].append((time.perf_counter(), bytes(msg.data)))
 
 
+HOST = 100  # above every unit's abh3_id
+
+
 def config(n: int, rate: float, channel: str) -> Config:
-    units = {
-        f"u{i}": UnitConfig(
-            name=f"u{i}",
-            bus="b",
-            abh3_id=i + 1,
-            command_rate_hz=rate,
-            broadcast=BroadcastConfig(mask=0x7F, rate_hz=10),
-        )
+    """As a YAML file would say it: clients of the socket rebuild it from the text."""
+    units = "".join(
+        f"  - {{name: u{i}, bus: b, abh3_id: {i + 1}, host_id: {HOST}, command_rate_hz: {rate},"
+        f" broadcast: {{mask: 0x7F, rate_hz: 10}}}}\n"
         for i in range(n)
-    }
-    bus = BusConfig(name="b", interface="virtual", channel=channel, simulate=SimConfig())
-    return Config(file="bench", buses={"b": bus}, units=units)
+    )
+    text = (
+        f"buses:\n  b: {{interface: virtual, channel: {channel}, simulate: true}}\nunits:\n{units}"
+    )
+    return parse_config(text, "bench.yaml")
 
 
-def run(n: int, rate: float, seconds: float, channel: str, tui: bool = False) -> dict[str, float]:
-    """Measure; with ``tui`` the Textual app runs (headless, refreshing at 10 Hz) alongside."""
+def run(n: int, rate: float, seconds: float, channel: str, tuis: int = 0) -> dict[str, float]:
+    """Measure; with ``tuis`` that many TUIs are attached from other processes."""
     cfg = config(n, rate, channel)
     probe = TxProbe()
     latencies: list[float] = []
     host = PluginHost(cfg)
-    source = TuiSource(tuple(cfg.units))
-    if tui:
-        host.add_source(source)
 
-    async def measure(rt: Runtime, call: Callable[..., object]) -> None:
+    async def measure(rt: Runtime) -> None:
         rt.pumps["b"].recorder = probe
         sup = rt.supervisor
         end = time.perf_counter() + seconds
@@ -77,37 +80,53 @@ def run(n: int, rate: float, seconds: float, channel: str, tui: bool = False) ->
             pending.append(
                 (time.perf_counter(), unit + 1, frames.encode_dp0_command(value, 0, inputs))
             )
-            call(sup.set_velocity, f"u{unit}", value * 0.2, 0.0)
+            sup.set_velocity(f"u{unit}", value * 0.2, 0.0)
         await asyncio.sleep(0.05)
         for t, abh3, payload in pending:
-            sent = probe.sent[ids.dp0_command_id(abh3, 2)]
+            sent = probe.sent[ids.dp0_command_id(abh3, HOST)]
             first = next((ts for ts, data in sent if ts >= t and data == payload), None)
             if first is not None:
                 latencies.append(first - t)
 
-    async def scenario() -> None:
-        if not tui:
-            async with Runtime(cfg, plugins=host) as rt:
-                await measure(rt, lambda fn, *args: fn(*args))
-            return
-        # as `abh3 run` does with a terminal: the buses on their own thread, the app here
-        bridge = RuntimeThread(cfg, record=None, plugins=host)
-        rt = bridge.start()
-        app = SupervisorApp(rt, source, bridge)
-        app_task = asyncio.ensure_future(app.run_async(headless=True, size=(160, 50)))
-        try:
-            await measure(rt, bridge.call)
-        finally:
-            app.exit()
-            await app_task
-            bridge.stop()
+    async def scenario(path: Path) -> None:
+        async with Runtime(cfg, plugins=host) as rt:
+            if not tuis:
+                await measure(rt)
+                return
+            server = ControlServer(rt, host, path)
+            await server.start()
+            clients = [
+                subprocess.Popen(
+                    [sys.executable, "-m", "benchmarks.tui_client", str(path), str(seconds + 30)],
+                    cwd=Path(__file__).resolve().parent.parent,  # where `benchmarks` imports
+                )
+                for _ in range(tuis)
+            ]
+            try:
+                deadline = time.perf_counter() + 30
+                while len(server.clients) < tuis:  # each attached
+                    if any(c.poll() is not None for c in clients):
+                        raise RuntimeError("a TUI client ended before it attached")
+                    if time.perf_counter() > deadline:
+                        raise RuntimeError("the TUI clients did not attach within 30 s")
+                    await asyncio.sleep(0.05)
+                await asyncio.sleep(1.0)  # their first screens drawn
+                await measure(rt)
+                if any(c.poll() is not None for c in clients):
+                    raise RuntimeError("a TUI client ended during the measurement")
+            finally:
+                for client in clients:
+                    client.terminate()
+                    client.wait(10)
+                await server.close()
 
-    asyncio.run(scenario())
+    with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
+        asyncio.run(scenario(Path(tmp) / "s" / "bench.sock"))
     period = 1.0 / rate
     jitter: list[float] = []
     rates: list[float] = []
     for i in range(n):
-        times = [t for t, _ in probe.sent[ids.dp0_command_id(i + 1, 2)]]
+        times = [t for t, _ in probe.sent[ids.dp0_command_id(i + 1, HOST)]]
         times = times[len(times) // 10 :]  # skip the start-up
         jitter += [abs((b - a) - period) for a, b in itertools.pairwise(times)]
         rates.append((len(times) - 1) / (times[-1] - times[0]))

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from can.interfaces import virtual
@@ -57,3 +61,20 @@ def no_leaked_buses() -> Iterator[None]:
     leaked = {name: len(ch) for name, ch in virtual.channels.items() if ch}
     virtual.channels.clear()
     assert not leaked, f"virtual buses left open: {leaked}"
+
+
+@pytest.fixture(autouse=True)
+def private_runtime_dir() -> Iterator[None]:
+    """Supervisors the tests start serve their sockets here, never in the user's own
+    runtime directory (where `abh3 tui` and `abh3 status` would find them)."""
+    saved = os.environ.get("XDG_RUNTIME_DIR")
+    runtime = Path(tempfile.mkdtemp(dir="/tmp", prefix="abh3t-"))  # short: AF_UNIX paths
+    os.environ["XDG_RUNTIME_DIR"] = str(runtime)
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop("XDG_RUNTIME_DIR", None)
+        else:
+            os.environ["XDG_RUNTIME_DIR"] = saved
+        shutil.rmtree(runtime, ignore_errors=True)

@@ -21,8 +21,8 @@ def test_planner_matches_the_wire_model() -> None:
 
 def test_host_cpu_and_timing_and_scale_run() -> None:
     assert host_cpu.bare(50) > 0 and host_cpu.ours(50) > 0
-    for tui in (False, True):
-        result = cycle_timing.run(2, 100, 0.5, f"smoke-{tui}", tui=tui)
+    for tuis in (0, 1):
+        result = cycle_timing.run(2, 100, 0.5, f"smoke-{tuis}", tuis=tuis)
         assert set(result) >= {"jitter_p99_ms", "latency_p99_ms", "rate_error_percent"}
     measured = scale.in_subprocess("--units", "2", "--seconds", "1")
     assert measured["units"] == 2 and measured["rss_mb"] > 0

@@ -100,6 +100,11 @@ def _parser() -> argparse.ArgumentParser:
         help="also serve a read-only socket (state and events; no commands)",
     )
     run.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    # the TUI's child: stop when the pipe on stdin from the TUI closes (it quit or died)
+    run.add_argument("--exit-with-stdin", action="store_true", help=argparse.SUPPRESS)
+
+    tui = sub.add_parser("tui", help="attach the terminal UI to a running supervisor")
+    tui.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
 
     status = sub.add_parser("status", help="the state of a running supervisor (exit 0: all online)")
     status.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
@@ -169,6 +174,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
     from abh3_supervisor.config import load_config
 
+    if args.cmd == "tui":
+        return _tui_attached(args, release)
     if args.cmd in ("status", "send"):
         from abh3_supervisor.clients import control as client
 
@@ -274,20 +281,17 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
 
         log.info("%s", recording(args.record))
     if not args.headless:
-        # the TUI draws on stdout and stderr and reads stdin: all three must be terminals
-        streams = {"stdin": sys.stdin, "stdout": sys.stdout, "stderr": sys.stderr}
-        redirected = [name for name, s in streams.items() if s is None or not s.isatty()]
+        redirected = _not_terminals()
         if not redirected:
-            from abh3_supervisor.clients.tui.run import run_tui
-
-            release()  # the TUI handles its own keys and signals
-            return asyncio.run(
-                run_tui(config, record=args.record, plugins=plugins, duration=args.duration)
-            )
+            return _tui_with_child(args, release)
         print(
             f"abh3: {'/'.join(redirected)} not a terminal: running headless (--headless)",
             file=sys.stderr,
         )
+    if args.exit_with_stdin:
+        from abh3_supervisor.plugin_host import terminal
+
+        terminal.claim("the TUI that started this supervisor")  # it hands keys over
     running = run_headless(
         config,
         duration=args.duration,
@@ -295,11 +299,55 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
         status_interval=args.status_interval,
         plugins=plugins,
         service=_service(args),
+        exit_with_stdin=args.exit_with_stdin,
     )
     try:
         return asyncio.run(running)
     finally:
         running.close()  # a signal before it started: no "never awaited" warning
+
+
+def _not_terminals() -> list[str]:
+    """The TUI draws on stdout and stderr and reads stdin: all three must be terminals."""
+    streams = {"stdin": sys.stdin, "stdout": sys.stdout, "stderr": sys.stderr}
+    return [name for name, s in streams.items() if s is None or not s.isatty()]
+
+
+def _tui_with_child(args: argparse.Namespace, release: Callable[[], None]) -> int:
+    """`abh3 run` on a terminal: the supervisor in a child process, the TUI attached."""
+    import asyncio
+
+    from abh3_supervisor.clients.tui.run import run_tui
+    from abh3_supervisor.service.paths import default_socket
+
+    if args.no_socket:
+        raise RunError("the TUI attaches through the control socket: --no-socket needs --headless")
+    passed: list[str] = []
+    for flag, value in (
+        ("--record", args.record),
+        ("--socket-group", args.socket_group),
+        ("--read-only-socket", args.read_only_socket),
+    ):
+        if value is not None:
+            passed += [flag, str(value)]
+    if args.verbose:
+        passed.append("--verbose")
+    socket = args.socket or default_socket(str(args.config))
+    release()  # the TUI handles its own keys and signals
+    return asyncio.run(run_tui(args.config, socket, passed, duration=args.duration))
+
+
+def _tui_attached(args: argparse.Namespace, release: Callable[[], None]) -> int:
+    import asyncio
+
+    from abh3_supervisor.clients.control import find_socket
+    from abh3_supervisor.clients.tui.run import attach
+
+    if redirected := _not_terminals():
+        raise RunError(f"{'/'.join(redirected)} not a terminal: the TUI needs one")
+    path = find_socket(args.connect)
+    release()
+    return asyncio.run(attach(path, owner=False))
 
 
 def _service(args: argparse.Namespace) -> ServiceOptions | None:

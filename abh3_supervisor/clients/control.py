@@ -103,10 +103,21 @@ def find_socket(connect: Path | None) -> Path:
     if connect is not None:
         return connect
     here = default_socket("x").parent
-    found = sorted(here.glob("*.sock")) if here.is_dir() else []
+    found = [p for p in sorted(here.glob("*.sock")) if _served(p)] if here.is_dir() else []
     if len(found) == 1:
         return found[0]
     if not found:
         raise RunError(f"no supervisor is serving in {here}; give its socket with --connect PATH")
     names = ", ".join(str(p) for p in found)
     raise RunError(f"several supervisors serve ({names}): pick one with --connect PATH")
+
+
+def _served(path: Path) -> bool:
+    """Someone answers there (a supervisor killed with SIGKILL leaves its socket file)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(1.0)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            return False
+    return True

@@ -131,6 +131,8 @@ class Config:
     plugin_lines: dict[str, int] = field(default_factory=dict)
     # the parsed document with positions, for validating plugin sections later
     source: Source | None = field(default=None, compare=False, repr=False)
+    # the YAML as read: a client of the control socket rebuilds this same Config from it
+    text: str = field(default="", compare=False, repr=False)
 
     def units_on(self, bus: str) -> list[UnitConfig]:
         return [u for u in self.units.values() if u.bus == bus]

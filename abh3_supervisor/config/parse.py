@@ -94,6 +94,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
         plugins=dict(plugins.items()),
         plugin_lines={name: src.line(("plugins", name)) for name, _ in plugins.items()},
         source=src,
+        text=text,
     )
     _dry_run_startup(src, config)
     src.raise_if_problems()

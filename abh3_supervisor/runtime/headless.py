@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import signal
+import sys
 from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
@@ -58,7 +60,10 @@ async def run_headless(
     status_interval: float,
     plugins: PluginHost | None = None,
     service: ServiceOptions | None = None,
+    exit_with_stdin: bool = False,
 ) -> int:
+    """Run until ``duration``, a stop signal, a fatal error or — with ``exit_with_stdin``
+    (the TUI's child) — the end of stdin: the process that started us is gone."""
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     code = 0
@@ -77,6 +82,8 @@ async def run_headless(
             # (the caller's handlers do), which a loop handler cannot
             for sig in STOP_SIGNALS:
                 loop.add_signal_handler(sig, on_signal, signal.Signals(sig))
+            if exit_with_stdin:
+                _stop_at_end_of_stdin(sup, stop)
             events = EventLog(sup)
 
             def on_event(event: SupervisorEvent) -> None:
@@ -120,6 +127,23 @@ async def run_headless(
         log.error("not every drive confirmed its stop frame: check them (exit code 3)")
         return code or EXIT_STOP_UNCONFIRMED
     return code
+
+
+def _stop_at_end_of_stdin(sup: Supervisor, stop: asyncio.Event) -> None:
+    loop = asyncio.get_running_loop()
+    fd = sys.stdin.fileno()
+
+    def readable() -> None:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            data = b""
+        if not data:
+            loop.remove_reader(fd)
+            sup.audit("tui", None, "the TUI that started this supervisor is gone: stop")
+            stop.set()
+
+    loop.add_reader(fd, readable)
 
 
 async def _serve(

@@ -16,6 +16,7 @@ import contextlib
 import functools
 import itertools
 import logging
+import re
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,8 @@ from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.errors import CommandError
+from abh3_supervisor.plugin_host.terminal import KeyInput
+from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.snapshot import state
@@ -42,7 +45,8 @@ MAX_BUFFER = 1 << 20  # bytes queued for one client before it is dropped as too 
 MAX_STATE_HZ = 20.0
 CLIENT_TIMEOUT_S = 0.5  # a client's motion command is fresh this long (as the seed's topics)
 CLIENT_PRIORITY = 50  # below the TUI in the same process (100), above plugins' default 0
-READ_ONLY_METHODS = {"hello", "state", "subscribe"}
+READ_ONLY_METHODS = {"hello", "state", "subscribe", "keys"}
+LABEL = re.compile(r"[a-z][a-z0-9_-]{0,15}")
 
 
 @dataclass(frozen=True)
@@ -92,10 +96,11 @@ class _Client:
         self.events = False
         self.state_task: asyncio.Task[None] | None = None
         self.source: ClientSource | None = None
+        self.label = "client"  # what it calls itself in `hello` (e.g. "tui")
 
     @property
     def name(self) -> str:
-        return f"client{self.n}"
+        return f"{self.label}{self.n}"
 
     def send(self, data: bytes) -> None:
         if self.writer.is_closing():
@@ -171,7 +176,12 @@ class ControlServer:
             "release": self._release,
             "estop": self._estop,
             "clear_estop": self._clear_estop,
+            "audit": self._audit,
+            "keys": self._keys,
+            "key": self._key,
+            "simulate": self._simulate,
         }
+        self._log_handler = _Forward(self)
 
     async def start(self) -> None:
         paths.prepare_directory(self.path, self.gid)
@@ -181,10 +191,13 @@ class ControlServer:
         )
         paths.restrict(self.path, self.gid)
         self.rt.supervisor.subscribe(self._on_event)
+        self._log_handler.loop = asyncio.get_running_loop()
+        logging.getLogger().addHandler(self._log_handler)
         kind = "read-only " if self.read_only else ""
         log.info("serving the %scontrol socket %s", kind, self.path)
 
     async def close(self, reason: str = "the supervisor is stopping") -> None:
+        logging.getLogger().removeHandler(self._log_handler)
         if self._server is not None:
             self._server.close()
         for client in list(self.clients):
@@ -228,19 +241,33 @@ class ControlServer:
         if not listeners:
             return
         line = self._events.line(event)
-        if line is None:
-            return
-        level, text = line
-        unit = getattr(event, "unit", None)
-        params = {"t": getattr(event, "t", None), "level": logging.getLevelName(level)}
+        if line is not None:
+            self.broadcast(listeners, line[0], line[1], getattr(event, "unit", None))
+
+    def broadcast(
+        self, listeners: list[_Client], level: int, text: str, unit: str | None = None
+    ) -> None:
+        """An ``event`` notification: the supervisor's event lines and what is logged."""
+        params = {"t": self.rt.supervisor.clock(), "level": logging.getLevelName(level)}
         data = rpc.notification("event", {**params, "unit": unit, "text": text})
         for client in listeners:
             client.send(data)
+
+    def forward(self, record: logging.LogRecord) -> None:
+        """What the service logs (plugins, the stop path) reaches clients too, on the loop."""
+        listeners = [c for c in self.clients if c.events]
+        if listeners:
+            self.broadcast(listeners, record.levelno, record.getMessage())
 
     # ------------------------------------------------------------ methods
 
     async def _hello(self, client: _Client, params: dict[str, Any]) -> Any:
         config = self.rt.config
+        if "name" in params:
+            label = params["name"]
+            if not isinstance(label, str) or not LABEL.fullmatch(label):
+                raise rpc.RpcError(rpc.INVALID_PARAMS, "'name': 1–16 of a-z 0-9 _ -")
+            client.label = label
         return {
             "protocol": rpc.PROTOCOL,
             "version": __version__,
@@ -248,6 +275,9 @@ class ControlServer:
             "read_only": client.read_only,
             "units": list(config.units),
             "buses": list(config.buses),
+            "config_text": config.text,  # a client rebuilds the same typed Config from it
+            "simulated": sorted(self.rt.sims),
+            "name": client.name,
         }
 
     async def _state(self, client: _Client, params: dict[str, Any]) -> Any:
@@ -260,6 +290,8 @@ class ControlServer:
             raise rpc.RpcError(rpc.INVALID_PARAMS, "'events' must be true or false")
         if isinstance(hz, bool) or not isinstance(hz, int | float) or not 0 <= hz <= MAX_STATE_HZ:
             raise rpc.RpcError(rpc.INVALID_PARAMS, f"'state_hz' must be 0–{MAX_STATE_HZ:g}")
+        if events and not client.events:  # after the reply: what is already so
+            asyncio.get_running_loop().call_soon(self._online_lines, client)
         client.events = events
         if client.state_task is not None:
             client.state_task.cancel()
@@ -267,6 +299,15 @@ class ControlServer:
         if hz:
             client.state_task = asyncio.ensure_future(self._push_state(client, 1 / hz))
         return {"events": events, "state_hz": hz}
+
+    def _online_lines(self, client: _Client) -> None:
+        """The units already online, as the headless log said it when they came."""
+        sup = self.rt.supervisor
+        for name, unit in sup.units.items():
+            if unit.online:
+                line = self._events.line(HealthEvent(name, sup.clock(), True))
+                if line is not None:
+                    self.broadcast([client], line[0], line[1], name)
 
     async def _push_state(self, client: _Client, period: float) -> None:
         while not client.writer.is_closing():
@@ -327,6 +368,85 @@ class ControlServer:
         self.rt.supervisor.clear_emergency_stop()
         log.warning("control %s: emergency stop cleared", client.name)
         return {"ok": True}
+
+    async def _audit(self, client: _Client, params: dict[str, Any]) -> Any:
+        """An operator's action at the client, into the audit trail (and every event log)."""
+        unit = params.get("unit")
+        if unit is not None:
+            unit = rpc.units({"unit": unit}, tuple(self.rt.supervisor.units))[0]
+        self.rt.supervisor.audit(client.name, unit, rpc.text(params, "action"))
+        return {"ok": True}
+
+    def _key_inputs(self) -> dict[str, KeyInput]:
+        sources = self.host.sources if self.host is not None else ()
+        return {s.name: s for s in sources if isinstance(s, KeyInput)}
+
+    async def _keys(self, client: _Client, params: dict[str, Any]) -> Any:
+        """The keys each input source that reads a terminal wants, avoiding ``taken`` (the
+        client's own): a client owning a terminal hands them over with ``key``."""
+        taken = params.get("taken", [])
+        if not isinstance(taken, list) or not all(isinstance(k, str) for k in taken):
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'taken' must be a list of keys")
+        return {name: s.key_map(taken) for name, s in self._key_inputs().items()}
+
+    async def _key(self, client: _Client, params: dict[str, Any]) -> Any:
+        name, key = rpc.text(params, "source"), rpc.text(params, "key")
+        source = self._key_inputs().get(name)
+        if source is None:
+            raise rpc.RpcError(rpc.INVALID_PARAMS, f"no input source {name!r} takes keys")
+        if len(key) != 1 or not key.isprintable():
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'key' must be one printable character")
+        source.press(key)  # a key outside its map is ignored by the source
+        return {"ok": True}
+
+    async def _simulate(self, client: _Client, params: dict[str, Any]) -> Any:
+        """A simulated drive stops answering (``silent``) or answers again: a rehearsal."""
+        unit = rpc.units(params, tuple(self.rt.supervisor.units))[0]
+        cfg = self.rt.config.units[unit]
+        sim = self.rt.sims.get(cfg.bus)
+        silent = params.get("silent")
+        if sim is None:
+            raise rpc.RpcError(rpc.REFUSED, f"unit {unit!r} is not simulated")
+        if not isinstance(silent, bool):
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'silent' must be true or false")
+        sim.drives[cfg.abh3_id].silent = silent
+        log.warning(
+            "control %s: simulated %s %s",
+            client.name,
+            unit,
+            "stops answering" if silent else "answers again",
+        )
+        return {"ok": True}
+
+
+class _Forward(logging.Handler):
+    """Log records to the clients, from whatever thread logs them."""
+
+    def __init__(self, server: ControlServer) -> None:
+        super().__init__(logging.INFO)
+        self.server = server
+        self.loop: asyncio.AbstractEventLoop | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.name == "abh3":  # the supervisor's own event lines go as events already
+            return
+        loop = self.loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            if _on_loop(loop):
+                self.server.forward(record)
+            else:
+                loop.call_soon_threadsafe(self.server.forward, record)
+        except RuntimeError:  # the loop closed meanwhile
+            pass
+
+
+def _on_loop(loop: asyncio.AbstractEventLoop) -> bool:
+    try:
+        return asyncio.get_running_loop() is loop
+    except RuntimeError:
+        return False
 
 
 _FIELDS = {

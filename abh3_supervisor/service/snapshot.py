@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor.protocol import frames
@@ -12,6 +13,7 @@ if TYPE_CHECKING:
     from abh3_supervisor.core.state import UnitState
     from abh3_supervisor.core.supervisor import Supervisor
     from abh3_supervisor.runtime.bus_runtime import Runtime
+    from abh3_supervisor.scheduler.pump import BusPump
 
 
 def _finite(value: float | None) -> float | None:
@@ -45,6 +47,7 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
             "vel_b": fb.vel_b,
             "vel_y": fb.vel_y,
             "vel_x": fb.vel_x,
+            "control": fb.control,
         },
         "inputs": {"value": unit.inputs, "names": unit.layout.input.names(unit.inputs)},
         "words": {
@@ -57,6 +60,8 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
             "rate_hz": st.achieved_rate_hz(now),
             "requested_rate_hz": st.requested_rate_hz,
             "replies": st.replies,
+            "commands_sent": st.commands_sent,
+            "broadcasts": st.broadcasts,
             "timeouts": st.timeouts,
             "send_errors": st.send_errors,
             "malformed": st.malformed,
@@ -68,7 +73,11 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
 
 
 def state(rt: Runtime) -> dict[str, Any]:
-    sup = rt.supervisor
+    return supervisor_state(rt.supervisor, rt.pumps)
+
+
+def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str, Any]:
+    """The state of a supervisor and the pumps of its buses (none: a test's fake time)."""
     return {
         "t": sup.clock(),
         "estop": sup.estop,
@@ -81,6 +90,6 @@ def state(rt: Runtime) -> dict[str, Any]:
                 "send_errors": pump.send_errors,
                 "bus_errors": pump.bus_errors,
             }
-            for name, pump in rt.pumps.items()
+            for name, pump in pumps.items()
         },
     }

@@ -1,21 +1,23 @@
 """The Textual app: overview, unit detail, bus view, event log, plots, driving.
 
-It is a client of the Supervisor API and drives through the same input arbitration as
-the plugins (an input source named ``tui`` with the highest priority). The runtime wraps
-the app (see :mod:`abh3_supervisor.clients.tui.run`), so every way out of the app stops the
-drives. The app owns the terminal: input plugins that read keys get theirs from it
-(:mod:`abh3_supervisor.plugin_host.terminal`), after its own — e-stop, tabs and quit always win.
-Every operator action goes to the supervisor's audit trail, and so to the event log.
+It is a client of the control socket (:mod:`abh3_supervisor.clients.link`): it shows the
+state the service pushes (a :class:`Mirror`), and its keys become the socket's requests
+— motion through the same input arbitration as the plugins (fresh for 0.5 s, then zero),
+the command language, e-stop and clear. The app owns its terminal: input plugins of the
+service that read keys get theirs from it (``keys``/``key``), after its own — e-stop,
+tabs and quit always win. Every operator action goes to the supervisor's audit trail.
+Who starts the service and what quitting does is :mod:`abh3_supervisor.clients.tui.run`'s.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine, Mapping
-from typing import Any, ClassVar, TypeVar
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 from rich.text import Text
 from textual import events, work
@@ -26,6 +28,8 @@ from textual.css.query import NoMatches
 from textual.keys import _character_to_key, format_key, key_to_character
 from textual.widgets import Footer, Header, Input, RichLog, Static, TabbedContent, TabPane
 
+from abh3_supervisor.clients.link import Link, LinkError
+from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import operator, overview, plots
 from abh3_supervisor.clients.tui.help import help_lines
 from abh3_supervisor.clients.tui.model import (
@@ -42,22 +46,15 @@ from abh3_supervisor.clients.tui.model import (
 from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core.commands import RESPONSE_OK
-from abh3_supervisor.core.eventlog import EventLog
-from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.planner import plan
-from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
-from abh3_supervisor.plugin_host.terminal import KeyInput
-from abh3_supervisor.runtime.bus_runtime import Runtime
-from abh3_supervisor.runtime.thread import RuntimeThread
-from abh3_supervisor.scheduler.core import HealthEvent
 
 REFRESH_S = 0.1
-T = TypeVar("T")
+STATE_HZ = 10  # what the service pushes: the refresh rate, no more
 TABS = {"1": "overview", "2": "unit", "3": "bus", "4": "log", "5": "plots"}
 FLAG_BOXES = ("inputs", "control", "io")
 SET_STYLE = {"inputs": "bold cyan", "control": "bold green", "io": "bold green"}
 WIDE_FLAGS = 130  # below this the flag boxes go two by two: no name is ever cut
-DRIVE = "(hold; release = stop within 0.6 s)"
+DRIVE = "(hold; release = stop within 0.5 s)"
 
 
 def styled(level: int, text: str) -> Text:
@@ -75,20 +72,6 @@ class PaneHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         if record.name != "abh3":  # the supervisor's own event lines arrive as events
             self.pending.append(styled(record.levelno, record.getMessage()))
-
-
-class TuiSource(InputSource):
-    """The keyboard of the TUI as an input source: highest priority, 0.6 s freshness."""
-
-    def __init__(self, units: tuple[str, ...]) -> None:
-        super().__init__("tui", units, priority=100, timeout=0.6)
-        self.feed: InputFeed | None = None
-
-    def start(self, feed: InputFeed) -> None:
-        self.feed = feed
-
-    def stop(self) -> None:
-        self.feed = None
 
 
 def _b(key: str, action: str, short: str, long: str = "", show: bool = False) -> Binding:
@@ -131,64 +114,72 @@ class SupervisorApp(App[None]):
         _b("pageup", "scroll(-1)", "page up", "scroll the tab up"),
         _b("pagedown", "scroll(1)", "page down", "scroll the tab down"),
         _b("question_mark", "help", "help", "this help", True),
-        _b("q", "quit_safely", "quit", "quit (asks; stops the drives)", True),
+        _b("q", "quit_safely", "quit", "quit (asks; stops the drives, or detaches)", True),
     ]
+    QUIT = "Quit? Every unit gets zero, START and SERVO off."
+    DETACH = (
+        "Detach from the supervisor? It keeps running and so do the drives; motion from "
+        "this TUI stops within 0.5 s."
+    )
 
     def __init__(
         self,
-        runtime: Runtime,
-        source: TuiSource,
-        bridge: RuntimeThread | None = None,
+        mirror: Mirror,
+        link: Link | None,
+        *,
+        owner: bool = True,
         duration: float | None = None,
-        key_inputs: Mapping[str, KeyInput] | None = None,
+        plugin_keys: Mapping[str, dict[str, str]] | None = None,
     ) -> None:
+        """``owner``: this TUI started the service, and quitting stops it (and the drives);
+        otherwise quitting only detaches. ``link`` None: no service (layout tests)."""
         super().__init__()
         self.duration = duration
-        self.rt = runtime
-        self.bridge = bridge  # the runtime's own thread; None: it shares this loop
-        self.sup: Supervisor = runtime.supervisor
-        self.source = source
+        self.link = link
+        self.owner = owner
+        self.sup = mirror
         self.names = list(self.sup.units)
         self.selected = 0
         self.drive_all = False
         self.speed, self.turn = 0.2, 0.5
         self.sampler = Sampler(self.sup)
         self.bus_samples: dict[str, BusSample] = {}
-        self.plans = {p.bus: p for p in plan(runtime.config)}  # static: computed once
+        self.plans = {p.bus: p for p in plan(mirror.config)}  # static: computed once
         self.pending_log: deque[Text] = deque(maxlen=2000)
-        self.events = EventLog(self.sup)
         self._log_handler = PaneHandler(self.pending_log)
         self._last_audit: tuple[str, float] = ("", 0.0)
-        self.key_inputs: list[tuple[KeyInput, dict[str, str]]] = []
-        self.plugin_keys: dict[str, dict[str, str]] = {}
-        taken = {
-            self._char(k) for b in self.BINDINGS if isinstance(b, Binding) for k in b.key.split(",")
-        }
-        for i, (name, key_input) in enumerate((key_inputs or {}).items()):
-            keys = key_input.key_map(taken)
-            self.key_inputs.append((key_input, keys))
-            self.plugin_keys[name] = keys
+        self._sending: set[asyncio.Task[Any]] = set()
+        self.silenced: set[str] = set()  # simulated units this TUI told to stop answering
+        self.gone: str | None = None  # why the service is gone, once it is
+        self.plugin_keys = dict(plugin_keys or {})
+        self._plugin_key_names: list[str] = list(self.plugin_keys)
+        for i, keys in enumerate(self.plugin_keys.values()):
             for ch in keys:
                 self.bind(_character_to_key(ch), f"plugin_key({i}, {ord(ch)})", show=False)
-        self.call(self._watch_events)
+        if link is not None:
+            link.on_notification = self._notified
 
-    @staticmethod
-    def _char(key: str) -> str:
-        return key_to_character(key) or format_key(key)
+    @classmethod
+    def taken_keys(cls) -> list[str]:
+        """The app's own keys, as characters: input plugins get other ones."""
+        keys = (k for b in cls.BINDINGS if isinstance(b, Binding) for k in b.key.split(","))
+        return sorted({key_to_character(k) or format_key(k) for k in keys})
 
-    def _watch_events(self) -> None:
-        """On the runtime's loop, so no event slips between: subscribe, and log the units
-        that came online before the app existed."""
-        self.sup.subscribe(self._on_event)
-        for name, unit in self.sup.units.items():
-            if unit.online:
-                self._on_event(HealthEvent(name, self.sup.clock(), True))
+    def _notified(self, method: str, params: dict[str, Any]) -> None:
+        if method == "state":
+            self.sup.apply(params)
+            self.sampler.sample()
+        elif method == "event":
+            level = logging.getLevelName(str(params.get("level", "INFO")))
+            text = str(params.get("text", ""))
+            self.pending_log.append(styled(level if isinstance(level, int) else 20, text))
 
     # ------------------------------------------------------------ layout
 
     def compose(self) -> ComposeResult:
         yield Header()
         yield Static("EMERGENCY STOP LATCHED — E (shift+e) to clear", id="estop")
+        yield Static(id="gone")
         with TabbedContent(initial="overview"):
             with TabPane("1 Overview", id="overview"), VerticalScroll(id="overview-scroll"):
                 yield Static(id="table")
@@ -214,6 +205,8 @@ class SupervisorApp(App[None]):
         self._saved_handlers = root.handlers[:]
         root.handlers = [self._log_handler]  # stderr is the screen now
         self.set_interval(REFRESH_S, self.refresh_view)
+        if self.link is not None:
+            self.link.closed.add_done_callback(self._service_gone)
         self.refresh_view()
         if self.duration is not None:  # --duration: leave (and stop the drives) in time
             self.set_timer(self.duration, self.exit)
@@ -226,12 +219,19 @@ class SupervisorApp(App[None]):
         with contextlib.suppress(NoMatches):
             self.query_one("#detail-flags", Grid).styles.grid_size_columns = columns
 
-    # ------------------------------------------------------------ refresh
+    def _service_gone(self, closed: asyncio.Future[str]) -> None:
+        """Shown at once, and kept: what was on screen stays readable; q leaves."""
+        if self.gone is not None or not self.is_running:
+            return
+        self.gone = closed.result() if not closed.cancelled() else "closed"
+        text = f"NOT CONNECTED: {self.gone} — the drives' state is unknown here; q quits"
+        with contextlib.suppress(NoMatches):
+            self.query_one("#gone", Static).update(text)
+            self.query_one("#gone").add_class("shown")
+        self.pending_log.append(styled(logging.ERROR, text))
+        self.refresh_view()
 
-    def _on_event(self, event: SupervisorEvent) -> None:
-        line = self.events.line(event)
-        if line is not None:
-            self.pending_log.append(styled(*line))
+    # ------------------------------------------------------------ refresh
 
     def refresh_view(self) -> None:
         with contextlib.suppress(NoMatches):  # the app is closing: widgets already gone
@@ -242,10 +242,6 @@ class SupervisorApp(App[None]):
         return width if width > 0 else self.size.width - 2
 
     def _refresh(self) -> None:
-        if self.bridge is not None and not self.bridge.alive:
-            self.exit(return_code=1, message="the runtime stopped: see the log")
-            return
-        self.sampler.sample()
         self.query_one("#estop").set_class(self.sup.estop, "latched")
         self.query_one("#table", Static).update(
             overview.render(self.sup, self.names, self.selected, self._width("#table"))
@@ -260,7 +256,7 @@ class SupervisorApp(App[None]):
             width = self._width("#bus-view")
             lines = [
                 line
-                for f in bus_fields(self.rt, self.plans, self.bus_samples)
+                for f in bus_fields(self.sup, self.plans, self.bus_samples)
                 for line in pack(f, width, "  ")
             ]
             self.query_one("#bus-view", Static).update("\n".join(lines))
@@ -271,7 +267,7 @@ class SupervisorApp(App[None]):
                 + plots.render(
                     self.sup.units[self.unit],
                     self.sampler.traces[self.unit],
-                    self.sup.clock(),
+                    self.sup.t,
                     self._width("#plots-view"),
                     (height - 2) // len(SERIES),
                 )
@@ -306,17 +302,38 @@ class SupervisorApp(App[None]):
             text.append(label + "\n", style=style)
         self.query_one("#flags-faults", Static).update(text)
 
-    # ------------------------------------------------------------ the runtime's side
+    # ------------------------------------------------------------ the service's side
 
-    def call(self, fn: Callable[..., object], *args: object) -> None:
-        """Change something on the runtime's side (its own thread when there is one)."""
-        if self.bridge is None:
-            fn(*args)
-        else:
-            self.bridge.call(fn, *args)
+    def connected(self) -> bool:
+        if self.link is None or self.gone is not None:
+            self.say(f"not connected to the supervisor: {self.gone or 'no service'}")
+            return False
+        return True
 
-    async def run_remote(self, coro: Coroutine[Any, Any, T]) -> T:
-        return await (self.bridge.run(coro) if self.bridge is not None else coro)
+    def send(self, method: str, **params: Any) -> None:
+        """A request whose answer only matters when it is a refusal (said at once)."""
+        if not self.connected():
+            return
+        assert self.link is not None
+        task = asyncio.ensure_future(self.link.call(method, **params))
+        self._sending.add(task)
+        task.add_done_callback(self._sent)
+
+    def _sent(self, task: asyncio.Task[Any]) -> None:
+        self._sending.discard(task)
+        if not task.cancelled() and isinstance(task.exception(), LinkError):
+            with contextlib.suppress(NoMatches):
+                self.say(f"refused: {task.exception()}")
+
+    async def command_text(self, unit: str, text: str) -> str:
+        """The seed's exact answer to one command, or why there is none."""
+        if not self.connected():
+            return "not connected"
+        assert self.link is not None
+        try:
+            return str((await self.link.call("command", unit=unit, text=text))["response"])
+        except LinkError as exc:
+            return f"refused: {exc}"
 
     def audit(self, action: str, unit: str | None = None, repeat_after: float = 0.0) -> None:
         """Into the audit trail; the same action again within ``repeat_after`` s (a held
@@ -329,7 +346,8 @@ class SupervisorApp(App[None]):
         ):
             return
         self._last_audit = (action, now)
-        self.call(self.sup.audit, "tui", unit, action)
+        if self.link is not None and self.gone is None:
+            self.send("audit", unit=unit, action=action)
 
     @property
     def unit(self) -> str:
@@ -345,7 +363,8 @@ class SupervisorApp(App[None]):
     # ------------------------------------------------------------ actions
 
     def action_estop(self) -> None:
-        self.call(self.sup.emergency_stop)
+        self.send("estop")
+        self.sup.estop = True  # shown at once; the service's next state confirms it
         self.audit("key e-stop: EMERGENCY STOP")
         self.say("EMERGENCY STOP: every unit zero, START off — E (shift+e) to clear")
         self.refresh_view()
@@ -358,23 +377,19 @@ class SupervisorApp(App[None]):
         def answer(yes: bool | None) -> None:
             self.audit(f"clear the emergency stop? {'yes' if yes else 'no'}")
             if yes:
-                self.call(self.sup.clear_emergency_stop)
+                self.send("clear_estop")
                 self.say("e-stop cleared: give START again to move")
 
         self.push_screen(ConfirmScreen("Clear the emergency stop?"), answer)
 
     def action_drive(self, linear: int, angular: int) -> None:
-        feed = self.source.feed
         targets = self.targets()
         why = operator.drive_refusal(self.sup, targets, bool(linear or angular))
         if why is not None:
             self.say(why)
             return
-        if feed is None:
-            return
         lin, ang = linear * self.speed, angular * self.turn
-        feed.retarget(targets)
-        feed.twist(lin, ang)
+        self.send("twist", units=list(targets), linear_x=lin, angular_z=ang)
         what = f"drive {', '.join(targets)}: {lin:+.2f} m/s {ang:+.2f} rad/s"
         self.audit(what, repeat_after=2.0)
         self.say(f"{what} (hold the key; release = stop)")
@@ -409,14 +424,16 @@ class SupervisorApp(App[None]):
             pane.scroll_page_up()
 
     def action_plugin_key(self, index: int, char: int) -> None:
-        key_input, keys = self.key_inputs[index]
+        name = self._plugin_key_names[index]
         key = chr(char)
-        self.audit(f"key {key!r}: {keys[key]}", repeat_after=2.0)
-        key_input.press(key)
+        self.audit(f"key {key!r}: {self.plugin_keys[name][key]}", repeat_after=2.0)
+        self.send("key", source=name, key=key)
 
     def act(self, key: str, step: operator.Plan) -> None:
         """Carry out a plan: say why not, ask first, or send."""
         unit = self.unit
+        if not self.connected():  # asking first would promise what cannot be done
+            return
         if not step.commands:
             self.audit(f"key {key}: not done: {step.say}", unit)
             self.say(step.say)
@@ -459,13 +476,12 @@ class SupervisorApp(App[None]):
 
     def action_fault(self) -> None:
         cfg = self.sup.units[self.unit].cfg
-        sim = self.rt.sims.get(cfg.bus)
-        if sim is None:
+        if not self.sup.buses[cfg.bus].simulated:
             self.say("not a simulated unit")
             return
-        drive = sim.drives[cfg.abh3_id]
-        silent = not drive.silent
-        self.call(setattr, drive, "silent", silent)
+        silent = self.unit not in self.silenced
+        self.silenced ^= {self.unit}
+        self.send("simulate", unit=self.unit, silent=silent)
         what = f"simulated {self.unit} {'stops answering' if silent else 'answers again'}"
         self.audit(f"key f: {what}", self.unit)
         self.say(what)
@@ -493,7 +509,7 @@ class SupervisorApp(App[None]):
         """The command line: the seed's exact response, and a note when the drive does not
         do what was asked (looked at once it had time to report)."""
         unit = self.unit
-        response = await self.run_remote(self.sup.command(unit, text))
+        response = await self.command_text(unit, text)
         self.audit(f":{text!r} → {response!r}", unit)
         self.say(f"{unit} ← {text!r} → {response!r}")
         if response == RESPONSE_OK:
@@ -523,7 +539,7 @@ class SupervisorApp(App[None]):
         before (so an error reset is a rising edge the drive saw)."""
         response = RESPONSE_OK
         for text in commands:
-            response = await self.run_remote(self.sup.command(unit, text))
+            response = await self.command_text(unit, text)
             if response != RESPONSE_OK:
                 break
         self.say(f"{unit} ← {'; '.join(commands)} → {response!r}")
@@ -537,11 +553,14 @@ class SupervisorApp(App[None]):
             return
 
         def answer(yes: bool | None) -> None:
-            self.audit(f"quit? {'yes' if yes else 'no'}")
+            self.audit(f"{'quit' if self.owner else 'detach'}? {'yes' if yes else 'no'}")
             if yes:
                 self.exit()
 
-        self.push_screen(ConfirmScreen("Quit? Every unit gets zero, START and SERVO off."), answer)
+        if self.gone is not None:  # nothing left to stop from here
+            self.exit()
+            return
+        self.push_screen(ConfirmScreen(self.QUIT if self.owner else self.DETACH), answer)
 
     async def action_quit(self) -> None:
         """ctrl+q and the command palette's Quit ask too."""

@@ -1,4 +1,4 @@
-"""What the screens show, computed from the Supervisor without any Textual: testable alone.
+"""What the screens show, computed from a :class:`Mirror` without any Textual: testable alone.
 
 State is shown as the drive reports it (its control word) wherever the drive reports
 it; a ``!`` marks a switch the drive reports other than it is commanded.
@@ -9,12 +9,10 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+from abh3_supervisor.clients.mirror import Mirror, UnitView
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
 from abh3_supervisor.core.planner import BusPlan
-from abh3_supervisor.core.state import UnitState
-from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.protocol import flags, frames
-from abh3_supervisor.runtime.bus_runtime import Runtime
 
 WINDOW_S = 30.0  # what the plots show
 SET, CLEAR = "●", "○"  # a set bit has a symbol as well as a colour
@@ -34,17 +32,16 @@ def pair(a: float | None, b: float | None, digits: int = 1, width: int = 7) -> s
     return f"{fmt(a, digits):>{width}} {fmt(b, digits):>{width}}"
 
 
-def status_record(unit: UnitState, packet: int) -> frames.Broadcast | None:
-    entry = unit.status.get(packet)  # one dict read: another thread writes
-    return entry[1] if entry is not None else None
+def status_record(unit: UnitView, packet: int) -> frames.Broadcast | None:
+    return unit.status.get(packet)
 
 
-def reported(unit: UnitState) -> int | None:
+def reported(unit: UnitView) -> int | None:
     """The control word as the drive reports it (None until it has)."""
     return unit.words.get("control")
 
 
-def switch(unit: UnitState, mask: flags.Pair) -> str:
+def switch(unit: UnitView, mask: flags.Pair) -> str:
     """``ON/off`` per axis as the drive reports it; ``!`` where the command differs,
     ``?`` when the drive has not reported it (the command is shown then)."""
     control = reported(unit)
@@ -56,13 +53,12 @@ def switch(unit: UnitState, mask: flags.Pair) -> str:
     return text + ("!" if differs else "")
 
 
-def unit_of(unit: UnitState) -> str:
+def unit_of(unit: UnitView) -> str:
     return "%" if unit.setpoint.kind is ControlMode.CURRENT else "min⁻¹"
 
 
-def overview_row(sup: Supervisor, name: str) -> dict[str, str]:
+def overview_row(sup: Mirror, name: str) -> dict[str, str]:
     unit = sup.units[name]
-    slot = sup.schedulers[unit.cfg.bus].slots[name]
     fb = unit.feedback
     brd3, brd5 = status_record(unit, 3), status_record(unit, 5)
     error, alarm = unit.words.get("error", 0), unit.words.get("alarm", 0)
@@ -102,13 +98,11 @@ def overview_row(sup: Supervisor, name: str) -> dict[str, str]:
             else pair(None, None, 1, 5)
         ),
         "faults": faults or "–",
-        "rate": (
-            f"{slot.stats.achieved_rate_hz(sup.clock()):5.1f}/{slot.stats.requested_rate_hz:g}"
-        ),
+        "rate": f"{unit.stats.rate_hz:5.1f}/{unit.stats.requested_rate_hz:g}",
     }
 
 
-def fault_names(sup: Supervisor, name: str) -> list[tuple[str, str]]:
+def fault_names(sup: Mirror, name: str) -> list[tuple[str, str]]:
     """(mark, bit name) of every error and alarm bit set on a unit."""
     unit = sup.units[name]
     return [
@@ -139,11 +133,10 @@ def fault_lines(error: int | None, alarm: int | None) -> list[tuple[str, str]]:
     return lines
 
 
-def detail_fields(sup: Supervisor, name: str) -> list[str]:
+def detail_fields(sup: Mirror, name: str) -> list[str]:
     """The unit's figures, one field each: a field is never split across lines."""
     unit = sup.units[name]
-    slot = sup.schedulers[unit.cfg.bus].slots[name]
-    st = slot.stats
+    st = unit.stats
     fields = [
         f"unit {name}",
         f"abh3_id {unit.cfg.abh3_id}",
@@ -152,12 +145,12 @@ def detail_fields(sup: Supervisor, name: str) -> list[str]:
         f"group {unit.cfg.brd_group}",
         f"protocol {unit.cfg.protocol}",
         f"role {unit.cfg.role.value}",
-        f"rate {st.achieved_rate_hz(sup.clock()):.1f}/{st.requested_rate_hz:g} Hz",
+        f"rate {st.rate_hz:.1f}/{st.requested_rate_hz:g} Hz",
         f"exchanges {st.replies}/{st.commands_sent}",
         f"timeouts {st.timeouts}",
         f"send errors {st.send_errors}",
-        f"rtt p50 {fmt(st.rtt_ms(50), 2)} ms",
-        f"rtt p99 {fmt(st.rtt_ms(99), 2)} ms",
+        f"rtt p50 {fmt(st.rtt_p50_ms, 2)} ms",
+        f"rtt p99 {fmt(st.rtt_p99_ms, 2)} ms",
         f"status packets {st.broadcasts}",
         f"malformed {st.malformed}",
         f"gaps {st.gaps}",
@@ -222,13 +215,13 @@ class Trace:
             samples.popleft()
 
 
-def series_unit(unit: UnitState, key: str) -> str:
+def series_unit(unit: UnitView, key: str) -> str:
     if key.startswith("cmd"):
         return unit_of(unit)
     return "min⁻¹" if key.startswith("fbk") else "%"
 
 
-def series_label(unit: UnitState, key: str) -> str:
+def series_label(unit: UnitView, key: str) -> str:
     """The series' name in the unit's terms: feedback in its velocity model's axes."""
     if key.startswith("fbk"):
         travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
@@ -240,12 +233,12 @@ def series_label(unit: UnitState, key: str) -> str:
 class Sampler:
     """Keeps the recent history the plots draw, one sample per refresh."""
 
-    def __init__(self, sup: Supervisor) -> None:
+    def __init__(self, sup: Mirror) -> None:
         self.sup = sup
         self.traces = {name: Trace() for name in sup.units}
 
     def sample(self) -> None:
-        now = self.sup.clock()
+        now = self.sup.t
         for name, unit in self.sup.units.items():
             trace = self.traces[name]
             sp, fb = unit.setpoint, unit.feedback
@@ -273,13 +266,13 @@ class BusSample:
 
 
 def bus_fields(
-    rt: Runtime, plans: dict[str, BusPlan], last: dict[str, BusSample]
+    sup: Mirror, plans: dict[str, BusPlan], last: dict[str, BusSample]
 ) -> list[list[str]]:
     """Per bus and per unit on it, the fields of one line (frames/s and load % since the
     previous call, error counts)."""
     lines = []
-    for name, pump in rt.pumps.items():
-        now = rt.supervisor.clock()
+    for name, pump in sup.buses.items():
+        now = sup.t
         total = pump.frames_sent + pump.frames_received
         prev = last.get(name, BusSample(total, now))
         rate = (total - prev.frames) / (now - prev.t) if now > prev.t else 0.0
@@ -297,8 +290,10 @@ def bus_fields(
                 f"bus errors {pump.bus_errors}",
             ]
         )
-        for unit, slot in rt.supervisor.schedulers[name].slots.items():
-            st = slot.stats
+        for unit, view in sup.units.items():
+            if view.cfg.bus != name:
+                continue
+            st = view.stats
             lines.append(
                 [
                     f"  {unit}",

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from abh3_supervisor.clients.mirror import Mirror, UnitView
 from abh3_supervisor.clients.tui.model import fmt, reported, unit_of
 from abh3_supervisor.config.model import Role, VelocityModel
 from abh3_supervisor.core.kinematics import twist_to_yx, yx_to_ab
-from abh3_supervisor.core.state import UnitState
-from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.protocol.scaling import VELOCITY
 
@@ -30,7 +29,7 @@ class Plan:
     say: str = ""
 
 
-def refusal(sup: Supervisor, name: str) -> str | None:
+def refusal(sup: Mirror, name: str) -> str | None:
     """Why no command can reach this unit now, or None."""
     unit = sup.units[name]
     if unit.cfg.role is not Role.COMMAND:
@@ -46,7 +45,7 @@ def estop_note() -> str:
     return "EMERGENCY STOP latched: nothing may move until E (shift+e) clears it"
 
 
-def mask(unit: UnitState, what: str) -> int:
+def mask(unit: UnitView, what: str) -> int:
     lay = unit.layout
     return {
         "SERVO": lay.servo.both,
@@ -56,16 +55,16 @@ def mask(unit: UnitState, what: str) -> int:
     }[what]
 
 
-def motion(unit: UnitState) -> str:
+def motion(unit: UnitView) -> str:
     sp = unit.setpoint
     return f"AY {fmt(sp.ay)} BX {fmt(sp.bx)} {unit_of(unit)}"
 
 
-def _moving(unit: UnitState) -> bool:
+def _moving(unit: UnitView) -> bool:
     return bool(unit.setpoint.ay or unit.setpoint.bx)
 
 
-def _consequence(unit: UnitState, what: str, control: int | None) -> str:
+def _consequence(unit: UnitView, what: str, control: int | None) -> str:
     """What switching ``what`` on will do, in the drive's reported state."""
     lay = unit.layout
     servo_on = bool((unit.inputs if control is None else control) & lay.servo.both)
@@ -87,7 +86,7 @@ def _consequence(unit: UnitState, what: str, control: int | None) -> str:
     return "current (torque) mode: the command is zeroed and then read as % current."
 
 
-def toggle(sup: Supervisor, name: str, what: str) -> Plan:
+def toggle(sup: Mirror, name: str, what: str) -> Plan:
     """``v`` ``s`` ``b`` ``T``: the switch as the drive reports it, flipped."""
     unit = sup.units[name]
     if (why := refusal(sup, name)) is not None:
@@ -120,7 +119,7 @@ def toggle(sup: Supervisor, name: str, what: str) -> Plan:
     return Plan((f"{what} ON ON",), question=f"{head}\n\nSend {what} ON ON?{note}")
 
 
-def reset(sup: Supervisor, name: str) -> Plan:
+def reset(sup: Mirror, name: str) -> Plan:
     """``r``: a rising edge of ERROR RESET, then SERVO off too: the drive keeps the servo off
     after a reset until it sees SERVO off, so the command matches what it does."""
     if (why := refusal(sup, name)) is not None:
@@ -136,7 +135,7 @@ def reset(sup: Supervisor, name: str) -> Plan:
     )
 
 
-def drive_refusal(sup: Supervisor, names: tuple[str, ...], moving: bool) -> str | None:
+def drive_refusal(sup: Mirror, names: tuple[str, ...], moving: bool) -> str | None:
     """Why an arrow key cannot drive these units now, or None."""
     if moving and sup.estop:
         return estop_note()
@@ -148,7 +147,7 @@ def drive_refusal(sup: Supervisor, names: tuple[str, ...], moving: bool) -> str 
     return None
 
 
-def speed_caps(sup: Supervisor, names: tuple[str, ...]) -> tuple[float, float]:
+def speed_caps(sup: Mirror, names: tuple[str, ...]) -> tuple[float, float]:
     """The fastest twist the arrow keys may ask of these units within their velocity
     limits: (linear m/s, angular rad/s); the arrows give one or the other, never both."""
     speed = turn = float("inf")

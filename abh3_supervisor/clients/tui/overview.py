@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 from rich.text import Text
 
+from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui.model import ALARM_MARK, ERROR_MARK, fault_names, overview_row
-from abh3_supervisor.core.supervisor import Supervisor
 
 
 @dataclass(frozen=True)
@@ -87,7 +87,7 @@ def _style(key: str, value: str, selected: bool) -> str:
     return ""
 
 
-def render(sup: Supervisor, names: list[str], selected: int, width: int) -> Text:
+def render(sup: Mirror, names: list[str], selected: int, width: int) -> Text:
     columns = fit(width)
     text = Text(" ".join(_cell(c, c.header) for c in columns).rstrip() + "\n", style="bold")
     for i, name in enumerate(names):

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 from rich.text import Text
 
+from abh3_supervisor.clients.mirror import UnitView
 from abh3_supervisor.clients.tui.model import (
     SERIES,
     WINDOW_S,
@@ -16,7 +17,6 @@ from abh3_supervisor.clients.tui.model import (
     series_label,
     series_unit,
 )
-from abh3_supervisor.core.state import UnitState
 
 UP = " ▁▂▃▄▅▆▇█"  # eighths of a cell, filled from the bottom
 DOWN = " ▔▔▀▀▀██"  # from the top: Unicode has fewer steps that way
@@ -62,7 +62,7 @@ def bars(values: list[float | None], lo: float, hi: float, height: int) -> list[
     return ["".join(line) for line in lines]
 
 
-def render(unit: UnitState, trace: Trace, now: float, width: int, height: int) -> Text:
+def render(unit: UnitView, trace: Trace, now: float, width: int, height: int) -> Text:
     """Every series of one unit, each ``height`` rows (at least 2) with its label."""
     height = max(2, height)
     plot_width = max(10, width - LABEL - 1)

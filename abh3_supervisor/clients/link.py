@@ -1,0 +1,100 @@
+"""An asyncio connection to the control socket, for clients that live on an event loop
+(the TUI): requests with their replies, notifications to a callback, and one future that
+says when and why the connection ended — a service that dies is seen at once."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from abh3_supervisor.errors import RunError
+from abh3_supervisor.service import protocol as rpc
+
+Notified = Callable[[str, dict[str, Any]], None]
+
+
+class LinkError(RunError):
+    """The service refused a request (its message says why) or the connection is gone."""
+
+
+class Link:
+    def __init__(
+        self, path: Path, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        self.path, self.reader, self.writer = path, reader, writer
+        self.on_notification: Notified = lambda method, params: None
+        self.closed: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        self._ids = itertools.count(1)
+        self._pending: dict[int, asyncio.Future[Any]] = {}
+        self._task = asyncio.ensure_future(self._read())
+
+    @classmethod
+    async def open(cls, path: Path, timeout: float = 5.0) -> Link:
+        try:
+            reader, writer = await asyncio.wait_for(
+                asyncio.open_unix_connection(str(path), limit=rpc.MAX_LINE * 64), timeout
+            )
+        except (FileNotFoundError, ConnectionRefusedError):
+            raise LinkError(
+                f"no supervisor serves {path} (is `abh3 run CONFIG --headless` running? "
+                "give its socket with --connect PATH)"
+            ) from None
+        except (OSError, TimeoutError) as exc:
+            raise LinkError(f"cannot connect to {path}: {exc}") from None
+        return cls(path, reader, writer)
+
+    async def call(self, method: str, **params: Any) -> Any:
+        """Send a request and wait for its reply; :class:`LinkError` on an error reply."""
+        if self.closed.done():
+            raise LinkError(f"not connected: {self.closed.result()}")
+        rid = next(self._ids)
+        reply = asyncio.get_running_loop().create_future()
+        self._pending[rid] = reply
+        message = {"jsonrpc": "2.0", "id": rid, "method": method, "params": params}
+        try:
+            self.writer.write(rpc.encode(message))
+            return await reply
+        finally:
+            self._pending.pop(rid, None)
+
+    async def _read(self) -> None:
+        reason = "the supervisor closed the connection"
+        try:
+            while line := await self.reader.readline():
+                self._dispatch(json.loads(line))
+        except (OSError, ValueError) as exc:
+            reason = f"the connection broke: {exc}"
+        finally:
+            for reply in self._pending.values():
+                if not reply.done():
+                    reply.set_exception(LinkError(f"{self.path}: {reason}"))
+            if not self.closed.done():
+                self.closed.set_result(reason)
+
+    def _dispatch(self, message: dict[str, Any]) -> None:
+        if "method" in message:
+            params = message.get("params")
+            if message["method"] == "bye" and isinstance(params, dict) and not self.closed.done():
+                self.closed.set_result(str(params.get("reason", "bye")))
+            self.on_notification(message["method"], params if isinstance(params, dict) else {})
+            return
+        reply = self._pending.get(message.get("id", -1))
+        if reply is None or reply.done():
+            return
+        if "error" in message:
+            reply.set_exception(LinkError(str(message["error"].get("message"))))
+        else:
+            reply.set_result(message.get("result"))
+
+    async def close(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await self._task
+        self.writer.close()
+        with contextlib.suppress(Exception):
+            await self.writer.wait_closed()

@@ -1,0 +1,135 @@
+"""What a client knows of a running supervisor: its configuration (rebuilt from the YAML
+it serves, so typed exactly as the service's) and the last state it pushed.
+
+The TUI renders from a :class:`Mirror` only, never from the service's objects, so it is
+the same whether the service runs in another process or a test's fake time feeds it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from abh3_supervisor.config import Config, ControlMode, UnitConfig, parse_config
+from abh3_supervisor.core.state import Feedback, Setpoint
+from abh3_supervisor.errors import RunError
+from abh3_supervisor.protocol import flags, frames
+
+PACKETS: dict[int, type[frames.Broadcast]] = {
+    0: frames.Brd0,
+    1: frames.Brd1,
+    2: frames.Brd2,
+    3: frames.Brd3,
+    4: frames.Brd4,
+    5: frames.Brd5,
+    6: frames.Brd6,
+}
+
+
+@dataclass
+class Stats:
+    """A unit's exchange figures as the service computed them."""
+
+    rate_hz: float = 0.0
+    requested_rate_hz: float = 0.0
+    replies: int = 0
+    commands_sent: int = 0
+    broadcasts: int = 0
+    timeouts: int = 0
+    send_errors: int = 0
+    malformed: int = 0
+    gaps: int = 0
+    rtt_p50_ms: float | None = None
+    rtt_p99_ms: float | None = None
+
+
+@dataclass
+class UnitView:
+    """One unit as last reported: the fields of the core's ``UnitState`` a client shows."""
+
+    cfg: UnitConfig
+    inputs: int
+    setpoint: Setpoint
+    layout: flags.Layout
+    feedback: Feedback | None = None
+    status: dict[int, frames.Broadcast] = field(default_factory=dict)
+    online: bool | None = None
+    words: dict[str, int] = field(default_factory=dict)
+    stats: Stats = field(default_factory=Stats)
+
+    @property
+    def name(self) -> str:
+        return self.cfg.name
+
+    @classmethod
+    def initial(cls, cfg: UnitConfig) -> UnitView:
+        layout = flags.layout(cfg.protocol)
+        current = cfg.control is ControlMode.CURRENT
+        inputs = layout.idle(*cfg.data_select, torque=current)
+        return cls(cfg, inputs, Setpoint(kind=cfg.control), layout)
+
+
+@dataclass
+class BusView:
+    frames_sent: int = 0
+    frames_received: int = 0
+    send_errors: int = 0
+    bus_errors: int = 0
+    simulated: bool = False
+
+
+@dataclass
+class Mirror:
+    config: Config
+    units: dict[str, UnitView]
+    buses: dict[str, BusView]
+    t: float = 0.0
+    estop: bool = False
+    stopping: bool = False
+    received: int = 0  # states applied: 0 until the service has said anything
+
+    @classmethod
+    def of(cls, config: Config, simulated: list[str] | tuple[str, ...] = ()) -> Mirror:
+        units = {name: UnitView.initial(cfg) for name, cfg in config.units.items()}
+        buses = {name: BusView(simulated=name in simulated) for name in config.buses}
+        return cls(config, units, buses)
+
+    @classmethod
+    def from_hello(cls, hello: dict[str, Any]) -> Mirror:
+        """The service's own configuration, parsed as it parsed it."""
+        if not hello.get("config_text"):
+            raise RunError(f"the supervisor at {hello.get('config')} sent no configuration text")
+        config = parse_config(hello["config_text"], hello["config"])
+        return cls.of(config, hello.get("simulated", ()))
+
+    def apply(self, state: dict[str, Any]) -> None:
+        """Take a ``state`` (the method's result, or its notification)."""
+        self.t, self.estop = state["t"], state["estop"]
+        self.stopping = state.get("stopping", False)
+        for name, data in state["units"].items():
+            if name in self.units:
+                _apply_unit(self.units[name], data)
+        for name, data in state["buses"].items():
+            bus = self.buses.get(name)
+            if bus is not None:
+                for key in ("frames_sent", "frames_received", "send_errors", "bus_errors"):
+                    setattr(bus, key, data.get(key, 0))
+        self.received += 1
+
+
+def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:
+    unit.online = data["online"]
+    sp = data["setpoint"]
+    unit.setpoint = Setpoint(sp["ay"], sp["bx"], ControlMode(sp["kind"]))
+    fb = data["feedback"]
+    unit.feedback = None if fb is None else Feedback(**fb)
+    unit.inputs = data["inputs"]["value"]
+    unit.words = {name: word["value"] for name, word in data["words"].items()}
+    status = {}
+    for packet, record in data["status"].items():
+        kind = PACKETS.get(int(packet))
+        if kind is not None:
+            status[int(packet)] = kind(**record)
+    unit.status = status
+    known = {f.name for f in fields(Stats)}
+    unit.stats = Stats(**{k: v for k, v in data["stats"].items() if k in known})

@@ -1,0 +1,220 @@
+"""The TUI as a client of a running supervisor: attach, detach, several clients, the
+service gone, and the TUI's own process dying (`abh3 tui` and `abh3 run` on a terminal)."""
+
+from __future__ import annotations
+
+import asyncio
+import fcntl
+import json
+import os
+import pty
+import select
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import termios
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import can
+
+from abh3_supervisor.clients.link import Link
+from abh3_supervisor.clients.tui.app import SupervisorApp
+from abh3_supervisor.clients.tui.screens import ConfirmScreen
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.service.server import ControlServer
+from tests.conftest import TWO_UNITS
+from tests.test_tui import attached, response, until
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def served(check: Callable[[Runtime, ControlServer, Path], Any]) -> None:
+    """A runtime on simulated drives serving a socket; ``check`` attaches what it likes."""
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    host = PluginHost(cfg)
+
+    async def scenario(path: Path) -> None:
+        async with Runtime(cfg, plugins=host) as rt:
+            sup = rt.supervisor
+            since = sup.clock()
+            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
+            server = ControlServer(rt, host, path)
+            await server.start()
+            try:
+                await check(rt, server, path)
+            finally:
+                await server.close()
+
+    with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
+        asyncio.run(scenario(Path(tmp) / "s" / "t.sock"))
+
+
+def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> None:
+    async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
+        sup = rt.supervisor
+        for text in ("SERVO ON ON", "START ON ON"):
+            assert await sup.command("left", text) == ""
+        app, link = await attached(path, owner=False)
+        other = await Link.open(path)  # a second client: a script
+        try:
+            async with app.run_test(size=(160, 45)) as pilot:
+                reply = await other.call("command", unit="left", text="VEL 100 0")
+                assert reply == {"response": ""}
+                await until(pilot, lambda: app.sup.units["left"].setpoint.ay == 100, "VEL shown")
+                assert await other.call("estop") == {"ok": True}
+                await until(pilot, lambda: app.sup.estop, "the other client's e-stop shown")
+                assert sup.units["left"].setpoint.ay == 0  # zero on the next command frame
+                app.refresh_view()
+                assert app.query_one("#estop").has_class("latched")
+                await pilot.press("q")  # detaching asks, and says the drives keep running
+                await pilot.pause()
+                assert isinstance(app.screen, ConfirmScreen)
+                assert "keeps running" in app.screen.question
+                await pilot.press("y")
+            await link.close()
+            sent = sup.schedulers["b"].slots["left"].stats.commands_sent
+            await sup.wait_exchange("left", sup.clock(), 1.0)
+            assert sup.schedulers["b"].slots["left"].stats.commands_sent > sent  # still running
+            assert sup.units["left"].inputs & sup.units["left"].layout.servo.both  # servo on
+            assert not sup.stopping
+            again, link2 = await attached(path, owner=False)  # re-attach: the same state
+            async with again.run_test(size=(160, 45)) as pilot:
+                assert again.sup.estop
+                await pilot.press("E", "y")
+                await until(pilot, lambda: not sup.estop, "cleared from the re-attached TUI")
+                st = sup.schedulers["b"].slots["left"].stats  # never a gap the drive saw
+                assert sup.units["left"].online and st.gaps == 0
+            await link2.close()
+        finally:
+            await other.close()
+
+    served(check)
+
+
+def test_the_service_gone_is_shown_at_once_and_keys_say_so() -> None:
+    async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
+        app, link = await attached(path, owner=True)
+        async with app.run_test(size=(160, 45)) as pilot:
+            for client in list(server.clients):  # a crash: no "bye", the socket just ends
+                client.writer.transport.abort()
+            await until(pilot, lambda: app.gone is not None, "the loss seen")
+            banner = str(app.query_one("#gone").render())
+            assert banner.startswith("NOT CONNECTED") and app.query_one("#gone").has_class("shown")
+            await pilot.press("v")
+            assert "not connected" in response(app)
+            await pilot.press("q")  # nothing to stop from here: leaves without asking
+            await pilot.pause()
+            assert not app.is_running
+        await link.close()
+
+    served(check)
+
+
+def _wait_for(condition: Callable[[], bool], what: str, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"never happened: {what}"
+        select.select([], [], [], 0.05)  # polling another process: nothing to wait on
+
+
+def _in_a_terminal(args: list[str]) -> tuple[int, int]:
+    """``abh3 ARGS`` on a pseudo-terminal, once its screen shows both units online."""
+    pid, fd = pty.fork()
+    if pid == 0:
+        os.chdir(ROOT)
+        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
+    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 180, 0, 0))
+    screen = b""
+    while screen.count(b"online") < 2:
+        ready, _, _ = select.select([fd], [], [], 30)
+        assert ready, f"no TUI output: {screen[-500:]!r}"
+        screen += os.read(fd, 65536)
+    return pid, fd
+
+
+def _status(sock: Path) -> dict[str, Any]:
+    out = subprocess.run(
+        [sys.executable, "-m", "abh3_supervisor", "status", "--json", "--connect", str(sock)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=30,
+    )
+    state: dict[str, Any] = json.loads(out.stdout)
+    return state
+
+
+def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) -> None:
+    sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
+    serve = ["--headless", "--socket", str(sock), "--status-interval", "0"]
+    run = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", *serve],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert run.stderr is not None
+    try:
+        for line in run.stderr:
+            if "unit right: online" in line:
+                break
+        pid, fd = _in_a_terminal(["tui", "--connect", str(sock)])
+        before = _status(sock)
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        os.close(fd)
+        after = _status(sock)  # demo.yaml drives both units from its startup commands
+        for name in ("left", "right"):
+            b, a = before["units"][name], after["units"][name]
+            assert a["online"] and a["setpoint"] == b["setpoint"]
+            assert a["words"]["control"]["value"] == b["words"]["control"]["value"]
+            assert a["stats"]["replies"] > b["stats"]["replies"]  # exchanges go on
+            assert a["stats"]["gaps"] == 0  # never a gap the drive saw
+        assert not after["estop"] and not after["stopping"]
+    finally:
+        run.terminate()
+        rest = run.stderr.read()
+        assert run.wait(30) == 0, rest
+
+
+def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
+    tmp_path: Path,
+) -> None:
+    """`abh3 run` on a terminal: the supervisor is a child; the TUI dying closes the pipe
+    the child reads, and the child stops every drive."""
+    sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
+    record = tmp_path / "run.log"
+    pid, fd = _in_a_terminal(
+        ["run", "configs/demo.yaml", "--socket", str(sock), "--record", str(record)]
+    )
+    assert _status(sock)["units"]["left"]["online"]
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    os.close(fd)
+    _wait_for(lambda: not sock.exists(), "the child stops serving")
+    log = sock.with_suffix(".log")
+    _wait_for(lambda: log.read_text().count("stop frame confirmed") == 2, "both stops confirmed")
+    _wait_for(lambda: "recorded" in log.read_text(), "the recording closed")
+    layouts = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # demo.yaml
+    last = {}
+    for msg in can.LogReader(str(record)):
+        for abh3, lay in layouts.items():
+            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
+                last[abh3] = frames.decode_dp0_command(bytes(msg.data), lay.generation)
+    assert len(last) == 2
+    for abh3, cmd in last.items():
+        assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
+        assert cmd.inputs & ~layouts[abh3].select_mask == 0  # the safe word
+
+
+def test_taken_keys_are_the_apps_own() -> None:
+    taken = SupervisorApp.taken_keys()
+    assert {"e", "q", "E", "+", ":", "?"} <= set(taken)
