@@ -156,6 +156,7 @@ def test_a_stalled_adapter_times_out_and_the_stream_stays_well_formed(
 def test_unplug_and_replug(adapter: AdapterEmulator, peer: can.BusABC) -> None:
     with open_bus(adapter, reopen_interval=0.01) as bus:
         bus.send(can.Message(arbitration_id=1, data=b"\x01"))
+        assert adapter.wait_for(lambda: adapter.forwarded == 1)  # else unplugging loses it
         adapter.unplug()
         assert bus.recv(0.1) is None  # never raises: python-can's reader thread lives on
         assert not bus.connected and bus.vanished == 1

@@ -180,12 +180,15 @@ class AdapterEmulator:
                     self.raw_out += self.to_host.popleft()
                 reading = master >= 0 and not self._stalled
                 writing = master >= 0 and bool(self.raw_out) and not self._held
-            rl, wl, _ = select.select(
-                [self._wake_r] + ([master] if reading else []), [master] if writing else [], [], 1.0
-            )
-            if self._wake_r in rl:
-                os.read(self._wake_r, 4096)
             try:
+                rl, wl, _ = select.select(
+                    [self._wake_r, *([master] if reading else [])],
+                    [master] if writing else [],
+                    [],
+                    1.0,
+                )
+                if self._wake_r in rl:
+                    os.read(self._wake_r, 4096)
                 if master in wl:
                     with self.lock:
                         n = os.write(master, self.raw_out)
