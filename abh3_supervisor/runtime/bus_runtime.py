@@ -155,6 +155,7 @@ class Runtime:
                 recorder=self._recorder,
                 on_fatal=self._on_fatal,
                 refuse=_send_faults(cfg.simulate, loop.time()),
+                health=self.supervisor.bus_health[name],
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start
 
