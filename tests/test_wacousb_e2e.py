@@ -13,6 +13,7 @@ import pytest
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import SimConfig
 from abh3_supervisor.core.state import Feedback
+from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
@@ -122,3 +123,59 @@ def test_a_missing_adapter_fails_the_run_with_the_bus_named(
     err = capsys.readouterr().err
     assert "bus 'robot': cannot open wacousb channel" in err and "No such file" in err
     assert "Traceback" not in err
+
+
+def test_the_adapter_unplugged_and_back_under_a_running_supervisor(tmp_path: Path) -> None:
+    link = tmp_path / "ttyACM0"
+    emu = AdapterEmulator(link, "wacousb-replug")
+    config = parse_config(
+        f"""
+buses:
+  robot: {{interface: wacousb, channel: "{link}", options: {{reopen_interval: 0.05}}}}
+units:
+  - {{name: base, abh3_id: 4}}
+""",
+        "replug.yaml",
+    )
+    notices: list[str] = []
+
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        sim = SimBus.for_units(config.units_on("robot"), SimConfig(), loop.time())
+        sim_bus = can.Bus(interface="virtual", channel="wacousb-replug")
+        sim_pump = BusPump(sim_bus, sim, name="drives", channel="wacousb-replug")
+        sim_pump.start()
+        changed = asyncio.Event()
+
+        def keep(event: SupervisorEvent) -> None:
+            if isinstance(event, Notice) and event.message.startswith("bus robot:"):
+                notices.append(event.message)
+                changed.set()
+
+        async def next_notice() -> str:
+            await asyncio.wait_for(changed.wait(), 3.0)
+            changed.clear()
+            return notices[-1]
+
+        try:
+            async with Runtime(config) as rt:
+                sup = rt.supervisor
+                sup.subscribe(keep)
+                assert await sup.wait_exchange("base", sup.clock(), 3.0)
+                emu.unplug()
+                assert "SENDS FAILING" in await next_notice()
+                assert "not connected" in notices[-1]
+                assert not await sup.wait_exchange("base", sup.clock(), 0.2)
+                emu.plug()
+                assert "recovered from sends failing" in await next_notice()
+                assert await sup.wait_exchange("base", sup.clock(), 2.0)
+        finally:
+            sim_pump.stop()
+            sim_bus.shutdown()
+        assert rt.stops_confirmed
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        emu.close()
+    assert emu.bad == [] and emu.junk == 0
