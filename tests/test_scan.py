@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import pytest
@@ -17,6 +18,7 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.simulator import SimBus
 from abh3_supervisor.simulator.drive import SimDrive
+from tests.wacousb_emulator import AdapterEmulator
 
 # address: (generation, broadcast group, velocity model)
 FIVE = {
@@ -202,3 +204,19 @@ def test_a_bus_that_cannot_open_is_a_clear_error(capsys: pytest.CaptureFixture[s
     assert main(["scan", "--interface", "wacousb", "--channel", "/nonexistent/ttyACM0"]) == 1
     err = capsys.readouterr().err
     assert "cannot open" in err and "Traceback" not in err
+
+
+def test_scan_through_the_makers_adapter(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    emu = AdapterEmulator(tmp_path / "ttyACM0", "scan-usb")
+    node = SimNode("scan-usb", SimConfig(reply_latency_ms=0.0), {7: FIVE[7], 253: FIVE[253]})
+    try:
+        assert main(["scan", "--interface", "wacousb", "--channel", str(emu.link)]) == 0
+    finally:
+        node.close()
+        emu.close()
+    out = capsys.readouterr().out
+    rows = {line.split()[0]: line.split()[1:4] for line in out.splitlines()[1:3]}
+    assert rows == {"7": ["2023", "0", "motor"], "253": ["2021", "5", "travel"]}
+    assert emu.bad == [] and all(ids.CanId.from_int(i).pf == ids.PF_REQUEST for i in node.heard)
