@@ -55,9 +55,16 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
 def simulated(cfg: BusConfig) -> BusConfig:
     """The bus a simulated one really runs on: python-can's in-process ``virtual`` bus,
     whatever the file's interface — ``simulate: true`` means "instead of real drives", so
-    the file of a real robot runs on the simulator as written (no can0 needed)."""
+    the file of a real robot runs on the simulator as written (no can0 needed). The
+    interface must still be one python-can knows: the file is meant for the robot too."""
     if cfg.interface == "virtual":
         return cfg
+    if cfg.interface not in can.interfaces.VALID_INTERFACES:  # a typo is wrong either way
+        raise BusOpenError(
+            f"bus '{cfg.name}': cannot open {cfg.interface} channel '{cfg.channel}': "
+            f"python-can has no interface '{cfg.interface}' (installed: "
+            f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))})"
+        )
     log.info(
         "bus %s: simulated: on python-can's virtual bus instead of %s %s",
         cfg.name,
