@@ -121,14 +121,25 @@ def _parser() -> argparse.ArgumentParser:
     )
     scan.add_argument("--interface", required=True, help="python-can interface, e.g. socketcan")
     scan.add_argument("--channel", required=True, help="e.g. can0, /dev/ttyACM0")
-    scan.add_argument("--bitrate", type=int, default=500_000, help="bit/s (default 500000)")
+    scan.add_argument(
+        "--bitrate",
+        type=int,
+        default=500_000,
+        choices=(250_000, 500_000, 1_000_000),
+        help="bit/s (default 500000)",
+    )
     scan.add_argument(
         "--host", type=_address, default=2, help="our address, 0–253 (default 2, the seed's)"
     )
     scan.add_argument(
         "--listen-only", action="store_true", help="send nothing; learn from the traffic there"
     )
-    scan.add_argument("--listen", type=_positive, metavar="S", help="listen S seconds first")
+    scan.add_argument(
+        "--listen",
+        type=_positive,
+        metavar="S",
+        help="listen S seconds first (default 0.3; with --listen-only 5)",
+    )
     scan.add_argument(
         "--yaml", action="store_true", help="print a starting configuration (the table: stderr)"
     )
