@@ -52,6 +52,10 @@ def test_error_frames_and_send_errors_drive_the_state() -> None:
     h.on_sent(now=10.2)
     h.on_received(now=10.3)
     assert state(h) is BusState.OK
+    h.on_send_error(None, "wacousb /dev/ttyACM0: transmit stalled: …", now=10.4)
+    assert state(h) is BusState.TX_FULL and "stalled" in h.detail
+    h.on_sent(now=10.5)
+    h.on_received(now=10.6)
     h.on_send_error(errno.ENETDOWN, "Network is down", now=11.0)
     assert state(h) is BusState.BUS_OFF
     h.on_send_error(None, "whatever", now=11.5)  # still bus-off: not demoted to "failing"
@@ -64,6 +68,8 @@ def test_error_frames_and_send_errors_drive_the_state() -> None:
         (BusState.PASSIVE, BusState.OK),
         (BusState.OK, BusState.BUS_OFF),
         (BusState.BUS_OFF, BusState.OK),
+        (BusState.OK, BusState.TX_FULL),
+        (BusState.TX_FULL, BusState.OK),
         (BusState.OK, BusState.TX_FULL),
         (BusState.TX_FULL, BusState.OK),
         (BusState.OK, BusState.BUS_OFF),

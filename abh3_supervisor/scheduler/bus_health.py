@@ -97,8 +97,11 @@ class BusHealth:
             self._set(BusState.OK, now, _counters("the controller is error-active again", data))
 
     def on_send_error(self, code: int | None, message: str, now: float) -> None:
+        words = message.lower()
         if code == errno.ENOBUFS:
             self._set(BusState.TX_FULL, now, "the transmit queue is full (no node acks?)")
+        elif "full" in words or "stalled" in words:  # interfaces without an errno say so
+            self._set(BusState.TX_FULL, now, message)
         elif code == errno.ENETDOWN:
             if self.state is not BusState.BUS_OFF:
                 self._set(BusState.BUS_OFF, now, "network down: bus-off, or the interface is down")
