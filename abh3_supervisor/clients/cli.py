@@ -1,4 +1,4 @@
-"""The ``abh3`` command: ``run``, ``check``, ``decode``.
+"""The ``abh3`` command: ``run``, ``check``, ``status``, ``send``, ``scan``, ``decode``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 128 + N stopped by
@@ -121,11 +121,47 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("config", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
 
+    scan = sub.add_parser(
+        "scan", help="find the ABH3 drives on a bus (sends requests only: moves nothing)"
+    )
+    scan.add_argument("--interface", required=True, help="python-can interface, e.g. socketcan")
+    scan.add_argument("--channel", required=True, help="e.g. can0, /dev/ttyACM0")
+    scan.add_argument(
+        "--bitrate",
+        type=int,
+        default=500_000,
+        choices=(250_000, 500_000, 1_000_000),
+        help="bit/s (default 500000)",
+    )
+    scan.add_argument(
+        "--host", type=_address, default=2, help="our address, 0–253 (default 2, the seed's)"
+    )
+    scan.add_argument(
+        "--listen-only", action="store_true", help="send nothing; learn from the traffic there"
+    )
+    scan.add_argument(
+        "--listen",
+        type=_positive,
+        metavar="S",
+        help="listen S seconds first (default 0.3; with --listen-only 5)",
+    )
+    scan.add_argument(
+        "--yaml", action="store_true", help="print a starting configuration (the table: stderr)"
+    )
+
     dec = sub.add_parser("decode", help="decode a recording made with --record")
     dec.add_argument("file", type=Path)
     dec.add_argument("--config", type=Path, help="name units and pick protocol generations")
     dec.add_argument("--json", action="store_true", help="one JSON object per frame")
     return p
+
+
+def _address(text: str) -> int:
+    import argparse
+
+    if not text.isdigit() or not 0 <= int(text) <= 253:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an address 0–253")
+    return int(text)
 
 
 def _positive(text: str) -> float:
@@ -187,6 +223,18 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         config = load_config(args.config)
         _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
+    if args.cmd == "scan":
+        from abh3_supervisor.clients.scan import scan_command
+
+        return scan_command(
+            args.interface,
+            args.channel,
+            args.bitrate,
+            host=args.host,
+            listen_only=args.listen_only,
+            listen_s=args.listen,
+            as_yaml=args.yaml,
+        )
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file
 

@@ -29,6 +29,7 @@ from abh3_supervisor.core.throttle import Throttle, held_note
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
+from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.scheduler.core import (
     BusScheduler,
     Event,
@@ -98,6 +99,8 @@ class Supervisor:
         now = clock()
         self.units = {name: UnitState.initial(cfg) for name, cfg in config.units.items()}
         self.schedulers = {bus: BusScheduler(config.units_on(bus), now) for bus in config.buses}
+        # what each bus's interface reports of itself (bus-off, error-passive, …)
+        self.bus_health = {bus: BusHealth(bus) for bus in config.buses}
         self._observers: list[Observer] = []
         self._waiters: dict[str, list[tuple[float, asyncio.Future[bool]]]] = {}
         self.estop = False
@@ -135,6 +138,18 @@ class Supervisor:
         for event in self.schedulers[bus].drain_events():
             self._apply(event)
             self._emit(event)
+        for change in self.bus_health[bus].drain():
+            bad = change.new is not BusState.OK
+            state = change.new.upper() if bad else f"recovered from {change.old}"
+            level = logging.ERROR if change.new is BusState.BUS_OFF else logging.WARNING
+            self._emit(
+                Notice(
+                    None,
+                    change.t,
+                    level if bad else logging.INFO,
+                    f"bus {bus}: {state}: {change.detail}",
+                )
+            )
 
     def _apply(self, event: Event) -> None:
         unit = self.units[event.unit]

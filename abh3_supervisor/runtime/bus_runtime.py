@@ -15,6 +15,7 @@ import functools
 import logging
 import signal
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -44,11 +45,33 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
         if cfg.interface == "socketcan":
             hint = (
                 f" (is the interface up? e.g. `sudo ip link set {cfg.channel} up type can "
-                f"bitrate {cfg.bitrate}`; or use `simulate: true` with interface: virtual)"
+                f"bitrate {cfg.bitrate}`; or add `simulate: true` to run it on the simulator)"
             )
         raise BusOpenError(
             f"bus '{cfg.name}': cannot open {cfg.interface} channel '{cfg.channel}': {exc}{hint}"
         ) from exc
+
+
+def simulated(cfg: BusConfig) -> BusConfig:
+    """The bus a simulated one really runs on: python-can's in-process ``virtual`` bus,
+    whatever the file's interface — ``simulate: true`` means "instead of real drives", so
+    the file of a real robot runs on the simulator as written (no can0 needed). The
+    interface must still be one python-can knows: the file is meant for the robot too."""
+    if cfg.interface == "virtual":
+        return cfg
+    if cfg.interface not in can.interfaces.VALID_INTERFACES:  # a typo is wrong either way
+        raise BusOpenError(
+            f"bus '{cfg.name}': cannot open {cfg.interface} channel '{cfg.channel}': "
+            f"python-can has no interface '{cfg.interface}' (installed: "
+            f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))})"
+        )
+    log.info(
+        "bus %s: simulated: on python-can's virtual bus instead of %s %s",
+        cfg.name,
+        cfg.interface,
+        cfg.channel,
+    )
+    return replace(cfg, interface="virtual", options={})
 
 
 class GuardedRecorder(can.Listener):
@@ -136,10 +159,11 @@ class Runtime:
             self._recorder = open_recorder(self.record)
         self.supervisor = Supervisor(self.config, clock=loop.time)
         for name, cfg in self.config.buses.items():
-            if cfg.simulate is not None:
+            if (sim_cfg := cfg.simulate) is not None:
+                cfg = simulated(cfg)
                 sim_bus = open_bus(cfg)
                 self._buses.append(sim_bus)
-                sim = SimBus.for_units(self.config.units_on(name), cfg.simulate, loop.time())
+                sim = SimBus.for_units(self.config.units_on(name), sim_cfg, loop.time())
                 self.sims[name] = sim
                 pump = BusPump(sim_bus, sim, name=f"{name} (simulator)", channel=cfg.channel)
                 self._sim_pumps.append(pump)
@@ -155,6 +179,7 @@ class Runtime:
                 recorder=self._recorder,
                 on_fatal=self._on_fatal,
                 refuse=_send_faults(cfg.simulate, loop.time()),
+                health=self.supervisor.bus_health[name],
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start
 

@@ -17,6 +17,7 @@ from typing import Protocol
 
 import can
 
+from abh3_supervisor.scheduler.bus_health import BusHealth
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
 log = logging.getLogger(__name__)
@@ -42,6 +43,7 @@ class BusPump(can.Listener):
         recorder: can.Listener | None = None,
         on_fatal: Callable[[BaseException], None] | None = None,
         refuse: Callable[[float], bool] | None = None,
+        health: BusHealth | None = None,
     ) -> None:
         self.bus, self.machine, self.name, self.channel = bus, machine, name, channel
         self.after_step = after_step
@@ -56,6 +58,8 @@ class BusPump(can.Listener):
         self.send_errors = 0
         self.last_send_error: str | None = None
         self.bus_errors = 0
+        # bus-off, error-passive, a full queue: from error frames and send errors
+        self.health = health if health is not None else BusHealth(name)
 
     def start(self) -> None:
         # a short receive timeout lets stop() join a reader thread quickly
@@ -77,6 +81,8 @@ class BusPump(can.Listener):
             self.recorder.on_message_received(msg)
         if msg.is_error_frame:
             self.bus_errors += 1
+            self.health.on_error_frame(msg.arbitration_id, bytes(msg.data), self.loop.time())
+            self._health_changed()
             return
         if not msg.is_extended_id:
             return
@@ -85,11 +91,16 @@ class BusPump(can.Listener):
             self._guard(self.machine.on_bad_frame, msg.arbitration_id, self.loop.time(), why)
             return
         self.frames_received += 1
+        self.health.on_received(self.loop.time())
         self._guard(self._receive_and_step, msg.arbitration_id, bytes(msg.data))
 
     def on_error(self, exc: Exception) -> None:
         self.bus_errors += 1
         log.error("bus %s: receive failed: %s", self.name, exc)
+
+    def _health_changed(self) -> None:
+        if self.health.changes and self.after_step is not None:
+            self._guard(self.after_step)  # the owner drains and reports them
 
     # ------------------------------------------------------------ stepping
 
@@ -141,11 +152,14 @@ class BusPump(can.Listener):
         except can.CanError as exc:
             self.send_errors += 1
             self.last_send_error = str(exc) or type(exc).__name__
+            code = getattr(exc, "error_code", None)
+            self.health.on_send_error(code, self.last_send_error, self.loop.time())
             if math.log2(self.send_errors).is_integer():  # 1st, 2nd, 4th, 8th … failure
                 log.warning("bus %s: send failed (%s); %d so far", self.name, exc, self.send_errors)
             self.machine.on_send_failed(arbitration_id)
             return False
         self.frames_sent += 1
+        self.health.on_sent(self.loop.time())
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         return True

@@ -90,6 +90,13 @@ def _style(key: str, value: str, selected: bool) -> str:
 def render(sup: Mirror, names: list[str], selected: int, width: int) -> Text:
     columns = fit(width)
     text = Text(" ".join(_cell(c, c.header) for c in columns).rstrip() + "\n", style="bold")
+    for bus, health in sup.bus_health.items():  # a bus in trouble, above its units
+        if health.state != "ok":
+            since = sup.clock() - health.since
+            text.append(
+                f"bus {bus}: {health.state.upper()} for {since:.0f} s: {health.detail}\n",
+                "bold red",
+            )
     for i, name in enumerate(names):
         row = overview_row(sup, name)
         row["unit"] = ("▶ " if i == selected else "  ") + name

@@ -1,0 +1,189 @@
+"""Bus errors on real interfaces: bus-off, error-passive, a full transmit queue — found in
+python-can's error frames and exceptions, reported per bus, and recovered from."""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import queue
+from collections.abc import Iterator
+from typing import Any, ClassVar
+
+import can
+import pytest
+
+from abh3_supervisor.clients.tui import overview
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.config.model import SimConfig
+from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.scheduler import bus_health as bh
+from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
+from abh3_supervisor.scheduler.pump import BusPump
+from abh3_supervisor.simulator import SimBus
+
+
+def error_frame(cls: int, crtl: int = 0, tx: int = 0, rx: int = 0) -> tuple[int, bytes]:
+    return cls, bytes([0, crtl, 0, 0, 0, 0, tx, rx])
+
+
+def state(h: BusHealth) -> BusState:  # read afresh: each call can change it
+    return h.state
+
+
+def test_error_frames_and_send_errors_drive_the_state() -> None:
+    h = BusHealth("b")
+    h.on_error_frame(*error_frame(bh.ERR_CRTL, bh.CRTL_TX_WARNING, tx=100), now=1.0)
+    assert state(h) is BusState.WARNING and "tx errors 100" in h.detail
+    h.on_error_frame(*error_frame(bh.ERR_CRTL | bh.ERR_CNT, bh.CRTL_TX_PASSIVE, tx=130), now=2.0)
+    assert state(h) is BusState.PASSIVE
+    h.on_received(now=6.9)  # frames arrive, but an error frame came less than 5 s ago
+    assert state(h) is BusState.PASSIVE
+    h.on_received(now=7.0)
+    assert state(h) is BusState.OK and h.since == 7.0
+    h.on_error_frame(*error_frame(bh.ERR_BUSOFF), now=8.0)
+    assert state(h) is BusState.BUS_OFF
+    h.on_error_frame(*error_frame(bh.ERR_RESTARTED), now=9.0)
+    assert state(h) is BusState.OK
+    h.on_send_error(errno.ENOBUFS, "No buffer space available", now=10.0)
+    assert state(h) is BusState.TX_FULL
+    h.on_received(now=10.1)  # traffic, but nothing of ours went out yet
+    assert state(h) is BusState.TX_FULL
+    h.on_sent(now=10.2)
+    h.on_received(now=10.3)
+    assert state(h) is BusState.OK
+    h.on_send_error(None, "wacousb /dev/ttyACM0: transmit stalled: …", now=10.4)
+    assert state(h) is BusState.TX_FULL and "stalled" in h.detail
+    h.on_sent(now=10.5)
+    h.on_received(now=10.6)
+    h.on_send_error(errno.ENETDOWN, "Network is down", now=11.0)
+    assert state(h) is BusState.BUS_OFF
+    h.on_send_error(None, "whatever", now=11.5)  # still bus-off: not demoted to "failing"
+    assert state(h) is BusState.BUS_OFF
+    h.on_error_frame(*error_frame(bh.ERR_CRTL, bh.CRTL_ACTIVE), now=12.0)
+    assert state(h) is BusState.BUS_OFF  # "active" ends warning/passive, not a bus-off
+    assert [(c.old, c.new) for c in h.drain()] == [
+        (BusState.OK, BusState.WARNING),
+        (BusState.WARNING, BusState.PASSIVE),
+        (BusState.PASSIVE, BusState.OK),
+        (BusState.OK, BusState.BUS_OFF),
+        (BusState.BUS_OFF, BusState.OK),
+        (BusState.OK, BusState.TX_FULL),
+        (BusState.TX_FULL, BusState.OK),
+        (BusState.OK, BusState.TX_FULL),
+        (BusState.TX_FULL, BusState.OK),
+        (BusState.OK, BusState.BUS_OFF),
+    ]
+    assert h.error_frames == 5
+
+
+class FlakyBus(can.BusABC):
+    """A python-can bus (on a virtual channel) whose sends raise and which delivers error
+    frames when told to: what SocketCAN does on a real bus in trouble."""
+
+    instances: ClassVar[list[FlakyBus]] = []
+
+    def __init__(self, channel: Any = None, **kwargs: Any) -> None:
+        self.inner = can.Bus(interface="virtual", channel=channel)
+        self.fail: can.CanError | None = None
+        self.errors: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self.channel_info = f"flaky {channel}"
+        super().__init__(channel=channel)
+        FlakyBus.instances.append(self)
+
+    def inject(self, cls: int, data: bytes) -> None:
+        self.errors.put(can.Message(arbitration_id=cls, data=data, is_error_frame=True))
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.fail is not None:
+            raise self.fail
+        self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        try:
+            return self.errors.get_nowait(), False
+        except queue.Empty:
+            pass
+        return self.inner.recv(0.005 if timeout is None else min(timeout, 0.005)), False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.inner.shutdown()
+
+
+@pytest.fixture
+def flaky(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    monkeypatch.setitem(can.interfaces.BACKENDS, "flaky", (__name__, "FlakyBus"))
+    monkeypatch.setattr(can.util, "VALID_INTERFACES", can.interfaces.VALID_INTERFACES | {"flaky"})
+    FlakyBus.instances.clear()
+    yield
+    FlakyBus.instances.clear()
+
+
+def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> None:
+    config = parse_config(
+        "buses:\n  robot: {interface: flaky, channel: errs}\nunits:\n  - {name: base}\n", "e.yaml"
+    )
+    notices: list[str] = []
+
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        sim = SimBus.for_units(config.units_on("robot"), SimConfig(), loop.time())
+        sim_bus = can.Bus(interface="virtual", channel="errs")
+        sim_pump = BusPump(sim_bus, sim, name="drive", channel="errs")
+        sim_pump.start()
+        changed = asyncio.Event()
+
+        def keep(event: SupervisorEvent) -> None:
+            if isinstance(event, Notice) and event.message.startswith("bus robot:"):
+                notices.append(event.message)
+                changed.set()
+
+        async def next_notice() -> str:
+            await asyncio.wait_for(changed.wait(), 3.0)
+            changed.clear()
+            return notices[-1]
+
+        try:
+            async with Runtime(config) as rt:
+                sup = rt.supervisor
+                sup.subscribe(keep)
+                assert await sup.wait_exchange("base", sup.clock(), 3.0)
+                (bus,) = FlakyBus.instances
+                health = sup.bus_health["robot"]
+
+                bus.inject(*error_frame(bh.ERR_BUSOFF))
+                assert "BUS-OFF" in await next_notice() and state(health) is BusState.BUS_OFF
+                screen = overview.render(sup, ["base"], 0, 120).plain
+                assert "bus robot: BUS-OFF for 0 s: the controller went bus-off" in screen
+                bus.inject(*error_frame(bh.ERR_RESTARTED))
+                assert "recovered from bus-off" in await next_notice()
+
+                bus.fail = can.CanOperationError(
+                    "Failed to transmit: No buffer space", errno.ENOBUFS
+                )
+                assert "TX QUEUE FULL" in await next_notice()
+                assert await sup.wait_exchange("base", sup.clock(), 0.3) is False  # nothing goes
+                bus.fail = None
+                assert "recovered from tx queue full" in await next_notice()
+                assert await sup.wait_exchange("base", sup.clock(), 1.0)  # and the unit answers
+
+                bus.inject(*error_frame(bh.ERR_CRTL | bh.ERR_CNT, bh.CRTL_RX_PASSIVE, rx=140))
+                assert "ERROR-PASSIVE" in await next_notice()
+                bus.inject(*error_frame(bh.ERR_CRTL | bh.ERR_CNT, bh.CRTL_ACTIVE, rx=20))
+                assert "recovered from error-passive" in await next_notice()
+                assert "bus robot" not in overview.render(sup, ["base"], 0, 120).plain
+        finally:
+            sim_pump.stop()
+            sim_bus.shutdown()
+        assert rt.stops_confirmed
+
+    asyncio.run(scenario())
+    assert notices == [
+        "bus robot: BUS-OFF: the controller went bus-off",
+        "bus robot: recovered from bus-off: the controller restarted",
+        "bus robot: TX QUEUE FULL: the transmit queue is full (no node acks?)",
+        "bus robot: recovered from tx queue full: frames go out and come in again",
+        "bus robot: ERROR-PASSIVE: error-passive (tx errors 0, rx errors 140)",
+        "bus robot: recovered from error-passive: the controller is error-active again (tx errors 0, rx errors 20)",
+    ]
