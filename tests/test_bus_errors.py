@@ -12,6 +12,7 @@ from typing import Any, ClassVar
 import can
 import pytest
 
+from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import overview
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import SimConfig
@@ -20,6 +21,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler import bus_health as bh
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.scheduler.pump import BusPump
+from abh3_supervisor.service import snapshot
 from abh3_supervisor.simulator import SimBus
 
 
@@ -154,7 +156,7 @@ def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> 
 
                 bus.inject(*error_frame(bh.ERR_BUSOFF))
                 assert "BUS-OFF" in await next_notice() and state(health) is BusState.BUS_OFF
-                screen = overview.render(sup, ["base"], 0, 120).plain
+                screen = overview.render(mirrored(rt), ["base"], 0, 120).plain
                 assert "bus robot: BUS-OFF for 0 s: the controller went bus-off" in screen
                 bus.inject(*error_frame(bh.ERR_RESTARTED))
                 assert "recovered from bus-off" in await next_notice()
@@ -172,7 +174,7 @@ def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> 
                 assert "ERROR-PASSIVE" in await next_notice()
                 bus.inject(*error_frame(bh.ERR_CRTL | bh.ERR_CNT, bh.CRTL_ACTIVE, rx=20))
                 assert "recovered from error-passive" in await next_notice()
-                assert "bus robot" not in overview.render(sup, ["base"], 0, 120).plain
+                assert "bus robot" not in overview.render(mirrored(rt), ["base"], 0, 120).plain
         finally:
             sim_pump.stop()
             sim_bus.shutdown()
@@ -187,3 +189,10 @@ def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> 
         "bus robot: ERROR-PASSIVE: error-passive (tx errors 0, rx errors 140)",
         "bus robot: recovered from error-passive: the controller is error-active again (tx errors 0, rx errors 20)",
     ]
+
+
+def mirrored(rt: Runtime) -> Mirror:
+    """What a TUI attached to this runtime would show."""
+    mirror = Mirror.of(rt.config)
+    mirror.apply(snapshot.state(rt))
+    return mirror

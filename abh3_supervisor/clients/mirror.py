@@ -76,6 +76,9 @@ class BusView:
     send_errors: int = 0
     bus_errors: int = 0
     simulated: bool = False
+    state: str = "ok"  # as the interface reports it: ok, bus-off, error-passive, …
+    since: float = 0.0
+    detail: str = ""
 
 
 @dataclass
@@ -114,6 +117,8 @@ class Mirror:
             if bus is not None:
                 for key in ("frames_sent", "frames_received", "send_errors", "bus_errors"):
                     setattr(bus, key, data.get(key, 0))
+                bus.state = data.get("state", "ok")
+                bus.since, bus.detail = data.get("since", 0.0), data.get("detail", "")
         self.received += 1
 
 

@@ -76,6 +76,12 @@ def state(rt: Runtime) -> dict[str, Any]:
     return supervisor_state(rt.supervisor, rt.pumps)
 
 
+def _health(sup: Supervisor, bus: str) -> dict[str, Any]:
+    """What the bus's interface reports of itself: ``ok``, ``bus-off``, … since when."""
+    health = sup.bus_health[bus]
+    return {"state": health.state.value, "since": health.since, "detail": health.detail}
+
+
 def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str, Any]:
     """The state of a supervisor and the pumps of its buses (none: a test's fake time)."""
     return {
@@ -89,6 +95,7 @@ def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str,
                 "frames_received": pump.frames_received,
                 "send_errors": pump.send_errors,
                 "bus_errors": pump.bus_errors,
+                **_health(sup, name),
             }
             for name, pump in pumps.items()
         },

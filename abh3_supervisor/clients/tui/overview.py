@@ -90,9 +90,9 @@ def _style(key: str, value: str, selected: bool) -> str:
 def render(sup: Mirror, names: list[str], selected: int, width: int) -> Text:
     columns = fit(width)
     text = Text(" ".join(_cell(c, c.header) for c in columns).rstrip() + "\n", style="bold")
-    for bus, health in sup.bus_health.items():  # a bus in trouble, above its units
+    for bus, health in sup.buses.items():  # a bus in trouble, above its units
         if health.state != "ok":
-            since = sup.clock() - health.since
+            since = sup.t - health.since
             text.append(
                 f"bus {bus}: {health.state.upper()} for {since:.0f} s: {health.detail}\n",
                 "bold red",
