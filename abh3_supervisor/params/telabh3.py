@@ -40,6 +40,9 @@ class TelFormat:
     checksum: Checksum = Checksum.WITH_HEADER
 
 
+DEFAULT_FORMAT = TelFormat()
+
+
 def checksum(text: str) -> int:
     """``(-sum(ASCII codes)) & 0xFF`` (§1.1): ``checksum("FFFFCP0000") == 0x95``."""
     return -sum(text.encode("ascii")) & 0xFF
@@ -59,7 +62,7 @@ class Request:
         if self.value is not None and not 0 <= self.value <= 0xFFFFFFFF:
             raise CodecError(f"value {self.value:#x} is not a 32-bit word")
 
-    def text(self, fmt: TelFormat = TelFormat()) -> str:
+    def text(self, fmt: TelFormat = DEFAULT_FORMAT) -> str:
         """The request string without SYN, e.g. ``CP000095`` (default format)."""
         body = f"{self.command.value}{self.address:04X}"
         if self.value is not None:
@@ -67,7 +70,7 @@ class Request:
         summed = HEADER + body if fmt.header or fmt.checksum is Checksum.WITH_HEADER else body
         return f"{HEADER if fmt.header else ''}{body}{checksum(summed):02X}"
 
-    def encode(self, fmt: TelFormat = TelFormat()) -> bytes:
+    def encode(self, fmt: TelFormat = DEFAULT_FORMAT) -> bytes:
         """The transport payload: at least one SYN, at least 9 bytes (§1.3)."""
         raw = self.text(fmt).encode("ascii") + bytes([SYN])
         return raw + bytes([SYN]) * (MIN_TRANSPORT - len(raw))
@@ -124,7 +127,7 @@ def _bad(data: str) -> int:
     raise CodecError(f"reply data {data!r} is not an 8-digit hex word")
 
 
-def encode_reply(reply: Reply, fmt: TelFormat = TelFormat()) -> bytes:
+def encode_reply(reply: Reply, fmt: TelFormat = DEFAULT_FORMAT) -> bytes:
     """The drive's reply in the form of the request it answers, SYN-padded like it."""
     body = chr(ACK if reply.ok else NAK) + reply.data
     summed = HEADER + body if fmt.header or fmt.checksum is Checksum.WITH_HEADER else body
