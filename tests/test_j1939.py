@@ -3,6 +3,7 @@ drive, faults, and an independent check of every recorded frame against the J193
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import defaultdict
 
@@ -206,3 +207,30 @@ def test_receiver_asks_for_sixteen_dts_per_cts() -> None:
         now += 0.001
     assert sender.state is State.DONE and receiver.message == message
     assert [d[1:3] for d in wire["r"] if d[0] == 0x11] == [bytes([16, 1]), bytes([13, 17])]
+
+
+def test_a_dump_leaves_every_units_dp0_rate_within_one_percent() -> None:
+    from abh3_supervisor.params import table
+    from abh3_supervisor.params.telabh3 import pack_float
+    from abh3_supervisor.protocol import ids
+
+    rig = Rig(parse_config(TWO_UNITS, "two.yaml"), bitrate=500_000)  # wire time modelled
+    rig.drive("left").tel.params[0x4119] = pack_float(30)  # the drive waits 30 ms between DTs
+    rig.run(1.0)
+    start = rig.timeline.now
+    results = submit(rig, "left", *(Request(Command.PARAM, e.address) for e in table.PARAMETERS))
+    while len(results) < len(table.PARAMETERS):
+        rig.run(0.05)
+    end = max(r.t for r in results)
+    assert all(r.ok for r in results) and end - start > 3.0  # 121 parameters, ~4 s
+    for abh3 in (3, 1):  # the other unit, and the one being dumped
+        sent = [
+            f.start
+            for f in rig.timeline.frames
+            if f.arbitration_id == ids.dp0_command_id(abh3, 2) and start <= f.start <= end
+        ]
+        rate = (len(sent) - 1) / (sent[-1] - sent[0])
+        assert rate == pytest.approx(50, rel=0.01)
+        assert max(b - a for a, b in itertools.pairwise(sent)) < 0.021  # never a late keepalive
+    assert rig.scheduler.slots["right"].stats.timeouts == 0
+    assert len(check_j1939(rig.timeline.frames)) == 2 * len(table.PARAMETERS)
