@@ -116,6 +116,10 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("config", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
 
+    from abh3_supervisor.clients.param import add_parser as add_param_parser
+
+    add_param_parser(sub)
+
     dec = sub.add_parser("decode", help="decode a recording made with --record")
     dec.add_argument("file", type=Path)
     dec.add_argument("--config", type=Path, help="name units and pick protocol generations")
@@ -180,6 +184,10 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         config = load_config(args.config)
         _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
+    if args.cmd == "param":
+        from abh3_supervisor.clients import param
+
+        return param.run(args)
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file
 

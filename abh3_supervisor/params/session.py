@@ -146,7 +146,6 @@ class ParamChannel:
         self.timeout = TIMEOUT
         self.exchanges = 0
         self.failures = 0
-        self._stray: list[OutFrame] = []  # aborts for RTSs that came with nothing open
 
     @property
     def busy(self) -> bool:
@@ -167,14 +166,14 @@ class ParamChannel:
 
     def on_frame(self, is_dt: bool, data: bytes, now: float) -> None:
         if self.current is None:
-            if not is_dt and data[:1] == bytes([RTS]):  # nothing open: refuse politely
-                self._stray.append((self.ids[0], abort(AbortReason.BUSY)))
+            # nothing open: ignored, not aborted — another tool on the bus with our host
+            # address (a `abh3 param` beside a running service) may own that session
             return
         self.current[0].on_frame(is_dt, data, now)
         self._finish(now)
 
     def poll(self, now: float) -> list[OutFrame]:
-        out, self._stray = self._stray, []
+        out: list[OutFrame] = []
         if self.current is None and self.queue:
             request, done = self.queue.popleft()
             self.current = (Exchange(request, self.fmt, self.ids, now, timeout=self.timeout), done)
@@ -202,8 +201,6 @@ class ParamChannel:
             self.current[0].fail("the bus refused a transport frame (is the bus up?)")
 
     def next_deadline(self) -> float:
-        if self._stray:
-            return NOW  # finite: the pump arms a timer for it
         if self.current is None:
             return NOW if self.queue else math.inf
         return self.current[0].next_deadline()
