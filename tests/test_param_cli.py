@@ -178,3 +178,53 @@ def test_a_transport_fault_is_a_clear_error_not_a_hang(
         "error: unit left: CP SPEED_AY_0: no CTS from the drive within 1.25 s"
         in capsys.readouterr().err
     )
+
+
+def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`abh3 param --connect` asks the running supervisor: it refuses a write while the
+    servo is on, writes with --force, and logs the write in *its* event log."""
+    from abh3_supervisor.core.eventlog import EventLog
+    from abh3_supervisor.core.supervisor import OperatorAction, SupervisorEvent
+    from abh3_supervisor.service.server import ControlServer
+
+    service = parse_config(
+        SIM.format(channel="p-svc", simulate="true", extra=", startup: ['SERVO ON ON']"), "s.yaml"
+    )
+    sock = tmp_path / "s.sock"
+    logged: list[str] = []
+
+    async def scenario() -> list[int]:
+        async with Runtime(service) as rt:
+            events = EventLog(rt.supervisor)
+
+            def on_event(event: SupervisorEvent) -> None:
+                if isinstance(event, OperatorAction) and (line := events.line(event)):
+                    logged.append(line[1])
+
+            rt.supervisor.subscribe(on_event)
+            server = ControlServer(rt, None, sock)
+            await server.start()
+            try:
+                codes = []
+                for argv in (
+                    ["get", "left", "SPEED_AY_0"],
+                    ["set", "left", "SPEED_AY_0", "900", "--yes"],
+                    ["set", "left", "SPEED_AY_0", "900", "--yes", "--force"],
+                    ["identity", "right"],
+                    ["get", "left", "0x1234"],
+                ):
+                    codes.append(
+                        await asyncio.to_thread(main, ["param", "--connect", str(sock), *argv])
+                    )
+                return codes
+            finally:
+                await server.close()
+
+    assert asyncio.run(scenario()) == [0, 1, 0, 0, 1]
+    out, err = capsys.readouterr()
+    assert "unit left reports its servo ON: not writing (--force to write anyway)" in err
+    assert "the drive refused it (NAK)" in err
+    assert "written: 0x5000 SPEED_AY_0" in out and "FIRMWARE_VERSION   2.3.0.1" in out
+    assert logged == [
+        "operator (param client3) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)"
+    ]
