@@ -234,3 +234,28 @@ def test_a_dump_leaves_every_units_dp0_rate_within_one_percent() -> None:
         assert max(b - a for a, b in itertools.pairwise(sent)) < 0.021  # never a late keepalive
     assert rig.scheduler.slots["right"].stats.timeouts == 0
     assert len(check_j1939(rig.timeline.frames)) == 2 * len(table.PARAMETERS)
+
+
+def test_a_refused_transport_frame_fails_the_request_at_once_and_frees_the_channel(
+    rig: Rig,
+) -> None:
+    rig.run(0.1)
+    rig.timeline.refuse_sends(0, 0.1, 0.2)
+    results = submit(rig, "left", Request(Command.PARAM, 0x5000))
+    rig.run(0.05)
+    assert [r.error for r in results] == ["the bus refused a transport frame (is the bus up?)"]
+    assert results[0].t == pytest.approx(0.1, abs=0.002)
+    rig.run(0.1)
+    again = submit(rig, "left", Request(Command.PARAM, 0x5000))
+    rig.run(0.1)
+    assert again[0].ok
+
+
+def test_cancel_ends_the_open_exchange_and_the_queue(rig: Rig) -> None:
+    results = submit(rig, "left", Request(Command.PARAM, 0x5000), Request(Command.PARAM, 0x5001))
+    rig.drive("left").faults = (Fault(FaultKind.TP_LOST_CTS, 0.0, 100.0),)
+    rig.run(0.01)
+    rig.scheduler.params["left"].cancel("the run ends")
+    rig.run(0.01)
+    assert sorted(r.error or "" for r in results) == ["the run ends", "the run ends"]
+    assert not rig.scheduler.params["left"].busy

@@ -120,10 +120,8 @@ class Exchange:
                 self.error = f"unreadable reply: {exc}"
 
     def next_deadline(self) -> float:
-        if self._out:
+        if self._out or self.finished:  # frames to send, or a result to hand over
             return NOW  # finite: the pump arms a timer for it
-        if self.finished:
-            return math.inf
         machine = self.receiver if self.receiver is not None else self.sender
         return machine.next_deadline()
 

@@ -68,6 +68,8 @@ class ParamOps:
     async def servo_on(self, unit: str) -> bool | None:
         """As the drive reports it; None if it has not within the unit's timeout."""
         state = self.sup.unit(unit)
+        if state.words.get("control") is None:
+            self.sup.request_status(unit, 1)  # 2021 reports it there; a 2023 DP0 reply too
         for _ in range(int(state.cfg.timeout_ms / 1000 / SERVO_WAIT_STEP) + 1):
             control = state.words.get("control")
             if control is not None:
