@@ -84,7 +84,7 @@ class ParamOps:
         servo = await self.servo_on(unit)
         if servo is not False and not force:
             why = "reports its servo ON" if servo else "has not reported its servo state"
-            raise ParamFailed(f"unit {unit} {why}: not writing (--force to write anyway)")
+            raise ParamFailed(f"unit {unit} {why}: not writing")
         old = await self.read(unit, Command.PARAM, address)
         check(unit, await self.call(unit, Request(Command.PARAM, address, word)), word=False)
         new = await self.read(unit, Command.PARAM, address)
