@@ -228,3 +228,30 @@ def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert logged == [
         "operator (param client3) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)"
     ]
+
+
+def test_parameter_files_read_back_and_refuse_with_file_and_row(tmp_path: Path) -> None:
+    from abh3_supervisor.params import files
+    from abh3_supervisor.params.files import ParamFileError, ParamValue
+
+    values = [ParamValue(0x5000, 0x00400008), ParamValue(0x4103, 0x001FFFFF), ParamValue(0x7777, 5)]
+    for name in ("v.csv", "v.yaml", "v.json"):
+        files.write(tmp_path / name, values, "left")
+        assert files.read(tmp_path / name) == values
+    # decimal address, name (hex for an unnamed address), display value, internal value
+    assert (tmp_path / "v.csv").read_bytes().decode("cp932").splitlines() == [
+        "20480,SPEED_AY_0,800,4194312",
+        "16643,CAN_HOST_ADDRESS,-1,2097151",
+        "30583,0x7777,5,5",
+    ]
+    only_display = tmp_path / "d.csv"
+    only_display.write_bytes("20480,速度,900,\r\n".encode("cp932"))  # a Japanese name, no word
+    assert files.read(only_display) == [ParamValue(0x5000, 0x00400009)]
+    bad = tmp_path / "b.csv"
+    bad.write_bytes(b"20480,SPEED_AY_0,800,4194312\r\nnonsense,x,1,2\r\n")
+    with pytest.raises(ParamFileError, match=r"b.csv:2: 'nonsense' is no address"):
+        files.read(bad)
+    with pytest.raises(ParamFileError, match=r"use .csv"):
+        files.read(tmp_path / "v.txt")
+    with pytest.raises(ParamFileError, match="cannot read"):
+        files.read(tmp_path / "missing.csv")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import pytest
@@ -114,3 +115,11 @@ def test_packed_float_special_codes() -> None:
 def test_packed_float_round_trip(mantissa: int, power: int) -> None:
     value = float(f"{mantissa}e{power}")
     assert unpack_float(pack_float(value)) == value
+
+
+@given(st.binary(max_size=40))
+def test_garbage_is_a_codec_error_never_a_crash(payload: bytes) -> None:
+    with contextlib.suppress(CodecError):
+        decode_reply(payload)
+    with contextlib.suppress(CodecError):
+        decode_request(payload)
