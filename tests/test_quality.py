@@ -49,13 +49,15 @@ def test_the_core_never_imports_textual_or_plugin_dependencies() -> None:
 # what each folder may import of ours (docs/architecture.md, "Package layout")
 ALLOWED = {
     "protocol": {"errors", "protocol"},
-    "config": {"errors", "protocol", "config", "core"},  # startup: commands are dry-run
-    "core": {"errors", "protocol", "config", "core", "scheduler"},
-    "scheduler": {"errors", "protocol", "config", "core", "scheduler"},
+    "params": {"errors", "protocol", "params"},  # sans-I/O like protocol
+    "config": {"errors", "protocol", "params", "config", "core"},  # startup: commands are dry-run
+    "core": {"errors", "protocol", "params", "config", "core", "scheduler"},
+    "scheduler": {"errors", "protocol", "params", "config", "core", "scheduler"},
     "plugin_host": {"errors", "protocol", "config", "core", "scheduler", "plugin_host"},
     "service": {
         "errors",
         "protocol",
+        "params",
         "config",
         "core",
         "scheduler",
@@ -63,12 +65,13 @@ ALLOWED = {
         "plugin_host",
         "service",
     },
-    "simulator": {"errors", "protocol", "config", "core", "scheduler", "simulator"},
+    "simulator": {"errors", "protocol", "params", "config", "core", "scheduler", "simulator"},
     # a python-can interface any program can load: nothing of ours but itself
     "wacousb": {"wacousb"},
     "runtime": {
         "errors",
         "protocol",
+        "params",
         "config",
         "core",
         "scheduler",

@@ -382,7 +382,7 @@ KEYBOARD = TWO_UNITS + "plugins:\n  keyboard: {units: [left]}\n"
 
 async def until(pilot: Any, condition: Any, what: str) -> None:
     """Let the app and the buses run until ``condition()`` holds (bounded)."""
-    for _ in range(300):
+    for _ in range(500):
         if condition():
             return
         await pilot.pause(0.01)

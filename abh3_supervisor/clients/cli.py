@@ -148,6 +148,9 @@ def _parser() -> argparse.ArgumentParser:
     scan.add_argument(
         "--yaml", action="store_true", help="print a starting configuration (the table: stderr)"
     )
+    from abh3_supervisor.clients.param import add_parser as add_param_parser
+
+    add_param_parser(sub)
 
     dec = sub.add_parser("decode", help="decode a recording made with --record")
     dec.add_argument("file", type=Path)
@@ -235,6 +238,10 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
             listen_s=args.listen,
             as_yaml=args.yaml,
         )
+    if args.cmd == "param":
+        from abh3_supervisor.clients import param
+
+        return param.run(args)
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file
 

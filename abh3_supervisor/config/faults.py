@@ -9,6 +9,7 @@ FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms"}
 KIND_KEYS = {  # what each kind reads besides kind, at_s, for_s and unit
     FaultKind.ERROR_BITS: {"bits"},
     FaultKind.SLOW_REPLIES: {"delay_ms"},
+    FaultKind.TP_SLOW_DT: {"delay_ms"},
 }
 MAX_S = 7 * 86400.0
 

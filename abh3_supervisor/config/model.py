@@ -8,6 +8,7 @@ from typing import Any
 
 from abh3_supervisor.config.source import Source
 from abh3_supervisor.core.kinematics import Geometry
+from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, TelFormat
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 
@@ -35,6 +36,10 @@ class FaultKind(StrEnum):
     ERROR_BITS = "error_bits"  # error bits present (servo off) while the fault lasts
     BUS_SEND_ERROR = "bus_send_error"  # the bus refuses the supervisor's frames
     SLOW_REPLIES = "slow_replies"  # replies come ``delay_ms`` late
+    # the parameter transport (J1939 TP, simulator/telabh3.py)
+    TP_LOST_CTS = "tp_lost_cts"  # an RTS is heard and never answered
+    TP_ABORT = "tp_abort"  # an RTS is answered with an abort (reason 2, resources)
+    TP_SLOW_DT = "tp_slow_dt"  # the drive's DTs come ``delay_ms`` apart
 
 
 @dataclass(frozen=True)
@@ -46,7 +51,7 @@ class Fault:
     for_s: float
     unit: str | None = None  # None: every simulated drive on the bus
     bits: int = 1 << 6  # error_bits: which error bits (default A overcurrent)
-    delay_ms: float = 50.0  # slow_replies
+    delay_ms: float = 50.0  # slow_replies, tp_slow_dt
 
     def active(self, since_start: float) -> bool:
         return self.at_s <= since_start < self.at_s + self.for_s
@@ -119,6 +124,8 @@ class UnitConfig:
     limits: Limits = field(default_factory=Limits)
     data_select: tuple[int, int] = (7, 7)
     startup: tuple[str, ...] = ()
+    # how TelABH3 strings are written on CAN: not settled by public sources (docs/parameters.md)
+    telabh3: TelFormat = DEFAULT_FORMAT
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from abh3_supervisor.config.source import Section, Source, load_source, read_tex
 from abh3_supervisor.core.commands import RESPONSE_OK, parse_command
 from abh3_supervisor.core.kinematics import Geometry
 from abh3_supervisor.errors import CommandError, ConfigError
+from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum, TelFormat
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.ids import MAX_ADDRESS
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
@@ -61,7 +62,9 @@ UNIT_KEYS = {
     "limits",
     "data_select",
     "startup",
+    "telabh3",
 }
+TELABH3_KEYS = {"header", "checksum"}
 BROADCAST_KEYS = {"mask", "rate_hz", "listen_only"}
 GEOMETRY_KEYS = {"rate_num", "rate_den", "wheel", "width", "pulses_per_rev"}
 LIMIT_KEYS = {"velocity", "current"}
@@ -256,6 +259,7 @@ def _unit(u: Section, buses: dict[str, BusConfig]) -> UnitConfig | None:
     g = u.sub("geometry", GEOMETRY_KEYS)
     lim = u.sub("limits", LIMIT_KEYS)
     sel = u.sub("data_select", SELECT_KEYS)
+    tel = u.sub("telabh3", TELABH3_KEYS)
     return UnitConfig(
         name=name,
         bus=bus,
@@ -292,6 +296,12 @@ def _unit(u: Section, buses: dict[str, BusConfig]) -> UnitConfig | None:
         ),
         data_select=(sel.integer("ay", 7, 0, 7), sel.integer("bx", 7, 0, 7)),
         startup=_startup(u),
+        telabh3=TelFormat(
+            header=tel.boolean("header", DEFAULT_FORMAT.header),
+            checksum=Checksum(
+                tel.choice("checksum", DEFAULT_FORMAT.checksum, [c.value for c in Checksum])
+            ),
+        ),
     )
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from abh3_supervisor.config.model import Role, UnitConfig
 from abh3_supervisor.core.timing import next_on_grid
+from abh3_supervisor.params.session import ParamChannel
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.ids import (
     MATCH_MASK,
@@ -166,6 +167,11 @@ class BusScheduler:
         self.slots: dict[str, UnitSlot] = {}
         self._routes: dict[int, tuple[UnitSlot, int]] = {}  # id → (slot, -1 DP0 | packet)
         self._senders: dict[int, UnitSlot] = {}  # our request ids → slot
+        # parameter access (TelABH3 over J1939 TP), one channel per unit; its frames go
+        # after every DP0 command and status poll of the same step (docs/parameters.md)
+        self.params: dict[str, ParamChannel] = {}
+        self._tp_routes: dict[int, tuple[ParamChannel, bool]] = {}  # drive's id → (ch, is DT)
+        self._tp_senders: dict[int, ParamChannel] = {}
         for i, cfg in enumerate(cfgs):
             # stagger first sends so the units do not all hit the bus at one instant
             slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / max(1, len(cfgs)))
@@ -178,6 +184,12 @@ class BusScheduler:
                     slot,
                     n,
                 )
+            channel = ParamChannel(cfg.abh3_id, cfg.host_id, cfg.priority, cfg.telabh3)
+            self.params[cfg.name] = channel
+            for is_dt, ident in zip((False, True), channel.peer_ids, strict=True):
+                self._tp_routes[without_priority(ident)] = (channel, is_dt)
+            for ident in channel.ids:
+                self._tp_senders[ident] = channel
         self.events: list[Event] = []
 
     # ------------------------------------------------------------ inputs
@@ -189,6 +201,9 @@ class BusScheduler:
     def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
         route = self._routes.get(arbitration_id & MATCH_MASK)  # inline: the hot path
         if route is None:
+            tp = self._tp_routes.get(arbitration_id & MATCH_MASK)
+            if tp is not None and data:
+                tp[0].on_frame(tp[1], data, now)
             return
         slot, packet = route
         cfg = slot.cfg
@@ -242,6 +257,9 @@ class BusScheduler:
         """The bus refused a frame we returned from :meth:`poll`: it is not in flight."""
         slot = self._senders.get(arbitration_id)
         if slot is None:
+            channel = self._tp_senders.get(arbitration_id)
+            if channel is not None:
+                channel.on_send_failed()
             return
         slot.stats.send_errors += 1
         if arbitration_id == slot.command_id:
@@ -276,6 +294,9 @@ class BusScheduler:
             out.append(slot.poll_frames[slot.poll_packet])
             slot.poll_sent_at = now
             slot.stats.polls_sent += 1
+        for channel in self.params.values():
+            if channel.next_deadline() <= now:
+                out += channel.poll(now)
         return out
 
     def request_status(self, unit: str, packet: int) -> None:
@@ -318,6 +339,8 @@ class BusScheduler:
             if slot.online is not False:
                 last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
                 deadline = min(deadline, last + slot.timeout)
+        for channel in self.params.values():
+            deadline = min(deadline, channel.next_deadline())
         return deadline
 
     def drain_events(self) -> list[Event]:

@@ -28,10 +28,12 @@ from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.errors import CommandError
+from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.terminal import KeyInput
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
+from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
 from abh3_supervisor.service.snapshot import state
 
 if TYPE_CHECKING:
@@ -180,8 +182,14 @@ class ControlServer:
             "keys": self._keys,
             "key": self._key,
             "simulate": self._simulate,
+            # parameter access (docs/parameters.md): abh3 param --connect, the TUI
+            "param_read": self._param_read,
+            "param_identity": self._param_identity,
+            "param_servo": self._param_servo,
+            "param_write": self._param_write,
         }
         self._log_handler = _Forward(self)
+        self._params = ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())
 
     async def start(self) -> None:
         paths.prepare_directory(self.path, self.gid)
@@ -231,7 +239,7 @@ class ControlServer:
             raise rpc.RpcError(rpc.READ_ONLY, "this connection is read-only")
         try:
             return await method(client, request.params)
-        except CommandError as exc:
+        except (CommandError, ParamFailed) as exc:
             raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
 
     # ------------------------------------------------------------ events
@@ -417,6 +425,41 @@ class ControlServer:
             "stops answering" if silent else "answers again",
         )
         return {"ok": True}
+
+    # ------------------------------------------------------------ parameters
+
+    def _param_args(self, params: dict[str, Any]) -> tuple[str, int]:
+        unit = rpc.text(params, "unit")
+        address = params.get("address")
+        if isinstance(address, bool) or not isinstance(address, int) or not 0 <= address <= 0xFFFF:
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'address' must be an integer 0-0xFFFF")
+        self.rt.supervisor.unit(unit)  # CommandError for an unknown unit
+        return unit, address
+
+    async def _param_read(self, client: _Client, params: dict[str, Any]) -> Any:
+        unit, address = self._param_args(params)
+        command = params.get("command", "CP")
+        if command not in (Command.PARAM.value, Command.MONITOR.value):
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'command' must be 'CP' or 'CM'")
+        return {"word": await self._params.read(unit, Command(command), address)}
+
+    async def _param_identity(self, client: _Client, params: dict[str, Any]) -> Any:
+        unit, address = self._param_args(params)
+        return {"text": await self._params.identity(unit, address)}
+
+    async def _param_servo(self, client: _Client, params: dict[str, Any]) -> Any:
+        unit = rpc.text(params, "unit")
+        return {"servo": await self._params.servo_on(unit)}
+
+    async def _param_write(self, client: _Client, params: dict[str, Any]) -> Any:
+        unit, address = self._param_args(params)
+        word = params.get("word")
+        if isinstance(word, bool) or not isinstance(word, int) or not 0 <= word <= 0xFFFFFFFF:
+            raise rpc.RpcError(rpc.INVALID_PARAMS, "'word' must be a 32-bit unsigned integer")
+        force = params.get("force", False) is True
+        source = f"param {client.name}"
+        old, new = await self._params.write(unit, address, word, force=force, source=source)
+        return {"old": old, "new": new}
 
 
 class _Forward(logging.Handler):

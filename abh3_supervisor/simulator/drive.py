@@ -24,11 +24,14 @@ from abh3_supervisor.protocol.ids import (
     ADDR_ALL,
     PF_REQUEST,
     PF_SINGLE,
+    PF_TP_CM,
+    PF_TP_DT,
     CanId,
     broadcast_id,
     dp0_reply_id,
 )
 from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
+from abh3_supervisor.simulator.telabh3 import TelResponder
 
 PULSES_PER_REV = 4096
 TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode
@@ -72,6 +75,7 @@ class SimDrive:
         bp = self.cfg.broadcast_period_ms
         self._next_brd = now + bp / 1000 if bp else math.inf
         self.frames_received = 0
+        self.tel = TelResponder(abh3_id, self, self._fault_value)
 
     # ------------------------------------------------------------ fault injection
 
@@ -91,6 +95,11 @@ class SimDrive:
             self.host = cid.sa
             self._apply_command(data, now)
             self._queue(now, dp0_reply_id(self.abh3_id, cid.sa), self._dp0_reply())
+        elif cid.pf in (PF_TP_CM, PF_TP_DT) and cid.ps == self.abh3_id and data:
+            self.advance(now)
+            self.tel.on_frame(cid.sa, cid.pf == PF_TP_DT, data, now)
+            for frame in self.tel.poll(now):
+                self._queue(now, *frame)
         elif cid.pf == PF_REQUEST and cid.ps in (self.abh3_id, ADDR_ALL) and len(data) >= 3:
             self.advance(now)
             self.frames_received += 1
@@ -112,6 +121,11 @@ class SimDrive:
                 return fault
         return None
 
+    def _fault_value(self, kind: FaultKind, now: float) -> float | None:
+        """For the parameter side: None, or the active fault's ``delay_ms``."""
+        fault = self._fault(kind, now)
+        return None if fault is None else fault.delay_ms
+
     def _queue(self, now: float, arbitration_id: int, data: bytes) -> None:
         if self.silent or self._fault(FaultKind.SILENT, now):
             return
@@ -131,6 +145,8 @@ class SimDrive:
             self._next_brd = next_on_grid(self._next_brd, self.cfg.broadcast_period_ms / 1000, now)
             for n in range(7):
                 self._queue(now, broadcast_id(self.abh3_id, self.group, n), self.broadcast(n))
+        for frame in self.tel.poll(now):
+            self._queue(now, *frame)
         out = []
         while self._out and self._out[0][0] <= now:
             _, _, arbitration_id, data = heapq.heappop(self._out)
@@ -139,7 +155,9 @@ class SimDrive:
 
     def next_deadline(self) -> float:
         due = self._out[0][0] if self._out else math.inf
-        return min(due, self._next_dp0, self._next_brd, self._timeout_deadline())
+        return min(
+            due, self._next_dp0, self._next_brd, self._timeout_deadline(), self.tel.next_deadline()
+        )
 
     def _timeout_deadline(self) -> float:
         # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
@@ -244,6 +262,35 @@ class SimDrive:
                 self.vel[i] += max(-step, min(step, goal - self.vel[i]))
             self.vel[i] = max(VELOCITY.minimum, min(VELOCITY.maximum, self.vel[i]))
             self.pulses[i] += self.vel[i] / 60 * PULSES_PER_REV * dt
+
+    # ------------------------------------------------------------ parameter side
+
+    def set_command_zero_ms(self, ms: int) -> None:
+        """Parameter 0x4117 written: the drive's command-zero timeout from now on."""
+        self.command_zero_ms = ms
+
+    def monitor(self, address: int) -> float | None:
+        """A ``CM`` monitor (§1.4) from the simulated state; None: no such monitor."""
+        ay, bx = self._ay_bx()
+        values: dict[int, float] = {
+            0x0000: self.error_word(),
+            0x0001: self.alarm_word(),
+            0x0002: self.inputs,
+            0x0003: self.control_word(),
+            0x0004: 0,
+            0x0005: 0,
+            0x1004: 23.7,
+            0x1005: 23.7,
+            0x1012: ay,
+            0x1022: bx,
+            0x1031: math.copysign(self.load(0), self.vel[0]),
+            0x1041: math.copysign(self.load(1), self.vel[1]),
+            0x103B: self.load(0),
+            0x104B: self.load(1),
+            0x1054: ((int(self.pulses[0]) + 2**31) % 2**32) - 2**31,
+            0x1064: ((int(self.pulses[1]) + 2**31) % 2**32) - 2**31,
+        }
+        return values.get(address)
 
     # ------------------------------------------------------------ frames out
 

@@ -106,6 +106,7 @@ class SupervisorApp(App[None]):
         _b("d", "data_select", "data select", "next data-select preset table (asks)"),
         _b("f", "fault", "sim: silence", "simulated units: stop answering / answer again"),
         _b("colon", "command", "command", "command line in the seed's language", True),
+        _b("P", "params", "parameters", "the selected unit's parameters: read, edit, diff"),
         _b("1", "tab('overview')", "overview", "tab 1: every unit"),
         _b("2", "tab('unit')", "unit", "tab 2: the selected unit, every flag bit"),
         _b("3", "tab('bus')", "bus", "tab 3: frames/s, load, errors per bus"),
@@ -325,6 +326,12 @@ class SupervisorApp(App[None]):
             with contextlib.suppress(NoMatches):
                 self.say(f"refused: {task.exception()}")
 
+    async def request(self, method: str, **params: Any) -> Any:
+        """A request whose answer matters; :class:`LinkError` when refused or not connected."""
+        if self.link is None or self.gone is not None:
+            raise LinkError(f"not connected to the supervisor: {self.gone or 'no service'}")
+        return await self.link.call(method, **params)
+
     async def command_text(self, unit: str, text: str) -> str:
         """The seed's exact answer to one command, or why there is none."""
         if not self.connected():
@@ -543,6 +550,11 @@ class SupervisorApp(App[None]):
             if response != RESPONSE_OK:
                 break
         self.say(f"{unit} ← {'; '.join(commands)} → {response!r}")
+
+    def action_params(self) -> None:
+        from abh3_supervisor.clients.tui.params import ParamScreen  # docs/parameters.md
+
+        self.push_screen(ParamScreen(self, self.unit))
 
     def action_help(self) -> None:
         bindings = [b for b in self.BINDINGS if isinstance(b, Binding)]

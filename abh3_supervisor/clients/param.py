@@ -1,0 +1,304 @@
+"""``abh3 param``: read, write, dump, diff and restore drive parameters, watch monitors,
+read the identity — on the configuration's own buses (``--config``) or through a running
+supervisor's control socket (``--connect``, or the only one serving).
+
+On its own buses every unit runs as ``role: monitor`` without start-up commands: this
+tool never moves a motor and never fights a supervisor that does. Parameter traffic
+shares the bus with the DP0 exchanges (scheduler/core.py). Writes ask first (``--yes``
+skips), are refused while the unit reports its servo on (``--force``), and are logged
+with the old and the new value in the event log of whichever process writes
+(service/param_ops.py). Exit: 0 done, 1 a drive, the transport or the service failed or
+refused, 2 a mistake on the command line or in a file.
+"""
+
+from __future__ import annotations
+
+# light imports only: the parser is built for every `abh3` command; the buses, YAML and
+# the runtime load in run()
+import argparse
+import asyncio
+import logging
+import sys
+from collections.abc import Awaitable, Callable, Coroutine
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from abh3_supervisor.errors import CommandError
+from abh3_supervisor.params import table
+from abh3_supervisor.params.telabh3 import Command
+
+if TYPE_CHECKING:
+    from abh3_supervisor.clients.control import ControlClient
+    from abh3_supervisor.config import Config
+    from abh3_supervisor.params.files import ParamValue
+
+log = logging.getLogger("abh3")
+IDENTITY_ADDRESSES = (0x0, 0x2, 0x4, 0x5, 0x8, 0xC)
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("param", help="read and write drive parameters (TelABH3 over CAN)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--config", "-c", type=Path, help="use this configuration's buses")
+    where.add_argument(
+        "--connect", type=Path, metavar="PATH", help="a running supervisor's control socket"
+    )
+    ops = p.add_subparsers(dest="op", required=True, metavar="OP")
+    get = ops.add_parser("get", help="read parameters")
+    get.add_argument("unit")
+    get.add_argument("addresses", nargs="+", metavar="ADDR", help="name, 0x5000 or decimal")
+    put = ops.add_parser("set", help="write one parameter")
+    put.add_argument("unit")
+    put.add_argument("address", metavar="ADDR")
+    put.add_argument("value", help="the value (packed float or integer, by the address)")
+    dump = ops.add_parser("dump", help="read every known parameter")
+    dump.add_argument("unit")
+    dump.add_argument("-o", "--output", type=Path, help=".csv (maker's, cp932), .yaml, .json")
+    diff = ops.add_parser("diff", help="compare the drive with a file")
+    diff.add_argument("unit")
+    diff.add_argument("file", type=Path)
+    restore = ops.add_parser("restore", help="write what differs from a file")
+    restore.add_argument("unit")
+    restore.add_argument("file", type=Path)
+    mon = ops.add_parser("monitor", help="read monitors repeatedly (Ctrl-C ends)")
+    mon.add_argument("unit")
+    mon.add_argument("addresses", nargs="+", metavar="ADDR", help="e.g. VELOCITY_AY, 0x1054")
+    mon.add_argument("--interval", type=float, default=0.5, metavar="S")
+    mon.add_argument("--count", type=int, default=0, metavar="N", help="stop after N rounds")
+    ident = ops.add_parser("identity", help="the drive's identity strings (firmware version)")
+    ident.add_argument("unit")
+    for op in (put, restore):
+        op.add_argument("--yes", "-y", action="store_true", help="do not ask")
+        op.add_argument("--force", action="store_true", help="write even while the servo is on")
+
+
+class Backend(Protocol):
+    """What the operations need: :class:`ParamOps` here, or the same over the socket."""
+
+    async def read(self, unit: str, command: Command, address: int) -> int: ...
+    async def identity(self, unit: str, address: int) -> str: ...
+    async def servo_on(self, unit: str) -> bool | None: ...
+    async def write(
+        self, unit: str, address: int, word: int, *, force: bool, source: str
+    ) -> tuple[int, int]: ...
+
+
+class Remote:
+    """:class:`Backend` through a running supervisor's control socket (``param_*``)."""
+
+    def __init__(self, client: ControlClient) -> None:
+        self.client = client
+
+    async def read(self, unit: str, command: Command, address: int) -> int:
+        reply = self.client.call("param_read", unit=unit, command=command.value, address=address)
+        return int(reply["word"])
+
+    async def identity(self, unit: str, address: int) -> str:
+        return str(self.client.call("param_identity", unit=unit, address=address)["text"])
+
+    async def servo_on(self, unit: str) -> bool | None:
+        servo = self.client.call("param_servo", unit=unit)["servo"]
+        return None if servo is None else bool(servo)
+
+    async def write(
+        self, unit: str, address: int, word: int, *, force: bool, source: str
+    ) -> tuple[int, int]:
+        reply = self.client.call("param_write", unit=unit, address=address, word=word, force=force)
+        return int(reply["old"]), int(reply["new"])
+
+
+def monitor_only(config: Config) -> Config:
+    """Every unit as a monitor without start-up commands: this tool never commands motion."""
+    import dataclasses
+
+    from abh3_supervisor.config.model import Role
+
+    units = {
+        n: dataclasses.replace(u, role=Role.MONITOR, startup=()) for n, u in config.units.items()
+    }
+    return dataclasses.replace(config, units=units)
+
+
+def run(args: argparse.Namespace) -> int:
+    op = OPS[args.op]
+    if args.config is None:
+        from abh3_supervisor.clients.control import ControlClient, find_socket
+
+        client = ControlClient(find_socket(args.connect), timeout=30.0)
+        try:
+            return asyncio.run(op(Remote(client), args))
+        finally:
+            client.close()
+    from abh3_supervisor.config import load_config
+
+    config = monitor_only(load_config(args.config))
+    if args.unit not in config.units:
+        raise CommandError(f"no unit '{args.unit}' (units: {', '.join(config.units)})")
+    return asyncio.run(_on_own_bus(config, lambda backend: op(backend, args)))
+
+
+async def _on_own_bus(config: Config, op: Callable[[Backend], Awaitable[int]]) -> int:
+    from abh3_supervisor.core.eventlog import EventLog
+    from abh3_supervisor.core.supervisor import OperatorAction, SupervisorEvent
+    from abh3_supervisor.runtime.bus_runtime import Runtime
+    from abh3_supervisor.service.param_ops import ParamOps
+
+    async with Runtime(config) as rt:
+        events = EventLog(rt.supervisor)
+
+        def on_event(event: SupervisorEvent) -> None:
+            if isinstance(event, OperatorAction):  # the writes: nothing else is news here
+                line = events.line(event)
+                if line is not None:
+                    log.log(*line)
+
+        rt.supervisor.subscribe(on_event)
+        return await op(ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake()))
+
+
+# ------------------------------------------------------------ operations
+
+
+def _value(address: int, word: int) -> ParamValue:
+    from abh3_supervisor.params.files import ParamValue
+
+    return ParamValue(address, word)
+
+
+def _line(v: ParamValue) -> str:
+    return f"0x{v.address:04X} {v.name:<28} {v.shown:>12}  ({v.word:08X})"
+
+
+async def _read_all(backend: Backend, unit: str, addresses: list[int]) -> list[ParamValue]:
+    return [_value(a, await backend.read(unit, Command.PARAM, a)) for a in addresses]
+
+
+async def _get(backend: Backend, args: argparse.Namespace) -> int:
+    addresses = [table.parse_address(text) for text in args.addresses]  # all, before any read
+    for value in await _read_all(backend, args.unit, addresses):
+        print(_line(value))
+    return 0
+
+
+async def _dump(backend: Backend, args: argparse.Namespace) -> int:
+    from abh3_supervisor.params import files
+
+    if args.output is not None:
+        files.format_of(args.output)  # a wrong extension is refused before the bus is used
+    values = await _read_all(backend, args.unit, [e.address for e in table.PARAMETERS])
+    if args.output is None:
+        sys.stdout.write(files.dumps(values, "yaml", args.unit))
+    else:
+        files.write(args.output, values, args.unit)
+        print(f"{len(values)} parameters of {args.unit} written to {args.output}")
+    return 0
+
+
+async def _differences(
+    backend: Backend, unit: str, path: Path
+) -> list[tuple[ParamValue, ParamValue]]:
+    from abh3_supervisor.params import files
+
+    wanted = files.read(path)
+    have = await _read_all(backend, unit, [v.address for v in wanted])
+    return [(h, w) for h, w in zip(have, wanted, strict=True) if h.word != w.word]
+
+
+def _show(differences: list[tuple[ParamValue, ParamValue]], unit: str, path: Path) -> None:
+    for have, want in differences:
+        print(f"0x{have.address:04X} {have.name:<28} drive {have.shown:>12}  file {want.shown:>12}")
+    print(f"{len(differences)} parameter(s) of {unit} differ from {path}")
+
+
+async def _diff(backend: Backend, args: argparse.Namespace) -> int:
+    _show(await _differences(backend, args.unit, args.file), args.unit, args.file)
+    return 0
+
+
+async def _may_write(backend: Backend, args: argparse.Namespace, what: str) -> bool:
+    from abh3_supervisor.service.param_ops import ParamFailed
+
+    servo = await backend.servo_on(args.unit)
+    if servo is not False and not args.force:  # refused before asking (checked again)
+        why = "reports its servo ON" if servo else "has not reported its servo state"
+        raise ParamFailed(f"unit {args.unit} {why}: not writing (--force to write anyway)")
+    if args.yes:
+        return True
+    if not sys.stdin.isatty():
+        raise CommandError(f"{what}: confirm with --yes when not on a terminal")
+    return input(f"{what}? [y/N] ").strip().lower() in ("y", "yes")
+
+
+async def _write(backend: Backend, args: argparse.Namespace, new: ParamValue) -> ParamValue:
+    _, back = await backend.write(
+        args.unit, new.address, new.word, force=args.force, source="param"
+    )
+    return _value(new.address, back)
+
+
+async def _set(backend: Backend, args: argparse.Namespace) -> int:
+    address = table.parse_address(args.address)
+    try:
+        value = float(args.value)
+    except ValueError:
+        raise CommandError(f"'{args.value}' is not a number") from None
+    new = _value(address, table.to_word(value, table.kind_of(address)))
+    old = _value(address, await backend.read(args.unit, Command.PARAM, address))
+    print(_line(old))
+    if old.word == new.word:
+        print("already set: nothing written")
+        return 0
+    what = f"set {args.unit} 0x{address:04X} {new.name}: {old.shown} → {new.shown}"
+    if not await _may_write(backend, args, what):
+        print("not written")
+        return 0
+    print(f"written: {_line(await _write(backend, args, new))}")
+    return 0
+
+
+async def _restore(backend: Backend, args: argparse.Namespace) -> int:
+    differences = await _differences(backend, args.unit, args.file)
+    _show(differences, args.unit, args.file)
+    if not differences:
+        return 0
+    if not await _may_write(backend, args, f"write {len(differences)} parameter(s) to {args.unit}"):
+        print("not written")
+        return 0
+    for _, want in differences:
+        await _write(backend, args, want)
+    print(f"{len(differences)} parameter(s) of {args.unit} restored from {args.file}")
+    return 0
+
+
+async def _monitor(backend: Backend, args: argparse.Namespace) -> int:
+    addresses = [table.parse_address(a, monitor=True) for a in args.addresses]
+    rounds = 0
+    while not args.count or rounds < args.count:
+        shown = []
+        for a in addresses:
+            word = await backend.read(args.unit, Command.MONITOR, a)
+            value = table.to_value(word, table.kind_of(a, monitor=True))
+            shown.append(f"{table.label(a, monitor=True)}={table.display(value)}")
+        print(" ".join(shown), flush=True)
+        rounds += 1
+        if not args.count or rounds < args.count:
+            await asyncio.sleep(args.interval)  # the operator's pace, in real time
+    return 0
+
+
+async def _identity(backend: Backend, args: argparse.Namespace) -> int:
+    for address in IDENTITY_ADDRESSES:
+        name = table.IDENTITY.get(address) or f"BI 0x{address:X}"
+        print(f"{name:<18} {await backend.identity(args.unit, address)}")
+    return 0
+
+
+OPS: dict[str, Callable[[Backend, argparse.Namespace], Coroutine[Any, Any, int]]] = {
+    "get": _get,
+    "set": _set,
+    "dump": _dump,
+    "diff": _diff,
+    "restore": _restore,
+    "monitor": _monitor,
+    "identity": _identity,
+}

@@ -1,0 +1,202 @@
+"""The parameter page of one unit (key ``P``): read all, edit one, diff against a file.
+
+Every request goes over the control socket to the service's :class:`ParamOps` (the same
+code as ``abh3 param``): a write asks first, is refused while the drive reports its servo
+on, and lands in the event log with the old and the new value. The page reads in a worker, so
+the screen — and the e-stop — stay live while a slow drive answers.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Vertical
+from textual.screen import ModalScreen
+from textual.widgets import DataTable, Input, Static
+
+from abh3_supervisor.clients.tui.screens import ConfirmScreen
+from abh3_supervisor.errors import Abh3Error
+from abh3_supervisor.params import files, table
+from abh3_supervisor.service.param_ops import shown
+
+if TYPE_CHECKING:
+    from abh3_supervisor.clients.tui.app import SupervisorApp
+
+COLUMNS = ("address", "name", "value", "word", "file")
+HINT = "r read all · e edit · f diff against a file · Esc close"
+
+
+class ParamScreen(ModalScreen[None]):
+    DEFAULT_CSS = """
+    ParamScreen { align: center middle; }
+    #params { width: 100; max-width: 98%; height: 90%; border: thick $primary;
+              background: $surface; padding: 0 1; }
+    #params DataTable { height: 1fr; }
+    #params-input { display: none; }
+    #params-input.open { display: block; }
+    """
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("escape", "close", "close"),
+        Binding("r", "read_all", "read all"),
+        Binding("e", "edit", "edit the selected parameter"),
+        Binding("f", "diff", "diff against a file"),
+    ]
+
+    def __init__(self, owner: SupervisorApp, unit: str) -> None:
+        super().__init__()
+        self.owner, self.unit = owner, unit
+        self.words: dict[int, int] = {}
+        self.mode = ""  # what the input line is asking for: "edit" or "diff"
+        self.editing = 0
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="params"):
+            yield Static(f"parameters of {self.unit}", id="params-head")
+            yield DataTable(id="params-table", cursor_type="row")
+            yield Input(id="params-input")
+            yield Static(
+                "r read all · e edit · f diff against a file · Esc close", id="params-status"
+            )
+
+    def on_mount(self) -> None:
+        grid = self.query_one(DataTable)
+        for column in COLUMNS:
+            grid.add_column(column, key=column)
+        for e in table.PARAMETERS:
+            grid.add_row(f"0x{e.address:04X}", e.name, "…", "", "", key=str(e.address))
+        grid.focus()
+        self.action_read_all()
+
+    def say(self, text: str) -> None:
+        self.query_one("#params-status", Static).update(text)
+
+    # ------------------------------------------------------------ reading
+
+    def action_read_all(self) -> None:
+        self.run_worker(self._read_all(), exclusive=True, group="params")
+
+    async def _read_all(self) -> None:
+        head = self.query_one("#params-head", Static)
+        try:
+            firmware = (await self.owner.request("param_identity", unit=self.unit, address=2))[
+                "text"
+            ]
+            head.update(f"parameters of {self.unit} · firmware {firmware}")
+            for n, e in enumerate(table.PARAMETERS, 1):
+                reply = await self.owner.request(
+                    "param_read", unit=self.unit, address=e.address, command="CP"
+                )
+                word = int(reply["word"])
+                self._show(e.address, word)
+                self.say(f"reading {n}/{len(table.PARAMETERS)}")
+        except Abh3Error as exc:
+            self.say(f"stopped: {exc}")
+            return
+        self.say(f"{len(table.PARAMETERS)} parameters read · {HINT}")
+
+    def _show(self, address: int, word: int) -> None:
+        self.words[address] = word
+        grid = self.query_one(DataTable)
+        grid.update_cell(str(address), "value", shown(address, word))
+        grid.update_cell(str(address), "word", f"{word:08X}")
+
+    # ------------------------------------------------------------ the input line
+
+    def _ask(self, mode: str, placeholder: str) -> None:
+        self.mode = mode
+        line = self.query_one("#params-input", Input)
+        line.placeholder, line.value = placeholder, ""
+        line.add_class("open")
+        line.focus()
+
+    def _close_input(self) -> None:
+        line = self.query_one("#params-input", Input)
+        line.remove_class("open")
+        self.mode = ""
+        self.query_one(DataTable).focus()
+
+    def action_close(self) -> None:
+        if self.mode:
+            self._close_input()
+        else:
+            self.dismiss(None)
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        event.stop()  # ours: the app's command line must never see it
+        mode, text = self.mode, event.value.strip()
+        self._close_input()
+        if text and mode == "edit":
+            self._confirm_edit(text)
+        elif text and mode == "diff":
+            self._diff(Path(text).expanduser())
+
+    # ------------------------------------------------------------ editing
+
+    def action_edit(self) -> None:
+        grid = self.query_one(DataTable)
+        if not grid.row_count:
+            return
+        address = int(grid.coordinate_to_cell_key(grid.cursor_coordinate).row_key.value or 0)
+        if address not in self.words:
+            self.say(f"0x{address:04X} is not read yet: r reads all")
+            return
+        self.editing = address
+        now = shown(address, self.words[address])
+        self._ask("edit", f"new value of 0x{address:04X} {table.label(address)} (now {now})")
+
+    def _confirm_edit(self, text: str) -> None:
+        address = self.editing
+        try:
+            word = table.to_word(float(text), table.kind_of(address))
+        except (ValueError, Abh3Error) as exc:
+            self.say(f"'{text}': {exc}")
+            return
+        old = shown(address, self.words[address])
+        new = shown(address, word)
+        question = f"Write {self.unit} 0x{address:04X} {table.label(address)}: {old} → {new}?"
+
+        def answer(yes: bool | None) -> None:
+            if yes:
+                self.run_worker(self._write(address, word), group="params")
+            else:
+                self.say("not written")
+
+        self.owner.push_screen(ConfirmScreen(question), answer)
+
+    async def _write(self, address: int, word: int) -> None:
+        try:
+            reply = await self.owner.request(
+                "param_write", unit=self.unit, address=address, word=word
+            )
+            back = int(reply["new"])
+        except Abh3Error as exc:
+            self.say(f"not written: {exc}")
+            return
+        self._show(address, back)
+        self.say(f"written: 0x{address:04X} {table.label(address)} = {shown(address, back)}")
+
+    # ------------------------------------------------------------ diff
+
+    def action_diff(self) -> None:
+        self._ask("diff", "a parameter file to compare with (.csv, .yaml, .json)")
+
+    def _diff(self, path: Path) -> None:
+        try:
+            wanted = files.read(path)
+        except Abh3Error as exc:
+            self.say(str(exc))
+            return
+        grid = self.query_one(DataTable)
+        differ = unknown = 0
+        for v in wanted:
+            if v.address not in self.words:
+                unknown += 1
+                continue
+            same = self.words[v.address] == v.word
+            differ += not same
+            grid.update_cell(str(v.address), "file", "" if same else v.shown)
+        note = f", {unknown} not read" if unknown else ""
+        self.say(f"{differ} parameter(s) differ from {path}{note} (file column)")

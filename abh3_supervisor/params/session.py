@@ -1,0 +1,204 @@
+"""The host's parameter channel to one unit, sans-I/O: TelABH3 over the J1939 transport.
+
+One exchange at a time per unit (the drive holds one session: §1.3): our request goes out
+(:class:`Sender`), then the drive's reply comes in (:class:`Receiver`). Requests queue;
+each ends in a :class:`Result` handed to its callback from inside ``poll``/``on_frame``.
+The per-bus scheduler owns one channel per unit and sends its frames after the DP0
+commands, so parameter traffic never delays a keepalive.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from abh3_supervisor.errors import CodecError
+from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Reply, Request, TelFormat, decode_reply
+from abh3_supervisor.params.transport import (
+    RTS,
+    TIMEOUT,
+    AbortReason,
+    OutFrame,
+    Receiver,
+    Sender,
+    State,
+    abort,
+)
+from abh3_supervisor.protocol.ids import PF_TP_CM, PF_TP_DT, CanId
+
+NOW = 0.0  # a deadline already past: work is waiting (finite, so a pump arms its timer)
+HOST_DT_GAP = 0.001  # s between our DTs: a request is 2–3 DTs, never a burst on the bus
+
+
+def tp_ids(destination: int, source: int, priority: int = 0) -> tuple[int, int]:
+    """(TP.CM, TP.DT) identifiers from ``source`` to ``destination`` (§1.3)."""
+    return (
+        CanId(priority, PF_TP_CM, destination, source).to_int(),
+        CanId(priority, PF_TP_DT, destination, source).to_int(),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Result:
+    request: Request
+    t: float
+    reply: Reply | None = None
+    error: str | None = None  # transport or codec failure, for the operator
+
+    @property
+    def ok(self) -> bool:
+        return self.reply is not None and self.reply.ok
+
+
+Done = Callable[[Result], None]
+
+
+class Exchange:
+    """One request and its reply."""
+
+    def __init__(
+        self,
+        request: Request,
+        fmt: TelFormat,
+        ids: tuple[int, int],
+        now: float,
+        *,
+        timeout: float = TIMEOUT,
+        dt_gap: float = HOST_DT_GAP,
+    ) -> None:
+        self.request, self.ids, self.timeout = request, ids, timeout
+        self.sender = Sender(request.encode(fmt), *ids, now, dt_gap=dt_gap, timeout=timeout)
+        self.receiver: Receiver | None = None
+        self.reply: Reply | None = None
+        self.error: str | None = None
+        self._out: list[OutFrame] = []
+
+    @property
+    def finished(self) -> bool:
+        return self.reply is not None or self.error is not None
+
+    def on_frame(self, is_dt: bool, data: bytes, now: float) -> None:
+        if self.finished:
+            return
+        if is_dt:
+            if self.receiver is not None:
+                self.receiver.on_dt(data, now)
+        elif data[:1] == bytes([RTS]):
+            if self.receiver is None or not self.receiver.on_rts(data, now):
+                # one session each way at a time (§1.3): an RTS while one is open
+                self._out.append((self.ids[0], abort(AbortReason.BUSY)))
+                self.error = "the drive started a reply before our request was acknowledged"
+        elif self.receiver is not None:
+            self.receiver.on_cm(data, now)
+        else:
+            self.sender.on_cm(data, now)
+            if self.sender.state is State.DONE:  # acked: its reply must start in time
+                self.receiver = Receiver(
+                    *self.ids, wait_until=now + self.timeout, timeout=self.timeout
+                )
+        self._settle()
+
+    def poll(self, now: float) -> list[OutFrame]:
+        if not self.finished:
+            machine = self.receiver if self.receiver is not None else self.sender
+            self._out += machine.poll(now)
+            self._settle()
+        out, self._out = self._out, []
+        return out
+
+    def _settle(self) -> None:
+        for machine in (self.sender, self.receiver):
+            if machine is not None and machine.error is not None and self.error is None:
+                self.error = str(machine.error)
+                self._out += machine._take()  # its abort, if any
+        if self.receiver is not None and self.receiver.state is State.DONE and not self.finished:
+            try:
+                self.reply = decode_reply(self.receiver.message)
+            except CodecError as exc:
+                self.error = f"unreadable reply: {exc}"
+
+    def next_deadline(self) -> float:
+        if self._out or self.finished:  # frames to send, or a result to hand over
+            return NOW  # finite: the pump arms a timer for it
+        machine = self.receiver if self.receiver is not None else self.sender
+        return machine.next_deadline()
+
+    def fail(self, why: str) -> None:
+        if not self.finished:
+            self.error = why
+
+
+class ParamChannel:
+    """A unit's queue of TelABH3 requests over the transport; see the module docstring."""
+
+    def __init__(
+        self, abh3_id: int, host_id: int, priority: int = 0, fmt: TelFormat = DEFAULT_FORMAT
+    ) -> None:
+        self.fmt = fmt
+        self.ids = tp_ids(abh3_id, host_id, priority)
+        self.peer_ids = tp_ids(host_id, abh3_id)  # the drive's, priority bits clear
+        self.queue: deque[tuple[Request, Done]] = deque()
+        self.current: tuple[Exchange, Done] | None = None
+        self.timeout = TIMEOUT
+        self.exchanges = 0
+        self.failures = 0
+
+    @property
+    def busy(self) -> bool:
+        return self.current is not None or bool(self.queue)
+
+    def submit(self, request: Request, done: Done) -> None:
+        self.queue.append((request, done))
+
+    def cancel(self, why: str) -> None:
+        """Fail whatever is queued (the unit is gone, the run ends)."""
+        pending = list(self.queue)
+        self.queue.clear()
+        if self.current is not None:
+            exchange, _ = self.current
+            exchange.fail(why)
+        for request, done in pending:
+            done(Result(request, math.nan, error=why))
+
+    def on_frame(self, is_dt: bool, data: bytes, now: float) -> None:
+        if self.current is None:
+            # nothing open: ignored, not aborted — another tool on the bus with our host
+            # address (a `abh3 param` beside a running service) may own that session
+            return
+        self.current[0].on_frame(is_dt, data, now)
+        self._finish(now)
+
+    def poll(self, now: float) -> list[OutFrame]:
+        out: list[OutFrame] = []
+        if self.current is None and self.queue:
+            request, done = self.queue.popleft()
+            self.current = (Exchange(request, self.fmt, self.ids, now, timeout=self.timeout), done)
+        if self.current is not None:
+            out = out + self.current[0].poll(now)
+            self._finish(now)
+            if self.current is None and self.queue:  # the next one starts at once
+                out += self.poll(now)
+        return out
+
+    def _finish(self, now: float) -> None:
+        if self.current is None or not self.current[0].finished:
+            return
+        exchange, done = self.current
+        if exchange._out:  # its last frames (an EndOfMsgAck, an abort) go first
+            return
+        self.current = None
+        self.exchanges += 1
+        if exchange.error is not None:
+            self.failures += 1
+        done(Result(exchange.request, now, exchange.reply, exchange.error))
+
+    def on_send_failed(self) -> None:
+        if self.current is not None:
+            self.current[0].fail("the bus refused a transport frame (is the bus up?)")
+
+    def next_deadline(self) -> float:
+        if self.current is None:
+            return NOW if self.queue else math.inf
+        return self.current[0].next_deadline()

@@ -1,0 +1,149 @@
+"""Parameter, monitor and identity addresses with readable names (params reference §1.4).
+
+Data, not code: what the public sources name. ``kind`` says how the 32-bit word reads:
+``pf`` the packed float (§1.2), ``int`` a plain signed 32-bit integer (pulse counts, flag
+words). Which settings are flag words is our reading of the maker's parameter file; the
+``default`` is the simulator's value (the AGV file's where the reference gives one).
+Addresses not listed here are shown as hex.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from abh3_supervisor.errors import CodecError
+from abh3_supervisor.params.telabh3 import pack_float, unpack_float
+
+Kind = Literal["pf", "int"]
+
+
+@dataclass(frozen=True, slots=True)
+class Entry:
+    address: int
+    name: str
+    kind: Kind = "pf"
+    default: float = 0.0
+
+
+def _block(base: int, name: str, values: list[float], kind: Kind = "pf") -> list[Entry]:
+    return [Entry(base + i, f"{name}_{i}", kind, v) for i, v in enumerate(values)]
+
+
+_SPEEDS = [800.0, 400.0, 200.0, 100.0, 50.0, 20.0, 10.0, 0.0]
+PARAMETERS: tuple[Entry, ...] = (
+    Entry(0x4100, "CAN_FUNCTION", default=2),  # 2 = CAN control
+    Entry(0x4101, "CAN_BITRATE", default=500),
+    Entry(0x4102, "CAN_ABH3_ADDRESS", default=1),
+    Entry(0x4103, "CAN_HOST_ADDRESS", default=-1),  # −1 = any host
+    Entry(0x4105, "CAN_DP0_REPLY_MODE", default=0),  # −1 none, 0 on receipt, 1–1000 ms
+    Entry(0x4107, "CAN_BROADCAST_GROUP", default=5),
+    *_block(0x4108, "CAN_BROADCAST_PERIOD", [0.0] * 8),  # ms, 0 = on request only
+    *_block(0x4110, "CAN_RECEIVE_BROADCAST", [0.0] * 4),
+    *_block(0x4114, "CAN_PRIORITY", [0.0] * 3),
+    Entry(0x4117, "CAN_COMMAND_ZERO_TIMEOUT", default=750),  # ms
+    Entry(0x4118, "CAN_ERROR_TIMEOUT", default=2000),  # ms
+    Entry(0x4119, "CAN_MULTIPACKET_DT_WAIT", default=0),  # ms between the drive's DTs
+    Entry(0x411A, "CAN_CONTROL_FLAG_LOGIC", "int"),
+    *_block(0x5000, "SPEED_AY", _SPEEDS),
+    *_block(0x5008, "SPEED_BX", _SPEEDS),
+    *_block(0x5010, "CURRENT_AY", [100.0] * 8),
+    *_block(0x5018, "CURRENT_BX", [100.0] * 8),
+    # where the B/X entries of the next blocks sit is not certain (§1.4): A/Y only
+    *_block(0x5020, "ACCEL_AY", [0.25] * 8),
+    *_block(0x5030, "S_CURVE_AY", [0.1] * 8),
+    *_block(0x5040, "DECEL_AY", [0.25] * 8),
+    *_block(0x5050, "DECEL_S_CURVE_AY", [0.1] * 8),
+    *_block(0x5060, "KP_AY", [50.0] * 8),
+    *_block(0x5070, "KI_AY", [20.0] * 8),
+    Entry(0x50E0, "DATA_SELECT_SOURCE_AY", default=2),  # 0 internal, 2 CAN
+    Entry(0x50F0, "DATA_SELECT_SOURCE_BX", default=2),
+    Entry(0x5100, "INPUT_ASSIGN_A", "int"),
+    Entry(0x5120, "INPUT_ASSIGN_B", "int"),
+    Entry(0x51A0, "ANALOG_INPUT_CALIBRATION"),
+    *_block(0x5180, "DIGITAL_OUTPUT", [0.0] * 8, "int"),
+    Entry(0x51C0, "ANALOG_MONITOR_0"),
+    Entry(0x51D0, "ANALOG_MONITOR_1"),
+    Entry(0x6180, "CAN_DP0_PDU_FORMAT", default=239),
+)
+
+MONITORS: tuple[Entry, ...] = (
+    Entry(0x0000, "ALARMS", "int"),
+    Entry(0x0001, "WARNINGS", "int"),
+    Entry(0x0002, "INPUTS", "int"),
+    Entry(0x0003, "INPUT_CONTROL", "int"),
+    Entry(0x0004, "OUTPUTS", "int"),  # bits 24–31 = DOUT0–7
+    Entry(0x0005, "OUTPUT_CONTROL", "int"),
+    Entry(0x1004, "MAIN_VOLTAGE"),
+    Entry(0x1005, "CONTROL_VOLTAGE"),
+    Entry(0x1012, "VELOCITY_AY"),
+    Entry(0x1022, "VELOCITY_BX"),
+    Entry(0x1031, "CURRENT_A"),
+    Entry(0x1041, "CURRENT_B"),
+    Entry(0x103B, "LOAD_A"),
+    Entry(0x104B, "LOAD_B"),
+    Entry(0x1054, "PULSES_A", "int"),
+    Entry(0x1064, "PULSES_B", "int"),
+)
+
+IDENTITY: dict[int, str] = {0x0: "", 0x2: "FIRMWARE_VERSION", 0x4: "", 0x5: "", 0x8: "", 0xC: ""}
+
+BY_ADDRESS = {e.address: e for e in PARAMETERS}
+BY_NAME = {e.name: e for e in PARAMETERS}
+MONITOR_BY_ADDRESS = {e.address: e for e in MONITORS}
+MONITOR_BY_NAME = {e.name: e for e in MONITORS}
+
+
+def label(address: int, monitor: bool = False) -> str:
+    entry = (MONITOR_BY_ADDRESS if monitor else BY_ADDRESS).get(address)
+    return entry.name if entry is not None else f"0x{address:04X}"
+
+
+def parse_address(text: str, monitor: bool = False) -> int:
+    """A name (``SPEED_AY_0``), hex (``0x5000``, ``5000h``) or decimal (``20480``, as in
+    the maker's CSV)."""
+    names = MONITOR_BY_NAME if monitor else BY_NAME
+    key = text.strip().upper()
+    if key in names:
+        return names[key].address
+    try:
+        if key.startswith("0X"):
+            value = int(key[2:], 16)
+        elif key.endswith("H"):
+            value = int(key[:-1], 16)
+        else:
+            value = int(key, 10)
+    except ValueError:
+        what = "monitor" if monitor else "parameter"
+        raise CodecError(f"'{text}' is no {what} name or address (e.g. 0x5000)") from None
+    if not 0 <= value <= 0xFFFF:
+        raise CodecError(f"address {text} is not 0x0000-0xFFFF")
+    return value
+
+
+def kind_of(address: int, monitor: bool = False) -> Kind:
+    entry = (MONITOR_BY_ADDRESS if monitor else BY_ADDRESS).get(address)
+    return entry.kind if entry is not None else "pf"
+
+
+def to_value(word: int, kind: Kind) -> float:
+    """The physical value of a 32-bit word."""
+    if kind == "int":
+        return float(word - (1 << 32) if word >> 31 else word)
+    return unpack_float(word)
+
+
+def to_word(value: float, kind: Kind) -> int:
+    if kind == "int":
+        if value != int(value) or not -(2**31) <= value < 2**32:
+            raise CodecError(f"{value!r} is not a 32-bit integer")
+        return int(value) & 0xFFFFFFFF
+    return pack_float(value)
+
+
+def display(value: float) -> str:
+    """``800``, ``0.25``, ``inf``: integers without a point, the shortest form otherwise."""
+    if math.isfinite(value) and value == int(value):
+        return str(int(value))
+    return repr(value)

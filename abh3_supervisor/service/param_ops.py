@@ -1,0 +1,121 @@
+"""Parameter access on a running supervisor, on its event loop: the one implementation
+behind ``abh3 param`` on its own bus and the control socket's ``param_*`` methods.
+
+A request goes to the unit's parameter channel in the bus scheduler and is awaited; the
+channel always ends an exchange (J1939 timeouts, 1.25 s per step), and ``CALL_DEADLINE``
+bounds it again. A write is refused while the unit reports its servo on (``force``
+overrides), reads the old value first and the new one back, and is logged in the event
+log with both (an :class:`OperatorAction`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from abh3_supervisor.errors import Abh3Error, RunError
+from abh3_supervisor.params import table
+from abh3_supervisor.params.session import Result
+from abh3_supervisor.params.telabh3 import Command, Request
+
+if TYPE_CHECKING:
+    from abh3_supervisor.core.supervisor import Supervisor
+
+CALL_DEADLINE = 10.0  # s: a transport session always ends within ~4 s; never hang past this
+SERVO_WAIT_STEP = 0.02  # s between looks for the drive's first report of its servo
+
+
+class ParamFailed(RunError):
+    """The drive or the transport failed a request, or a write was refused: exit 1."""
+
+
+def shown(address: int, word: int, monitor: bool = False) -> str:
+    return table.display(table.to_value(word, table.kind_of(address, monitor)))
+
+
+class ParamOps:
+    def __init__(self, sup: Supervisor, wake: Callable[[str], None]) -> None:
+        self.sup, self.wake = sup, wake
+
+    async def call(self, unit: str, request: Request) -> Result:
+        bus = self.sup.unit(unit).cfg.bus  # CommandError for an unknown unit
+        future: asyncio.Future[Result] = asyncio.get_running_loop().create_future()
+
+        def done(result: Result) -> None:
+            if not future.done():
+                future.set_result(result)
+
+        channel = self.sup.schedulers[bus].params[unit]
+        channel.submit(request, done)
+        self.wake(bus)
+        try:
+            return await asyncio.wait_for(future, CALL_DEADLINE)
+        except TimeoutError:
+            channel.cancel("no answer")
+            raise ParamFailed(f"unit {unit}: no answer within {CALL_DEADLINE:g} s") from None
+
+    async def read(self, unit: str, command: Command, address: int) -> int:
+        """The 32-bit word of a ``CP`` or ``CM`` read."""
+        return check(unit, await self.call(unit, Request(command, address)))
+
+    async def identity(self, unit: str, address: int) -> str:
+        result = await self.call(unit, Request(Command.IDENTITY, address))
+        check(unit, result, word=False)
+        assert result.reply is not None
+        return result.reply.data
+
+    async def servo_on(self, unit: str) -> bool | None:
+        """As the drive reports it; None if it has not within the unit's timeout."""
+        state = self.sup.unit(unit)
+        if state.words.get("control") is None:
+            self.sup.request_status(unit, 1)  # 2021 reports it there; a 2023 DP0 reply too
+        for _ in range(int(state.cfg.timeout_ms / 1000 / SERVO_WAIT_STEP) + 1):
+            control = state.words.get("control")
+            if control is not None:
+                return bool(control & state.layout.servo.both)
+            await asyncio.sleep(SERVO_WAIT_STEP)  # the drive's first report, in real time
+        return None
+
+    async def write(
+        self, unit: str, address: int, word: int, *, force: bool, source: str
+    ) -> tuple[int, int]:
+        """Write ``word``; (old, read back). Refused while the servo is on, unless forced."""
+        servo = await self.servo_on(unit)
+        if servo is not False and not force:
+            why = "reports its servo ON" if servo else "has not reported its servo state"
+            raise ParamFailed(f"unit {unit} {why}: not writing")
+        old = await self.read(unit, Command.PARAM, address)
+        check(unit, await self.call(unit, Request(Command.PARAM, address, word)), word=False)
+        new = await self.read(unit, Command.PARAM, address)
+        name = table.label(address)
+        self.sup.audit(
+            source,
+            unit,
+            f"parameter 0x{address:04X} {name}: {shown(address, old)} ({old:08X}) → "
+            f"{shown(address, new)} ({new:08X})",
+        )
+        if new != word:
+            raise ParamFailed(
+                f"unit {unit}: 0x{address:04X} reads back {shown(address, new)}, "
+                f"not {shown(address, word)}"
+            )
+        return old, new
+
+
+def check(unit: str, result: Result, word: bool = True) -> int:
+    """A read's word (``word``), or 0; :class:`ParamFailed` with the reason otherwise."""
+    request = result.request
+    monitor = request.command is Command.MONITOR
+    where = f"unit {unit}: {request.command.value} {table.label(request.address, monitor)}"
+    if result.error is not None:
+        raise ParamFailed(f"{where}: {result.error}")
+    assert result.reply is not None
+    if not result.reply.ok:
+        raise ParamFailed(f"{where}: the drive refused it (NAK): no such address?")
+    if not word:
+        return 0
+    try:
+        return result.reply.word
+    except Abh3Error as exc:
+        raise ParamFailed(f"{where}: {exc}") from None

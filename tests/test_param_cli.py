@@ -1,0 +1,257 @@
+"""`abh3 param` on simulated drives over python-can's virtual bus (hermetic, no sleeps of
+ours: each command runs until its exchanges end)."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import json
+import logging
+from pathlib import Path
+
+import pytest
+import yaml
+
+from abh3_supervisor.clients.cli import main
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.runtime.bus_runtime import Runtime
+
+SIM = """
+buses:
+  b: {{interface: virtual, channel: {channel}, simulate: {simulate}}}
+units:
+  - {{name: left, abh3_id: 1{extra}}}
+  - {{name: right, abh3_id: 3, protocol: "2023"}}
+"""
+
+
+def config(tmp_path: Path, channel: str, simulate: str = "true", extra: str = "") -> Path:
+    path = tmp_path / f"{channel}.yaml"
+    path.write_text(SIM.format(channel=channel, simulate=simulate, extra=extra))
+    return path
+
+
+def test_get_identity_and_a_refused_address(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = str(config(tmp_path, "p-get"))
+    assert main(["param", "-c", cfg, "get", "left", "SPEED_AY_0", "0x4117", "16663"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split() == ["0x5000", "SPEED_AY_0", "800", "(00400008)"]
+    assert out[1].split()[:3] == ["0x4117", "CAN_COMMAND_ZERO_TIMEOUT", "750"]
+    assert out[2] == out[1]  # 16663 is 0x4117 in decimal, as in the maker's CSV
+    assert main(["param", "-c", cfg, "identity", "left"]) == 0
+    assert "FIRMWARE_VERSION   2.3.0.1" in capsys.readouterr().out
+    assert main(["param", "-c", cfg, "get", "left", "0x1234"]) == 1
+    assert "0x1234: the drive refused it (NAK)" in capsys.readouterr().err
+    assert main(["param", "-c", cfg, "get", "left", "NOT_A_NAME"]) == 2
+    assert main(["param", "-c", cfg, "get", "nobody", "0x5000"]) == 2
+
+
+def test_monitor_reads_the_simulated_state(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = str(config(tmp_path, "p-mon"))
+    assert (
+        main(
+            [
+                "param",
+                "-c",
+                cfg,
+                "monitor",
+                "right",
+                "VELOCITY_AY",
+                "MAIN_VOLTAGE",
+                "0x0000",
+                "--count",
+                "2",
+                "--interval",
+                "0.01",
+            ]
+        )
+        == 0
+    )
+    lines = capsys.readouterr().out.splitlines()
+    # bit 22, CAN communication: the tool only monitors, and the drive has had no command
+    assert lines == [f"VELOCITY_AY=0 MAIN_VOLTAGE=23.7 ALARMS={1 << 22}"] * 2
+
+
+def test_dump_formats(tmp_path: Path) -> None:
+    cfg = str(config(tmp_path, "p-dump"))
+    for name in ("d.csv", "d.yaml", "d.json"):
+        assert main(["param", "-c", cfg, "dump", "left", "-o", str(tmp_path / name)]) == 0
+    rows = list(csv.reader((tmp_path / "d.csv").read_bytes().decode("cp932").splitlines()))
+    assert ["20480", "SPEED_AY_0", "800", str(0x00400008)] in rows  # decimal address first
+    assert ["16643", "CAN_HOST_ADDRESS", "-1", str(0x001FFFFF)] in rows  # mantissa −1
+    doc = yaml.safe_load((tmp_path / "d.yaml").read_text())
+    assert doc["parameters"][0] == {
+        "address": "0x4100",
+        "name": "CAN_FUNCTION",
+        "value": "2",
+        "word": "0x00000002",
+    }
+    assert json.loads((tmp_path / "d.json").read_text()) == doc
+    assert len(rows) == len(doc["parameters"]) == 121
+
+
+def test_diff_and_restore_write_only_what_differs_and_log_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    cfg = str(config(tmp_path, "p-restore"))
+    saved = tmp_path / "saved.csv"
+    assert main(["param", "-c", cfg, "dump", "left", "-o", str(saved)]) == 0
+    text = saved.read_bytes().decode("cp932")
+    text = text.replace("20480,SPEED_AY_0,800,4194312", "20480,SPEED_AY_0,900,4194313")
+    text = text.replace(
+        "16663,CAN_COMMAND_ZERO_TIMEOUT,750,2097227", "16663,CAN_COMMAND_ZERO_TIMEOUT,500,"
+    )
+    saved.write_bytes(
+        ("address,name,display,internal\r\n" + text).encode("cp932")
+    )  # a header row is fine
+    capsys.readouterr()
+    assert main(["param", "-c", cfg, "diff", "left", str(saved)]) == 0
+    out = capsys.readouterr().out
+    assert "2 parameter(s) of left differ" in out
+    assert "SPEED_AY_0" in out and "CAN_COMMAND_ZERO_TIMEOUT" in out
+    with caplog.at_level(logging.INFO, logger="abh3"):
+        assert main(["param", "-c", cfg, "restore", "left", str(saved), "--yes"]) == 0
+    out = capsys.readouterr().out
+    assert "2 parameter(s) of left restored" in out
+    writes = [r.getMessage() for r in caplog.records if "operator (param)" in r.getMessage()]
+    assert writes == [
+        "operator (param) on left: parameter 0x4117 CAN_COMMAND_ZERO_TIMEOUT: 750 (0020004B) → 500 (00400005)",
+        "operator (param) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)",
+    ]
+
+
+def test_set_needs_a_confirmation_off_a_terminal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = str(config(tmp_path, "p-confirm"))
+    assert main(["param", "-c", cfg, "set", "left", "SPEED_AY_0", "900"]) == 2
+    assert "confirm with --yes" in capsys.readouterr().err
+    assert main(["param", "-c", cfg, "set", "left", "SPEED_AY_0", "800", "--yes"]) == 0
+    assert "already set: nothing written" in capsys.readouterr().out
+
+
+def test_set_is_refused_while_the_running_service_has_the_servo_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A supervisor runs the drives (servo on); `abh3 param` joins the same bus."""
+    service = parse_config(
+        SIM.format(channel="p-servo", simulate="true", extra=", startup: ['SERVO ON ON']"), "s.yaml"
+    )
+    tool = str(config(tmp_path, "p-servo", simulate="false"))
+
+    async def scenario() -> tuple[int, int, int]:
+        async with Runtime(service) as rt:
+            await rt.supervisor.wait_exchange("left", rt.supervisor.clock(), 2.0)
+            refused = await asyncio.to_thread(
+                main, ["param", "-c", tool, "set", "left", "SPEED_AY_0", "900", "--yes"]
+            )
+            forced = await asyncio.to_thread(
+                main, ["param", "-c", tool, "set", "left", "SPEED_AY_0", "900", "--yes", "--force"]
+            )
+            read = await asyncio.to_thread(main, ["param", "-c", tool, "get", "left", "SPEED_AY_0"])
+            assert rt.sims["b"].drives[1].tel.params[0x5000] == 0x00400009
+            return refused, forced, read
+
+    assert asyncio.run(scenario()) == (1, 0, 0)
+    captured = capsys.readouterr()
+    assert "unit left reports its servo ON: not writing (--force to write anyway)" in captured.err
+    assert captured.out.splitlines()[-1].split()[2] == "900"
+
+
+def test_a_transport_fault_is_a_clear_error_not_a_hang(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "f.yaml"
+    path.write_text(
+        SIM.format(
+            channel="p-fault",
+            simulate="{faults: [{kind: tp_lost_cts, at_s: 0, for_s: 60}]}",
+            extra="",
+        )
+    )
+    assert main(["param", "-c", str(path), "get", "left", "0x5000"]) == 1
+    assert (
+        "error: unit left: CP SPEED_AY_0: no CTS from the drive within 1.25 s"
+        in capsys.readouterr().err
+    )
+
+
+def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`abh3 param --connect` asks the running supervisor: it refuses a write while the
+    servo is on, writes with --force, and logs the write in *its* event log."""
+    from abh3_supervisor.core.eventlog import EventLog
+    from abh3_supervisor.core.supervisor import OperatorAction, SupervisorEvent
+    from abh3_supervisor.service.server import ControlServer
+
+    service = parse_config(
+        SIM.format(channel="p-svc", simulate="true", extra=", startup: ['SERVO ON ON']"), "s.yaml"
+    )
+    sock = tmp_path / "s.sock"
+    logged: list[str] = []
+
+    async def scenario() -> list[int]:
+        async with Runtime(service) as rt:
+            events = EventLog(rt.supervisor)
+
+            def on_event(event: SupervisorEvent) -> None:
+                if isinstance(event, OperatorAction) and (line := events.line(event)):
+                    logged.append(line[1])
+
+            rt.supervisor.subscribe(on_event)
+            server = ControlServer(rt, None, sock)
+            await server.start()
+            try:
+                codes = []
+                for argv in (
+                    ["get", "left", "SPEED_AY_0"],
+                    ["set", "left", "SPEED_AY_0", "900", "--yes"],
+                    ["set", "left", "SPEED_AY_0", "900", "--yes", "--force"],
+                    ["identity", "right"],
+                    ["get", "left", "0x1234"],
+                ):
+                    codes.append(
+                        await asyncio.to_thread(main, ["param", "--connect", str(sock), *argv])
+                    )
+                return codes
+            finally:
+                await server.close()
+
+    assert asyncio.run(scenario()) == [0, 1, 0, 0, 1]
+    out, err = capsys.readouterr()
+    assert "unit left reports its servo ON: not writing (--force to write anyway)" in err
+    assert "the drive refused it (NAK)" in err
+    assert "written: 0x5000 SPEED_AY_0" in out and "FIRMWARE_VERSION   2.3.0.1" in out
+    assert logged == [
+        "operator (param client3) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)"
+    ]
+
+
+def test_parameter_files_read_back_and_refuse_with_file_and_row(tmp_path: Path) -> None:
+    from abh3_supervisor.params import files
+    from abh3_supervisor.params.files import ParamFileError, ParamValue
+
+    values = [ParamValue(0x5000, 0x00400008), ParamValue(0x4103, 0x001FFFFF), ParamValue(0x7777, 5)]
+    for name in ("v.csv", "v.yaml", "v.json"):
+        files.write(tmp_path / name, values, "left")
+        assert files.read(tmp_path / name) == values
+    # decimal address, name (hex for an unnamed address), display value, internal value
+    assert (tmp_path / "v.csv").read_bytes().decode("cp932").splitlines() == [
+        "20480,SPEED_AY_0,800,4194312",
+        "16643,CAN_HOST_ADDRESS,-1,2097151",
+        "30583,0x7777,5,5",
+    ]
+    only_display = tmp_path / "d.csv"
+    only_display.write_bytes("20480,速度,900,\r\n".encode("cp932"))  # a Japanese name, no word
+    assert files.read(only_display) == [ParamValue(0x5000, 0x00400009)]
+    bad = tmp_path / "b.csv"
+    bad.write_bytes(b"20480,SPEED_AY_0,800,4194312\r\nnonsense,x,1,2\r\n")
+    with pytest.raises(ParamFileError, match=r"b.csv:2: 'nonsense' is no address"):
+        files.read(bad)
+    with pytest.raises(ParamFileError, match=r"use .csv"):
+        files.read(tmp_path / "v.txt")
+    with pytest.raises(ParamFileError, match="cannot read"):
+        files.read(tmp_path / "missing.csv")
