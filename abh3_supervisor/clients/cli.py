@@ -1,4 +1,4 @@
-"""The ``abh3`` command: ``run``, ``check``, ``decode``.
+"""The ``abh3`` command: ``run``, ``check``, ``decode``, ``schema``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 128 + N stopped by
@@ -116,6 +116,11 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("config", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
 
+    schema = sub.add_parser(
+        "schema", help="print the configuration's JSON Schema (core and installed plugins)"
+    )
+    schema.add_argument("--output", "-o", type=Path, metavar="FILE", help="write it here")
+
     dec = sub.add_parser("decode", help="decode a recording made with --record")
     dec.add_argument("file", type=Path)
     dec.add_argument("--config", type=Path, help="name units and pick protocol generations")
@@ -180,6 +185,14 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         config = load_config(args.config)
         _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
+    if args.cmd == "schema":
+        from abh3_supervisor.clients.schema import schema_text
+
+        if args.output is None:
+            sys.stdout.write(schema_text())
+        else:
+            args.output.write_text(schema_text(), encoding="utf-8")
+        return EXIT_OK
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file
 

@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from abh3_plugins.ros2.settings import Settings, parse
+from abh3_plugins.ros2.settings import Settings, parse, schema
 from abh3_plugins.ros2.transport import Transport, open_transport, problem
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.config.source import Section
@@ -307,6 +307,10 @@ class Ros2Plugin:
         self.settings = Settings()
         self.transport: Transport | None = None
         self.units: dict[str, UnitBridge] = {}
+
+    @hookimpl
+    def abh3_config_schema(self) -> dict[str, Any]:
+        return schema()
 
     @hookimpl
     def abh3_configure(self, section: Section, config: Config) -> None:
