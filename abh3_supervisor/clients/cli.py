@@ -73,7 +73,8 @@ def _parser() -> argparse.ArgumentParser:
         "--record",
         type=Path,
         metavar="FILE",
-        help="record all bus traffic; format by extension: .log .asc .blf .csv",
+        help="record all bus traffic; format by extension: .log .asc .blf .csv, or .mcap "
+        "(raw frames and decoded values as ROS 2 messages; the mcap extra)",
     )
     run.add_argument(
         "--status-interval",
