@@ -56,7 +56,9 @@ class Settings:
     odom_frame: str = "odom"
     base_frame: str = "base_link"
     diagnostics_hz: float = 1.0  # /diagnostics, as ROS drivers publish it; 0: off
-    discovery: bool = True  # ros_discovery_info over plain DDS, so `ros2 node list` sees us
+    # ros_discovery_info over plain DDS, so `ros2 node list` sees us: the GID layout of
+    # humble, or of jazzy (Iron and later); off: none
+    discovery: str = "jazzy"
     qos: QosSettings = field(default_factory=QosSettings)
     remap: dict[str, str] = field(default_factory=dict)
 
@@ -105,7 +107,7 @@ def parse(section: Section, config: Config) -> Settings:
         odom_frame=section.text("odom_frame", d.odom_frame),
         base_frame=section.text("base_frame", d.base_frame),
         diagnostics_hz=section.number("diagnostics_hz", d.diagnostics_hz, 0.0, 100.0),
-        discovery=section.boolean("discovery", d.discovery),
+        discovery=section.choice("discovery", d.discovery, ["jazzy", "humble", "off"]),
         qos=QosSettings(
             reliability=q.choice("reliability", "reliable", ["reliable", "best_effort"]),
             durability=q.choice("durability", "volatile", ["volatile", "transient_local"]),
@@ -134,7 +136,11 @@ def schema() -> dict[str, Any]:
             "odom_frame": js.text(default=d.odom_frame),
             "base_frame": js.text(default=d.base_frame),
             "diagnostics_hz": js.number(0.0, 100.0, "/diagnostics rate; 0: off", 1.0),
-            "discovery": js.boolean("publish ros_discovery_info (DDS transport)", True),
+            "discovery": js.choice(
+                ["jazzy", "humble", "off"],
+                "ros_discovery_info for this ROS release's GID size (jazzy: Iron and later)",
+                d.discovery,
+            ),
             "qos": js.mapping(
                 {
                     "reliability": js.choice(["reliable", "best_effort"], default="reliable"),
