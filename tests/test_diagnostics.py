@@ -90,7 +90,11 @@ def test_all_ok_at_one_hertz_with_every_unit_and_bus() -> None:
     assert left["command rate requested [Hz]"] == "50"
     assert left["timeouts"] == "0"
     assert float(left["main supply [V]"]) > 0 and float(left["control supply [V]"]) > 0
-    assert values(w.latest("bus b"))["units online"] == "2/2"
+    bus = values(w.latest("bus b"))
+    assert bus["units online"] == "2/2"
+    # the load measured between reports is the one planned for these rates
+    assert float(bus["load [%]"]) == pytest.approx(float(bus["planned load [%]"]), rel=0.1)
+    assert float(bus["frames/s"]) == pytest.approx(2 * (50 + 50) + 2 * (14 + 8), rel=0.1)
     stamp = w.sent[-1][1].header.stamp
     assert stamp.sec + stamp.nanosec / 1e9 == pytest.approx(w.sent[-1][0], abs=1e-6)
 

@@ -207,6 +207,8 @@ def test_abh3_schema_prints_it_and_writes_it(
     out = tmp_path / "abh3.schema.json"
     assert main(["schema", "--output", str(out)]) == 0
     assert json.loads(out.read_text()) == printed
+    assert main(["schema", "--output", str(tmp_path)]) == 2  # a folder: said, no traceback
+    assert "cannot write" in capsys.readouterr().err
 
 
 def test_on_error_is_offered_in_every_plugin_section(

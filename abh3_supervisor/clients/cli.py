@@ -191,8 +191,11 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
 
         if args.output is None:
             sys.stdout.write(schema_text())
-        else:
+            return EXIT_OK
+        try:
             args.output.write_text(schema_text(), encoding="utf-8")
+        except OSError as exc:
+            raise Abh3Error(f"--output {args.output}: cannot write: {exc.strerror}") from exc
         return EXIT_OK
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file

@@ -115,15 +115,32 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
     )
 
 
+@dataclass(frozen=True, slots=True)
+class BusLoad:
+    """Frames per second measured between two reports, and the load they make."""
+
+    frames_per_s: float
+    load_percent: float
+
+
+def frames_seen(units: list[UnitState], scheduler: BusScheduler) -> int:
+    """Frames the scheduler sent and answers it counted, all units of a bus."""
+    slots = [scheduler.slots[u.name].stats for u in units]
+    return sum(s.commands_sent + s.replies + s.polls_sent + s.broadcasts for s in slots)
+
+
 def bus_status(
-    name: str, units: list[UnitState], scheduler: BusScheduler, now: float, planned_load: float
+    name: str,
+    units: list[UnitState],
+    scheduler: BusScheduler,
+    planned_load: float,
+    measured: BusLoad | None = None,
 ) -> Status:
     """A bus: ERROR when no unit on it answers (cable, power, bitrate), WARN when some do
-    not or sends fail, with the frame counts behind the load."""
+    not or sends fail, with the frame counts and the load."""
     slots = [scheduler.slots[u.name].stats for u in units]
     online = sum(u.online is True for u in units)
     send_errors = sum(s.send_errors for s in slots)
-    frames_total = sum(s.commands_sent + s.replies + s.polls_sent + s.broadcasts for s in slots)
     if units and online == 0:
         level, message = Level.ERROR, "no unit answers"
     elif online < len(units):
@@ -134,8 +151,10 @@ def bus_status(
         level, message = Level.OK, f"{len(units)} units answer"
     values = (
         ("units online", f"{online}/{len(units)}"),
+        ("load [%]", "" if measured is None else f"{measured.load_percent:.1f}"),
+        ("frames/s", "" if measured is None else f"{measured.frames_per_s:.0f}"),
         ("planned load [%]", f"{planned_load:.1f}"),
-        ("frames", str(frames_total)),
+        ("frames", str(frames_seen(units, scheduler))),
         ("send errors", str(send_errors)),
         ("timeouts", str(sum(s.timeouts for s in slots))),
         ("malformed frames", str(sum(s.malformed for s in slots))),
@@ -143,27 +162,36 @@ def bus_status(
     return Status(level, f"{PREFIX}: bus {name}", message, f"can {name}", values)
 
 
-def statuses(
-    units: dict[str, UnitState],
-    schedulers: dict[str, BusScheduler],
-    planned_load: dict[str, float],
-    now: float,
-) -> list[Status]:
-    """Every bus, then every unit on it, in the file's order."""
-    out: list[Status] = []
-    for bus, scheduler in schedulers.items():
-        on_bus = [u for u in units.values() if u.cfg.bus == bus]
-        out.append(bus_status(bus, on_bus, scheduler, now, planned_load.get(bus, 0.0)))
-        out += [unit_status(u, scheduler, now) for u in on_bus]
-    return out
+LOAD_SPAN_S = 0.5  # shortest span a measured load is taken over
 
 
 class Health:
-    """The statuses of a supervisor's buses and units, with each bus's planned load."""
+    """The statuses of a supervisor's buses and units: every bus, then its units, in the
+    file's order. Each bus's load is measured between reports at least LOAD_SPAN_S apart,
+    in bits as the planner counts them for this bus's mix of frames."""
 
     def __init__(self, sup: Supervisor) -> None:
         self.sup = sup
-        self.planned = {p.bus: p.load_percent for p in plan(sup.config)}
+        self.plans = {p.bus: p for p in plan(sup.config)}
+        self._mark: dict[str, tuple[float, int]] = {}  # bus → (time, frames) measured from
+        self._load: dict[str, BusLoad] = {}
 
     def statuses(self, now: float) -> list[Status]:
-        return statuses(self.sup.units, self.sup.schedulers, self.planned, now)
+        out: list[Status] = []
+        for bus, scheduler in self.sup.schedulers.items():
+            units = [u for u in self.sup.units.values() if u.cfg.bus == bus]
+            p = self.plans[bus]
+            self._measure(bus, frames_seen(units, scheduler), now)
+            out.append(bus_status(bus, units, scheduler, p.load_percent, self._load.get(bus)))
+            out += [unit_status(u, scheduler, now) for u in units]
+        return out
+
+    def _measure(self, bus: str, frames: int, now: float) -> None:
+        since, before = self._mark.setdefault(bus, (now, frames))
+        if now - since < LOAD_SPAN_S:
+            return
+        p = self.plans[bus]
+        per_s = (frames - before) / (now - since)
+        bits = p.bits_per_s / p.frames_per_s if p.frames_per_s else 0.0
+        self._load[bus] = BusLoad(per_s, 100 * per_s * bits / p.bitrate)
+        self._mark[bus] = (now, frames)
