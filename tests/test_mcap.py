@@ -290,3 +290,48 @@ def test_the_core_loads_mcap_only_for_an_mcap_recording() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
+
+
+EIGHT = (
+    "buses:\n  b: {interface: virtual, channel: mcap-kill, bitrate: 1000000, simulate: true}\nunits:\n"
+    + "".join(f"  - {{name: u{i}, abh3_id: {i + 1}, host_id: 100}}\n" for i in range(8))
+)
+
+
+def test_kill_9_keeps_every_chunk_written_before_it(tmp_path: Path) -> None:
+    """A real crash: `abh3 run` killed with SIGKILL mid-run. The file has no index; the
+    frames of every chunk written before the kill read back."""
+    cfg = tmp_path / "eight.yaml"
+    cfg.write_text(EIGHT)
+    out = tmp_path / "killed.mcap"
+    command = [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless"]
+    proc = subprocess.Popen(
+        [
+            *command,
+            "--record",
+            str(out),
+            "--no-socket",
+            "--status-interval",
+            "1",
+            "--duration",
+            "30",
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.stderr is not None
+    reports = 0
+    for line in proc.stderr:  # one status line per unit each second: wait for 5 s of them
+        reports += " b/u0: " in line
+        if reports >= 5:
+            break
+    proc.kill()
+    proc.wait(timeout=10)
+    said: list[str] = []
+    frames = list(_drain(read_frames(out, said.append)))
+    assert len(frames) > 2000  # ≈ 960 frames/s: at least two seconds' worth of chunks
+    stamps = [f.timestamp for f in frames]
+    assert max(stamps) - min(stamps) >= 2.0
+    assert {f.is_rx for f in frames} == {True, False}
+    assert said and "breaks off" in said[-1]
