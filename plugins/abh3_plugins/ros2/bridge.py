@@ -328,11 +328,11 @@ class Ros2Plugin:
         t = self.transport = open_transport(self.settings)
         for name, unit in supervisor.units.items():
             self.units[name] = UnitBridge(unit, t, self.settings)
-        if self.settings.diagnostics_hz > 0:
-            publish = t.publisher(TOPIC, t.msg.DiagnosticArray)
-            self.diagnostics = DiagnosticsPublisher(
-                Health(supervisor), publish, t.msg, self.settings.diagnostics_hz
-            )
+        publish = t.publisher(TOPIC, t.msg.DiagnosticArray)
+        self.diagnostics = DiagnosticsPublisher(
+            Health(supervisor), publish, t.msg, self.settings.diagnostics_hz
+        )
+        if self.settings.diagnostics_hz > 0:  # 0: on changes only, from the hooks below
             self._diagnostics_thread = DiagnosticsThread(self.diagnostics)
         t.start()
         if self._diagnostics_thread is not None:
