@@ -2,17 +2,28 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import fcntl
 import os
+import pty
+import select
 import shutil
+import struct
+import sys
 import tempfile
+import termios
 from collections.abc import Iterator
 from pathlib import Path
 
+import can
 import pytest
 from can.interfaces import virtual
 
 from abh3_supervisor.config import Config, parse_config
-from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.config.model import SimConfig
+from abh3_supervisor.core.supervisor import Notice, Supervisor, SupervisorEvent
+from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator import SimBus
 from abh3_supervisor.simulator.timeline import Timeline
 
@@ -78,3 +89,52 @@ def private_runtime_dir() -> Iterator[None]:
         else:
             os.environ["XDG_RUNTIME_DIR"] = saved
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+class BusNotices:
+    """An observer keeping one bus's notices (``bus NAME: …``), awaited one at a time."""
+
+    def __init__(self, bus: str) -> None:
+        self.prefix = f"bus {bus}:"
+        self.seen: list[str] = []
+        self._changed = asyncio.Event()
+
+    def __call__(self, event: SupervisorEvent) -> None:
+        if isinstance(event, Notice) and event.message.startswith(self.prefix):
+            self.seen.append(event.message)
+            self._changed.set()
+
+    async def next(self) -> str:
+        await asyncio.wait_for(self._changed.wait(), 3.0)
+        self._changed.clear()
+        return self.seen[-1]
+
+
+@contextlib.contextmanager
+def drives_on(config: Config, bus: str, channel: str) -> Iterator[BusPump]:
+    """The simulated drives of ``bus`` on a virtual channel of their own, pumped on the
+    running loop: the far side of an interface the supervisor opens (a fake, an adapter)."""
+    sim = SimBus.for_units(config.units_on(bus), SimConfig(), asyncio.get_running_loop().time())
+    sim_bus = can.Bus(interface="virtual", channel=channel)
+    pump = BusPump(sim_bus, sim, name=f"{bus} drives", channel=channel)
+    pump.start()
+    try:
+        yield pump
+    finally:
+        pump.stop()
+        sim_bus.shutdown()
+
+
+def in_a_terminal(args: list[str]) -> tuple[int, int]:
+    """``abh3 ARGS`` on a pseudo-terminal, once its screen shows both units online."""
+    pid, fd = pty.fork()
+    if pid == 0:
+        os.chdir(Path(__file__).resolve().parent.parent)
+        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
+    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 180, 0, 0))
+    screen = b""
+    while screen.count(b"online") < 2:
+        ready, _, _ = select.select([fd], [], [], 30)
+        assert ready, f"no TUI output: {screen[-500:]!r}"
+        screen += os.read(fd, 65536)
+    return pid, fd

@@ -4,17 +4,13 @@ service gone, and the TUI's own process dying (`abh3 tui` and `abh3 run` on a te
 from __future__ import annotations
 
 import asyncio
-import fcntl
 import json
 import os
-import pty
 import select
 import signal
-import struct
 import subprocess
 import sys
 import tempfile
-import termios
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,7 +26,7 @@ from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import TWO_UNITS
+from tests.conftest import TWO_UNITS, in_a_terminal
 from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -125,21 +121,6 @@ def _wait_for(condition: Callable[[], bool], what: str, timeout: float = 20.0) -
         select.select([], [], [], 0.05)  # polling another process: nothing to wait on
 
 
-def _in_a_terminal(args: list[str]) -> tuple[int, int]:
-    """``abh3 ARGS`` on a pseudo-terminal, once its screen shows both units online."""
-    pid, fd = pty.fork()
-    if pid == 0:
-        os.chdir(ROOT)
-        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
-    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 180, 0, 0))
-    screen = b""
-    while screen.count(b"online") < 2:
-        ready, _, _ = select.select([fd], [], [], 30)
-        assert ready, f"no TUI output: {screen[-500:]!r}"
-        screen += os.read(fd, 65536)
-    return pid, fd
-
-
 def _status(sock: Path) -> dict[str, Any]:
     out = subprocess.run(
         [sys.executable, "-m", "abh3_supervisor", "status", "--json", "--connect", str(sock)],
@@ -166,7 +147,7 @@ def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) ->
         for line in run.stderr:
             if "unit right: online" in line:
                 break
-        pid, fd = _in_a_terminal(["tui", "--connect", str(sock)])
+        pid, fd = in_a_terminal(["tui", "--connect", str(sock)])
         before = _status(sock)
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
@@ -192,7 +173,7 @@ def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
     the child reads, and the child stops every drive."""
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
     record = tmp_path / "run.log"
-    pid, fd = _in_a_terminal(
+    pid, fd = in_a_terminal(
         ["run", "configs/demo.yaml", "--socket", str(sock), "--record", str(record)]
     )
     assert _status(sock)["units"]["left"]["online"]

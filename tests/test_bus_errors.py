@@ -4,8 +4,10 @@ python-can's error frames and exceptions, reported per bus, and recovered from."
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import queue
+import socket
 from collections.abc import Iterator
 from typing import Any, ClassVar
 
@@ -15,14 +17,11 @@ import pytest
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import overview
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.config.model import SimConfig
-from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler import bus_health as bh
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
-from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.service import snapshot
-from abh3_supervisor.simulator import SimBus
+from tests.conftest import BusNotices, drives_on
 
 
 def error_frame(cls: int, crtl: int = 0, tx: int = 0, rx: int = 0) -> tuple[int, bytes]:
@@ -113,10 +112,47 @@ class FlakyBus(can.BusABC):
         self.inner.shutdown()
 
 
+class FdBus(FlakyBus):
+    """As SocketCAN: a file descriptor python-can's Notifier reads from the loop
+    (``add_reader``), and a receive that raises when the interface goes down."""
+
+    def __init__(self, channel: Any = None, **kwargs: Any) -> None:
+        super().__init__(channel, **kwargs)
+        self._r, self._w = socket.socketpair()
+        self._r.setblocking(False)
+        self.down = False
+        self.reads = 0
+
+    def fileno(self) -> int:
+        return self._r.fileno()
+
+    def go_down(self) -> None:
+        self.down = True
+        self._w.send(b"!")  # readable: the loop calls recv, which fails
+
+    def go_up(self) -> None:
+        self.down = False
+        with contextlib.suppress(BlockingIOError):
+            self._r.recv(64)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        self.reads += 1
+        if self.down:
+            raise can.CanOperationError("Error receiving: Network is down", errno.ENETDOWN)
+        return None, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._r.close()
+        self._w.close()
+
+
 @pytest.fixture
 def flaky(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     monkeypatch.setitem(can.interfaces.BACKENDS, "flaky", (__name__, "FlakyBus"))
-    monkeypatch.setattr(can.util, "VALID_INTERFACES", can.interfaces.VALID_INTERFACES | {"flaky"})
+    monkeypatch.setitem(can.interfaces.BACKENDS, "fdflaky", (__name__, "FdBus"))
+    valid = can.interfaces.VALID_INTERFACES | {"flaky", "fdflaky"}
+    monkeypatch.setattr(can.util, "VALID_INTERFACES", valid)
     FlakyBus.instances.clear()
     yield
     FlakyBus.instances.clear()
@@ -126,62 +162,42 @@ def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> 
     config = parse_config(
         "buses:\n  robot: {interface: flaky, channel: errs}\nunits:\n  - {name: base}\n", "e.yaml"
     )
-    notices: list[str] = []
+    notices = BusNotices("robot")
 
     async def scenario() -> None:
-        loop = asyncio.get_running_loop()
-        sim = SimBus.for_units(config.units_on("robot"), SimConfig(), loop.time())
-        sim_bus = can.Bus(interface="virtual", channel="errs")
-        sim_pump = BusPump(sim_bus, sim, name="drive", channel="errs")
-        sim_pump.start()
-        changed = asyncio.Event()
-
-        def keep(event: SupervisorEvent) -> None:
-            if isinstance(event, Notice) and event.message.startswith("bus robot:"):
-                notices.append(event.message)
-                changed.set()
-
-        async def next_notice() -> str:
-            await asyncio.wait_for(changed.wait(), 3.0)
-            changed.clear()
-            return notices[-1]
-
-        try:
+        with drives_on(config, "robot", "errs"):
             async with Runtime(config) as rt:
                 sup = rt.supervisor
-                sup.subscribe(keep)
+                sup.subscribe(notices)
                 assert await sup.wait_exchange("base", sup.clock(), 3.0)
                 (bus,) = FlakyBus.instances
                 health = sup.bus_health["robot"]
 
                 bus.inject(*error_frame(bh.ERR_BUSOFF))
-                assert "BUS-OFF" in await next_notice() and state(health) is BusState.BUS_OFF
+                assert "BUS-OFF" in await notices.next() and state(health) is BusState.BUS_OFF
                 screen = overview.render(mirrored(rt), ["base"], 0, 120).plain
                 assert "bus robot: BUS-OFF for 0 s: the controller went bus-off" in screen
                 bus.inject(*error_frame(bh.ERR_RESTARTED))
-                assert "recovered from bus-off" in await next_notice()
+                assert "recovered from bus-off" in await notices.next()
 
                 bus.fail = can.CanOperationError(
                     "Failed to transmit: No buffer space", errno.ENOBUFS
                 )
-                assert "TX QUEUE FULL" in await next_notice()
+                assert "TX QUEUE FULL" in await notices.next()
                 assert await sup.wait_exchange("base", sup.clock(), 0.3) is False  # nothing goes
                 bus.fail = None
-                assert "recovered from tx queue full" in await next_notice()
+                assert "recovered from tx queue full" in await notices.next()
                 assert await sup.wait_exchange("base", sup.clock(), 1.0)  # and the unit answers
 
                 bus.inject(*error_frame(bh.ERR_CRTL | bh.ERR_CNT, bh.CRTL_RX_PASSIVE, rx=140))
-                assert "ERROR-PASSIVE" in await next_notice()
+                assert "ERROR-PASSIVE" in await notices.next()
                 bus.inject(*error_frame(bh.ERR_CRTL | bh.ERR_CNT, bh.CRTL_ACTIVE, rx=20))
-                assert "recovered from error-passive" in await next_notice()
+                assert "recovered from error-passive" in await notices.next()
                 assert "bus robot" not in overview.render(mirrored(rt), ["base"], 0, 120).plain
-        finally:
-            sim_pump.stop()
-            sim_bus.shutdown()
         assert rt.stops_confirmed
 
     asyncio.run(scenario())
-    assert notices == [
+    assert notices.seen == [
         "bus robot: BUS-OFF: the controller went bus-off",
         "bus robot: recovered from bus-off: the controller restarted",
         "bus robot: TX QUEUE FULL: the transmit queue is full (no node acks?)",
@@ -196,3 +212,34 @@ def mirrored(rt: Runtime) -> Mirror:
     mirror = Mirror.of(rt.config)
     mirror.apply(snapshot.state(rt))
     return mirror
+
+
+def test_a_receive_that_fails_on_a_bus_read_from_the_loop_is_a_state_not_a_traceback(
+    flaky: None,
+) -> None:
+    """SocketCAN taken down under a running supervisor: python-can reads it from the loop
+    (add_reader); the failing receive becomes BUS-OFF once, and the reader rests between
+    tries instead of spinning the loop with tracebacks."""
+    config = parse_config(
+        "buses:\n  robot: {interface: fdflaky, channel: fd}\nunits:\n  - {name: base}\n", "e.yaml"
+    )
+    notices = BusNotices("robot")
+    unhandled: list[dict[str, Any]] = []
+
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        loop.set_exception_handler(lambda _, context: unhandled.append(context))
+        async with Runtime(config) as rt:
+            rt.supervisor.subscribe(notices)
+            (bus,) = [b for b in FlakyBus.instances if isinstance(b, FdBus)]
+            bus.go_down()
+            await notices.next()
+            assert rt.supervisor.bus_health["robot"].state is BusState.BUS_OFF
+            reads = bus.reads
+            await asyncio.sleep(1.2)  # real time is what a spinning reader would burn
+            assert 1 <= bus.reads - reads <= 4  # one try per RETRY_S, not one per loop turn
+            bus.go_up()
+
+    asyncio.run(scenario())
+    assert notices.seen == ["bus robot: BUS-OFF: network down: bus-off, or the interface is down"]
+    assert unhandled == []

@@ -202,6 +202,13 @@ def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str])
                     logged.append(line[1])
 
             rt.supervisor.subscribe(on_event)
+            left = rt.supervisor.units["left"]
+            for _ in range(200):  # the startup's SERVO ON, as the drive reports it (bounded)
+                if left.words.get("control", 0) & left.layout.servo.both:
+                    break
+                await rt.supervisor.wait_exchange("left", rt.supervisor.clock(), 1.0)
+            else:
+                pytest.fail("the drive never reported its servo on")
             server = ControlServer(rt, None, sock)
             await server.start()
             try:

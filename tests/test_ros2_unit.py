@@ -300,6 +300,7 @@ def fake_rclpy(monkeypatch: pytest.MonkeyPatch) -> Iterator[FakeNode]:
         "builtin_interfaces",
         "geometry_msgs",
         "nav_msgs",
+        "diagnostic_msgs",
     ):
         modules[f"{package}.msg"] = types  # our DDS classes take the same keywords
     for name, module in modules.items():

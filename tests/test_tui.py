@@ -8,18 +8,16 @@ every figure on screen is deterministic. Set ``ABH3_UPDATE_SNAPSHOTS=1`` to rewr
 from __future__ import annotations
 
 import asyncio
-import fcntl
+import errno
 import logging
 import os
 import pty
 import re
 import select
 import signal
-import struct
 import subprocess
 import sys
 import tempfile
-import termios
 from pathlib import Path
 from typing import Any
 
@@ -31,11 +29,12 @@ from abh3_supervisor.clients.link import Link
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import operator, overview, plots
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp
-from abh3_supervisor.clients.tui.model import Trace, overview_row
+from abh3_supervisor.clients.tui.model import Trace, bus_fields, overview_row
 from abh3_supervisor.clients.tui.run import warnings
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.kinematics import twist_to_yx
+from abh3_supervisor.core.planner import plan
 from abh3_supervisor.core.supervisor import SetResult
 from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
@@ -45,7 +44,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service.server import ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.conftest import TWO_UNITS, Rig
+from tests.conftest import TWO_UNITS, Rig, in_a_terminal
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 
@@ -297,28 +296,7 @@ def test_plots_draw_from_zero_with_value_and_scale() -> None:
 def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig: int) -> None:
     """`abh3 run` on a (pseudo-)terminal opens the TUI; a signal still stops the drives."""
     record = tmp_path / "tui.log"
-    root = Path(__file__).resolve().parent.parent
-    pid, fd = pty.fork()
-    if pid == 0:  # the child: the program, on the terminal
-        os.chdir(root)
-        os.execv(
-            sys.executable,
-            [
-                sys.executable,
-                "-m",
-                "abh3_supervisor",
-                "run",
-                "configs/demo.yaml",
-                "--record",
-                str(record),
-            ],
-        )
-    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 180, 0, 0))
-    screen = b""
-    while screen.count(b"online") < 2:  # wait until the live table shows both units online
-        ready, _, _ = select.select([fd], [], [], 20)
-        assert ready, f"no TUI output: {screen[-500:]!r}"
-        screen += os.read(fd, 65536)
+    pid, fd = in_a_terminal(["run", "configs/demo.yaml", "--record", str(record)])
     os.kill(pid, sig)
     while True:  # drain the terminal until the program has gone
         ready, _, _ = select.select([fd], [], [], 20)
@@ -622,3 +600,11 @@ def test_run_falls_back_to_headless_when_stderr_is_not_a_terminal(tmp_path: Path
     assert code == 0
     assert text.splitlines()[0] == "abh3: stderr not a terminal: running headless (--headless)"
     assert "\x1b[" not in text and "unit left: online" in text
+
+
+def test_the_bus_tab_says_what_the_interface_reports() -> None:
+    rig = snapshot_rig()
+    plans = {p.bus: p for p in plan(rig.config)}
+    assert "interface ok" in bus_fields(mirror_of(rig), plans, {})[0]
+    rig.sup.bus_health["b"].on_send_error(errno.ENETDOWN, "Network is down", rig.timeline.now)
+    assert "interface bus-off" in bus_fields(mirror_of(rig), plans, {})[0]

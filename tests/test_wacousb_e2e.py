@@ -7,18 +7,15 @@ import asyncio
 import time
 from pathlib import Path
 
-import can
 import pytest
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.config.model import SimConfig
 from abh3_supervisor.core.state import Feedback
-from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator import SimBus
+from tests.conftest import BusNotices, drives_on
 from tests.wacousb_emulator import AdapterEmulator, check_host_frame
 
 
@@ -48,12 +45,7 @@ units:
     stats: dict[str, float] = {}
 
     async def scenario() -> SimBus:
-        loop = asyncio.get_running_loop()
-        sim = SimBus.for_units(config.units_on("robot"), SimConfig(), loop.time())
-        sim_bus = can.Bus(interface="virtual", channel="wacousb-e2e")
-        sim_pump = BusPump(sim_bus, sim, name="drives", channel="wacousb-e2e")
-        sim_pump.start()
-        try:
+        with drives_on(config, "robot", "wacousb-e2e") as drives:
             async with Runtime(config) as rt:
                 sup = rt.supervisor
                 since = sup.clock()
@@ -81,11 +73,9 @@ units:
                 stats["frames_per_s"] = (pump.frames_sent - sent0) / (time.perf_counter() - t0)
                 stats["send_errors"] = pump.send_errors
                 assert sup.unit("left").online and sup.unit("right").online
-        finally:
-            sim_pump.stop()
-            sim_bus.shutdown()
         assert rt.stops_confirmed, rt.stop_report
-        return sim
+        assert isinstance(drives.machine, SimBus)
+        return drives.machine
 
     try:
         sim = asyncio.run(scenario())
@@ -137,41 +127,21 @@ units:
 """,
         "replug.yaml",
     )
-    notices: list[str] = []
+    notices = BusNotices("robot")
 
     async def scenario() -> None:
-        loop = asyncio.get_running_loop()
-        sim = SimBus.for_units(config.units_on("robot"), SimConfig(), loop.time())
-        sim_bus = can.Bus(interface="virtual", channel="wacousb-replug")
-        sim_pump = BusPump(sim_bus, sim, name="drives", channel="wacousb-replug")
-        sim_pump.start()
-        changed = asyncio.Event()
-
-        def keep(event: SupervisorEvent) -> None:
-            if isinstance(event, Notice) and event.message.startswith("bus robot:"):
-                notices.append(event.message)
-                changed.set()
-
-        async def next_notice() -> str:
-            await asyncio.wait_for(changed.wait(), 3.0)
-            changed.clear()
-            return notices[-1]
-
-        try:
+        with drives_on(config, "robot", "wacousb-replug"):
             async with Runtime(config) as rt:
                 sup = rt.supervisor
-                sup.subscribe(keep)
+                sup.subscribe(notices)
                 assert await sup.wait_exchange("base", sup.clock(), 3.0)
                 emu.unplug()
-                assert "SENDS FAILING" in await next_notice()
-                assert "not connected" in notices[-1]
+                assert "SENDS FAILING" in await notices.next()
+                assert "not connected" in notices.seen[-1]
                 assert not await sup.wait_exchange("base", sup.clock(), 0.2)
                 emu.plug()
-                assert "recovered from sends failing" in await next_notice()
+                assert "recovered from sends failing" in await notices.next()
                 assert await sup.wait_exchange("base", sup.clock(), 2.0)
-        finally:
-            sim_pump.stop()
-            sim_bus.shutdown()
         assert rt.stops_confirmed
 
     try:

@@ -1,4 +1,5 @@
-"""The ``abh3`` command: ``run``, ``check``, ``status``, ``send``, ``scan``, ``decode``.
+"""The ``abh3`` command: ``run``, ``tui``, ``check``, ``status``, ``send``, ``scan``,
+``param``, ``decode``, ``schema``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 128 + N stopped by
@@ -73,7 +74,8 @@ def _parser() -> argparse.ArgumentParser:
         "--record",
         type=Path,
         metavar="FILE",
-        help="record all bus traffic; format by extension: .log .asc .blf .csv",
+        help="record all bus traffic; format by extension: .log .asc .blf .csv, or .mcap "
+        "(raw frames and decoded values as ROS 2 messages; the mcap extra)",
     )
     run.add_argument(
         "--status-interval",
@@ -151,6 +153,10 @@ def _parser() -> argparse.ArgumentParser:
     from abh3_supervisor.clients.param import add_parser as add_param_parser
 
     add_param_parser(sub)
+    schema = sub.add_parser(
+        "schema", help="print the configuration's JSON Schema (core and installed plugins)"
+    )
+    schema.add_argument("--output", "-o", type=Path, metavar="FILE", help="write it here")
 
     dec = sub.add_parser("decode", help="decode a recording made with --record")
     dec.add_argument("file", type=Path)
@@ -242,6 +248,17 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         from abh3_supervisor.clients import param
 
         return param.run(args)
+    if args.cmd == "schema":
+        from abh3_supervisor.clients.schema import schema_text
+
+        if args.output is None:
+            sys.stdout.write(schema_text())
+            return EXIT_OK
+        try:
+            args.output.write_text(schema_text(), encoding="utf-8")
+        except OSError as exc:
+            raise Abh3Error(f"--output {args.output}: cannot write: {exc.strerror}") from exc
+        return EXIT_OK
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file
 

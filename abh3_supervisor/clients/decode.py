@@ -65,7 +65,11 @@ def read_messages(path: Path, report: Callable[[str], None] | None = None) -> It
     say = report or _to_stderr
     kind = _TEXT_READERS.get(path.suffix.lower())
     try:
-        if kind is not None:
+        if path.suffix.lower() == ".mcap":
+            from abh3_supervisor.runtime.mcap_recording import read_frames
+
+            read, unread = yield from read_frames(path, say)
+        elif kind is not None:
             read, unread = yield from _text_frames(path, kind, say)
         else:
             read, unread = yield from _binary_frames(path, say)

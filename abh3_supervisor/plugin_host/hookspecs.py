@@ -11,7 +11,7 @@ plugin's own worker thread, so a slow plugin never delays the bus.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pluggy
 
@@ -33,6 +33,14 @@ def abh3_configure(section: Section, config: Config) -> None:
     """Validate this plugin's own ``plugins.<name>`` YAML section; report with ``section.error``.
 
     ``config`` is the rest of the file, already validated (units, buses), for cross-checks.
+    """
+
+
+@hookspec
+def abh3_config_schema() -> dict[str, Any] | None:
+    """The JSON Schema of this plugin's ``plugins.<name>`` section (for ``abh3 schema``).
+
+    Build it with :mod:`abh3_supervisor.config.schema`'s builders; called without a run.
     """
 
 

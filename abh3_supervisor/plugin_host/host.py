@@ -64,6 +64,26 @@ def _plugin_object(ep: EntryPoint) -> object:
     return target() if isinstance(target, type) else target
 
 
+def section_schemas(
+    available: dict[str, EntryPoint] | None = None,
+) -> tuple[dict[str, dict[str, Any] | None], dict[str, str]]:
+    """Every installed plugin's section schema (None: it gives none), and why the plugins
+    that could not say (failed to load or raised) could not. Nothing is started."""
+    schemas: dict[str, dict[str, Any] | None] = {}
+    problems: dict[str, str] = {}
+    for name, ep in sorted((installed() if available is None else available).items()):
+        pm = pluggy.PluginManager(hookspecs.PROJECT)
+        pm.add_hookspecs(hookspecs)
+        try:
+            pm.register(_plugin_object(ep), name=name)
+            answers = pm.hook.abh3_config_schema()
+        except Exception as exc:  # a broken plugin must not hide the others' schemas
+            problems[name] = repr(exc)
+            continue
+        schemas[name] = answers[0] if answers else None
+    return schemas, problems
+
+
 class _Worker:
     """One plugin's observation hooks, run in order on a thread of its own."""
 

@@ -90,6 +90,15 @@ class GuardedRecorder(can.Listener):
         except Exception as exc:
             self._fail("writing", exc)
 
+    def observe(self, event: object) -> None:
+        """A supervisor event, for writers that record decoded values too (MCAP)."""
+        if self.failed is not None:
+            return
+        try:
+            self.writer.observe(event)  # type: ignore[attr-defined]
+        except Exception as exc:
+            self._fail("writing", exc)
+
     def _fail(self, doing: str, exc: Exception) -> None:
         self.failed = str(exc)
         log.error(
@@ -103,14 +112,22 @@ class GuardedRecorder(can.Listener):
         try:
             self.writer.stop()  # flushes and closes the file
         except Exception as exc:
-            self._fail("closing", exc)
+            if self.failed is None:  # a writer that failed already says why once
+                self._fail("closing", exc)
 
 
-def open_recorder(path: Path) -> GuardedRecorder:
+def open_recorder(path: Path, config: Config | None = None) -> GuardedRecorder:
+    if path.suffix.lower() == ".mcap" and config is not None:
+        # imported here: the mcap libraries are an extra, loaded only when asked for
+        from abh3_supervisor.runtime.mcap_recording import open_mcap
+
+        return GuardedRecorder(path, open_mcap(path, config))
     try:
         writer = can.Logger(str(path))  # format from the extension: .log .asc .blf .csv …
     except ValueError as exc:
-        raise BusOpenError(f"--record {path}: {exc} (use .log, .asc, .blf or .csv)") from exc
+        raise BusOpenError(
+            f"--record {path}: {exc} (use .log, .asc, .blf or .csv, or .mcap)"
+        ) from exc
     except OSError as exc:
         raise BusOpenError(f"--record {path}: cannot write: {exc.strerror}") from exc
     return GuardedRecorder(path, writer)
@@ -156,8 +173,12 @@ class Runtime:
 
     def _start(self, loop: asyncio.AbstractEventLoop) -> None:
         if self.record is not None:
-            self._recorder = open_recorder(self.record)
+            self._recorder = open_recorder(self.record, self.config)
         self.supervisor = Supervisor(self.config, clock=loop.time)
+        attach = getattr(self._recorder.writer if self._recorder else None, "attach", None)
+        if self._recorder is not None and attach is not None:  # decoded values too (MCAP)
+            attach(self.supervisor, loop.time)
+            self.supervisor.subscribe(self._recorder.observe)
         for name, cfg in self.config.buses.items():
             if (sim_cfg := cfg.simulate) is not None:
                 cfg = simulated(cfg)

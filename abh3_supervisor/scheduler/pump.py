@@ -20,6 +20,7 @@ import can
 from abh3_supervisor.scheduler.bus_health import BusHealth
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
+RETRY_S = 0.5  # a bus whose receive failed is read again after this
 log = logging.getLogger(__name__)
 
 
@@ -63,7 +64,7 @@ class BusPump(can.Listener):
 
     def start(self) -> None:
         # a short receive timeout lets stop() join a reader thread quickly
-        self._notifier = can.Notifier(self.bus, [self], timeout=0.05, loop=self.loop)
+        self._notifier = _Notifier(self.bus, [self], timeout=0.05, loop=self.loop)
         self._step()
 
     def stop(self) -> None:  # also called by Notifier.stop(): must be idempotent
@@ -95,8 +96,15 @@ class BusPump(can.Listener):
         self._guard(self._receive_and_step, msg.arbitration_id, bytes(msg.data))
 
     def on_error(self, exc: Exception) -> None:
+        """A receive failed (the interface went down): the bus's health says so once, as a
+        notice; retrying is the notifier's."""
         self.bus_errors += 1
-        log.error("bus %s: receive failed: %s", self.name, exc)
+        code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+        self.health.on_send_error(code, f"receive failed: {exc}", self.loop.time())
+        if self.health.changes:
+            self._health_changed()
+        else:
+            log.debug("bus %s: receive failed again: %s", self.name, exc)
 
     def _health_changed(self) -> None:
         if self.health.changes and self.after_step is not None:
@@ -163,3 +171,25 @@ class BusPump(can.Listener):
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         return True
+
+
+class _Notifier(can.Notifier):
+    """python-can's Notifier, except where it reads a bus from the loop (``add_reader``:
+    SocketCAN): there a receive that raises would go to asyncio's exception handler — a
+    traceback — on every turn of the loop while the fd stays readable. Here it reaches
+    the listeners' ``on_error`` and the reader rests ``RETRY_S`` before trying again."""
+
+    def _on_message_available(self, bus: can.BusABC) -> None:
+        try:
+            super()._on_message_available(bus)
+        except Exception as exc:  # whatever the interface raises: its listeners decide
+            self._on_error(exc)
+            loop, fd = self._loop, bus.fileno()
+            if loop is None or self._stopped:
+                return
+            loop.remove_reader(fd)
+            loop.call_later(RETRY_S, self._resume, bus, fd)
+
+    def _resume(self, bus: can.BusABC, fd: int) -> None:
+        if not self._stopped and self._loop is not None:
+            self._loop.add_reader(fd, self._on_message_available, bus)

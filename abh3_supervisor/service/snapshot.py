@@ -89,14 +89,10 @@ def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str,
         "estop": sup.estop,
         "stopping": sup.stopping,
         "units": {name: unit_state(sup, unit) for name, unit in sup.units.items()},
-        "buses": {
-            name: {
-                "frames_sent": pump.frames_sent,
-                "frames_received": pump.frames_received,
-                "send_errors": pump.send_errors,
-                "bus_errors": pump.bus_errors,
-                **_health(sup, name),
-            }
-            for name, pump in pumps.items()
-        },
+        "buses": {name: _bus(sup, name, pumps.get(name)) for name in sup.schedulers},
     }
+
+
+def _bus(sup: Supervisor, name: str, pump: BusPump | None) -> dict[str, Any]:
+    counts = ("frames_sent", "frames_received", "send_errors", "bus_errors")
+    return {**{key: getattr(pump, key, 0) for key in counts}, **_health(sup, name)}

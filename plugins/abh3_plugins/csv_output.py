@@ -25,6 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import IO, Any
 
+from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.model import ControlMode
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
@@ -183,6 +184,18 @@ class CsvPlugin:
         self._flusher: threading.Thread | None = None
         self.failure: OSError | None = None  # the output failed: raised to the host
         self.units: dict[str, UnitState] = {}
+
+    @hookimpl
+    def abh3_config_schema(self) -> dict[str, Any]:
+        return js.mapping(
+            {
+                "path": js.text("file; {unit} in it gives one file per unit", "abh3.csv"),
+                "period_s": js.number(0.0, 3600.0, "0: a row per DP0 reply", 0.0),
+                "flush_s": js.number(0.0, 1.0, "seconds between flushes", 1.0, lo_open=True),
+                "rotate_bytes": js.integer(0, 2**40, "0: off", 0),
+                "rotate_s": js.number(0.0, 30 * 86400.0, "0: off", 0.0),
+            }
+        )
 
     @hookimpl
     def abh3_configure(self, section: Section) -> None:

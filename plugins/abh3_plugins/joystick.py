@@ -23,6 +23,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core.inputs import Feed, InputFeed, InputSource
 from abh3_supervisor.core.supervisor import Supervisor
@@ -193,6 +194,28 @@ class JoystickPlugin:
         self.device = "/dev/input/js0"
         self.mapping = Mapping()
         self.priority, self.timeout = 10, 0.5
+
+    @hookimpl
+    def abh3_config_schema(self) -> dict[str, Any]:
+        button = js.integer(0, 255)
+        return js.mapping(
+            {
+                "units": js.names("the units the joystick drives"),
+                "device": js.text(default="/dev/input/js0"),
+                "travel_axis": js.integer(0, 255, default=4),
+                "turn_axis": js.integer(0, 255, default=0),
+                "gainX": js.number(-100.0, 100.0, default=1.0),
+                "gainA": js.number(-100.0, 100.0, default=1.0),
+                "deadman": js.boolean(default=True),
+                "deadman_button": {**button, "default": 4},
+                "turbo_button": {**button, "default": 5},
+                "scale": js.number(0.0, 1.0, default=0.5),
+                "turbo_scale": js.number(0.0, 1.0, default=1.0),
+                "priority": js.integer(-100, 100, default=10),
+                "timeout": js.number(0.05, 10.0, "s", 0.5),
+            },
+            required=("units",),
+        )
 
     @hookimpl
     def abh3_configure(self, section: Section) -> None:

@@ -25,6 +25,7 @@ import tty
 from collections.abc import Collection
 from typing import Any
 
+from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.supervisor import Supervisor
@@ -169,6 +170,19 @@ class KeyboardPlugin:
     def __init__(self) -> None:
         self.units: tuple[str, ...] = ()
         self.settings: dict[str, float] = {}
+
+    @hookimpl
+    def abh3_config_schema(self) -> dict[str, Any]:
+        return js.mapping(
+            {
+                "units": js.names("the units the keyboard drives"),
+                "speed": js.number(0.0, 10.0, "m/s", 0.2, lo_open=True),
+                "turn": js.number(0.0, 20.0, "rad/s", 0.5, lo_open=True),
+                "priority": js.integer(-100, 100, default=0),
+                "timeout": js.number(0.05, 10.0, "s", 0.6),
+            },
+            required=("units",),
+        )
 
     @hookimpl
     def abh3_configure(self, section: Section) -> None:

@@ -283,6 +283,7 @@ def bus_fields(
         lines.append(
             [
                 f"bus {name}",
+                f"interface {pump.state}",
                 f"{rate:.0f} frames/s",
                 f"≈{load:.1f} % of {p.bitrate} bit/s",
                 f"planned {p.load_percent:.1f} %",

@@ -26,16 +26,18 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from abh3_plugins.ros2.settings import Settings, parse
+from abh3_plugins.ros2.diagnostics import TOPIC, DiagnosticsPublisher, DiagnosticsThread
+from abh3_plugins.ros2.settings import Settings, parse, schema
 from abh3_plugins.ros2.transport import Transport, open_transport, problem
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core import kinematics
 from abh3_supervisor.core.commands import RESPONSE_INVALID
+from abh3_supervisor.core.diagnostics import Health
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.core.state import Feedback, UnitState
-from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
@@ -307,6 +309,12 @@ class Ros2Plugin:
         self.settings = Settings()
         self.transport: Transport | None = None
         self.units: dict[str, UnitBridge] = {}
+        self.diagnostics: DiagnosticsPublisher | None = None
+        self._diagnostics_thread: DiagnosticsThread | None = None
+
+    @hookimpl
+    def abh3_config_schema(self) -> dict[str, Any]:
+        return schema()
 
     @hookimpl
     def abh3_configure(self, section: Section, config: Config) -> None:
@@ -320,7 +328,15 @@ class Ros2Plugin:
         t = self.transport = open_transport(self.settings)
         for name, unit in supervisor.units.items():
             self.units[name] = UnitBridge(unit, t, self.settings)
+        publish = t.publisher(TOPIC, t.msg.DiagnosticArray)
+        self.diagnostics = DiagnosticsPublisher(
+            Health(supervisor), publish, t.msg, self.settings.diagnostics_hz
+        )
+        if self.settings.diagnostics_hz > 0:  # 0: on changes only, from the hooks below
+            self._diagnostics_thread = DiagnosticsThread(self.diagnostics)
         t.start()
+        if self._diagnostics_thread is not None:
+            self._diagnostics_thread.start()
         log.log(
             logging.WARNING if self.settings.allow_commands else logging.INFO,
             "ros2: %d unit(s) on domain %d over %s; commands from ROS 2 %s",
@@ -348,7 +364,20 @@ class Ros2Plugin:
             bridge.status(packet, record)
 
     @hookimpl
+    def abh3_health(self) -> None:
+        if self.diagnostics is not None:  # STALE (or back) at once, not a period later
+            self.diagnostics.changed(time.monotonic())
+
+    @hookimpl
+    def abh3_flags(self, change: FlagChange) -> None:
+        if self.diagnostics is not None and change.word in ("error", "alarm"):
+            self.diagnostics.changed(time.monotonic())
+
+    @hookimpl
     def abh3_stop(self) -> None:
+        if self._diagnostics_thread is not None:
+            self._diagnostics_thread.close()
+            self._diagnostics_thread = None
         if self.transport is not None:
             self.transport.close()
             self.transport = None

@@ -27,7 +27,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from abh3_plugins.ros2 import types
+from abh3_plugins.ros2 import discovery, types
 from abh3_plugins.ros2.settings import QosSettings, Settings
 from abh3_plugins.ros2.transport import Publish, ServiceHandler
 from abh3_supervisor.core.commands import RESPONSE_INVALID
@@ -66,7 +66,13 @@ class DdsTransport:
     msg = types
 
     def __init__(self, settings: Settings) -> None:
-        self.participant = DomainParticipant(settings.domain_id)
+        self.participant = DomainParticipant(settings.domain_id, qos=discovery.PARTICIPANT_QOS)
+        self.announcer = (
+            discovery.Announcer(self.participant, settings.discovery)
+            if settings.discovery != "off"
+            else None
+        )
+        self.writers: list[DataWriter[Any]] = []  # the node's entities, for ros_discovery_info
         self.qos = qos(settings.qos)
         self.waitset = WaitSet(self.participant)
         self.wake = GuardCondition(self.participant)
@@ -85,6 +91,7 @@ class DdsTransport:
 
     def publisher(self, name: str, typ: type) -> Publish:
         writer = DataWriter(self.participant, self._topic(f"rt{name}", typ), qos=self.qos)
+        self.writers.append(writer)
         return writer.write
 
     def subscribe(self, name: str, typ: type, handle: Callable[[Any], None]) -> None:
@@ -96,6 +103,7 @@ class DdsTransport:
             self._topic(f"rr{name}Reply", types.Abh3InputResponse),
             qos=SERVICE_QOS,
         )
+        self.writers.append(reply)
 
         def answer(request: types.Abh3InputRequest, done: concurrent.futures.Future[str]) -> None:
             try:
@@ -122,6 +130,8 @@ class DdsTransport:
         self.wake.set(True)
 
     def start(self) -> None:
+        if self.announcer is not None:  # every entity exists now: the node as it stays
+            self.announcer.announce([r for r, _ in self._readers], self.writers)
         self._thread.start()
 
     def _run(self) -> None:

@@ -41,6 +41,7 @@ MESSAGES = {
         "TwistWithCovariance",
     ),
     "nav_msgs.msg": ("Odometry",),
+    "diagnostic_msgs.msg": ("DiagnosticArray", "DiagnosticStatus", "KeyValue"),
 }
 
 
@@ -56,6 +57,7 @@ def messages() -> SimpleNamespace:
             imported = importlib.import_module(module)
             found.update((name, getattr(imported, name)) for name in names)
         found["srv"] = importlib.import_module("abh3_can_interface.srv").Abh3Input
+        found["byte"] = lambda value: bytes([value])  # rclpy's `byte` fields take bytes
     except ImportError as exc:
         raise InterfaceMissing(
             f"{exc.name or exc}: build and source the abh3_can_interface package "

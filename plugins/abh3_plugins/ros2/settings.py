@@ -5,7 +5,9 @@ from __future__ import annotations
 import difflib
 import re
 from dataclasses import dataclass, field
+from typing import Any
 
+from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.model import Config, Role, UnitConfig
 from abh3_supervisor.config.source import Section
 
@@ -53,6 +55,10 @@ class Settings:
     status: str = "poll"  # poll: every packet received; request: answers to brd_num only
     odom_frame: str = "odom"
     base_frame: str = "base_link"
+    diagnostics_hz: float = 1.0  # /diagnostics, as ROS drivers publish it; 0: off
+    # ros_discovery_info over plain DDS, so `ros2 node list` sees us: the GID layout of
+    # humble, or of jazzy (Iron and later); off: none
+    discovery: str = "jazzy"
     qos: QosSettings = field(default_factory=QosSettings)
     remap: dict[str, str] = field(default_factory=dict)
 
@@ -81,6 +87,8 @@ def parse(section: Section, config: Config) -> Settings:
             "status",
             "odom_frame",
             "base_frame",
+            "diagnostics_hz",
+            "discovery",
             "qos",
             "remap",
         }
@@ -98,6 +106,8 @@ def parse(section: Section, config: Config) -> Settings:
         status=section.choice("status", d.status, ["poll", "request"]),
         odom_frame=section.text("odom_frame", d.odom_frame),
         base_frame=section.text("base_frame", d.base_frame),
+        diagnostics_hz=section.number("diagnostics_hz", d.diagnostics_hz, 0.0, 100.0),
+        discovery=section.choice("discovery", d.discovery, ["jazzy", "humble", "off"]),
         qos=QosSettings(
             reliability=q.choice("reliability", "reliable", ["reliable", "best_effort"]),
             durability=q.choice("durability", "volatile", ["volatile", "transient_local"]),
@@ -107,6 +117,45 @@ def parse(section: Section, config: Config) -> Settings:
     )
     _check_names(section, settings, config)
     return settings
+
+
+def schema() -> dict[str, Any]:
+    """The section's JSON Schema: the same keys, types and ranges as :func:`parse`."""
+    d = Settings()
+    ros_name = {"type": "string", "pattern": _NAME.pattern}
+    return js.mapping(
+        {
+            "domain_id": js.integer(0, 232, "DDS / ROS domain", d.domain_id),
+            "namespace": js.text("absolute; {unit} stands for each unit's name", d.namespace),
+            "transport": js.choice(["auto", "rclpy", "dds"], default=d.transport),
+            "conversion": js.boolean("serve the conversion node's topics", d.conversion),
+            "allow_commands": js.boolean("accept commands from ROS 2", d.allow_commands),
+            "command_timeout_ms": js.integer(10, 60_000, "silence → zero", 500),
+            "priority": js.integer(-1000, 1000, "in the input arbitration", d.priority),
+            "status": js.choice(["poll", "request"], default=d.status),
+            "odom_frame": js.text(default=d.odom_frame),
+            "base_frame": js.text(default=d.base_frame),
+            "diagnostics_hz": js.number(0.0, 100.0, "/diagnostics rate; 0: off", 1.0),
+            "discovery": js.choice(
+                ["jazzy", "humble", "off"],
+                "ros_discovery_info for this ROS release's GID size (jazzy: Iron and later)",
+                d.discovery,
+            ),
+            "qos": js.mapping(
+                {
+                    "reliability": js.choice(["reliable", "best_effort"], default="reliable"),
+                    "durability": js.choice(["volatile", "transient_local"], default="volatile"),
+                    "depth": js.integer(1, 10_000, "keep-last depth", 10),
+                }
+            ),
+            "remap": {
+                "type": ["object", "null"],
+                "description": "name: target, for every unit, or <unit>/name: target",
+                "propertyNames": {"pattern": rf"^([A-Za-z][A-Za-z0-9_]*/)?({'|'.join(NAMES)})$"},
+                "additionalProperties": ros_name,
+            },
+        }
+    )
 
 
 def _remap(section: Section) -> dict[str, str]:

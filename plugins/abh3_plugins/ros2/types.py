@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, float64, int32, int64, uint32, uint64
+from cyclonedds.idl.types import array, float64, int32, int64, sequence, uint8, uint32, uint64
 
 
 def _name(kind: str, typ: str, pkg: str = "abh3_can_interface") -> str:
@@ -165,6 +165,34 @@ class Odometry(IdlStruct, typename=_name("msg", "Odometry", "nav_msgs")):
     child_frame_id: str = ""
     pose: PoseWithCovariance = field(default_factory=PoseWithCovariance)
     twist: TwistWithCovariance = field(default_factory=TwistWithCovariance)
+
+
+def byte(value: int) -> int:
+    """A ROS ``byte`` field's value: an octet, a plain int here (rclpy wants ``bytes``)."""
+    return value
+
+
+@dataclass
+class KeyValue(IdlStruct, typename=_name("msg", "KeyValue", "diagnostic_msgs")):
+    key: str = ""
+    value: str = ""
+
+
+@dataclass
+class DiagnosticStatus(IdlStruct, typename=_name("msg", "DiagnosticStatus", "diagnostic_msgs")):
+    level: uint8 = 0  # ROS `byte`: an octet on the wire
+    name: str = ""
+    message: str = ""
+    hardware_id: str = ""
+    values: Annotated[Sequence[KeyValue], sequence(KeyValue)] = field(default_factory=list)
+
+
+@dataclass
+class DiagnosticArray(IdlStruct, typename=_name("msg", "DiagnosticArray", "diagnostic_msgs")):
+    header: Header = field(default_factory=Header)
+    status: Annotated[Sequence[DiagnosticStatus], sequence(DiagnosticStatus)] = field(
+        default_factory=list
+    )
 
 
 @dataclass
