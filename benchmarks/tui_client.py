@@ -11,9 +11,11 @@ from pathlib import Path
 from abh3_supervisor.clients.link import Link
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui.app import STATE_HZ, TABS, SupervisorApp
+from abh3_supervisor.clients.tui.run import yield_to_the_buses
 
 
 async def main(path: Path, seconds: float) -> None:
+    yield_to_the_buses()  # as `abh3 tui` and `abh3 run` do
     link = await Link.open(path)
     mirror = Mirror.from_hello(await link.call("hello", name="bench"))
     app = SupervisorApp(mirror, link, owner=False)

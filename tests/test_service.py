@@ -346,3 +346,40 @@ def test_status_and_send_against_a_headless_run(tmp_path: Path) -> None:
         cwd=root,
     )
     assert gone.returncode == 1 and "no supervisor serves" in gone.stderr
+
+
+def test_clients_at_one_rate_share_each_state_snapshot(
+    served: Served, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The snapshot is built on the bus loop: once per tick for every client at a rate,
+    not once per client (two TUIs cost what one does)."""
+    from abh3_supervisor.service import server as server_module
+    from abh3_supervisor.service.snapshot import state as real
+
+    built: list[int] = []
+
+    def counted(rt: Any) -> dict[str, Any]:
+        built.append(1)
+        return real(rt)
+
+    monkeypatch.setattr(server_module, "state", counted)
+    socks = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(2)]
+    try:
+        readers = []
+        for sock in socks:
+            sock.settimeout(5)
+            sock.connect(str(served.path))
+            sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe",
+                                     "params": {"events": False, "state_hz": 20}}))  # fmt: skip
+            readers.append(sock.makefile("rb"))
+        received = 0
+        for _ in range(20):  # 20 ticks' worth for each client
+            for reader in readers:
+                while json.loads(reader.readline()).get("method") != "state":
+                    pass
+                received += 1
+        assert received == 40
+        assert len(built) <= 20 + 4  # one per tick (and the first of each), not one per client
+    finally:
+        for sock in socks:
+            sock.close()

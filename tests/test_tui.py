@@ -608,3 +608,12 @@ def test_the_bus_tab_says_what_the_interface_reports() -> None:
     assert "interface ok" in bus_fields(mirror_of(rig), plans, {})[0]
     rig.sup.bus_health["b"].on_send_error(errno.ENETDOWN, "Network is down", rig.timeline.now)
     assert "interface bus-off" in bus_fields(mirror_of(rig), plans, {})[0]
+
+
+def test_the_unit_tab_shows_the_drives_firmware_version() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await pilot.press("2")
+        head = app.query_one("#unit-head", Static)
+        await until(pilot, lambda: "firmware 2.3.0.1" in str(head.render()), "firmware shown")
+
+    run_app(check)

@@ -87,7 +87,15 @@ MONITORS: tuple[Entry, ...] = (
     Entry(0x1064, "PULSES_B", "int"),
 )
 
-IDENTITY: dict[int, str] = {0x0: "", 0x2: "FIRMWARE_VERSION", 0x4: "", 0x5: "", 0x8: "", 0xC: ""}
+FIRMWARE_VERSION = 0x2  # the identity (BI) address the maker's tool shows as the version
+IDENTITY: dict[int, str] = {
+    0x0: "",
+    FIRMWARE_VERSION: "FIRMWARE_VERSION",
+    0x4: "",
+    0x5: "",
+    0x8: "",
+    0xC: "",
+}
 
 BY_ADDRESS = {e.address: e for e in PARAMETERS}
 BY_NAME = {e.name: e for e in PARAMETERS}

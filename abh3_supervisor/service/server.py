@@ -16,6 +16,7 @@ import contextlib
 import functools
 import itertools
 import logging
+import math
 import re
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ log = logging.getLogger(__name__)
 MAX_CLIENTS = 32
 MAX_BUFFER = 1 << 20  # bytes queued for one client before it is dropped as too slow
 MAX_STATE_HZ = 20.0
+SHARE_S = 0.005  # clients woken on the same tick get the same encoded state
 CLIENT_TIMEOUT_S = 0.5  # a client's motion command is fresh this long (as the seed's topics)
 CLIENT_PRIORITY = 50  # below the TUI in the same process (100), above plugins' default 0
 READ_ONLY_METHODS = {"hello", "state", "subscribe", "keys"}
@@ -189,6 +191,7 @@ class ControlServer:
             "param_write": self._param_write,
         }
         self._log_handler = _Forward(self)
+        self._state_cache: tuple[float, bytes] = (-1e300, b"")  # (loop time, encoded)
         self._params = ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())
 
     async def start(self) -> None:
@@ -318,9 +321,21 @@ class ControlServer:
                     self.broadcast([client], line[0], line[1], name)
 
     async def _push_state(self, client: _Client, period: float) -> None:
+        """On a grid of ``period`` shared by every client at that rate: one snapshot built
+        and encoded per tick for all of them (0.6 ms on the bus loop for 8 units)."""
+        loop = asyncio.get_running_loop()
         while not client.writer.is_closing():
-            client.send(rpc.notification("state", state(self.rt)))
-            await asyncio.sleep(period)
+            client.send(self._state_bytes())
+            now = loop.time()
+            await asyncio.sleep((math.floor(now / period) + 1) * period - now)
+
+    def _state_bytes(self) -> bytes:
+        now = asyncio.get_running_loop().time()
+        made, data = self._state_cache
+        if now - made > SHARE_S:
+            data = rpc.notification("state", state(self.rt))
+            self._state_cache = (now, data)
+        return data
 
     def _commanded(self, params: dict[str, Any]) -> tuple[str, ...]:
         sup = self.rt.supervisor

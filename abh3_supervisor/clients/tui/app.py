@@ -47,6 +47,7 @@ from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.planner import plan
+from abh3_supervisor.params import table
 
 REFRESH_S = 0.1
 STATE_HZ = 10  # what the service pushes: the refresh rate, no more
@@ -152,6 +153,7 @@ class SupervisorApp(App[None]):
         self._sending: set[asyncio.Task[Any]] = set()
         self.silenced: set[str] = set()  # simulated units this TUI told to stop answering
         self.gone: str | None = None  # why the service is gone, once it is
+        self.firmware: dict[str, str] = {}  # per unit, read once over the parameter channel
         self.plugin_keys = dict(plugin_keys or {})
         self._plugin_key_names: list[str] = list(self.plugin_keys)
         for i, keys in enumerate(self.plugin_keys.values()):
@@ -281,8 +283,12 @@ class SupervisorApp(App[None]):
     def _refresh_unit(self) -> None:
         name = self.unit
         unit = self.sup.units[name]
+        if name not in self.firmware and unit.online and self.link is not None:
+            self.firmware[name] = "…"  # asked once per unit, while the tab shows it
+            self.ask_firmware(name)
+        fields = detail_fields(self.sup, name, self.firmware.get(name))
         self.query_one("#unit-head", Static).update(
-            "\n".join(pack(detail_fields(self.sup, name), self._width("#unit-head")))
+            "\n".join(pack(fields, self._width("#unit-head")))
         )
         words = {"inputs": unit.inputs, **unit.words}
         titles = {
@@ -539,6 +545,16 @@ class SupervisorApp(App[None]):
                 f"{unit} ← {text!r} → {response!r}, but the drive reports "
                 f"{' '.join(off)} off ({why})"
             )
+
+    @work(exclusive=False)
+    async def ask_firmware(self, unit: str) -> None:
+        """The drive's firmware version (TelABH3 identity, BI 0x2): a read, moves nothing."""
+        try:
+            reply = await self.request("param_identity", unit=unit, address=table.FIRMWARE_VERSION)
+            self.firmware[unit] = str(reply["text"])
+        except LinkError as exc:
+            self.firmware[unit] = "unknown"
+            self.pending_log.append(styled(logging.WARNING, f"{unit}: firmware version: {exc}"))
 
     @work(exclusive=False)
     async def run_commands(self, unit: str, commands: tuple[str, ...]) -> None:

@@ -133,12 +133,13 @@ def fault_lines(error: int | None, alarm: int | None) -> list[tuple[str, str]]:
     return lines
 
 
-def detail_fields(sup: Mirror, name: str) -> list[str]:
+def detail_fields(sup: Mirror, name: str, firmware: str | None = None) -> list[str]:
     """The unit's figures, one field each: a field is never split across lines."""
     unit = sup.units[name]
     st = unit.stats
     fields = [
         f"unit {name}",
+        f"firmware {firmware or '–'}",
         f"abh3_id {unit.cfg.abh3_id}",
         f"host {unit.cfg.host_id}",
         f"bus {unit.cfg.bus}",

@@ -81,9 +81,10 @@ class ParamScreen(ModalScreen[None]):
     async def _read_all(self) -> None:
         head = self.query_one("#params-head", Static)
         try:
-            firmware = (await self.owner.request("param_identity", unit=self.unit, address=2))[
-                "text"
-            ]
+            reply = await self.owner.request(
+                "param_identity", unit=self.unit, address=table.FIRMWARE_VERSION
+            )
+            firmware = reply["text"]
             head.update(f"parameters of {self.unit} · firmware {firmware}")
             for n, e in enumerate(table.PARAMETERS, 1):
                 reply = await self.owner.request(

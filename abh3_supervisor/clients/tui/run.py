@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import re
 import signal
 import sys
@@ -32,6 +33,16 @@ START_TIMEOUT_S = 60.0  # buses, plugins and the simulator up, the socket served
 STOP_TIMEOUT_S = 15.0  # the child's stop path is bounded well below this
 
 
+UI_NICENESS = 5  # the UI yields the CPU to the buses when both want it
+
+
+def yield_to_the_buses() -> None:
+    """Lower this process's priority: on a small robot computer the UI and the service
+    share a few cores, and a late frame matters where a late repaint does not."""
+    with contextlib.suppress(OSError):
+        os.nice(UI_NICENESS)
+
+
 async def attach(
     path: Path,
     *,
@@ -40,6 +51,7 @@ async def attach(
     early: Sequence[tuple[int, str]] = (),
 ) -> int:
     """The app on a supervisor's socket until it quits (or the supervisor goes)."""
+    yield_to_the_buses()
     link = await Link.open(path)
     loop = asyncio.get_running_loop()
     try:
