@@ -16,17 +16,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import can
-
 from abh3_supervisor.clients.link import Link
 from abh3_supervisor.clients.tui.app import SupervisorApp
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import TWO_UNITS, in_a_terminal
+from tests.conftest import TWO_UNITS, assert_demo_stopped, in_a_terminal
 from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -184,16 +181,7 @@ def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
     log = sock.with_suffix(".log")
     _wait_for(lambda: log.read_text().count("stop frame confirmed") == 2, "both stops confirmed")
     _wait_for(lambda: "recorded" in log.read_text(), "the recording closed")
-    layouts = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # demo.yaml
-    last = {}
-    for msg in can.LogReader(str(record)):
-        for abh3, lay in layouts.items():
-            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
-                last[abh3] = frames.decode_dp0_command(bytes(msg.data), lay.generation)
-    assert len(last) == 2
-    for abh3, cmd in last.items():
-        assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
-        assert cmd.inputs & ~layouts[abh3].select_mask == 0  # the safe word
+    assert_demo_stopped(record)
 
 
 def test_taken_keys_are_the_apps_own() -> None:

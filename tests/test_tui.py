@@ -44,7 +44,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service.server import ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.conftest import TWO_UNITS, Rig, in_a_terminal
+from tests.conftest import TWO_UNITS, Rig, assert_demo_stopped, in_a_terminal
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 
@@ -307,20 +307,7 @@ def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig:
             break
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0
-    import can
-
-    from abh3_supervisor.protocol import frames, ids
-
-    layouts = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # as in TWO_UNITS
-    last = {}
-    for msg in can.LogReader(str(record)):
-        for abh3, lay in layouts.items():
-            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
-                last[abh3] = frames.decode_dp0_command(bytes(msg.data), lay.generation)
-    assert len(last) == 2
-    for abh3, cmd in last.items():
-        assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
-        assert cmd.inputs & ~layouts[abh3].select_mask == 0  # the safe word
+    assert_demo_stopped(record)
 
 
 class StartLogger:
