@@ -10,10 +10,12 @@ import pty
 import select
 import shutil
 import struct
+import subprocess
 import sys
 import tempfile
 import termios
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import can
@@ -155,3 +157,34 @@ def assert_demo_stopped(record: Path) -> None:
     for abh3, cmd in last.items():
         assert isinstance(cmd, frames.Dp0Command) and (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
         assert cmd.inputs & ~layouts[abh3].select_mask == 0  # the safe word
+
+
+@dataclass
+class HeadlessRun:
+    """What a headless run logged after both units came online (filled when it ends)."""
+
+    log: str = ""
+
+
+@contextlib.contextmanager
+def headless_demo(sock: Path) -> Iterator[HeadlessRun]:
+    """``abh3 run configs/demo.yaml --headless`` serving ``sock`` in a process of its own,
+    entered once both units are online; on leaving, SIGTERM, and it must exit 0."""
+    serve = ["--headless", "--socket", str(sock), "--status-interval", "0"]
+    run = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", *serve],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
+    assert run.stderr is not None
+    served = HeadlessRun()
+    try:
+        for line in run.stderr:
+            if "unit right: online" in line:  # serving starts before: both are up now
+                break
+        yield served
+    finally:
+        run.terminate()
+        served.log = run.stderr.read()
+        assert run.wait(30) == 0, served.log

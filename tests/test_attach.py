@@ -23,7 +23,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import TWO_UNITS, assert_demo_stopped, in_a_terminal
+from tests.conftest import TWO_UNITS, assert_demo_stopped, headless_demo, in_a_terminal
 from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,18 +132,7 @@ def _status(sock: Path) -> dict[str, Any]:
 
 def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) -> None:
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
-    serve = ["--headless", "--socket", str(sock), "--status-interval", "0"]
-    run = subprocess.Popen(
-        [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", *serve],
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-    )
-    assert run.stderr is not None
-    try:
-        for line in run.stderr:
-            if "unit right: online" in line:
-                break
+    with headless_demo(sock):
         pid, fd = in_a_terminal(["tui", "--connect", str(sock)])
         before = _status(sock)
         os.kill(pid, signal.SIGKILL)
@@ -157,10 +146,6 @@ def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) ->
             assert a["stats"]["replies"] > b["stats"]["replies"]  # exchanges go on
             assert a["stats"]["gaps"] == 0  # never a gap the drive saw
         assert not after["estop"] and not after["stopping"]
-    finally:
-        run.terminate()
-        rest = run.stderr.read()
-        assert run.wait(30) == 0, rest
 
 
 def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(

@@ -47,39 +47,20 @@ def test_the_core_never_imports_textual_or_plugin_dependencies() -> None:
 
 
 # what each folder may import of ours (docs/architecture.md, "Package layout")
+SANS_IO = {"errors", "protocol", "params"}
+DOMAIN = SANS_IO | {"config", "core", "scheduler"}
 ALLOWED = {
     "protocol": {"errors", "protocol"},
-    "params": {"errors", "protocol", "params"},  # sans-I/O like protocol
-    "config": {"errors", "protocol", "params", "config", "core"},  # startup: commands are dry-run
-    "core": {"errors", "protocol", "params", "config", "core", "scheduler"},
-    "scheduler": {"errors", "protocol", "params", "config", "core", "scheduler"},
-    "plugin_host": {"errors", "protocol", "config", "core", "scheduler", "plugin_host"},
-    "service": {
-        "errors",
-        "protocol",
-        "params",
-        "config",
-        "core",
-        "scheduler",
-        "runtime",
-        "plugin_host",
-        "service",
-    },
-    "simulator": {"errors", "protocol", "params", "config", "core", "scheduler", "simulator"},
+    "params": SANS_IO,  # sans-I/O like protocol
+    "config": SANS_IO | {"config", "core"},  # startup: commands are dry-run
+    "core": DOMAIN,
+    "scheduler": DOMAIN,
+    "plugin_host": DOMAIN - {"params"} | {"plugin_host"},
+    "service": DOMAIN | {"runtime", "plugin_host", "service"},
+    "simulator": DOMAIN | {"simulator"},
     # a python-can interface any program can load: nothing of ours but itself
     "wacousb": {"wacousb"},
-    "runtime": {
-        "errors",
-        "protocol",
-        "params",
-        "config",
-        "core",
-        "scheduler",
-        "runtime",
-        "plugin_host",
-        "service",
-        "simulator",
-    },
+    "runtime": DOMAIN | {"runtime", "plugin_host", "service", "simulator"},
 }
 
 

@@ -24,7 +24,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.server import CLIENT_PRIORITY, CLIENT_TIMEOUT_S, ControlServer
-from tests.conftest import TWO_UNITS
+from tests.conftest import TWO_UNITS, headless_demo
 
 
 class Served:
@@ -307,18 +307,7 @@ def test_status_and_send_against_a_headless_run(tmp_path: Path) -> None:
 
     root = Path(__file__).parent.parent
     sock = tmp_path / "run" / "demo.sock"
-    serve = ["--headless", "--socket", str(sock), "--status-interval", "0"]
-    run = subprocess.Popen(
-        [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", *serve],
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=root,
-    )
-    assert run.stderr is not None
-    try:
-        for line in run.stderr:
-            if "unit right: online" in line:  # serving starts before: both are up now
-                break
+    with headless_demo(sock) as run:
 
         def abh3(*args: str) -> subprocess.CompletedProcess[str]:
             cmd = [sys.executable, "-m", "abh3_supervisor", *args, "--connect", str(sock)]
@@ -333,10 +322,7 @@ def test_status_and_send_against_a_headless_run(tmp_path: Path) -> None:
         assert (bad.returncode, bad.stdout) == (1, "'Invalid Command.'\n")
         state = json.loads(abh3("status", "--json").stdout)
         assert state["units"]["left"]["setpoint"]["ay"] == 100.0
-    finally:
-        run.terminate()
-        rest = run.stderr.read()
-        assert run.wait(30) == 0, rest
+    rest = run.log
     assert rest.count("stop frame confirmed by the drive") == 2
     assert not sock.exists()  # removed on the way out
     gone = subprocess.run(

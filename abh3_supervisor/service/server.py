@@ -6,7 +6,7 @@ stops reading (its buffer passes ``MAX_BUFFER``) is disconnected rather than wai
 Each client's motion commands (twist, velocity, current) come from an input source of
 its own in the usual arbitration — fresh for ``CLIENT_TIMEOUT_S``, then zero; leaving
 lets go. Command-language text, e-stop and clear act at once. A read-only listener
-answers only ``hello``, ``state`` and ``subscribe``.
+answers only what changes nothing (``READ_ONLY_METHODS``).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ MAX_BUFFER = 1 << 20  # bytes queued for one client before it is dropped as too 
 MAX_STATE_HZ = 20.0
 SHARE_S = 0.005  # clients woken on the same tick get the same encoded state
 CLIENT_TIMEOUT_S = 0.5  # a client's motion command is fresh this long (as the seed's topics)
-CLIENT_PRIORITY = 50  # below the TUI in the same process (100), above plugins' default 0
+CLIENT_PRIORITY = 50  # above plugins' default 0: an operator's client wins over them
 READ_ONLY_METHODS = {"hello", "state", "subscribe", "keys"}
 LABEL = re.compile(r"[a-z][a-z0-9_-]{0,15}")
 
@@ -478,7 +478,8 @@ class ControlServer:
 
 
 class _Forward(logging.Handler):
-    """Log records to the clients, from whatever thread logs them."""
+    """Log records to the clients, from whatever thread logs them: always through the
+    loop's queue, so a record logged while sending to a client is sent after it."""
 
     def __init__(self, server: ControlServer) -> None:
         super().__init__(logging.INFO)
@@ -489,22 +490,10 @@ class _Forward(logging.Handler):
         if record.name == "abh3":  # the supervisor's own event lines go as events already
             return
         loop = self.loop
-        if loop is None or loop.is_closed():
+        if loop is None:
             return
-        try:
-            if _on_loop(loop):
-                self.server.forward(record)
-            else:
-                loop.call_soon_threadsafe(self.server.forward, record)
-        except RuntimeError:  # the loop closed meanwhile
-            pass
-
-
-def _on_loop(loop: asyncio.AbstractEventLoop) -> bool:
-    try:
-        return asyncio.get_running_loop() is loop
-    except RuntimeError:
-        return False
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+            loop.call_soon_threadsafe(self.server.forward, record)
 
 
 _FIELDS = {
