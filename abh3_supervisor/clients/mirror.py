@@ -89,7 +89,6 @@ class Mirror:
     t: float = 0.0
     estop: bool = False
     stopping: bool = False
-    received: int = 0  # states applied: 0 until the service has said anything
 
     @classmethod
     def of(cls, config: Config, simulated: list[str] | tuple[str, ...] = ()) -> Mirror:
@@ -113,13 +112,8 @@ class Mirror:
             if name in self.units:
                 _apply_unit(self.units[name], data)
         for name, data in state["buses"].items():
-            bus = self.buses.get(name)
-            if bus is not None:
-                for key in ("frames_sent", "frames_received", "send_errors", "bus_errors"):
-                    setattr(bus, key, data.get(key, 0))
-                bus.state = data.get("state", "ok")
-                bus.since, bus.detail = data.get("since", 0.0), data.get("detail", "")
-        self.received += 1
+            if name in self.buses:
+                _take(self.buses[name], data)
 
 
 def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:
@@ -136,5 +130,11 @@ def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:
         if kind is not None:
             status[int(packet)] = kind(**record)
     unit.status = status
-    known = {f.name for f in fields(Stats)}
-    unit.stats = Stats(**{k: v for k, v in data["stats"].items() if k in known})
+    _take(unit.stats, data["stats"])
+
+
+def _take(record: Stats | BusView, data: dict[str, Any]) -> None:
+    """The fields the service sent (it may send more); the others keep their values."""
+    for f in fields(record):
+        if f.name in data:
+            setattr(record, f.name, data[f.name])

@@ -311,18 +311,30 @@ class SupervisorApp(App[None]):
 
     # ------------------------------------------------------------ the service's side
 
-    def connected(self) -> bool:
+    def _not_connected(self) -> str | None:
         if self.link is None or self.gone is not None:
-            self.say(f"not connected to the supervisor: {self.gone or 'no service'}")
-            return False
-        return True
+            return f"not connected to the supervisor: {self.gone or 'no service'}"
+        return None
+
+    def connected(self) -> bool:
+        """Connected; otherwise says so at once."""
+        why = self._not_connected()
+        if why is not None:
+            self.say(why)
+        return why is None
+
+    async def request(self, method: str, **params: Any) -> Any:
+        """A request whose answer matters; :class:`LinkError` when refused or not connected."""
+        if (why := self._not_connected()) is not None:
+            raise LinkError(why)
+        assert self.link is not None
+        return await self.link.call(method, **params)
 
     def send(self, method: str, **params: Any) -> None:
         """A request whose answer only matters when it is a refusal (said at once)."""
         if not self.connected():
             return
-        assert self.link is not None
-        task = asyncio.ensure_future(self.link.call(method, **params))
+        task = asyncio.ensure_future(self.request(method, **params))
         self._sending.add(task)
         task.add_done_callback(self._sent)
 
@@ -332,19 +344,10 @@ class SupervisorApp(App[None]):
             with contextlib.suppress(NoMatches):
                 self.say(f"refused: {task.exception()}")
 
-    async def request(self, method: str, **params: Any) -> Any:
-        """A request whose answer matters; :class:`LinkError` when refused or not connected."""
-        if self.link is None or self.gone is not None:
-            raise LinkError(f"not connected to the supervisor: {self.gone or 'no service'}")
-        return await self.link.call(method, **params)
-
     async def command_text(self, unit: str, text: str) -> str:
         """The seed's exact answer to one command, or why there is none."""
-        if not self.connected():
-            return "not connected"
-        assert self.link is not None
         try:
-            return str((await self.link.call("command", unit=unit, text=text))["response"])
+            return str((await self.request("command", unit=unit, text=text))["response"])
         except LinkError as exc:
             return f"refused: {exc}"
 
@@ -359,7 +362,7 @@ class SupervisorApp(App[None]):
         ):
             return
         self._last_audit = (action, now)
-        if self.link is not None and self.gone is None:
+        if self._not_connected() is None:
             self.send("audit", unit=unit, action=action)
 
     @property
