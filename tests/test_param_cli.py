@@ -262,3 +262,25 @@ def test_parameter_files_read_back_and_refuse_with_file_and_row(tmp_path: Path) 
         files.read(tmp_path / "v.txt")
     with pytest.raises(ParamFileError, match="cannot read"):
         files.read(tmp_path / "missing.csv")
+
+
+def test_mistakes_in_files_and_values_are_named_not_dropped_or_a_traceback(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from abh3_supervisor.errors import CodecError
+    from abh3_supervisor.params import files, table
+    from abh3_supervisor.params.files import ParamFileError
+
+    typo = tmp_path / "typo.yaml"  # YAML has no header row: a bad first entry is an error
+    typo.write_text("parameters:\n  - {address: SPEED_AX_0, value: 800}\n")
+    with pytest.raises(ParamFileError, match=r"typo.yaml:1: 'SPEED_AX_0' is no address"):
+        files.read(typo)
+    for value in (float("nan"), float("inf")):
+        with pytest.raises(CodecError, match="is not a 32-bit integer"):
+            table.to_word(value, "int")
+    table.to_word(float("inf"), "pf")  # a packed float has a code for it: no error
+    for bad in (["--interval", "nan"], ["--count", "-1"]):
+        with pytest.raises(SystemExit) as ended:
+            main(["param", "-c", "configs/demo.yaml", "monitor", "left", "0x1012", *bad])
+        assert ended.value.code == 2
+    assert "argument --interval: must be more than 0" in capsys.readouterr().err

@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
+from abh3_supervisor.clients.argtypes import positive
 from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
 
 if TYPE_CHECKING:
@@ -66,7 +67,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--duration",
-        type=_positive,
+        type=positive,
         metavar="S",
         help="stop after S seconds (default: run until Ctrl-C/SIGTERM)",
     )
@@ -143,7 +144,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     scan.add_argument(
         "--listen",
-        type=_positive,
+        type=positive,
         metavar="S",
         help="listen S seconds first (default 0.3; with --listen-only 5)",
     )
@@ -171,18 +172,6 @@ def _address(text: str) -> int:
     if not text.isdigit() or not 0 <= int(text) <= 253:
         raise argparse.ArgumentTypeError(f"'{text}' is not an address 0–253")
     return int(text)
-
-
-def _positive(text: str) -> float:
-    import argparse
-
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError("must be more than 0")
-    return value
 
 
 def main(argv: Sequence[str] | None = None) -> int:

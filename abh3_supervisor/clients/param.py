@@ -23,6 +23,7 @@ from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from abh3_supervisor.clients.argtypes import count, finite_positive
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
@@ -63,8 +64,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     mon = ops.add_parser("monitor", help="read monitors repeatedly (Ctrl-C ends)")
     mon.add_argument("unit")
     mon.add_argument("addresses", nargs="+", metavar="ADDR", help="e.g. VELOCITY_AY, 0x1054")
-    mon.add_argument("--interval", type=float, default=0.5, metavar="S")
-    mon.add_argument("--count", type=int, default=0, metavar="N", help="stop after N rounds")
+    mon.add_argument("--interval", type=finite_positive, default=0.5, metavar="S")
+    mon.add_argument("--count", type=count, default=0, metavar="N", help="stop after N rounds")
     ident = ops.add_parser("identity", help="the drive's identity strings (firmware version)")
     ident.add_argument("unit")
     for op in (put, restore):

@@ -110,7 +110,7 @@ def read(path: Path) -> list[ParamValue]:
             ]
         except UnicodeDecodeError as exc:
             raise ParamFileError(f"{path}: not cp932 text: {exc}") from None
-        return _rows(path, rows)
+        return _rows(path, rows, header=True)
     try:
         doc = json.loads(raw) if fmt == "json" else yaml.safe_load(raw)
     except (ValueError, yaml.YAMLError) as exc:
@@ -123,10 +123,11 @@ def read(path: Path) -> list[ParamValue]:
         if not isinstance(item, dict):
             raise ParamFileError(f"{path}: each parameter is a mapping, not {item!r}")
         rows.append([item.get("address"), item.get("name"), item.get("value"), item.get("word")])
-    return _rows(path, rows)
+    return _rows(path, rows, header=False)
 
 
-def _rows(path: Path, rows: Iterable[list[object]]) -> list[ParamValue]:
+def _rows(path: Path, rows: Iterable[list[object]], header: bool) -> list[ParamValue]:
+    """``header``: the first row may be a header (the maker's CSV); YAML/JSON have none."""
     values: list[ParamValue] = []
     for n, row in enumerate(rows, 1):
         if not row or all(c in (None, "") for c in row):
@@ -135,7 +136,7 @@ def _rows(path: Path, rows: Iterable[list[object]]) -> list[ParamValue]:
         try:
             address = table.parse_address(address_text)
         except Abh3Error:
-            if n == 1:
+            if header and n == 1:
                 continue  # a header row
             raise ParamFileError(f"{path}:{n}: '{address_text}' is no address") from None
         internal = row[3] if len(row) > 3 else None

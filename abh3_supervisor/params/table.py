@@ -143,7 +143,9 @@ def to_value(word: int, kind: Kind) -> float:
 
 
 def to_word(value: float, kind: Kind) -> int:
-    if kind == "int":
+    if kind == "int":  # a packed float has codes for ±inf and NaN; an integer has none
+        if not math.isfinite(value):
+            raise CodecError(f"{value!r} is not a 32-bit integer")
         if value != int(value) or not -(2**31) <= value < 2**32:
             raise CodecError(f"{value!r} is not a 32-bit integer")
         return int(value) & 0xFFFFFFFF
