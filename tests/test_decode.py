@@ -157,3 +157,24 @@ def test_garbage_anywhere_never_raises_anything_but_a_clear_error(
         list(decode_file(path, None, as_json=False))
     except Abh3Error as exc:
         assert "no frame could be read" in str(exc)
+
+
+def test_frames_named_by_bus_as_in_an_mcap_recording_get_their_units_generation() -> None:
+    """MCAP topics carry the bus's name, not its channel: a 2023 unit's reply read back
+    from one is still named and decoded in 2023, beside a 2021 unit at the same address."""
+    from abh3_supervisor.clients.decode import address_books, record, unit_names
+    from abh3_supervisor.config import parse_config
+    from abh3_supervisor.protocol import ids
+
+    config = parse_config(
+        "buses:\n  left: {interface: socketcan, channel: vcan0}\n"
+        "  right: {interface: socketcan, channel: vcan1}\n"
+        "units:\n  - {name: l, bus: left, abh3_id: 1}\n"
+        "  - {name: r, bus: right, abh3_id: 1, protocol: '2023'}\n",
+        "two.yaml",
+    )
+    books, names = address_books(config), unit_names(config)
+    for channel in ("vcan1", "right"):  # a candump log, an MCAP recording
+        msg = can.Message(arbitration_id=ids.dp0_reply_id(1, 2), data=bytes(8), channel=channel)
+        decoded = record(msg, books, names)
+        assert (decoded["unit"], decoded["protocol"]) == ("r", "2023"), channel

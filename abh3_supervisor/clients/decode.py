@@ -19,8 +19,9 @@ from abh3_supervisor.protocol.classify import AddressBook, DecodedFrame, Kind, c
 
 
 def address_books(config: Config | None) -> dict[str, AddressBook]:
-    """One book per bus channel (addresses repeat across buses), and under ``""`` one for
-    frames that name no known channel: there an id counts only where all buses agree."""
+    """One book per bus channel (addresses repeat across buses) — also under the bus's
+    name, which an MCAP recording's topics carry — and under ``""`` one for frames that
+    name no known channel: there an id counts only where all buses agree."""
     if config is None:
         return {"": AddressBook()}
     books: dict[str, AddressBook] = {}
@@ -30,6 +31,8 @@ def address_books(config: Config | None) -> dict[str, AddressBook]:
             hosts=frozenset(u.host_id for u in units) or frozenset({2}),
             generations={u.abh3_id: u.protocol for u in units},
         )
+    for bus in config.buses.values():  # a real channel wins over a bus of that name
+        books.setdefault(bus.name, books[bus.channel])
     every = list(config.units.values())
     generations = {u.abh3_id: u.protocol for u in every}
     agreed = {
@@ -42,13 +45,16 @@ def address_books(config: Config | None) -> dict[str, AddressBook]:
 
 
 def unit_names(config: Config | None) -> dict[tuple[str, int], str]:
-    """(channel, abh3_id) → unit name; channel '' matches any when the id is unique."""
+    """(channel or bus name, abh3_id) → unit name; channel '' matches any when the id is
+    unique."""
     if config is None:
         return {}
     names: dict[tuple[str, int], str] = {}
     for u in config.units.values():
         names[(config.buses[u.bus].channel, u.abh3_id)] = u.name
         names[("", u.abh3_id)] = u.name if ("", u.abh3_id) not in names else "?"
+    for u in config.units.values():
+        names.setdefault((u.bus, u.abh3_id), u.name)
     return names
 
 
