@@ -138,7 +138,8 @@ class Supervisor:
         for event in self.schedulers[bus].drain_events():
             self._apply(event)
             self._emit(event)
-        for change in self.bus_health[bus].drain():
+        health = self.bus_health[bus]
+        for change in health.drain() if health.changes else ():
             bad = change.new is not BusState.OK
             state = change.new.upper() if bad else f"recovered from {change.old}"
             level = logging.ERROR if change.new is BusState.BUS_OFF else logging.WARNING

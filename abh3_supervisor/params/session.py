@@ -142,8 +142,7 @@ class ParamChannel:
         self.queue: deque[tuple[Request, Done]] = deque()
         self.current: tuple[Exchange, Done] | None = None
         self.timeout = TIMEOUT
-        self.exchanges = 0
-        self.failures = 0
+        self.on_work: Callable[[], None] = lambda: None  # its owner polls it from now on
 
     @property
     def busy(self) -> bool:
@@ -151,6 +150,7 @@ class ParamChannel:
 
     def submit(self, request: Request, done: Done) -> None:
         self.queue.append((request, done))
+        self.on_work()
 
     def cancel(self, why: str) -> None:
         """Fail whatever is queued (the unit is gone, the run ends)."""
@@ -189,9 +189,6 @@ class ParamChannel:
         if exchange._out:  # its last frames (an EndOfMsgAck, an abort) go first
             return
         self.current = None
-        self.exchanges += 1
-        if exchange.error is not None:
-            self.failures += 1
         done(Result(exchange.request, now, exchange.reply, exchange.error))
 
     def on_send_failed(self) -> None:

@@ -219,7 +219,12 @@ class McapRecording(can.Listener):
             self._feedback(event, ns)
         elif isinstance(event, StatusEvent):
             self._status(event, ns)
-        self._diagnostics(t, ns, isinstance(event, HealthEvent | FlagChange))
+        # a level follows only online, error and alarm (the rate is caught by the period):
+        # a 2023 drive's busy bits change its control word on every reply
+        levelled = isinstance(event, HealthEvent) or (
+            isinstance(event, FlagChange) and event.word in ("error", "alarm")
+        )
+        self._diagnostics(t, ns, levelled)
 
     def _feedback(self, event: FeedbackEvent, ns: int) -> None:
         assert self.health is not None

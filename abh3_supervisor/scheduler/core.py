@@ -171,6 +171,7 @@ class BusScheduler:
         # after every DP0 command and status poll of the same step (docs/parameters.md)
         self.params: dict[str, ParamChannel] = {}
         self._tp_routes: dict[int, tuple[ParamChannel, bool]] = {}  # drive's id → (ch, is DT)
+        self._params_active = False  # some channel has a request queued or open
         self._tp_senders: dict[int, ParamChannel] = {}
         for i, cfg in enumerate(cfgs):
             # stagger first sends so the units do not all hit the bus at one instant
@@ -185,6 +186,7 @@ class BusScheduler:
                     n,
                 )
             channel = ParamChannel(cfg.abh3_id, cfg.host_id, cfg.priority, cfg.telabh3)
+            channel.on_work = self._params_work
             self.params[cfg.name] = channel
             for is_dt, ident in zip((False, True), channel.peer_ids, strict=True):
                 self._tp_routes[without_priority(ident)] = (channel, is_dt)
@@ -294,10 +296,17 @@ class BusScheduler:
             out.append(slot.poll_frames[slot.poll_packet])
             slot.poll_sent_at = now
             slot.stats.polls_sent += 1
-        for channel in self.params.values():
-            if channel.next_deadline() <= now:
-                out += channel.poll(now)
+        if self._params_active:  # parameter traffic is rare: idle channels cost nothing
+            active = False
+            for channel in self.params.values():
+                if channel.next_deadline() <= now:
+                    out += channel.poll(now)
+                active |= channel.busy
+            self._params_active = active
         return out
+
+    def _params_work(self) -> None:
+        self._params_active = True
 
     def request_status(self, unit: str, packet: int) -> None:
         """Ask for broadcast ``packet`` once, at the next free poll turn (seed ``brd_num``).
@@ -339,8 +348,9 @@ class BusScheduler:
             if slot.online is not False:
                 last = slot.stats.last_seen if slot.stats.last_seen is not None else slot.since
                 deadline = min(deadline, last + slot.timeout)
-        for channel in self.params.values():
-            deadline = min(deadline, channel.next_deadline())
+        if self._params_active:
+            for channel in self.params.values():
+                deadline = min(deadline, channel.next_deadline())
         return deadline
 
     def drain_events(self) -> list[Event]:

@@ -17,7 +17,7 @@ from typing import Protocol
 
 import can
 
-from abh3_supervisor.scheduler.bus_health import BusHealth
+from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
 RETRY_S = 0.5  # a bus whose receive failed is read again after this
@@ -92,7 +92,8 @@ class BusPump(can.Listener):
             self._guard(self.machine.on_bad_frame, msg.arbitration_id, self.loop.time(), why)
             return
         self.frames_received += 1
-        self.health.on_received(self.loop.time())
+        if self.health.state is not BusState.OK:  # only a bus in trouble watches for recovery
+            self.health.on_received(self.loop.time())
         self._guard(self._receive_and_step, msg.arbitration_id, bytes(msg.data))
 
     def on_error(self, exc: Exception) -> None:
@@ -167,7 +168,8 @@ class BusPump(can.Listener):
             self.machine.on_send_failed(arbitration_id)
             return False
         self.frames_sent += 1
-        self.health.on_sent(self.loop.time())
+        if self.health.state is not BusState.OK:
+            self.health.on_sent(self.loop.time())
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         return True

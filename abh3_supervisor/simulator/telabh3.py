@@ -92,6 +92,8 @@ class TelResponder:
         self.receiver.on_rts(data, now)
 
     def poll(self, now: float) -> list[OutFrame]:
+        if self.receiver is None and self.sender is None and not self._out:
+            return []  # the usual case: no parameter traffic
         if self.receiver is not None:
             self._out += self.receiver.poll(now)
             if self.receiver.finished:
