@@ -14,7 +14,6 @@ import asyncio
 import functools
 import logging
 import signal
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
@@ -133,12 +132,22 @@ def open_recorder(path: Path, config: Config | None = None) -> GuardedRecorder:
     return GuardedRecorder(path, writer)
 
 
-def _send_faults(sim: SimConfig | None, start: float) -> Callable[[float], bool] | None:
-    """The simulator's scripted ``bus_send_error`` windows, as the host pump sees them."""
+def _refuse_in_fault_windows(
+    bus: can.BusABC, sim: SimConfig | None, loop: asyncio.AbstractEventLoop
+) -> None:
+    """The simulator's scripted ``bus_send_error`` windows: the host's bus refuses to send
+    in them, as a real interface does (the pump's usual send-error path handles it)."""
     windows = [f for f in (sim.faults if sim else ()) if f.kind is FaultKind.BUS_SEND_ERROR]
     if not windows:
-        return None
-    return lambda now: any(f.active(now - start) for f in windows)
+        return
+    start, send = loop.time(), bus.send
+
+    def refusing(msg: can.Message, timeout: float | None = None) -> None:
+        if any(f.active(loop.time() - start) for f in windows):
+            raise can.CanOperationError("simulated fault: the bus refuses to send")
+        send(msg, timeout)
+
+    bus.send = refusing  # type: ignore[method-assign]
 
 
 class Runtime:
@@ -191,6 +200,7 @@ class Runtime:
                 pump.start()
             bus = open_bus(cfg)
             self._buses.append(bus)
+            _refuse_in_fault_windows(bus, cfg.simulate, loop)
             self.pumps[name] = BusPump(
                 bus,
                 self.supervisor.schedulers[name],
@@ -199,7 +209,6 @@ class Runtime:
                 after_step=functools.partial(self.supervisor.dispatch, name),
                 recorder=self._recorder,
                 on_fatal=self._on_fatal,
-                refuse=_send_faults(cfg.simulate, loop.time()),
                 health=self.supervisor.bus_health[name],
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start

@@ -43,14 +43,12 @@ class BusPump(can.Listener):
         after_step: Callable[[], None] | None = None,
         recorder: can.Listener | None = None,
         on_fatal: Callable[[BaseException], None] | None = None,
-        refuse: Callable[[float], bool] | None = None,
         health: BusHealth | None = None,
     ) -> None:
         self.bus, self.machine, self.name, self.channel = bus, machine, name, channel
         self.after_step = after_step
         self.recorder = recorder
         self.on_fatal = on_fatal
-        self.refuse = refuse  # a scripted fault: the bus refuses our frames while it says so
         self.loop = asyncio.get_running_loop()
         self._timer = DeadlineTimer(self.loop, self._step)
         self._notifier: can.Notifier | None = None
@@ -155,8 +153,6 @@ class BusPump(can.Listener):
             channel=self.channel,
         )
         try:
-            if self.refuse is not None and self.refuse(self.loop.time()):
-                raise can.CanOperationError("simulated fault: the bus refuses to send")
             self.bus.send(msg, timeout=0)
         except can.CanError as exc:
             self.send_errors += 1
