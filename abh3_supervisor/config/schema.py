@@ -222,8 +222,9 @@ def _unit() -> Schema:
     )
 
 
+ON_ERROR_VALUES = ("continue", "stop")  # every plugin section's on_error (plugin_host)
 ON_ERROR = choice(
-    ["continue", "stop"], "what a failing output (disk full) does to the run", "continue"
+    list(ON_ERROR_VALUES), "what a failing output (disk full) does to the run", "continue"
 )
 
 

@@ -74,10 +74,10 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         level, message = Level.STALE, "no answer yet"
     elif unit.online is False:
         level, message = Level.STALE, f"offline: silent for {cfg.timeout_ms} ms or more"
-    elif errors or error:
-        level, message = Level.ERROR, "error: " + (", ".join(errors) or _hex(error))
-    elif alarms or alarm:
-        level, message = Level.WARN, "alarm: " + (", ".join(alarms) or _hex(alarm))
+    elif errors:  # every set bit has a name (``bitN`` where the manual gives none)
+        level, message = Level.ERROR, "error: " + ", ".join(errors)
+    elif alarms:
+        level, message = Level.WARN, "alarm: " + ", ".join(alarms)
     elif commanding and achieved < RATE_WARN * requested and stats.replies >= RATE_SAMPLES:
         level, message = Level.WARN, f"command rate {achieved:.1f} of {requested:g} Hz"
     else:

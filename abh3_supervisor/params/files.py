@@ -21,6 +21,7 @@ import yaml
 
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.params import table
+from abh3_supervisor.params.telabh3 import signed
 
 ENCODING = "cp932"  # the maker's tool (Shift-JIS with Microsoft's extensions)
 
@@ -47,10 +48,6 @@ class ParamValue:
         return table.display(self.value)
 
 
-def _signed(word: int) -> int:
-    return word - (1 << 32) if word >> 31 else word
-
-
 def dumps(values: Iterable[ParamValue], fmt: str, unit: str = "") -> str:
     """``fmt``: ``csv``, ``yaml`` or ``json``."""
     values = list(values)
@@ -58,7 +55,7 @@ def dumps(values: Iterable[ParamValue], fmt: str, unit: str = "") -> str:
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\r\n")  # the maker's tool is a Windows one
         for v in values:
-            writer.writerow([v.address, v.name, v.shown, _signed(v.word)])
+            writer.writerow([v.address, v.name, v.shown, signed(v.word, 32)])
         return out.getvalue()
     doc = {
         "unit": unit,

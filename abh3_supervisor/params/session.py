@@ -85,7 +85,7 @@ class Exchange:
         if is_dt:
             if self.receiver is not None:
                 self.receiver.on_dt(data, now)
-        elif data[:1] == bytes([RTS]):
+        elif data[0] == RTS:  # routed frames are never empty
             if self.receiver is None or not self.receiver.on_rts(data, now):
                 # one session each way at a time (§1.3): an RTS while one is open
                 self._out.append((self.ids[0], abort(AbortReason.BUSY)))

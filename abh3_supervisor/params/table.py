@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from abh3_supervisor.errors import CodecError
-from abh3_supervisor.params.telabh3 import pack_float, unpack_float
+from abh3_supervisor.params.telabh3 import pack_float, signed, unpack_float
 
 Kind = Literal["pf", "int"]
 
@@ -138,7 +138,7 @@ def kind_of(address: int, monitor: bool = False) -> Kind:
 def to_value(word: int, kind: Kind) -> float:
     """The physical value of a 32-bit word."""
     if kind == "int":
-        return float(word - (1 << 32) if word >> 31 else word)
+        return float(signed(word, 32))
     return unpack_float(word)
 
 

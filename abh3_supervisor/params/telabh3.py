@@ -171,7 +171,8 @@ NAN_MANTISSA = 1_000_000  # any other |mantissa| > 999999
 MAX_MANTISSA = 999_999
 
 
-def _signed(value: int, bits: int) -> int:
+def signed(value: int, bits: int) -> int:
+    """A ``bits``-wide two's-complement field as a Python int."""
     return value - (1 << bits) if value >> (bits - 1) & 1 else value
 
 
@@ -182,11 +183,11 @@ def unpack_float(word: int) -> float:
         return math.inf
     if raw_mantissa == NEG_INF:
         return -math.inf
-    mantissa = _signed(raw_mantissa, MANTISSA_BITS)
+    mantissa = signed(raw_mantissa, MANTISSA_BITS)
     if abs(mantissa) > MAX_MANTISSA:
         return math.nan
-    point = _signed(word >> 21 & 0xF, POINT_BITS)
-    exponent = _signed(word >> 25 & 0x7F, EXPONENT_BITS)
+    point = signed(word >> 21 & 0xF, POINT_BITS)
+    exponent = signed(word >> 25 & 0x7F, EXPONENT_BITS)
     return float(Decimal(mantissa).scaleb(exponent + point))
 
 

@@ -27,6 +27,7 @@ from typing import Any, cast
 import pluggy
 
 from abh3_supervisor.config.model import Config
+from abh3_supervisor.config.schema import ON_ERROR_VALUES
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.inputs import (
     InputArbiter,
@@ -48,7 +49,6 @@ GROUP = "abh3_supervisor"
 MAX_FAILURES = 5
 QUEUE_SIZE = 10_000
 # what an output failure (an OSError: disk full, device gone) of a plugin does to the run
-ON_ERROR = ("continue", "stop")
 START_DEADLINE_S = 5.0  # abh3_start and abh3_input_sources, per plugin
 STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
 _STOP = object()
@@ -165,7 +165,7 @@ class PluginHost:
         raw = config.plugins[name]
         if isinstance(raw, dict) and "on_error" in raw:
             host = Section(src, ("plugins", name), raw, None)
-            self.on_error[name] = host.choice("on_error", "continue", list(ON_ERROR))
+            self.on_error[name] = host.choice("on_error", "continue", list(ON_ERROR_VALUES))
             raw = {k: v for k, v in raw.items() if k != "on_error"}
         section = Section(src, ("plugins", name), raw, None)
         try:

@@ -287,10 +287,14 @@ class SimDrive:
             0x1041: math.copysign(self.load(1), self.vel[1]),
             0x103B: self.load(0),
             0x104B: self.load(1),
-            0x1054: ((int(self.pulses[0]) + 2**31) % 2**32) - 2**31,
-            0x1064: ((int(self.pulses[1]) + 2**31) % 2**32) - 2**31,
+            0x1054: self.pulse_count(0),
+            0x1064: self.pulse_count(1),
         }
         return values.get(address)
+
+    def pulse_count(self, axis: int) -> int:
+        """The encoder count as the drive reports it: int32, wrapping."""
+        return ((int(self.pulses[axis]) + 2**31) % 2**32) - 2**31
 
     # ------------------------------------------------------------ frames out
 
@@ -344,8 +348,7 @@ class SimDrive:
             cur = [c(math.copysign(self.load(i), self.vel[i]))[0] for i in range(2)]
             return frames.encode_int16x2_uint16x2(cur[0], cur[1], loads[0], loads[1])
         if n == 4:
-            wrap = [((int(p) + 2**31) % 2**32) - 2**31 for p in self.pulses]
-            return frames.encode_pulses(wrap[0], wrap[1])
+            return frames.encode_pulses(self.pulse_count(0), self.pulse_count(1))
         if n == 5:
             sag = (self.load(0) + self.load(1)) / 200  # main supply sags a little under load
             return frames.encode_int16x2_uint16x2(

@@ -24,7 +24,6 @@ from abh3_supervisor.params.telabh3 import (
     Request,
     decode_request,
     encode_reply,
-    pack_float,
 )
 from abh3_supervisor.params.transport import (
     RTS,
@@ -70,7 +69,7 @@ class TelResponder:
             if self.receiver is not None and host == self.host:
                 self.receiver.on_dt(data, now)
             return
-        if data[:1] == bytes([RTS]):
+        if data[0] == RTS:  # routed frames are never empty
             self._on_rts(host, data, now)
         elif host == self.host and self.sender is not None:
             self.sender.on_cm(data, now)
@@ -152,6 +151,5 @@ class TelResponder:
 
 
 def _word(value: float, kind: table.Kind) -> int:
-    if kind == "int":
-        return int(value) & 0xFFFFFFFF
-    return pack_float(round(value, 3))
+    """A monitored value as the drive words it: integers cut, floats to 3 decimals."""
+    return table.to_word(int(value) if kind == "int" else round(value, 3), kind)
