@@ -259,3 +259,23 @@ def test_cancel_ends_the_open_exchange_and_the_queue(rig: Rig) -> None:
     rig.run(0.01)
     assert sorted(r.error or "" for r in results) == ["the run ends", "the run ends"]
     assert not rig.scheduler.params["left"].busy
+
+
+def test_a_caller_that_stops_waiting_takes_back_only_its_own_request(rig: Rig) -> None:
+    """One client's deadline passing (``ParamOps``) must not fail another's requests."""
+    channel = rig.scheduler.params["left"]
+    rig.drive("left").faults = (Fault(FaultKind.TP_LOST_CTS, 0.0, 0.05),)  # the first: unheard
+    opened: list[Result] = []
+    theirs: list[Result] = []
+    queued: list[Result] = []
+    channel.submit(Request(Command.PARAM, 0x5000), opened.append)
+    channel.submit(Request(Command.PARAM, 0x5001), theirs.append)
+    channel.submit(Request(Command.PARAM, 0x5002), queued.append)
+    channel.withdraw(queued.append, "no answer")  # still queued: dropped, nothing to say
+    assert len(channel.queue) == 2
+    rig.run(0.1)  # the first is open, waiting for a CTS that does not come
+    assert channel.current is not None and not opened
+    channel.withdraw(opened.append, "no answer")  # our abort closes the drive's side too
+    rig.run(0.5)
+    assert [r.error for r in opened] == ["no answer"] and queued == []
+    assert len(theirs) == 1 and theirs[0].ok

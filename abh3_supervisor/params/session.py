@@ -126,8 +126,11 @@ class Exchange:
         return machine.next_deadline()
 
     def fail(self, why: str) -> None:
+        """Give up from outside (a caller's deadline, the bus): the drive is told with an
+        abort, so its side of the session closes too and the next request is not busy."""
         if not self.finished:
             self.error = why
+            self._out.append((self.ids[0], abort(AbortReason.TIMEOUT)))
 
 
 class ParamChannel:
@@ -161,6 +164,16 @@ class ParamChannel:
             exchange.fail(why)
         for request, done in pending:
             done(Result(request, math.nan, error=why))
+
+    def withdraw(self, done: Done, why: str) -> None:
+        """One caller stopped waiting: its request leaves the queue, or fails if open;
+        the others' requests go on."""
+        for entry in self.queue:
+            if entry[1] == done:  # the same callback (a bound method is a new object)
+                self.queue.remove(entry)
+                return
+        if self.current is not None and self.current[1] == done:
+            self.current[0].fail(why)
 
     def on_frame(self, is_dt: bool, data: bytes, now: float) -> None:
         if self.current is None:

@@ -52,7 +52,7 @@ class ParamOps:
         try:
             return await asyncio.wait_for(future, CALL_DEADLINE)
         except TimeoutError:
-            channel.cancel("no answer")
+            channel.withdraw(done, "no answer")
             raise ParamFailed(f"unit {unit}: no answer within {CALL_DEADLINE:g} s") from None
 
     async def read(self, unit: str, command: Command, address: int) -> int:

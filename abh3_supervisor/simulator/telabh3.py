@@ -62,7 +62,8 @@ class TelResponder:
 
     @property
     def busy(self) -> bool:
-        return self.receiver is not None or self.sender is not None
+        """In a session: one that ended (an abort, a timeout) no longer counts."""
+        return any(m is not None and not m.finished for m in (self.receiver, self.sender))
 
     def on_frame(self, host: int, is_dt: bool, data: bytes, now: float) -> None:
         if is_dt:
