@@ -67,13 +67,23 @@ class Request:
         body = f"{self.command.value}{self.address:04X}"
         if self.value is not None:
             body += f"{self.value:08X}"
-        summed = HEADER + body if fmt.header or fmt.checksum is Checksum.WITH_HEADER else body
-        return f"{HEADER if fmt.header else ''}{body}{checksum(summed):02X}"
+        return _framed(body, fmt)
 
     def encode(self, fmt: TelFormat = DEFAULT_FORMAT) -> bytes:
         """The transport payload: at least one SYN, at least 9 bytes (§1.3)."""
-        raw = self.text(fmt).encode("ascii") + bytes([SYN])
-        return raw + bytes([SYN]) * (MIN_TRANSPORT - len(raw))
+        return _padded(self.text(fmt))
+
+
+def _framed(body: str, fmt: TelFormat) -> str:
+    """``body`` with the format's optional header and its checksum."""
+    summed = HEADER + body if fmt.header or fmt.checksum is Checksum.WITH_HEADER else body
+    return f"{HEADER if fmt.header else ''}{body}{checksum(summed):02X}"
+
+
+def _padded(text: str) -> bytes:
+    """A string on the transport: SYN after it, up to the transport's 9 bytes (§1.3)."""
+    raw = text.encode("ascii") + bytes([SYN])
+    return raw + bytes([SYN]) * (MIN_TRANSPORT - len(raw))
 
 
 def decode_request(payload: bytes) -> tuple[Request, TelFormat]:
@@ -129,11 +139,7 @@ def _bad(data: str) -> int:
 
 def encode_reply(reply: Reply, fmt: TelFormat = DEFAULT_FORMAT) -> bytes:
     """The drive's reply in the form of the request it answers, SYN-padded like it."""
-    body = chr(ACK if reply.ok else NAK) + reply.data
-    summed = HEADER + body if fmt.header or fmt.checksum is Checksum.WITH_HEADER else body
-    raw = f"{HEADER if fmt.header else ''}{body}{checksum(summed):02X}".encode("ascii")
-    raw += bytes([SYN])
-    return raw + bytes([SYN]) * (MIN_TRANSPORT - len(raw))
+    return _padded(_framed(chr(ACK if reply.ok else NAK) + reply.data, fmt))
 
 
 def decode_reply(payload: bytes) -> Reply:
