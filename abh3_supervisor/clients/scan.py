@@ -96,11 +96,13 @@ class Findings:
             drive = self.drive(cid.sa)
             drive.group = group
             drive.seen.add(f"broadcast {packet}")
-            first = int.from_bytes(data[:4], "little")
-            if packet == 0:
-                drive.error_word = first
-            if packet == 1 and drive.generation is Generation.G2021:  # first: control word
-                drive.travel_model = bool(first & flags.layout(Generation.G2021).travel_model)
+            # packets 0 and 1 lay out alike in both generations as far as read here
+            record = frames.decode_broadcast(packet, data, Generation.G2021)
+            if isinstance(record, frames.Brd0):
+                drive.error_word = record.error
+            if isinstance(record, frames.Brd1) and drive.generation is Generation.G2021:
+                control = record.control or 0  # 2021: the control word comes first
+                drive.travel_model = bool(control & flags.layout(Generation.G2021).travel_model)
         elif cid.pf == ids.PF_SINGLE and len(data) == 8:
             self._dp0_pairs[cid.sa, cid.ps] = data
             self._resolve()
@@ -127,8 +129,9 @@ class Findings:
         if certain or drive.generation is None:
             drive.generation, drive.certain = generation, certain
         if generation is Generation.G2023 and certain:
-            control = int.from_bytes(data[4:8], "little")
-            drive.travel_model = bool(control & flags.layout(Generation.G2023).travel_model)
+            reply = frames.decode_dp0_reply(data, generation)
+            if isinstance(reply, frames.Dp0Reply2023):
+                drive.travel_model = bool(reply.control & flags.layout(generation).travel_model)
 
     def finish(self) -> None:
         self._resolve()  # a node learnt to be a drive late settles its earlier DP0 frames
