@@ -34,3 +34,14 @@ class BusOpenError(RunError):
 
 class PluginError(RunError):
     """A plugin could not start (or blocked starting)."""
+
+
+class Interrupted(BaseException):
+    """A stop signal before the runtime took over signals (or in a one-shot client).
+
+    A BaseException, so no ``except Exception`` on the way (plugin loading) swallows it.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum

@@ -98,10 +98,23 @@ def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None
     try:
         hello = client.call("hello")
         assert hello["protocol"] == rpc.PROTOCOL and hello["units"] == ["left", "right"]
-        assert client.call("command", unit="left", text="SERVO ON ON") == {"response": ""}
-        assert client.call("command", units=["left"], text="FOO") == {
-            "response": "Invalid Command."
+        assert client.call("command", unit="left", text="SERVO ON ON") == {
+            "response": "",
+            "responses": {"left": ""},
+            "clamped": {},
+            "held": False,
         }
+        assert client.call("command", units=["left"], text="FOO")["responses"] == {
+            "left": "Invalid Command."
+        }
+        # motion is this client's, held while it is here; beyond the limit it says so
+        held = client.call("command", units=["left", "right"], text="VEL 7000 -10")
+        assert held["response"] == "" and held["held"] is True
+        assert held["clamped"] == {
+            u: "clamped: VEL 7000 -10 → 6553.4 -9.362 (wire range -6553.6 … 6553.4)"
+            for u in ("left", "right")
+        }
+        assert client.call("alive") == {"ok": True}
         state = client.call("state")
         left = state["units"]["left"]
         assert "AY_SERVO_ON" in left["inputs"]["names"] and left["protocol"] == "2021"
@@ -180,9 +193,9 @@ def test_estop_from_a_client_reaches_every_unit(served: Served) -> None:
         assert drive.cmd_raw == (0, 0) and not drive.inputs & drive.layout.start.both
     with pytest.raises(RunError, match="emergency stop is latched"):
         client.call("twist", units=["left"], linear_x=0.1, angular_z=0.0)
-    assert client.call("command", unit="left", text="START ON ON") == {
-        "response": "Packet Error: 3"
-    }
+    assert client.call("command", unit="left", text="START ON ON")["response"] == (
+        "Packet Error: 3"
+    )
     client.call("clear_estop")
     client.close()
 
@@ -316,12 +329,12 @@ def test_status_and_send_against_a_headless_run(tmp_path: Path) -> None:
         status = abh3("status")
         assert status.returncode == 0, status.stderr
         assert status.stdout.startswith("left: online")
-        sent = abh3("send", "VEL 100 0", "--unit", "left")
+        sent = abh3("send", "SELECT 3 3", "--unit", "left")
         assert (sent.returncode, sent.stdout) == (0, "''\n")
         bad = abh3("send", "SELECT ² 7", "--unit", "left")
         assert (bad.returncode, bad.stdout) == (1, "'Invalid Command.'\n")
         state = json.loads(abh3("status", "--json").stdout)
-        assert state["units"]["left"]["setpoint"]["ay"] == 100.0
+        assert {"AY_SELECT0", "AY_SELECT1"} <= set(state["units"]["left"]["inputs"]["names"])
     rest = run.log
     assert rest.count("stop frame confirmed by the drive") == 2
     assert not sock.exists()  # removed on the way out

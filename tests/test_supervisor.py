@@ -59,7 +59,7 @@ def test_clamping_scales_both_axes_and_is_reported() -> None:
     result = rig.sup.set_velocity("left", 400, -200)
     assert (result.ay, result.bx, result.clamped) == (100.0, -50.0, True)
     notices = [e for e in rig.events if isinstance(e, Notice)]
-    assert "clamped to the limit 100" in notices[-1].message
+    assert notices[-1].message == "clamped: VEL 400 -200 → 100 -50 (limits.velocity 100)"
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
 from abh3_supervisor.clients.argtypes import positive
-from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
+from abh3_supervisor.errors import Abh3Error, ConfigError, Interrupted, RunError
 
 if TYPE_CHECKING:
     import argparse
@@ -36,17 +36,6 @@ MAX_SHOWN = 20  # problems printed; the rest are counted (one mistake can repeat
 # the same as runtime.STOP_SIGNALS, without importing python-can before they are caught
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 log = logging.getLogger("abh3")
-
-
-class Interrupted(BaseException):
-    """A stop signal before the runtime took over signals: nothing has been started.
-
-    A BaseException, so no ``except Exception`` on the way (plugin loading) swallows it.
-    """
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -113,10 +102,21 @@ def _parser() -> argparse.ArgumentParser:
     status.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
     status.add_argument("--json", action="store_true", help="the whole state as JSON")
 
-    send = sub.add_parser("send", help="send a command to a running supervisor")
+    send = sub.add_parser(
+        "send",
+        help="send a command to a running supervisor",
+        description="Send one command of the seed's language to named units. Motion (a "
+        "non-zero VEL or CUR) belongs to a client that is present: it needs --hold, which "
+        "keeps it until Ctrl-C (or SIGTERM/SIGHUP) and stops it then.",
+    )
     send.add_argument("text", help="a command of the seed's language, e.g. 'SERVO ON ON'")
+    target = send.add_mutually_exclusive_group()
+    target.add_argument("--unit", action="append", default=[], help="a unit (repeat for more)")
+    target.add_argument("--all", action="store_true", help="every commanded unit")
     send.add_argument(
-        "--unit", action="append", default=[], help="a unit (repeat; default: all commanded)"
+        "--hold",
+        action="store_true",
+        help="keep the session: motion holds until Ctrl-C, SIGTERM or SIGHUP, then stops",
     )
     send.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
 
@@ -216,7 +216,7 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         path = client.find_socket(args.connect)
         if args.cmd == "status":
             return client.status(path, args.json)
-        return client.send(path, args.text, args.unit)
+        return client.send(path, args.text, args.unit, every=args.all, hold=args.hold)
     if args.cmd == "check":
         config = load_config(args.config)
         _plugins(config)  # plugin sections are validated exactly as `run` does

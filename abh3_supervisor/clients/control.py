@@ -4,11 +4,15 @@
 from __future__ import annotations
 
 import json
+import signal
 import socket
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
-from abh3_supervisor.errors import RunError
+from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
+from abh3_supervisor.errors import Abh3Error, CommandError, Interrupted, RunError
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.paths import default_socket
 
@@ -85,17 +89,63 @@ def status_lines(snapshot: dict[str, Any]) -> list[str]:
     return lines
 
 
-def send(path: Path, text: str, units: list[str]) -> int:
+MOTION_NEEDS_AN_OWNER = (
+    "a one-shot {text!r} would stop the moment `abh3 send` ends: motion belongs to a client "
+    "that is present. Use --hold (keeps it until Ctrl-C), the socket's velocity/twist "
+    "methods from a program that stays connected, the TUI's command line, or `startup:` "
+    "in the YAML for a setpoint the supervisor itself owns"
+)
+ALIVE_EVERY_S = 0.2  # well inside the service's 0.5 s: a late wake-up costs nothing
+
+
+def send(path: Path, text: str, units: list[str], *, every: bool, hold: bool) -> int:
+    """``abh3 send``: the seed's exact answer per unit; clamp notes on stderr. A motion
+    command is refused unless ``hold`` keeps this client present to own it."""
+    if not units and not every:
+        raise Abh3Error("name the units: --unit NAME (repeat for more) or --all")
+    if not hold and _moves(text):
+        raise Abh3Error(MOTION_NEEDS_AN_OWNER.format(text=text))
     client = ControlClient(path, timeout=10.0)
     try:
-        names = units or [
-            n for n, u in client.call("state")["units"].items() if u["role"] == "command"
-        ]
-        response = client.call("command", units=names, text=text)["response"]
+        known = client.call("state")["units"]
+        for unit in units:
+            if unit not in known:
+                raise Abh3Error(f"no unit named '{unit}' (units: {', '.join(known)})")
+        names = units or [n for n, u in known.items() if u["role"] == "command"]
+        result = client.call("command", units=names, text=text)
+        answers = result.get("responses") or dict.fromkeys(names, result["response"])
+        for unit, note in result.get("clamped", {}).items():
+            print(f"{unit}: {note}", file=sys.stderr)
+        # the seed's exact answer: '' , 'Invalid Command.', 'Packet Error: N' — per unit
+        for unit in names:
+            print(repr(answers[unit]) if len(names) == 1 else f"{unit}: {answers[unit]!r}")
+        code = 0 if result["response"] == "" else 1
+        if hold and code == 0:
+            _hold(client, text, names)
     finally:
         client.close()
-    print(repr(response))  # the seed's exact answer: '' , 'Invalid Command.', 'Packet Error: N'
-    return 0 if response == "" else 1
+    return code
+
+
+def _moves(text: str) -> bool:
+    try:
+        command = parse_command(text)
+    except CommandError:
+        return False  # the service answers it as the seed does ('Invalid Command.')
+    return isinstance(command, VelocityCommand | CurrentCommand) and bool(command.ay or command.bx)
+
+
+def _hold(client: ControlClient, text: str, units: list[str]) -> None:
+    """Stay present (proof of life every ALIVE_EVERY_S) until a stop signal; leaving then
+    takes the motion with it. A supervisor that goes away ends the hold with an error."""
+    print(f"holding {text!r} on {', '.join(units)}: Ctrl-C stops it", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(ALIVE_EVERY_S)
+            client.call("alive")
+    except Interrupted as exc:
+        name = signal.Signals(exc.signum).name
+        print(f"{name}: released; the motion held by this command stops now", file=sys.stderr)
 
 
 def find_socket(connect: Path | None) -> Path:

@@ -1,11 +1,15 @@
-"""Input sources and the arbitration between them.
+"""Input sources and the arbitration between them: who owns motion.
 
-Several sources (keyboard, joystick, a network bridge, …) may target the same unit. For
-each unit the **winner** is, among the sources targeting it that are *fresh* (heard within
-their ``timeout``) and holding a command, the one with the highest ``priority``; on a tie
-the most recently heard. When a unit's winner goes silent or releases (deadman let go)
-and no other source is fresh, the unit gets **zero velocity** at once. The arbiter is
-sans-I/O: it is fed submissions and the time, and applies commands through a callback.
+Several sources (keyboard, joystick, a network bridge, a control-socket client, …) may
+target the same unit. For each unit the **winner** is, among the sources targeting it that
+are *fresh* and holding a command, the one with the highest ``priority``; on a tie the most
+recently heard. A command is fresh for the source's ``timeout`` after it was heard
+(*streamed*: repeat it to keep moving) or, for a *standing* command (a client's ``VEL``),
+for ``timeout`` after the source last proved it is alive (:meth:`InputArbiter.touch`).
+When a unit's winner goes silent, releases (deadman let go), stops proving it is alive or
+leaves, the unit gets **zero** at once, and every command heard before that moment no longer
+counts for the unit: an older, replaced setpoint never comes back. The arbiter is sans-I/O:
+it is fed submissions and the time, and applies commands through a callback.
 """
 
 from __future__ import annotations
@@ -24,7 +28,9 @@ from abh3_supervisor.core.commands import (
     RESPONSE_OK,
     CurrentCommand,
     VelocityCommand,
+    parse_command,
 )
+from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import CommandError
 
 if TYPE_CHECKING:
@@ -134,7 +140,9 @@ class InputFeed:
     def command(self, text: str) -> concurrent.futures.Future[str]:
         """Run a command-language string on the source's units; the future holds the
         seed's response (``''``, ``'Invalid Command.'`` or ``'Packet Error: n'``) once a
-        drive answered or the unit's timeout passed. The first unit that fails answers."""
+        drive answered or the unit's timeout passed. The first unit that fails answers.
+        A ``VEL``/``CUR`` is this source's motion like any other it submits: fresh for its
+        timeout, so it must be repeated to hold (an owner who is present)."""
         future: concurrent.futures.Future[str] = concurrent.futures.Future()
         if self._loop.is_closed():
             future.set_result(RESPONSE_INVALID)
@@ -143,10 +151,30 @@ class InputFeed:
         async def run() -> str:
             if self._arbiter.closed:
                 return RESPONSE_INVALID
-            responses = [await self._sup.command(unit, text) for unit in self._units()]
-            return next((r for r in responses if r != RESPONSE_OK), RESPONSE_OK)
+            return (await self.execute(text, standing=False)).response
 
         return asyncio.run_coroutine_threadsafe(run(), self._loop)
+
+    def hold(self, command: Motion) -> None:
+        """On the loop: ``command`` is this source's until it submits another, releases,
+        leaves or stops proving it is alive (:meth:`alive`) for its timeout."""
+        self._arbiter.submit(self._name, command, self._arbiter.clock(), standing=True)
+
+    async def execute(self, text: str, *, standing: bool) -> CommandOutcome:
+        """On the loop: :func:`execute` for this source's units, its motion submitted as
+        its own (``standing``: held while the source proves it is alive, :meth:`alive`)."""
+
+        def submit(command: Motion) -> None:
+            if standing:
+                self.hold(command)
+            else:
+                self._arbiter.submit(self._name, command, self._arbiter.clock())
+
+        return await execute(self._sup, self._units(), text, submit)
+
+    def alive(self) -> None:
+        """On the loop: the source proves it is alive (its standing motion holds on)."""
+        self._arbiter.touch(self._name, self._arbiter.clock())
 
     def _units(self) -> tuple[str, ...]:
         return self._arbiter.sources[self._name].units
@@ -171,6 +199,63 @@ class InputFeed:
         self._on_loop(self._arbiter.submit_now, self._name, command)
 
 
+Motion = VelocityCommand | CurrentCommand
+
+
+@dataclass(frozen=True, slots=True)
+class CommandOutcome:
+    """What a command-language string did on each unit: the seed's answer per unit and,
+    where a value was beyond the unit's limits or the wire's range, the clamp note."""
+
+    responses: dict[str, str]
+    clamped: dict[str, str] = field(default_factory=dict)
+    motion: bool = False  # a VEL/CUR: owned by its source, not a static setpoint
+
+    @property
+    def response(self) -> str:
+        """The seed's single answer: the first unit that failed, else ``''``."""
+        return next((r for r in self.responses.values() if r != RESPONSE_OK), RESPONSE_OK)
+
+
+async def execute(
+    sup: Supervisor, units: tuple[str, ...], text: str, submit: Callable[[Motion], None]
+) -> CommandOutcome:
+    """Run the command language on ``units``, answering as the seed's service does.
+
+    Switches (``SERVO``, ``START``, …) act at once on the drive. Motion (``VEL``/``CUR``)
+    is never a static setpoint: it is checked on every unit first (all or nothing, so two
+    drives of one robot move together or not at all) and handed to ``submit``, which makes
+    it a source's input in the arbitration — its owner's while the owner is present.
+    """
+    try:
+        command = parse_command(text)
+    except CommandError:
+        return CommandOutcome({unit: RESPONSE_INVALID for unit in units})
+    if not isinstance(command, VelocityCommand | CurrentCommand):
+        return CommandOutcome({unit: await sup.command(unit, text) for unit in units})
+    responses: dict[str, str] = {}
+    clamped: dict[str, str] = {}
+    for unit in units:
+        try:
+            note = sup.admit(unit, command)
+        except CommandError as exc:
+            responses[unit] = sup.refusal(unit, text, exc)
+            continue
+        if note is not None:
+            clamped[unit] = note
+    if responses:  # one unit refused: none moves
+        refused = ", ".join(responses)
+        for unit in units:
+            if unit not in responses:
+                sup.notice(unit, logging.WARNING, f"{clean(text)!r} not applied: {refused} refused")
+                responses[unit] = RESPONSE_INVALID
+        return CommandOutcome({unit: responses[unit] for unit in units}, clamped, True)
+    since = sup.clock()
+    submit(command)
+    answers = await asyncio.gather(*(sup.confirm(unit, since) for unit in units))
+    return CommandOutcome(dict(zip(units, answers, strict=True)), clamped, True)
+
+
 @dataclass
 class _SourceState:
     name: str
@@ -179,9 +264,14 @@ class _SourceState:
     timeout: float
     command: InputCommand | None = None
     heard: float = -math.inf
+    standing: bool = False  # the command holds while the source proves it is alive
+    alive: float = -math.inf  # when the source last proved it is alive
+
+    def expires(self) -> float:
+        return (self.alive if self.standing else self.heard) + self.timeout
 
     def fresh(self, now: float) -> bool:
-        return self.command is not None and now < self.heard + self.timeout
+        return self.command is not None and now < self.expires()
 
 
 @dataclass
@@ -192,9 +282,14 @@ class InputArbiter:
     # per unit: (winning source, the command applied) — None when nobody drives it
     current: dict[str, tuple[str, InputCommand] | None] = field(default_factory=dict)
     on_change: Callable[[], None] | None = None  # re-arm the deadline timer
+    # a standing command lapsed: its source stopped proving it is alive (hung, stopped)
+    on_lapse: Callable[[str], None] | None = None
     closed: bool = False  # inputs stopped: submissions are ignored from now on
     # per unit: what was heard before this time no longer counts (the drive stopped itself)
     held: dict[str, float] = field(default_factory=dict)
+    # per unit: a standing command heard before this time was replaced (its owner lost the
+    # unit to another source, which has since left): it must not come back
+    superseded: dict[str, float] = field(default_factory=dict)
 
     def add(self, source: InputSource) -> None:
         self.sources[source.name] = _SourceState(
@@ -210,10 +305,23 @@ class InputArbiter:
     def submit_now(self, name: str, command: InputCommand | None) -> None:
         self.submit(name, command, self.clock())
 
-    def submit(self, name: str, command: InputCommand | None, now: float) -> None:
+    def submit(
+        self, name: str, command: InputCommand | None, now: float, *, standing: bool = False
+    ) -> None:
+        """``standing``: the command holds without repetition while the source keeps
+        proving it is alive (:meth:`touch`), instead of for ``timeout`` after ``now``."""
         state = self.sources[name]
         state.command, state.heard = command, now
+        state.standing, state.alive = standing, now
         self._decide(state.units, now)
+
+    def touch(self, name: str, now: float) -> None:
+        """The source proves it is alive: its standing command holds another ``timeout``."""
+        state = self.sources.get(name)
+        if state is not None:
+            state.alive = now
+            if state.standing and state.command is not None and self.on_change is not None:
+                self.on_change()  # the expiry moved: re-arm the deadline
 
     def retarget_now(self, name: str, units: tuple[str, ...]) -> None:
         state = self.sources[name]
@@ -233,17 +341,21 @@ class InputArbiter:
 
     def next_deadline(self) -> float:
         return min(
-            (s.heard + s.timeout for s in self.sources.values() if s.command is not None),
+            (s.expires() for s in self.sources.values() if s.command is not None),
             default=math.inf,
         )
 
     def _decide(self, units: tuple[str, ...], now: float) -> None:
         for unit in units:
             since = self.held.get(unit, -math.inf)
+            replaced = self.superseded.get(unit, -math.inf)
             candidates = [
                 s
                 for s in self.sources.values()
-                if unit in s.units and s.fresh(now) and s.heard > since
+                if unit in s.units
+                and s.fresh(now)
+                and s.heard > since
+                and not (s.standing and s.heard < replaced)
             ]
             if candidates:
                 best = max(candidates, key=lambda s: (s.priority, s.heard))
@@ -254,6 +366,15 @@ class InputArbiter:
             previous = self.current.get(unit)
             if chosen == previous:
                 continue
+            if previous is not None and (chosen is None or chosen[0] != previous[0]):
+                owner = self.sources.get(previous[0])
+                if owner is None or not owner.fresh(now):
+                    # the owner of the active setpoint left (silence, release, gone): a
+                    # standing command given before now was replaced and never comes back
+                    self.superseded[unit] = now
+                    taker = self.sources[chosen[0]] if chosen is not None else None
+                    if taker is not None and taker.standing and taker.heard < now:
+                        chosen = None
             self.current[unit] = chosen
             if chosen is not None:
                 self.apply(unit, chosen[1])
@@ -262,5 +383,7 @@ class InputArbiter:
         for state in self.sources.values():
             if state.command is not None and not state.fresh(now):
                 state.command = None  # expired: forget it, so a late deadline is not kept
+                if state.standing and self.on_lapse is not None:
+                    self.on_lapse(state.name)
         if self.on_change is not None:
             self.on_change()

@@ -25,6 +25,7 @@ from abh3_supervisor.core.commands import (
 )
 from abh3_supervisor.core.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
+from abh3_supervisor.core.text import clean
 from abh3_supervisor.core.throttle import Throttle, held_note
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import frames
@@ -130,8 +131,9 @@ class Supervisor:
         self._emit(Notice(unit, self.clock(), level, message))
 
     def audit(self, source: str, unit: str | None, action: str) -> None:
-        """Record an operator's action for every observer (the event logs, plugins)."""
-        self._emit(OperatorAction(unit, self.clock(), source, action))
+        """Record an operator's action for every observer (the event logs, plugins); the
+        text may come from a client, so it is escaped and capped (no forged lines)."""
+        self._emit(OperatorAction(unit, self.clock(), clean(source), clean(action)))
 
     def dispatch(self, bus: str) -> None:
         """Apply the events one bus's scheduler recorded (called after each pump step)."""
@@ -303,7 +305,8 @@ class Supervisor:
         unit.inputs = new
         self._push(unit)
 
-    def _set(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> SetResult:
+    def _check(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> None:
+        """Refuse what the unit cannot take now: motion under the e-stop, the wrong mode."""
         if self.estop and (ay or bx):
             raise CommandError("emergency stop is latched: clear it before commanding motion")
         both = unit.layout.torque.both
@@ -315,21 +318,23 @@ class Supervisor:
                 f"unit '{unit.name}' is in {mode} mode; a {kind} command needs "
                 f"TORQUE {'ON ON' if want else 'OFF OFF'} first"
             )
-        if kind is ControlMode.VELOCITY:
-            limit, wire = unit.cfg.limits.velocity, VELOCITY
-        else:
-            limit, wire = unit.cfg.limits.current, CURRENT
-        scale = min([1.0, *(_bound(v, limit, wire) / abs(v) for v in (ay, bx) if v)])
-        clamped = scale < 1.0
-        if clamped:  # scale both axes alike: the robot keeps its heading, only slower
-            ay, bx = ay * scale, bx * scale
-            self.notice(
-                unit.name,
-                logging.WARNING,
-                f"{kind} command clamped to the limit {limit:g} (scaled by {scale:.3f})",
-            )
+
+    def admit(self, name: str, command: VelocityCommand | CurrentCommand) -> str | None:
+        """Check a ``VEL``/``CUR`` as it would be applied now, without applying it: raise
+        :class:`CommandError` if refused; the clamp note if it would be clamped."""
+        unit = self._commandable(name)
+        _finite(command.ay, command.bx)
+        kind = ControlMode.CURRENT if isinstance(command, CurrentCommand) else ControlMode.VELOCITY
+        self._check(unit, command.ay, command.bx, kind)
+        return _limited(unit, command.ay, command.bx, kind)[2]
+
+    def _set(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> SetResult:
+        self._check(unit, ay, bx, kind)
+        ay, bx, note = _limited(unit, ay, bx, kind)
+        if note is not None:
+            self.notice(unit.name, logging.WARNING, note)
         self._store(unit, Setpoint(ay, bx, kind))
-        return SetResult(unit.setpoint.ay, unit.setpoint.bx, clamped)
+        return SetResult(unit.setpoint.ay, unit.setpoint.bx, note is not None)
 
     def _store(self, unit: UnitState, setpoint: Setpoint) -> None:
         unit.setpoint = setpoint
@@ -386,11 +391,15 @@ class Supervisor:
         try:
             self.apply(name, command)
         except CommandError as exc:
-            if self.estop:
-                return commands.packet_error(commands.PACKET_ESTOP)
-            self.notice(name, logging.WARNING, f"{text!r} refused: {exc}")
-            return commands.RESPONSE_INVALID
+            return self.refusal(name, text, exc)
         return commands.RESPONSE_OK
+
+    def refusal(self, name: str, text: str, exc: CommandError) -> str:
+        """The seed's answer to a command the unit refused, and a notice saying why."""
+        if self.estop:
+            return commands.packet_error(commands.PACKET_ESTOP)
+        self.notice(name, logging.WARNING, f"{clean(text)!r} refused: {exc}")
+        return commands.RESPONSE_INVALID
 
     async def command(self, name: str, text: str) -> str:
         """As :meth:`apply_text`, then wait for the drive to answer a frame carrying it."""
@@ -398,6 +407,11 @@ class Supervisor:
         response = self.apply_text(name, text)
         if response != commands.RESPONSE_OK:
             return response
+        return await self.confirm(name, since)
+
+    async def confirm(self, name: str, since: float) -> str:
+        """``''`` once the drive answers a frame sent at or after ``since``; otherwise the
+        seed's ``Packet Error`` with our code (no reply, or the bus refused the frame)."""
         unit = self.unit(name)
         stats = self.schedulers[unit.cfg.bus].slots[name].stats
         failures = stats.send_errors
@@ -460,6 +474,28 @@ class Supervisor:
             if unit.cfg.role is Role.COMMAND:
                 unit.inputs = unit.layout.safe(unit.inputs)
                 self._store(unit, Setpoint())  # torque is off: the fields are velocities
+
+
+def _limited(
+    unit: UnitState, ay: float, bx: float, kind: ControlMode
+) -> tuple[float, float, str | None]:
+    """The values within the unit's limit and the wire's range, both axes scaled alike
+    (the robot keeps its heading, only slower), and the note saying so if they changed."""
+    if kind is ControlMode.VELOCITY:
+        word, key, limit, wire = "VEL", "velocity", unit.cfg.limits.velocity, VELOCITY
+    else:
+        word, key, limit, wire = "CUR", "current", unit.cfg.limits.current, CURRENT
+    scale = min([1.0, *(_bound(v, limit, wire) / abs(v) for v in (ay, bx) if v)])
+    if scale >= 1.0:
+        return ay, bx, None
+    # the binding bound: the YAML's limit, or the wire's range where no limit is set
+    if limit < wire.largest:
+        why = f"limits.{key} {limit:g}"
+    else:
+        why = f"wire range {wire.minimum:g} … {wire.maximum:g}"
+    new_ay, new_bx = ay * scale, bx * scale
+    note = f"clamped: {word} {ay:g} {bx:g} → {new_ay:.6g} {new_bx:.6g} ({why})"
+    return new_ay, new_bx, note
 
 
 def _bound(value: float, limit: float, wire: Scale) -> float:

@@ -301,6 +301,11 @@ class PluginHost:
                 timer.cancel()
 
         arbiter.on_change = rearm
+        arbiter.on_lapse = lambda name: sup.notice(
+            None,
+            logging.WARNING,
+            f"input {name} stopped proving it is alive: the motion it held dropped to zero",
+        )
 
         def hold(event: SupervisorEvent) -> None:
             if (isinstance(event, GapEvent) and event.started) or (

@@ -3,10 +3,13 @@
 It runs on the runtime's event loop and never blocks it: requests are handled as they
 come, every reply and notification is queued to the client's socket, and a client that
 stops reading (its buffer passes ``MAX_BUFFER``) is disconnected rather than waited for.
-Each client's motion commands (twist, velocity, current) come from an input source of
-its own in the usual arbitration — fresh for ``CLIENT_TIMEOUT_S``, then zero; leaving
-lets go. Command-language text, e-stop and clear act at once. A read-only listener
-answers only what changes nothing (``READ_ONLY_METHODS``).
+Each client's motion is owned by an input source of its own in the usual arbitration:
+streamed motion (twist, velocity, current) is fresh for ``CLIENT_TIMEOUT_S`` after each
+request; a command-language ``VEL``/``CUR`` holds while the client proves it is alive —
+any line from it, ``alive`` at the least, every ``CLIENT_TIMEOUT_S`` — and leaving,
+dying or going quiet lets go at once (docs/architecture.md, "who owns motion"). Switches,
+e-stop and clear act at once. A read-only listener answers only what changes nothing
+(``READ_ONLY_METHODS``).
 """
 
 from __future__ import annotations
@@ -27,7 +30,8 @@ from abh3_supervisor import __version__
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.eventlog import EventLog
-from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputFeed, InputSource, Motion, execute
+from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.terminal import KeyInput
@@ -47,9 +51,10 @@ MAX_CLIENTS = 32
 MAX_BUFFER = 1 << 20  # bytes queued for one client before it is dropped as too slow
 MAX_STATE_HZ = 20.0
 SHARE_S = 0.005  # clients woken on the same tick get the same encoded state
-CLIENT_TIMEOUT_S = 0.5  # a client's motion command is fresh this long (as the seed's topics)
+CLIENT_TIMEOUT_S = 0.5  # streamed motion is fresh this long (as the seed's topics); a
+# client holding a VEL proves it is alive at least this often
 CLIENT_PRIORITY = 50  # above plugins' default 0: an operator's client wins over them
-READ_ONLY_METHODS = {"hello", "state", "subscribe", "keys"}
+READ_ONLY_METHODS = {"hello", "state", "subscribe", "keys", "alive"}
 LABEL = re.compile(r"[a-z][a-z0-9_-]{0,15}")
 
 
@@ -130,6 +135,8 @@ class _Client:
                 await self.handle(line)
 
     async def handle(self, line: bytes) -> None:
+        if self.source is not None and self.source.feed is not None:
+            self.source.feed.alive()  # any line proves the client alive: its motion holds
         try:
             request = rpc.parse_request(line)
         except rpc.RpcError as exc:
@@ -175,6 +182,7 @@ class ControlServer:
             "hello": self._hello,
             "state": self._state,
             "subscribe": self._subscribe,
+            "alive": self._alive,
             "command": self._command,
             **{name: functools.partial(self._motion, name) for name in _FIELDS},
             "release": self._release,
@@ -345,13 +353,36 @@ class ControlServer:
                 raise rpc.RpcError(rpc.REFUSED, f"unit {unit!r} is role: monitor")
         return units
 
+    async def _alive(self, client: _Client, params: dict[str, Any]) -> Any:
+        """Proof of life (as any line is): a client holding a ``VEL`` sends it ≥ 2 Hz."""
+        return {"ok": True}
+
     async def _command(self, client: _Client, params: dict[str, Any]) -> Any:
+        """The command language; a ``VEL``/``CUR`` is this client's motion, held while it is
+        connected and alive (``held``), with a note per unit whose value was clamped."""
         units = self._commanded(params)
         text = rpc.text(params, "text")
-        responses = [await self.rt.supervisor.command(unit, text) for unit in units]
-        response = next((r for r in responses if r != RESPONSE_OK), RESPONSE_OK)
-        log.info("control %s: %r on %s → %r", client.name, text, ",".join(units), response)
-        return {"response": response}
+
+        def submit(command: Motion) -> None:
+            feed = self._feed(client, units)
+            feed.hold(command)
+
+        outcome = await execute(self.rt.supervisor, units, text, submit)
+        response = outcome.response
+        log.info(
+            "control %s: %r on %s → %r%s",
+            client.name,
+            clean(text),
+            ",".join(units),
+            response,
+            "".join(f"; {unit}: {note}" for unit, note in outcome.clamped.items()),
+        )
+        return {
+            "response": response,
+            "responses": outcome.responses,
+            "clamped": outcome.clamped,
+            "held": outcome.motion and response == RESPONSE_OK,
+        }
 
     def _feed(self, client: _Client, units: tuple[str, ...]) -> InputFeed:
         if client.source is None:
