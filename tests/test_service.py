@@ -382,3 +382,34 @@ def test_clients_at_one_rate_share_each_state_snapshot(
     finally:
         for sock in socks:
             sock.close()
+
+
+def test_client_text_cannot_forge_a_log_line_or_drive_a_terminal(
+    served: Served, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A client's audit and command text reach every log escaped and capped: a newline
+    cannot start a line of its own, an escape sequence cannot reach the reader's terminal."""
+    from abh3_supervisor.core.eventlog import EventLog
+    from abh3_supervisor.core.supervisor import OperatorAction
+    from abh3_supervisor.core.text import MAX_LOGGED, clean
+
+    assert served.rt is not None
+    sup = served.rt.supervisor
+    actions: list[OperatorAction] = []
+    served.on_loop(sup.subscribe, lambda e: actions.append(e) if isinstance(e, OperatorAction) else None)  # fmt: skip
+    forged = "x\n\u001b[2J12:00:00.000 CRITICAL fake line\u202e"
+    client = ControlClient(served.path)
+    try:
+        client.call("audit", action=forged + "y" * 5000)
+        with caplog.at_level("INFO"):
+            client.call("command", unit="left", text=forged)
+    finally:
+        client.close()
+    line = EventLog(sup).line(actions[-1])
+    assert line is not None
+    for text in (line[1], *(r.getMessage() for r in caplog.records)):
+        assert "\n" not in text and "\u001b" not in text and "\u202e" not in text
+    assert "x\\n\\x1b[2J12:00:00.000 CRITICAL fake line\\u202e" in line[1]
+    cut = len(forged) + 5000 - MAX_LOGGED
+    assert line[1].endswith(f"… (+{cut} characters)") and len(actions[-1].action) < 2 * MAX_LOGGED
+    assert clean("plain text") == "plain text"
