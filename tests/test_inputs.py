@@ -149,3 +149,26 @@ def test_feed_runs_commands_inputs_and_status_requests_from_another_thread() -> 
             assert sup.units["right"].inputs & right.servo.both == right.servo.both
 
     asyncio.run(scenario())
+
+
+def test_a_vel_through_a_plugins_feed_is_that_sources_motion_and_lapses_with_it() -> None:
+    """inp_service's VEL is the bridge source's motion like vel_cmd: fresh for the
+    source's timeout, then zero — never a static setpoint nobody owns."""
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    host = PluginHost(cfg)
+    source = Holder("net", ("right",), timeout=0.1)
+    host.add_source(source)
+
+    async def scenario() -> None:
+        async with Runtime(cfg, plugins=host) as rt:
+            sup, feed = rt.supervisor, source.feed
+            assert feed is not None
+            assert await asyncio.to_thread(feed.command("VEL 100 -50").result, 5) == ""
+            assert sup.units["right"].setpoint.ay == 100.0  # held by the source now
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            while sup.units["right"].setpoint.ay != 0.0:  # the arbiter's own timer zeroes it
+                assert loop.time() - start < 2.0, "the VEL outlived its source's timeout"
+                await asyncio.sleep(0.01)
+
+    asyncio.run(scenario())
