@@ -158,17 +158,19 @@ class InputFeed:
     def hold(self, command: Motion) -> None:
         """On the loop: ``command`` is this source's until it submits another, releases,
         leaves or stops proving it is alive (:meth:`alive`) for its timeout."""
-        self._arbiter.submit(self._name, command, self._arbiter.clock(), standing=True)
+        self._submit_here(command, standing=True)
+
+    def _submit_here(self, command: Motion, *, standing: bool) -> None:
+        if self._arbiter.closed:  # inputs stopped: nothing may command motion any more
+            raise CommandError("the supervisor is stopping: commands are refused")
+        self._arbiter.submit(self._name, command, self._arbiter.clock(), standing=standing)
 
     async def execute(self, text: str, *, standing: bool) -> CommandOutcome:
         """On the loop: :func:`execute` for this source's units, its motion submitted as
         its own (``standing``: held while the source proves it is alive, :meth:`alive`)."""
 
         def submit(command: Motion) -> None:
-            if standing:
-                self.hold(command)
-            else:
-                self._arbiter.submit(self._name, command, self._arbiter.clock())
+            self._submit_here(command, standing=standing)
 
         return await execute(self._sup, self._units(), text, submit)
 
@@ -251,7 +253,10 @@ async def execute(
                 responses[unit] = RESPONSE_INVALID
         return CommandOutcome({unit: responses[unit] for unit in units}, clamped, True)
     since = sup.clock()
-    submit(command)
+    try:
+        submit(command)
+    except CommandError as exc:  # the inputs stopped meanwhile
+        return CommandOutcome({unit: sup.refusal(unit, text, exc) for unit in units}, {}, True)
     answers = await asyncio.gather(*(sup.confirm(unit, since) for unit in units))
     return CommandOutcome(dict(zip(units, answers, strict=True)), clamped, True)
 
