@@ -139,3 +139,23 @@ def test_the_largest_file_allowed_answers_in_seconds_and_prints_20_problems(
         == f"error: {big}:5: units[1].abh3_id: unit 'u0' already uses abh3_id 1 on bus 'demo'"
     )
     assert re.fullmatch(r"error: and \d{4} more", errors[-1]), errors[-1]
+
+
+# ---------------------------------------------------------------- named causes (issue 21)
+
+
+@pytest.mark.parametrize("command", ["check", "run"])
+def test_an_interface_python_can_does_not_know_is_a_mistake_in_the_file(
+    command: str, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A typo is found by `check` (not only when `run` opens the bus), at its line, with a
+    did-you-mean from python-can's list — on a simulated bus too, which runs on `virtual`."""
+    path = str(DATA / "interface-typo-sockecan-simulated.yaml")
+    code, text, errors, _ = abh3([command, path], capsys, caplog)
+    assert code == 2 and "Traceback" not in text
+    assert len(errors) == 1, errors
+    assert errors[0].startswith(
+        f"error: {path}:3: buses.demo.interface: python-can has no interface 'sockecan'; "
+        "did you mean 'socketcan'? (its interfaces: "
+    )
+    assert "wacousb" in errors[0]  # an entry-point interface is in the list too

@@ -388,3 +388,19 @@ def test_startup_commands_that_would_be_refused_are_config_errors(unit: str, why
     with pytest.raises(ConfigError, match=why) as info:
         parse_config(text, "s.yaml")
     assert info.value.problems[0].startswith("s.yaml:3: units[0].startup")
+
+
+def test_the_teleop_example_writes_its_csv_under_a_git_ignored_logs_folder_it_creates(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`abh3 run configs/teleop.yaml` from a checkout leaves nothing for git to show: its
+    recording goes to logs/ (ignored), which the csv plugin creates when it is missing."""
+    root = Path(__file__).resolve().parent.parent
+    teleop = root / "configs" / "teleop.yaml"
+    assert load_config(teleop).plugins["csv"]["path"] == "logs/teleop.csv"
+    assert "logs/" in (root / ".gitignore").read_text().splitlines()
+    monkeypatch.chdir(tmp_path)  # a checkout without logs/ yet
+    args = ["run", str(teleop), "--headless", "--duration", "0.3", "--status-interval", "0"]
+    assert main(args) == 0, capsys.readouterr().err
+    rows = (tmp_path / "logs" / "teleop.csv").read_text().splitlines()
+    assert rows[0].startswith("time [s],note,unit,") and len(rows) > 2

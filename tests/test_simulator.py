@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from abh3_supervisor.config import SimConfig, VelocityModel
+from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.simulator import SimDrive
@@ -180,6 +181,106 @@ def test_latched_error_needs_reset_rising_edge_and_servo_goes_off() -> None:
     run(drive, 0.4, 0.5, 500, 0, L21.start.both | SELECT_0)
     run(drive, 0.5, 0.6, 500, 0, SERVO_START | SELECT_0)
     assert drive.vel[0] == pytest.approx(100.0)
+
+
+def reported_servo(drive: SimDrive, t: float) -> int:
+    """The SERVO bits of the control word the drive reports: broadcast 1 in 2021, the DP0
+    reply in 2023 (asked for with the request PGN, which commands nothing)."""
+    lay = drive.layout
+    if drive.generation is Generation.G2021:
+        b1 = brd(drive, 1, t)
+        assert isinstance(b1, frames.Brd1) and b1.control is not None
+        return b1.control & lay.servo.both
+    ((_, data),) = request(drive, t, frames.PGN_DP0)
+    reply = frames.decode_dp0_reply(data, Generation.G2023)
+    assert isinstance(reply, frames.Dp0Reply2023)
+    assert bool(reply.control & lay.ready.both) == bool(reply.control & lay.servo.both)
+    return reply.control & lay.servo.both
+
+
+@pytest.mark.parametrize("generation", list(Generation))
+def test_after_an_error_clears_the_servo_stays_off_until_the_host_cycles_servo(
+    generation: Generation,
+) -> None:
+    """As a real drive (protocol doc §5, docs/hardware.md): the error's end never turns a
+    motor back on; SERVO off, then on, does — per axis."""
+    overcurrent = flags.FAULT.mask("A_OVERCURRENT")
+    fault = Fault(FaultKind.ERROR_BITS, at_s=0.25, for_s=0.2, bits=overcurrent)
+    drive = SimDrive(
+        1,
+        generation=generation,
+        model=VelocityModel.MOTOR,
+        cfg=SimConfig(accel=1e5),
+        faults=(fault,),
+    )
+    lay = drive.layout
+    running = lay.servo.both | lay.start.both | lay.select(7, 7)
+    run(drive, 0.0, 0.2, 500, 500, running)
+    assert reported_servo(drive, 0.2) == lay.servo.both
+    run(drive, 0.2, 0.4, 500, 500, running)
+    assert drive.error_word() == overcurrent and reported_servo(drive, 0.4) == 0
+    run(drive, 0.46, 0.6, 500, 500, running)  # the error is gone, SERVO still asked for
+    assert brd(drive, 0, 0.6) == frames.Brd0(0, 0)
+    assert reported_servo(drive, 0.6) == 0  # and the servo stays off
+    assert drive.vel == [0.0, 0.0]
+    # SERVO off and on again on the A/Y axis only: that axis comes back, B/X stays off
+    run(drive, 0.6, 0.64, 500, 500, running & ~lay.servo.ay)
+    assert reported_servo(drive, 0.64) == 0
+    run(drive, 0.64, 0.8, 500, 500, running)
+    assert reported_servo(drive, 0.8) == lay.servo.ay
+    assert drive.vel == [100.0, 0.0]
+    run(drive, 0.8, 0.84, 500, 500, running & ~lay.servo.bx)
+    run(drive, 0.84, 1.0, 500, 500, running)
+    assert reported_servo(drive, 1.0) == lay.servo.both
+    assert drive.vel == [100.0, 100.0]
+
+
+def test_an_error_between_frames_trips_the_servo() -> None:
+    """A scripted error that comes and goes while no frame arrives still trips the servo:
+    the drive wakes when it starts."""
+    fault = Fault(FaultKind.ERROR_BITS, at_s=0.5, for_s=0.01)
+    quiet = SimConfig(error_timeout_ms=0, command_zero_timeout_ms=0)  # nothing else wakes it
+    drive = SimDrive(1, cfg=quiet, faults=(fault,))
+    command(drive, 0.0, 0, 0, SERVO_START | SELECT_0)
+    assert drive.next_deadline() == pytest.approx(0.5) and drive.error_word() == 0
+    assert drive.poll(drive.next_deadline()) == []
+    assert drive.error_word() == 1 << 6
+    assert reported_servo(drive, 0.6) == 0  # the fault has ended: the servo stays off
+
+
+def test_the_reset_flow_error_reset_then_servo_cycle() -> None:
+    """A latched error: the reset bit clears it and keeps the servo off even with SERVO
+    on; SERVO off then on brings it back (what the TUI's `r` and `v` send)."""
+    drive = SimDrive(1, model=VelocityModel.MOTOR, cfg=SimConfig(accel=1e5))
+    running = SERVO_START | SELECT_0
+    run(drive, 0.0, 0.1, 500, 0, running)
+    drive.inject_error(flags.FAULT.mask("B_OVERCURRENT"))
+    assert reported_servo(drive, 0.1) == 0
+    run(drive, 0.1, 0.2, 500, 0, running)
+    assert drive.error_word() == flags.FAULT.mask("B_OVERCURRENT")  # latched
+    run(drive, 0.2, 0.22, 500, 0, running | L21.error_reset)
+    run(drive, 0.22, 0.3, 500, 0, running)
+    assert brd(drive, 0, 0.3) == frames.Brd0(0, 0) and reported_servo(drive, 0.3) == 0
+    run(drive, 0.3, 0.32, 500, 0, running & ~L21.servo.both)
+    run(drive, 0.32, 0.4, 500, 0, running)
+    assert reported_servo(drive, 0.4) == L21.servo.both and drive.vel[0] == pytest.approx(100)
+    # a reset sent with SERVO off needs no cycle: SERVO on afterwards is the rising edge
+    drive.inject_error(flags.FAULT.mask("A_OVERCURRENT"))
+    run(drive, 0.4, 0.42, 0, 0, (running & ~L21.servo.both) | L21.error_reset)
+    run(drive, 0.42, 0.5, 500, 0, running)
+    assert reported_servo(drive, 0.5) == L21.servo.both
+
+
+def test_an_error_timeout_in_a_pause_keeps_the_servo_off_when_commands_return() -> None:
+    """Error bit 22 (the drive's error timeout): it clears when commands flow again (§8),
+    the servo does not come back on by itself."""
+    drive = SimDrive(1, model=VelocityModel.MOTOR, cfg=SimConfig(accel=1e5))
+    run(drive, 0.0, 0.1, 500, 0, SERVO_START | SELECT_0)
+    assert drive.vel[0] == pytest.approx(100)
+    assert brd(drive, 0, 1.2) == frames.Brd0(flags.CAN_COMM_ERROR, flags.CAN_COMM_ERROR)
+    run(drive, 1.2, 1.4, 500, 0, SERVO_START | SELECT_0)
+    assert brd(drive, 0, 1.4) == frames.Brd0(0, 0)
+    assert reported_servo(drive, 1.4) == 0 and drive.vel == [0.0, 0.0]
 
 
 def test_pulse_counting_and_clear() -> None:

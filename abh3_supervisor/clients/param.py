@@ -19,7 +19,7 @@ import argparse
 import asyncio
 import logging
 import sys
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -127,15 +127,24 @@ def run(args: argparse.Namespace) -> int:
 
         client = ControlClient(find_socket(args.connect), timeout=30.0)
         try:
+            known_unit(args.unit, client.call("hello")["units"])  # before asking anything
             return asyncio.run(op(Remote(client), args))
         finally:
             client.close()
     from abh3_supervisor.config import load_config
 
     config = monitor_only(load_config(args.config))
-    if args.unit not in config.units:
-        raise CommandError(f"no unit '{args.unit}' (units: {', '.join(config.units)})")
+    known_unit(args.unit, config.units)  # before any bus opens
     return asyncio.run(_on_own_bus(config, lambda backend: op(backend, args)))
+
+
+def known_unit(name: str, units: Iterable[str]) -> None:
+    """An unknown unit is a mistake on the command line (exit 2), said in the words every
+    other front end uses (``Supervisor.unit``, core/supervisor.py) — also through the
+    socket, whose refusal would otherwise come back as the service failing (exit 1)."""
+    units = list(units)
+    if name not in units:
+        raise CommandError(f"no unit named '{name}' (units: {', '.join(units)})")
 
 
 async def _on_own_bus(config: Config, op: Callable[[Backend], Awaitable[int]]) -> int:

@@ -284,13 +284,19 @@ def scan_command(
     listen_s: float | None,
     as_yaml: bool,
 ) -> int:
-    """``abh3 scan``: 0 when a drive was found, 1 when none was (or the bus cannot open)."""
+    """``abh3 scan``: 0 when a drive was found, 1 when none was (or the bus cannot open),
+    2 for an interface python-can does not know."""
     import sys
 
+    from abh3_supervisor.config.interfaces import unknown_interface
     from abh3_supervisor.config.model import BusConfig
+    from abh3_supervisor.errors import CommandError
     from abh3_supervisor.runtime.bus_runtime import open_bus
 
-    bus = open_bus(BusConfig(name=channel, interface=interface, channel=channel, bitrate=bitrate))
+    if (problem := unknown_interface(interface)) is not None:  # a mistake on the command line
+        raise CommandError(f"--interface {interface}: {problem}")
+    cfg = BusConfig(name=channel, interface=interface, channel=channel, bitrate=bitrate)
+    bus = open_bus(cfg, from_file=False)  # no file: its hints would name keys of none
     started = time.monotonic()
     try:
         scanner = Scanner(bus, host, listen_only=listen_only)

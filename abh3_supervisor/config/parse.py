@@ -7,6 +7,7 @@ from pathlib import Path as FsPath
 from typing import Any
 
 from abh3_supervisor.config.faults import check_fault_units, parse_faults
+from abh3_supervisor.config.interfaces import unknown_interface
 from abh3_supervisor.config.model import (
     BroadcastConfig,
     BusConfig,
@@ -147,9 +148,12 @@ def _buses(top: Section) -> dict[str, BusConfig]:
         options = b.sub("options", None)
         for key in BUS_ARGUMENTS & set(options.data):
             options.error(key, f"set {key} on the bus itself, not in its options")
+        interface = b.text("interface", "socketcan")
+        if b.has("interface") and (problem := unknown_interface(interface)):
+            b.error("interface", problem)  # simulated too: the file is meant for the robot
         buses[name] = BusConfig(
             name=name,
-            interface=b.text("interface", "socketcan"),
+            interface=interface,
             channel=_channel(b),
             bitrate=bitrate,
             simulate=_simulate(b),

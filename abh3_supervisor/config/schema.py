@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from abh3_supervisor.config import parse
+from abh3_supervisor.config.interfaces import known_interfaces
 from abh3_supervisor.config.model import ControlMode, FaultKind, Role, VelocityModel
 from abh3_supervisor.config.source import MAX_BYTES
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum
@@ -113,7 +114,12 @@ def _bus() -> Schema:
     sim["type"] = "object"  # `simulate:` with no value is an error, never "on"
     return mapping(
         {
-            "interface": text("python-can interface", "socketcan"),
+            # python-can's list on the machine that writes the schema, as `check` uses it
+            "interface": choice(
+                sorted(known_interfaces()),
+                "python-can interface (its built-ins and installed ones, e.g. wacousb)",
+                "socketcan",
+            ),
             "channel": {
                 "anyOf": [{"type": "string", "minLength": 1}, {"type": "integer"}],
                 "description": "python-can channel: one name or number",

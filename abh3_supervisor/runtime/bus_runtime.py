@@ -11,6 +11,7 @@ buses are closed. :attr:`Runtime.stop_report` says per unit what became of its s
 from __future__ import annotations
 
 import asyncio
+import errno
 import functools
 import logging
 import signal
@@ -21,6 +22,7 @@ from typing import Any
 
 import can
 
+from abh3_supervisor.config.interfaces import unknown_interface
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
@@ -35,35 +37,68 @@ EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-def open_bus(cfg: BusConfig) -> can.BusABC:
+def open_bus(cfg: BusConfig, *, from_file: bool = True) -> can.BusABC:
+    """The bus, or a :class:`BusOpenError` naming the real cause and what to do.
+
+    ``from_file``: the bus comes from a YAML file (a hint may name its keys); ``abh3 scan``
+    gives it on the command line, where the file's keys mean nothing."""
+    if (problem := unknown_interface(cfg.interface)) is not None:  # typed by hand
+        raise BusOpenError(_cannot_open(cfg, problem))
     kwargs: dict[str, Any] = {"bitrate": cfg.bitrate, **cfg.options}
     try:
         return can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
-        hint = ""
-        if cfg.interface == "socketcan":
-            hint = (
-                f" (is the interface up? e.g. `sudo ip link set {cfg.channel} up type can "
-                f"bitrate {cfg.bitrate}`; or add `simulate: true` to run it on the simulator)"
-            )
-        raise BusOpenError(
-            f"bus '{cfg.name}': cannot open {cfg.interface} channel '{cfg.channel}': {exc}{hint}"
-        ) from exc
+        hint = _socketcan_hint(cfg, exc, from_file) if cfg.interface == "socketcan" else ""
+        raise BusOpenError(_cannot_open(cfg, f"{exc}{hint}")) from exc
+
+
+def _cannot_open(cfg: BusConfig, why: str) -> str:
+    return f"bus '{cfg.name}': cannot open {cfg.interface} channel '{cfg.channel}': {why}"
+
+
+def _errno(exc: BaseException) -> int | None:
+    """The OS error number behind an exception python-can raised (it may wrap it)."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        number = getattr(current, "errno", None) or getattr(current, "error_code", None)
+        if isinstance(number, int):
+            return number
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def _socketcan_hint(cfg: BusConfig, exc: BaseException, from_file: bool) -> str:
+    def interface(name: str) -> str:
+        return f"`interface: {name}`" if from_file else f"`--interface {name}`"
+
+    simulate = "; or add `simulate: true` to the bus to run it on the simulator"
+    if _errno(exc) == errno.EAFNOSUPPORT:  # no AF_CAN: not a device, the kernel itself
+        return (
+            ": this kernel has no SocketCAN at all (no CAN address family, whatever the "
+            "device): load it with `sudo modprobe can can_raw` (the kernel must be built "
+            "with CONFIG_CAN), or use an interface that needs no SocketCAN, such as the "
+            f"drive maker's USB-CAN adapter ({interface('wacousb')}, channel /dev/ttyACM0) "
+            f"or an slcan adapter ({interface('slcan')})" + (simulate if from_file else "")
+        )
+    return (
+        f" (is the interface up? e.g. `sudo ip link set {cfg.channel} up type can "
+        f"bitrate {cfg.bitrate}`" + (simulate if from_file else "") + ")"
+    )
 
 
 def simulated(cfg: BusConfig) -> BusConfig:
     """The bus a simulated one really runs on: python-can's in-process ``virtual`` bus,
     whatever the file's interface — ``simulate: true`` means "instead of real drives", so
     the file of a real robot runs on the simulator as written (no can0 needed). The
-    interface must still be one python-can knows: the file is meant for the robot too."""
+    interface must still be one python-can knows (the file is meant for the robot too):
+    the file's check refuses any other, and so does this, for a configuration built in
+    code."""
     if cfg.interface == "virtual":
         return cfg
-    if cfg.interface not in can.interfaces.VALID_INTERFACES:  # a typo is wrong either way
-        raise BusOpenError(
-            f"bus '{cfg.name}': cannot open {cfg.interface} channel '{cfg.channel}': "
-            f"python-can has no interface '{cfg.interface}' (installed: "
-            f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))})"
-        )
+    if (problem := unknown_interface(cfg.interface)) is not None:  # a typo is wrong either way
+        raise BusOpenError(_cannot_open(cfg, problem))
     log.info(
         "bus %s: simulated: on python-can's virtual bus instead of %s %s",
         cfg.name,

@@ -4,7 +4,9 @@ Modelled on the protocol doc: servo and start gating per axis, data select 0 wri
 (= set #7 & STOP) stops the axis, torque mode takes the command as a current, the
 command-zero timeout raises alarm bit 22 and stops (START off), the error timeout raises
 error bit 22, both clear when commands flow again (as §8 observed), other errors latch until
-an error-reset rising edge, which also turns the servo off until SERVO is re-asserted.
+an error-reset rising edge ("0→1 resets, servo goes off", §5). An error turns the servo
+off, and it stays off after the error is gone until the host's SERVO bit of the axis goes
+off and on again — the drive never restarts a motor by itself.
 Fault injection (``silent``, ``extra_delay``, ``inject_error``) is for tests and demos;
 scripted faults (``faults``, from the YAML) switch the same behaviours on and off in time.
 """
@@ -60,7 +62,9 @@ class SimDrive:
         self.pulses = [0.0, 0.0]
         self.errors = 0  # latched errors (bit 22 is derived from the timeouts)
         self.alarms = 0
-        self.servo_blocked = False  # after an error reset, until SERVO is seen off
+        # per axis: the servo went off for an error (or an error reset) while its SERVO
+        # input was on; it stays off until the host turns that input off (then on again)
+        self.servo_tripped = [False, False]
         self.last_command: float | None = None
         self.t = now
         self.started = now
@@ -81,6 +85,7 @@ class SimDrive:
 
     def inject_error(self, bits: int) -> None:
         self.errors |= bits
+        self._trip()
 
     def inject_alarm(self, bits: int) -> None:
         self.alarms |= bits
@@ -156,8 +161,26 @@ class SimDrive:
     def next_deadline(self) -> float:
         due = self._out[0][0] if self._out else math.inf
         return min(
-            due, self._next_dp0, self._next_brd, self._timeout_deadline(), self.tel.next_deadline()
+            due,
+            self._next_dp0,
+            self._next_brd,
+            self._timeout_deadline(),
+            self._error_fault_start(),
+            self.tel.next_deadline(),
         )
+
+    def _error_fault_start(self) -> float:
+        # wake up when scripted error bits appear, so the servo trips even between frames
+        starts = (self._since(f.at_s) for f in self.faults if f.kind is FaultKind.ERROR_BITS)
+        return min((t for t in starts if t > self.t), default=math.inf)
+
+    def _since(self, seconds: float) -> float:
+        """The first time at which ``_fault`` counts ``seconds`` as passed since the start
+        (``started + seconds`` may round below it: then waking there would see nothing)."""
+        t = self.started + seconds
+        while t - self.started < seconds:
+            t = math.nextafter(t, math.inf)
+        return t
 
     def _timeout_deadline(self) -> float:
         # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
@@ -174,15 +197,25 @@ class SimDrive:
         ay, bx, inputs = frames.unpack_dp0_command(data)
         lay = self.layout
         rising = inputs & ~self.inputs
-        if rising & lay.error_reset:
-            self.errors = 0
-            self.servo_blocked = True
-        if not inputs & lay.servo.both:
-            self.servo_blocked = False
         for axis in (0, 1):
             if rising & lay.pulse_clear.of(axis):
                 self.pulses[axis] = 0.0
         self.inputs, self.cmd_raw, self.last_command = inputs, (ay, bx), now
+        if rising & lay.error_reset:
+            self.errors = 0
+            self.servo_tripped = [True, True]  # the servo goes off (kept only where SERVO is on)
+        self._trip()
+
+    def _trip(self) -> None:
+        """An error present trips the servo of each axis whose SERVO input is on; a SERVO
+        input seen off re-arms its axis. So after an error clears the servo stays off until
+        the host cycles SERVO (off, then on), as a real drive's does."""
+        error = bool(self.error_word())
+        for axis in (0, 1):
+            if not self.inputs & self.layout.servo.of(axis):
+                self.servo_tripped[axis] = False
+            elif error:
+                self.servo_tripped[axis] = True
 
     def _silence(self, timeout_ms: int) -> bool:
         if not timeout_ms:
@@ -205,7 +238,7 @@ class SimDrive:
 
     def _servo(self, axis: int) -> bool:
         bit = self.layout.servo.of(axis)
-        return bool(self.inputs & bit) and not self.error_word() and not self.servo_blocked
+        return bool(self.inputs & bit) and not self.error_word() and not self.servo_tripped[axis]
 
     def _started(self, axis: int) -> bool:
         cz = self._silence(self.command_zero_ms)
@@ -244,6 +277,7 @@ class SimDrive:
         if dt <= 0:
             return
         self.t = now
+        self._trip()  # an error that came on meanwhile (a timeout, a scripted fault)
         (t0, torque0), (t1, torque1) = self._axis_target(0), self._axis_target(1)
         travel = self.model is VelocityModel.TRAVEL
         targets = yx_to_ab(t0, t1) if travel else (t0, t1)
