@@ -268,8 +268,62 @@ def line(rec: dict[str, Any]) -> str:
     return f"{t} {rec['id']} {arrow} {who:<8} {kind:<12} {vals} {named}".rstrip()
 
 
-def decode_file(path: Path, config: Config | None, as_json: bool) -> Iterator[str]:
-    books, names = address_books(config), unit_names(config)
-    for msg in read_messages(path):
+HOST = 2  # the host address assumed without a configuration (AddressBook's default)
+
+
+def inferred_books(path: Path, say: Callable[[str], None]) -> dict[str, AddressBook]:
+    """Without a configuration: each drive address's generation as ``abh3 scan`` reads it
+    from the traffic (its DP0 replies' shape, its error word), one book per channel. Says
+    on ``say`` what it guessed, one line per address. A first pass over the file: what it
+    cannot read is reported by the pass that decodes (or here, when nothing can be read)."""
+    from abh3_supervisor.clients.scan import Findings
+
+    found: dict[str, Findings] = {}
+    held: list[str] = []
+    try:
+        for msg in read_messages(path, held.append):
+            if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
+                continue
+            channel = str(msg.channel or "")
+            findings = found.setdefault(channel, Findings(HOST))
+            findings.observe(msg.arbitration_id, bytes(msg.data))
+    except Abh3Error:
+        for text in held:
+            say(text)
+        raise
+    books = {"": AddressBook()}
+    for channel, findings in sorted(found.items()):
+        findings.finish()
+        where = f" on {channel}" if len(found) > 1 and channel else ""
+        generations = {}
+        for d in sorted(findings.drives.values(), key=lambda d: d.address):
+            if d.generation is None:
+                say(
+                    f"decode: address {d.address}{where} sent no DP0 reply to tell its "
+                    f"generation (no --config): decoded as {AddressBook().default_generation}"
+                )
+                continue
+            generations[d.address] = d.generation
+            why = "" if d.generation_certain else "; idle replies read alike in both"
+            say(
+                f"decode: address {d.address}{where} looks like a {d.generation} drive "
+                f"(no --config{why}): guessed"
+            )
+        books[channel] = AddressBook(generations=generations)
+    return books
+
+
+def decode_file(
+    path: Path,
+    config: Config | None,
+    as_json: bool,
+    report: Callable[[str], None] | None = None,
+) -> Iterator[str]:
+    """Every frame decoded, one line (or JSON object) each. Without ``config`` each drive
+    address is decoded in the generation its traffic shows, said on ``report`` (stderr)."""
+    say = report or _to_stderr
+    books = address_books(config) if config is not None else inferred_books(path, say)
+    names = unit_names(config)
+    for msg in read_messages(path, report):
         rec = record(msg, books, names)
         yield json.dumps(rec) if as_json else line(rec)
