@@ -10,14 +10,22 @@ fake clock with the simulated drives.
 from __future__ import annotations
 
 import json
+import logging
+from typing import Any
 
 import pytest
 
+from abh3_plugins.ros2 import types
+from abh3_plugins.ros2.diagnostics import DiagnosticsPublisher
 from abh3_supervisor.clients.control import status_lines
 from abh3_supervisor.clients.mirror import Mirror
+from abh3_supervisor.clients.tui.model import fault_lines, fault_names
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core import readouts
+from abh3_supervisor.core.diagnostics import Health, Level
+from abh3_supervisor.core.eventlog import EventLog, describe
+from abh3_supervisor.core.supervisor import FlagChange, SupervisorEvent
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.service.snapshot import supervisor_state
 from tests.conftest import TWO_UNITS, Rig
@@ -176,3 +184,69 @@ def test_a_commanding_units_comm_error_is_still_an_error_in_status() -> None:
     rig.drive("left").inject_error(COMM)
     rig.run(1.0)
     assert lines(rig)["left"].endswith("errors CAN_COMM_ERROR")
+
+
+def test_the_tui_shows_a_monitors_comm_error_as_a_note() -> None:
+    rig = watched()
+    rig.drive("left").inject_error(COMM)
+    rig.run(1.0)
+    mirror = Mirror.of(rig.config)
+    mirror.apply(supervisor_state(rig.sup, {}))
+    assert fault_names(mirror, "watch") == [("note", NOTE)]
+    assert fault_names(mirror, "left") == [("error", "CAN_COMM_ERROR")]
+    words = mirror.units["watch"].words
+    monitor = dict(fault_lines(words["error"], words["alarm"], Role.MONITOR))
+    assert "error" not in monitor and "alarm" not in monitor
+    assert monitor["note"] == f"·· 22 CAN_COMM_ERROR: {NOTE}"
+    commanding = dict(fault_lines(words["error"], words["alarm"]))
+    assert commanding["error"] == "✖▲ 22 CAN_COMM_ERROR"
+
+
+def test_diagnostics_say_ok_for_a_monitors_comm_error_alone() -> None:
+    rig = watched()
+    sent: list[Any] = []
+    clock = rig.timeline.clock
+    publisher = DiagnosticsPublisher(
+        Health(rig.sup), sent.append, types, 1.0, wall_ns=lambda: int(clock() * 1e9)
+    )
+    publisher.tick(clock())
+    watch = next(s for s in sent[-1].status if s.name.endswith("unit watch"))
+    assert watch.level == Level.OK  # the byte /diagnostics carries
+    assert watch.message == f"online, {NOTE}"
+    assert {kv.key: kv.value for kv in watch.values}["error bits"] == f"CAN_COMM_ERROR ({NOTE})"
+    rig.drive("watch").inject_error(flags.FAULT.mask("BRAKE_FAULT"))
+    rig.run(1.0)
+    publisher.changed(clock())
+    watch = next(s for s in sent[-1].status if s.name.endswith("unit watch"))
+    assert watch.level == Level.ERROR
+    assert watch.message == f"error: BRAKE_FAULT; {NOTE}"
+
+
+def test_diagnostics_still_error_for_a_commanding_units_comm_error() -> None:
+    rig = watched()
+    rig.drive("left").inject_error(COMM)
+    rig.run(1.0)
+    statuses = Health(rig.sup).statuses(rig.timeline.now)
+    left = next(s for s in statuses if s.name.endswith("unit left"))
+    assert left.level == Level.ERROR and left.message == "error: CAN_COMM_ERROR"
+
+
+def events(rig: Rig) -> list[SupervisorEvent]:
+    return [e for e in rig.events if isinstance(e, SupervisorEvent)]
+
+
+def test_the_event_log_notes_a_monitors_comm_error_at_info() -> None:
+    rig = watched()
+    log = EventLog(rig.sup)
+    described = [line for e in events(rig) if (line := log.line(e)) is not None]
+    assert (logging.INFO, f"unit watch: error +CAN_COMM_ERROR ({NOTE})") in described
+    assert (logging.INFO, f"unit watch: alarm +CAN_COMM_ERROR ({NOTE})") in described
+    assert all(level < logging.WARNING for level, _ in described), described
+    # another error beside it is an error; a commanding unit's bit 22 is one too
+    both = FlagChange("watch", 4.0, "error", COMM, COMM | flags.FAULT.mask("A_PDU"))
+    assert describe(both, rig.sup) == (logging.ERROR, "unit watch: error +A_PDU (A PDU)")
+    left = FlagChange("left", 4.0, "error", 0, COMM)
+    assert describe(left, rig.sup) == (
+        logging.ERROR,
+        "unit left: error +CAN_COMM_ERROR (CAN communication error)",
+    )
