@@ -242,6 +242,12 @@ def test_decode_without_config_guesses_each_addresses_generation_and_says_so(
     assert replies[1]["protocol"] == "2021" and replies[1]["values"]["vel_y"] == 50.0
     assert replies[3]["protocol"] == "2023" and replies[3]["values"]["vel_ay"] == 100.0
     assert "AY_READY" in replies[3]["flags"]["control"]  # read in the 2023 layout
+    # what AY/BX are, from each drive's own control word: drive 1 travels, drive 3 is motors
+    commands = {r["abh3_id"]: r for r in guessed if r["kind"] == "dp0_command"}
+    assert (commands[1]["axes"], commands[3]["axes"], replies[3]["axes"]) == ("Y/X", "A/B", "A/B")
+    assert "axes" not in replies[1]  # a 2021 reply names A, B, Y and X itself
+    text = list(decode_file(log, None, as_json=False, report=lambda _: None))
+    assert any(" dp0_command  axes=Y/X cmd_ay=50.0 cmd_bx=0.0 " in t for t in text)
 
 
 def test_decode_says_when_a_guess_is_uncertain_or_impossible(
