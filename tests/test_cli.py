@@ -161,10 +161,11 @@ def test_decode_without_config_uses_seed_defaults(tmp_path: Path) -> None:
     log = tmp_path / "x.log"
     log.write_text(
         "(1.000000) can0 00EF0102#F401000001100000 T\n"
-        "(1.001000) can0 00EF0201#F3FF0000FAFF0D00 R\n"
+        "(1.001000) can0 00EF0201#F3FF0000FAFFF9FF R\n"  # a 2021 reply: Y = (A+B)/2, X = A-Y
         "(1.002000) can0 18FEF100#0000000000000000 R\n"
     )
     out = abh3("decode", str(log))
+    assert out.stderr == "decode: address 1 looks like a 2021 drive (no --config): guessed\n"
     lines = out.stdout.splitlines()
     assert "dp0_command" in lines[0] and "cmd_ay=100.0" in lines[0]
     assert "inputs[AY_SERVO_ON,BX_SERVO_ON]" in lines[0]

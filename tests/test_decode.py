@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -12,8 +14,10 @@ from hypothesis import strategies as st
 
 from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.decode import SHOWN, decode_file, read_messages
+from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import ids
+from tests.conftest import TWO_UNITS, Rig
 
 FORMATS = (".log", ".asc", ".blf", ".csv")
 # DP0 command and reply of drive 1 (host 2), as `abh3 run --record` writes them
@@ -63,9 +67,13 @@ def test_bad_lines_are_reported_by_number_and_the_rest_is_decoded(
     mixed.write_text("garbage\n" + GOOD_LOG + "(1.002000) can0 00EF0102#zz T\n\n" + GOOD_LOG)
     code, out, err = decode(mixed, capsys)
     assert code == 0 and len(out) == 4 and all("dp0_" in line for line in out)
+    # without --config the reply's shape tells its generation first (said once, not twice)
+    guessed, *err = err
+    assert guessed == "decode: address 1 looks like a 2023 drive (no --config): guessed"
     assert err[0].startswith(f"{mixed}:1: cannot read 'garbage'")
     assert err[1].startswith(f"{mixed}:4: cannot read '(1.002000) can0 00EF0102#zz T'")
     assert err[2] == f"{mixed}: 2 unreadable line(s) skipped, 4 frame(s) read"
+    assert len(err) == 3  # the first pass that guessed reported nothing
 
 
 def test_an_asc_file_goes_on_with_its_header_settings_after_a_bad_frame(
@@ -78,6 +86,7 @@ def test_an_asc_file_goes_on_with_its_header_settings_after_a_bad_frame(
     broken.write_text("".join(lines))
     code, out, err = decode(broken, capsys)
     assert code == 0 and len(out) == 39
+    assert err.pop(0).endswith(": guessed")
     assert err[0].startswith(f"{broken}:{first + 2}: cannot read")
     assert err[-1] == f"{broken}: 1 unreadable line(s) skipped, 39 frame(s) read"
 
@@ -178,3 +187,81 @@ def test_frames_named_by_bus_as_in_an_mcap_recording_get_their_units_generation(
         msg = can.Message(arbitration_id=ids.dp0_reply_id(1, 2), data=bytes(8), channel=channel)
         decoded = record(msg, books, names)
         assert (decoded["unit"], decoded["protocol"]) == ("r", "2023"), channel
+
+
+# ---------------------------------------------------------------- no --config: guessed
+
+
+def record_traffic(rig: Rig, path: Path, channel: str = "can0") -> None:
+    """What crossed the simulated wire, as ``--record`` writes it."""
+    writer = can.Logger(str(path))
+    for f in rig.timeline.frames:
+        writer.on_message_received(
+            can.Message(
+                timestamp=f.start,
+                arbitration_id=f.arbitration_id,
+                data=f.data,
+                is_extended_id=True,
+                channel=channel,
+            )
+        )
+    writer.stop()
+
+
+def decoded(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[list[Any], list[str]]:
+    assert main(["decode", *args, "--json"]) == 0
+    out = capsys.readouterr()
+    return [json.loads(line) for line in out.out.splitlines()], out.err.splitlines()
+
+
+def test_decode_without_config_guesses_each_addresses_generation_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rig = Rig(parse_config(TWO_UNITS, "two.yaml"))  # drive 1 speaks 2021, drive 3 2023
+    for unit in ("left", "right"):
+        assert rig.sup.apply_text(unit, "SERVO ON ON") == ""
+        assert rig.sup.apply_text(unit, "START ON ON") == ""
+    rig.sup.set_velocity("left", 50, 0)
+    rig.sup.set_velocity("right", 100, 0)
+    rig.run(3.0)
+    log = tmp_path / "both.log"
+    record_traffic(rig, log)
+    guessed, err = decoded([str(log)], capsys)
+    assert err == [
+        "decode: address 1 looks like a 2021 drive (no --config): guessed",
+        "decode: address 3 looks like a 2023 drive (no --config): guessed",
+    ]
+    cfg = tmp_path / "two.yaml"
+    cfg.write_text(TWO_UNITS.replace("channel: t", "channel: can0"))
+    known, err = decoded([str(log), "--config", str(cfg)], capsys)
+    assert err == []  # told: nothing guessed
+    assert len(guessed) == len(known) == len(rig.timeline.frames)
+    for g, k in zip(guessed, known, strict=True):  # the same reading, less the unit names
+        assert {**g, "unit": None} == {**k, "unit": None}
+    replies = {r["abh3_id"]: r for r in guessed if r["kind"] == "dp0_reply"}
+    assert replies[1]["protocol"] == "2021" and replies[1]["values"]["vel_y"] == 50.0
+    assert replies[3]["protocol"] == "2023" and replies[3]["values"]["vel_ay"] == 100.0
+    assert "AY_READY" in replies[3]["flags"]["control"]  # read in the 2023 layout
+    # what AY/BX are, from each drive's own control word: drive 1 travels, drive 3 is motors
+    commands = {r["abh3_id"]: r for r in guessed if r["kind"] == "dp0_command"}
+    assert (commands[1]["axes"], commands[3]["axes"], replies[3]["axes"]) == ("Y/X", "A/B", "A/B")
+    assert "axes" not in replies[1]  # a 2021 reply names A, B, Y and X itself
+    text = list(decode_file(log, None, as_json=False, report=lambda _: None))
+    assert any(" dp0_command  axes=Y/X cmd_ay=50.0 cmd_bx=0.0 " in t for t in text)
+
+
+def test_decode_says_when_a_guess_is_uncertain_or_impossible(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "idle.log"
+    log.write_text(
+        "(1.000000) can0 00EF0102#0000000070700000 T\n"  # an idle drive: a zero reply
+        "(1.001000) can0 00EF0201#0000000000000000 R\n"
+        "(1.002000) can0 00FF2805#0000000000000000 R\n"  # address 5: broadcast 0 only
+    )
+    _, err = decoded([str(log)], capsys)
+    assert err == [
+        "decode: address 1 looks like a 2021 drive "
+        "(no --config; idle replies read alike in both): guessed",
+        "decode: address 5 sent no DP0 reply to tell its generation (no --config): decoded as 2021",
+    ]

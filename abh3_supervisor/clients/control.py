@@ -11,6 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
+from abh3_supervisor.core import readouts
 from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
 from abh3_supervisor.errors import Abh3Error, CommandError, Interrupted, RunError
 from abh3_supervisor.service import protocol as rpc
@@ -75,17 +77,69 @@ def status(path: Path, as_json: bool) -> int:
     return 0 if all(u["online"] for u in units) and not snapshot["estop"] else 1
 
 
+def _num(value: float, digits: int = 1) -> str:
+    return f"{value + 0.0:.{digits}f}"  # + 0.0: never "-0.0"
+
+
+def _command(u: dict[str, Any], model: VelocityModel | None) -> str:
+    if u["role"] == Role.MONITOR:
+        return "cmd none (monitor)"
+    sp = u["setpoint"]
+    label = readouts.axes(model) if model else "AY/BX"  # a service that does not say
+    if sp["kind"] == ControlMode.CURRENT:
+        return f"cmd current {label} {_num(sp['ay'], 2)} {_num(sp['bx'], 2)} %"
+    return f"cmd {label} {_num(sp['ay'])} {_num(sp['bx'])}"
+
+
+def _feedback(fb: dict[str, Any] | None, model: VelocityModel | None) -> str:
+    ab = "A/B –" if fb is None else f"A/B {_num(fb['vel_a'])} {_num(fb['vel_b'])}"
+    yx = "Y/X –" if fb is None else f"Y/X {_num(fb['vel_y'])} {_num(fb['vel_x'])}"
+    if model is None:
+        return f"fbk {ab} {yx}"
+    own, other = (yx, ab) if model is VelocityModel.TRAVEL else (ab, yx)
+    return f"fbk {own}" if fb is None else f"fbk {own} ({other})"
+
+
+def _switches(reported: dict[str, Any] | None, model: VelocityModel | None, now: float) -> str:
+    label = readouts.axes(model) if model else "AY/BX"
+    if reported is None:
+        return f"servo {label} ?/? · start {label} ?/? (not reported yet)"
+    servo, start = (
+        "/".join("ON" if on else "off" for on in reported[key]) for key in ("servo", "start")
+    )
+    age = now - reported["t"]
+    old = f" (reported {age:.1f} s ago)" if age > readouts.REPORT_OLD_S else ""
+    return f"servo {label} {servo} · start {label} {start}{old}"
+
+
+def _faults(u: dict[str, Any]) -> str:
+    role, words = Role(u["role"]), u["words"]
+    errors, alarms = (
+        readouts.read_faults(role, words.get(w, {}).get("value")) for w in ("error", "alarm")
+    )
+    parts = ["errors " + " ".join(errors.names) if errors.bits else "no errors"]
+    if alarms.bits:
+        parts.append("alarms " + " ".join(alarms.names))
+    parts += dict.fromkeys(errors.notes + alarms.notes)  # each note once
+    return " · ".join(parts)
+
+
 def status_lines(snapshot: dict[str, Any]) -> list[str]:
+    """One line per unit, velocities labelled by the unit's model (its own pair first, the
+    other model's in brackets), servo and start as the drive reports them."""
     lines = ["EMERGENCY STOP latched"] if snapshot["estop"] else []
     for name, u in snapshot["units"].items():
         state = {True: "online", False: "OFFLINE", None: "waiting"}[u["online"]]
-        fb, sp, st = u["feedback"], u["setpoint"], u["stats"]
-        vel = "–" if fb is None else f"A/B {fb['vel_a']:.1f} {fb['vel_b']:.1f}"
-        errors = " ".join(u["words"].get("error", {}).get("names", [])) or "no errors"
-        lines.append(
-            f"{name}: {state} {st['rate_hz']:.1f}/{st['requested_rate_hz']:g} Hz, "
-            f"cmd {sp['kind']} {sp['ay']:.1f} {sp['bx']:.1f}, fbk {vel}, {errors}"
-        )
+        st = u["stats"]
+        model = VelocityModel(u["velocity_model"]) if "velocity_model" in u else None
+        parts = [
+            f"{name}: {state} {st['rate_hz']:.1f}/{st['requested_rate_hz']:g} Hz",
+            _command(u, model),
+            _feedback(u["feedback"], model),
+            _switches(u["reported"], model, snapshot["t"]) if "reported" in u else None,
+            _faults(u),
+        ]
+        lines.append(" · ".join(p for p in parts if p is not None))
     return lines
 
 

@@ -12,7 +12,8 @@ from typing import Any
 
 import can
 
-from abh3_supervisor.config.model import Config
+from abh3_supervisor.config.model import Config, VelocityModel
+from abh3_supervisor.core import readouts
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.classify import AddressBook, DecodedFrame, Kind, classify
@@ -56,6 +57,25 @@ def unit_names(config: Config | None) -> dict[tuple[str, int], str]:
     for u in config.units.values():
         names.setdefault((u.bus, u.abh3_id), u.name)
     return names
+
+
+Models = dict[tuple[str, int], VelocityModel]
+
+
+def velocity_models(config: Config | None) -> Models:
+    """(channel or bus name, abh3_id) → the unit's velocity model: what its AY/BX fields
+    are. Channel '' holds an id whose units all agree."""
+    if config is None:
+        return {}
+    models: Models = {}
+    every = list(config.units.values())
+    for u in every:
+        models[(config.buses[u.bus].channel, u.abh3_id)] = u.velocity_model
+    for u in every:  # a real channel wins over a bus of that name
+        models.setdefault((u.bus, u.abh3_id), u.velocity_model)
+        if all(o.velocity_model is u.velocity_model for o in every if o.abh3_id == u.abh3_id):
+            models[("", u.abh3_id)] = u.velocity_model
+    return models
 
 
 def read_messages(path: Path, report: Callable[[str], None] | None = None) -> Iterator[can.Message]:
@@ -194,7 +214,10 @@ def _binary_frames(
 
 
 def record(
-    msg: can.Message, books: dict[str, AddressBook], names: dict[tuple[str, int], str]
+    msg: can.Message,
+    books: dict[str, AddressBook],
+    names: dict[tuple[str, int], str],
+    models: Models | None = None,
 ) -> dict[str, Any]:
     book = books.get(str(msg.channel or "")) or books[""]
     frame = classify(msg.arbitration_id, bytes(msg.data), msg.is_extended_id, book)
@@ -221,6 +244,11 @@ def record(
         out["protocol"] = generation.value
     layout = flags.layout(generation or book.default_generation)
     out["values"], out["flags"] = _values(frame, layout)
+    if frame.abh3 is not None and any(k.endswith(("_ay", "_bx")) for k in out["values"]):
+        channel = str(msg.channel or "")
+        model = (models or {}).get((channel, frame.abh3)) or (models or {}).get(("", frame.abh3))
+        if model is not None:  # what the AY/BX fields are: "Y/X" (travel) or "A/B" (motors)
+            out["axes"] = readouts.axes(model)
     return out
 
 
@@ -260,7 +288,8 @@ def _values(
 
 def line(rec: dict[str, Any]) -> str:
     who = rec.get("unit") or (f"id{rec['abh3_id']}" if rec["abh3_id"] is not None else "-")
-    vals = " ".join(f"{k}={v}" for k, v in rec["values"].items())
+    axes = {"axes": rec["axes"]} if "axes" in rec else {}
+    vals = " ".join(f"{k}={v}" for k, v in {**axes, **rec["values"]}.items())
     named = " ".join(f"{k}[{','.join(v)}]" for k, v in rec["flags"].items() if v)
     arrow = {"host->drive": "→", "drive->host": "←"}.get(rec["direction"] or "", " ")
     kind = rec["kind"] + (f"{rec['packet']}" if rec["kind"] == Kind.BROADCAST else "")
@@ -268,8 +297,72 @@ def line(rec: dict[str, Any]) -> str:
     return f"{t} {rec['id']} {arrow} {who:<8} {kind:<12} {vals} {named}".rstrip()
 
 
-def decode_file(path: Path, config: Config | None, as_json: bool) -> Iterator[str]:
-    books, names = address_books(config), unit_names(config)
-    for msg in read_messages(path):
-        rec = record(msg, books, names)
+HOST = 2  # the host address assumed without a configuration (AddressBook's default)
+
+
+def inferred_books(path: Path, say: Callable[[str], None]) -> tuple[dict[str, AddressBook], Models]:
+    """Without a configuration: each drive address's generation as ``abh3 scan`` reads it
+    from the traffic (its DP0 replies' shape, its error word), one book per channel, and
+    its velocity model where its control word says it. Says on ``say`` what it guessed, one
+    line per address. A first pass over the file: what it cannot read is reported by the
+    pass that decodes (or here, when nothing can be read)."""
+    from abh3_supervisor.clients.scan import Findings
+
+    found: dict[str, Findings] = {}
+    held: list[str] = []
+    try:
+        for msg in read_messages(path, held.append):
+            if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
+                continue
+            channel = str(msg.channel or "")
+            findings = found.setdefault(channel, Findings(HOST))
+            findings.observe(msg.arbitration_id, bytes(msg.data))
+    except Abh3Error:
+        for text in held:
+            say(text)
+        raise
+    books = {"": AddressBook()}
+    models: Models = {}
+    for channel, findings in sorted(found.items()):
+        findings.finish()
+        where = f" on {channel}" if len(found) > 1 and channel else ""
+        generations = {}
+        for d in sorted(findings.drives.values(), key=lambda d: d.address):
+            if d.travel_model is not None:
+                travel = VelocityModel.TRAVEL if d.travel_model else VelocityModel.MOTOR
+                models[(channel, d.address)] = travel
+            if d.generation is None:
+                say(
+                    f"decode: address {d.address}{where} sent no DP0 reply to tell its "
+                    f"generation (no --config): decoded as {AddressBook().default_generation}"
+                )
+                continue
+            generations[d.address] = d.generation
+            why = "" if d.generation_certain else "; idle replies read alike in both"
+            say(
+                f"decode: address {d.address}{where} looks like a {d.generation} drive "
+                f"(no --config{why}): guessed"
+            )
+        books[channel] = AddressBook(generations=generations)
+    return books, models
+
+
+def decode_file(
+    path: Path,
+    config: Config | None,
+    as_json: bool,
+    report: Callable[[str], None] | None = None,
+) -> Iterator[str]:
+    """Every frame decoded, one line (or JSON object) each. Without ``config`` each drive
+    address is decoded in the generation its traffic shows, said on ``report`` (stderr).
+    Frames with AY/BX fields say which axes they are (``axes``) where the unit's model is
+    known: from ``config``, else from the drive's control word."""
+    say = report or _to_stderr
+    if config is not None:
+        books, models = address_books(config), velocity_models(config)
+    else:
+        books, models = inferred_books(path, say)
+    names = unit_names(config)
+    for msg in read_messages(path, report):
+        rec = record(msg, books, names, models)
         yield json.dumps(rec) if as_json else line(rec)

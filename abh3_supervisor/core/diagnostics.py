@@ -10,6 +10,10 @@ it. Rules, first that applies:
 - WARN: alarm bits are set, or a commanding unit achieves less than ``RATE_WARN`` of its
   requested command rate;
 - OK otherwise.
+
+Bits normal for the unit's role (a monitor's CAN_COMM_ERROR: its drive is never
+commanded, :func:`abh3_supervisor.core.readouts.normal_faults`) count as neither error nor
+alarm: they are a note in the message ("online, no commands (monitor)").
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 from abh3_supervisor.config.model import Role
+from abh3_supervisor.core import readouts
 from abh3_supervisor.core.planner import plan
 from abh3_supervisor.core.state import UnitState
 from abh3_supervisor.core.supervisor import Supervisor
@@ -49,11 +54,9 @@ class Status:
     values: tuple[tuple[str, str], ...]
 
 
-def _word(unit: UnitState, name: str) -> tuple[int | None, list[str]]:
+def _word(unit: UnitState, name: str) -> tuple[int | None, readouts.Faults]:
     value = unit.words.get(name)
-    if value is None:
-        return None, []
-    return value, unit.layout.words[name].names(value)
+    return value, readouts.read_faults(unit.cfg.role, value)
 
 
 def _hex(value: int | None) -> str:
@@ -63,8 +66,10 @@ def _hex(value: int | None) -> str:
 def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
     cfg = unit.cfg
     stats = scheduler.slots[cfg.name].stats
-    error, errors = _word(unit, "error")
-    alarm, alarms = _word(unit, "alarm")
+    error, error_bits = _word(unit, "error")
+    alarm, alarm_bits = _word(unit, "alarm")
+    errors, alarms = error_bits.names, alarm_bits.names
+    notes = "; ".join(dict.fromkeys(error_bits.notes + alarm_bits.notes))
     achieved = stats.achieved_rate_hz(now, RATE_WINDOW_S)
     requested = cfg.command_rate_hz
     commanding = cfg.role is Role.COMMAND
@@ -82,6 +87,8 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         level, message = Level.WARN, f"command rate {achieved:.1f} of {requested:g} Hz"
     else:
         level, message = Level.OK, "online"
+    if notes and unit.online:
+        message += f"; {notes}" if level is not Level.OK else f", {notes}"
     rtt = stats.rtt_ms(99)
     values = [
         ("online", {None: "unknown", True: "yes", False: "no"}[unit.online]),
@@ -90,9 +97,9 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         ("protocol", cfg.protocol.value),
         ("role", cfg.role.value),
         ("error", _hex(error)),
-        ("error bits", ", ".join(errors)),
+        ("error bits", ", ".join(error_bits.labelled())),
         ("alarm", _hex(alarm)),
-        ("alarm bits", ", ".join(alarms)),
+        ("alarm bits", ", ".join(alarm_bits.labelled())),
         ("command rate achieved [Hz]", f"{achieved:.1f}"),
         ("command rate requested [Hz]", f"{requested:g}"),
         ("replies", str(stats.replies)),

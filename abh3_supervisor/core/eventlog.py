@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Hashable
 
+from abh3_supervisor.core import readouts
 from abh3_supervisor.core.supervisor import (
     FlagChange,
     Notice,
@@ -38,12 +39,22 @@ def describe(event: SupervisorEvent, sup: Supervisor) -> tuple[int, str] | None:
         ms = sup.units[event.unit].cfg.timeout_ms
         return logging.WARNING, f"unit {event.unit}: OFFLINE (no answer for {ms} ms)"
     if isinstance(event, FlagChange) and event.word in LOGGED_WORDS:
+        role = sup.units[event.unit].cfg.role
         parts = []
         for sign, bits in (("+", event.set_bits), ("-", event.cleared_bits)):
-            parts += [f"{sign}{b.name} ({b.en})" for b in flags.FAULT.set_bits(bits)]
+            parts += [
+                f"{sign}{b.name} ({readouts.fault_note(role, b) or b.en})"
+                for b in flags.FAULT.set_bits(bits)
+            ]
         if not parts:
             return None
-        level = logging.ERROR if event.word == "error" and event.set_bits else logging.WARNING
+        faults = ~readouts.normal_faults(role)  # a bit normal for the role is only news
+        if not (event.set_bits | event.cleared_bits) & faults:
+            level = logging.INFO
+        elif event.word == "error" and event.set_bits & faults:
+            level = logging.ERROR
+        else:
+            level = logging.WARNING
         return level, f"unit {event.unit}: {event.word} " + ", ".join(parts)
     if isinstance(event, FlagChange) and event.word == "control":
         layout = sup.units[event.unit].layout

@@ -7,6 +7,7 @@ import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
+from abh3_supervisor.core import readouts
 from abh3_supervisor.protocol import frames
 
 if TYPE_CHECKING:
@@ -18,6 +19,25 @@ if TYPE_CHECKING:
 
 def _finite(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
+
+
+def _word(unit: UnitState, name: str, value: int) -> dict[str, Any]:
+    """A flag word by value and set bits' names; an error or alarm word also says which
+    set bits are normal for the unit's role, and what they mean there."""
+    out: dict[str, Any] = {"value": value, "names": unit.layout.words[name].names(value)}
+    if name in ("error", "alarm"):
+        normal = readouts.read_faults(unit.cfg.role, value).normal
+        out["notes"] = {b.name: readouts.fault_note(unit.cfg.role, b) for b in normal}
+    return out
+
+
+def _reported(unit: UnitState, control: int | None) -> dict[str, Any] | None:
+    """Servo and start per axis [A/Y, B/X] as the drive last reported them, and when."""
+    t = readouts.control_reported_at(unit)
+    if control is None or t is None:
+        return None
+    seen = readouts.switches(unit.layout, control, t)
+    return {"t": seen.t, "servo": list(seen.servo), "start": list(seen.start)}
 
 
 def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
@@ -33,6 +53,7 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
         "abh3_id": unit.cfg.abh3_id,
         "protocol": unit.cfg.protocol.value,
         "role": unit.cfg.role.value,
+        "velocity_model": unit.cfg.velocity_model.value,
         "online": unit.online,
         "setpoint": {
             "kind": unit.setpoint.kind.value,
@@ -51,10 +72,11 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
         },
         "inputs": {"value": unit.inputs, "names": unit.layout.input.names(unit.inputs)},
         "words": {
-            name: {"value": value, "names": unit.layout.words[name].names(value)}
+            name: _word(unit, name, value)
             for name, value in words.items()
             if name in unit.layout.words
         },
+        "reported": _reported(unit, words.get("control")),
         "status": status,
         "stats": {
             "rate_hz": st.achieved_rate_hz(now),

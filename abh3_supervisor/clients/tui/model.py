@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 from abh3_supervisor.clients.mirror import Mirror, UnitView
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
+from abh3_supervisor.core import readouts
 from abh3_supervisor.core.planner import BusPlan
 from abh3_supervisor.protocol import flags, frames
 
@@ -103,12 +104,15 @@ def overview_row(sup: Mirror, name: str) -> dict[str, str]:
 
 
 def fault_names(sup: Mirror, name: str) -> list[tuple[str, str]]:
-    """(mark, bit name) of every error and alarm bit set on a unit."""
+    """(mark, bit name) of every error and alarm bit set on a unit; bits normal for its
+    role come last, once, as ("note", what they mean): a monitor's CAN_COMM_ERROR is
+    ("note", "no commands (monitor)")."""
     unit = sup.units[name]
-    return [
-        (mark, bit)
-        for mark, word in (("error", "error"), ("alarm", "alarm"))
-        for bit in flags.FAULT.names(unit.words.get(word, 0))
+    role = unit.cfg.role
+    faults = {word: readouts.read_faults(role, unit.words.get(word)) for word in ("error", "alarm")}
+    notes = dict.fromkeys(note for f in faults.values() for note in f.notes)
+    return [(word, bit) for word, f in faults.items() for bit in f.names] + [
+        ("note", note) for note in notes
     ]
 
 
@@ -122,12 +126,19 @@ def flag_lines(layout: flags.Layout, word_name: str, value: int | None) -> list[
     ]
 
 
-def fault_lines(error: int | None, alarm: int | None) -> list[tuple[str, str]]:
-    """Every error/alarm bit: (style key, "✖▲ bit name") — error and alarm share a word."""
+def fault_lines(
+    error: int | None, alarm: int | None, role: Role = Role.COMMAND
+) -> list[tuple[str, str]]:
+    """Every error/alarm bit: (style key, "✖▲ bit name") — error and alarm share a word.
+    A set bit normal for the unit's role is ("note", "·· bit name: what it means")."""
     error, alarm = error or 0, alarm or 0
     lines = []
     for b in flags.FAULT.bits:
         e, a = bool(error & b.mask), bool(alarm & b.mask)
+        note = readouts.fault_note(role, b) if e or a else None
+        if note is not None:
+            lines.append(("note", f"·· {b.bit:>2} {b.name}: {note}"))
+            continue
         marks = (ERROR_MARK if e else "·") + (ALARM_MARK if a else "·")
         lines.append(("error" if e else "alarm" if a else "", f"{marks} {b.bit:>2} {b.name}"))
     return lines
