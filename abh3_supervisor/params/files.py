@@ -104,8 +104,8 @@ def write(path: Path, values: Iterable[ParamValue], unit: str = "") -> None:
         raise ParamFileError(f"{path}: cannot write: {exc.strerror}") from exc
 
 
-MAX_BYTES = 1 << 20  # 1 MiB: a full parameter set is a few kB (the maker's AGV file 10 kB)
-MAX_ROWS = 8 * len(table.PARAMETERS)  # the maker's file holds ~260 addresses; ours 121
+MAX_BYTES = 1 << 20  # 1 MiB: a full parameter set is a few kB (the maker's AGV file 12 kB)
+MAX_ROWS = 8 * len(table.PARAMETERS)  # 968: the maker's file holds 247 addresses; ours 121
 MAX_DEPTH = 8  # YAML/JSON: ours needs 3 (the document, its parameter list, an entry)
 MAX_NODES = 10 * MAX_ROWS  # YAML/JSON values of every kind: an entry has 5 at most (+ keys)
 
