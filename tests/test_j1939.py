@@ -11,7 +11,7 @@ import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Fault, FaultKind
-from abh3_supervisor.params.session import Result
+from abh3_supervisor.params.session import ABORT_GUARD, Result
 from abh3_supervisor.params.telabh3 import Command, Request, decode_reply
 from abh3_supervisor.params.transport import Receiver, Sender, State
 from abh3_supervisor.simulator.timeline import WireFrame
@@ -239,6 +239,7 @@ def test_a_dump_leaves_every_units_dp0_rate_within_one_percent() -> None:
 def test_a_refused_transport_frame_fails_the_request_at_once_and_frees_the_channel(
     rig: Rig,
 ) -> None:
+    """Free again after the guard that follows any failed exchange (test_j1939_abort.py)."""
     rig.run(0.1)
     rig.timeline.refuse_sends(0, 0.1, 0.2)
     results = submit(rig, "left", Request(Command.PARAM, 0x5000))
@@ -247,7 +248,7 @@ def test_a_refused_transport_frame_fails_the_request_at_once_and_frees_the_chann
     assert results[0].t == pytest.approx(0.1, abs=0.002)
     rig.run(0.1)
     again = submit(rig, "left", Request(Command.PARAM, 0x5000))
-    rig.run(0.1)
+    rig.run(ABORT_GUARD)
     assert again[0].ok
 
 

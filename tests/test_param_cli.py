@@ -278,7 +278,8 @@ def test_mistakes_in_files_and_values_are_named_not_dropped_or_a_traceback(
     for value in (float("nan"), float("inf")):
         with pytest.raises(CodecError, match="is not a 32-bit integer"):
             table.to_word(value, "int")
-    table.to_word(float("inf"), "pf")  # a packed float has a code for it: no error
+    with pytest.raises(CodecError, match="NaN and infinities are refused"):  # issue 22
+        table.to_word(float("inf"), "pf")  # a packed float has a code for it; no setting wants it
     for bad in (["--interval", "nan"], ["--count", "-1"]):
         with pytest.raises(SystemExit) as ended:
             main(["param", "-c", "configs/demo.yaml", "monitor", "left", "0x1012", *bad])

@@ -68,6 +68,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     mon.add_argument("--count", type=count, default=0, metavar="N", help="stop after N rounds")
     ident = ops.add_parser("identity", help="the drive's identity strings (firmware version)")
     ident.add_argument("unit")
+    for op in (diff, restore):
+        op.add_argument(
+            "--allow-unknown", action="store_true", help="accept addresses not in the table"
+        )
     for op in (put, restore):
         op.add_argument("--yes", "-y", action="store_true", help="do not ask")
         op.add_argument("--force", action="store_true", help="write even while the servo is on")
@@ -205,11 +209,11 @@ async def _dump(backend: Backend, args: argparse.Namespace) -> int:
 
 
 async def _differences(
-    backend: Backend, unit: str, path: Path
+    backend: Backend, unit: str, path: Path, allow_unknown: bool = False
 ) -> list[tuple[ParamValue, ParamValue]]:
     from abh3_supervisor.params import files
 
-    wanted = files.read(path)
+    wanted = files.read(path, allow_unknown=allow_unknown)  # all checked before any read
     have = await _read_all(backend, unit, [v.address for v in wanted])
     return [(h, w) for h, w in zip(have, wanted, strict=True) if h.word != w.word]
 
@@ -221,7 +225,8 @@ def _show(differences: list[tuple[ParamValue, ParamValue]], unit: str, path: Pat
 
 
 async def _diff(backend: Backend, args: argparse.Namespace) -> int:
-    _show(await _differences(backend, args.unit, args.file), args.unit, args.file)
+    found = await _differences(backend, args.unit, args.file, args.allow_unknown)
+    _show(found, args.unit, args.file)
     return 0
 
 
@@ -267,7 +272,7 @@ async def _set(backend: Backend, args: argparse.Namespace) -> int:
 
 
 async def _restore(backend: Backend, args: argparse.Namespace) -> int:
-    differences = await _differences(backend, args.unit, args.file)
+    differences = await _differences(backend, args.unit, args.file, args.allow_unknown)
     _show(differences, args.unit, args.file)
     if not differences:
         return 0

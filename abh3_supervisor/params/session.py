@@ -3,6 +3,8 @@
 One exchange at a time per unit (the drive holds one session: §1.3): our request goes out
 (:class:`Sender`), then the drive's reply comes in (:class:`Receiver`). Requests queue;
 each ends in a :class:`Result` handed to its callback from inside ``poll``/``on_frame``.
+After a failed exchange the next one waits :data:`ABORT_GUARD` (a late CTS must not
+answer it: :meth:`ParamChannel.poll`).
 The per-bus scheduler owns one channel per unit and sends its frames after the DP0
 commands, so parameter traffic never delays a keepalive.
 """
@@ -30,6 +32,10 @@ from abh3_supervisor.protocol.ids import PF_TP_CM, PF_TP_DT, CanId
 
 NOW = 0.0  # a deadline already past: work is waiting (finite, so a pump arms its timer)
 HOST_DT_GAP = 0.001  # s between our DTs: a request is 2–3 DTs, never a burst on the bus
+# After a failed exchange, the next RTS waits this long and the drive's transport frames
+# are dropped meanwhile (see ParamChannel.poll): J1939-21's Tr, the 200 ms a node may take
+# to answer, and 50 ms for frames queued on our side (an adapter, the kernel, the loop).
+ABORT_GUARD = 0.25
 
 
 def tp_ids(destination: int, source: int, priority: int = 0) -> tuple[int, int]:
@@ -145,6 +151,7 @@ class ParamChannel:
         self.queue: deque[tuple[Request, Done]] = deque()
         self.current: tuple[Exchange, Done] | None = None
         self.timeout = TIMEOUT
+        self.quiet_until = -math.inf  # no RTS before this: a failed exchange's guard
         self.on_work: Callable[[], None] = lambda: None  # its owner polls it from now on
 
     @property
@@ -178,14 +185,28 @@ class ParamChannel:
     def on_frame(self, is_dt: bool, data: bytes, now: float) -> None:
         if self.current is None:
             # nothing open: ignored, not aborted — another tool on the bus with our host
-            # address (a `abh3 param` beside a running service) may own that session
+            # address (a `abh3 param` beside a running service) may own that session, or
+            # it is a late frame of an exchange that failed (the guard in poll)
             return
         self.current[0].on_frame(is_dt, data, now)
         self._finish(now)
 
     def poll(self, now: float) -> list[OutFrame]:
+        """The open exchange's frames; the next exchange starts when it ends.
+
+        Not at once after a failure. J1939-21: a CTS answers the most recent RTS of its
+        connection, and nothing in it says which RTS — the next request's first CTS asks
+        for packet 1 just like the one we gave up on. When we abort (a timeout, a caller
+        giving up, the bus refusing a frame), the drive may have put its CTS to the old RTS
+        on the wire before it heard the abort; taken by the next request's sender, that CTS
+        would clear DTs the drive never asked for (it ignores them, or answers the real RTS
+        mid-transfer). So after a failed exchange no RTS goes for ABORT_GUARD, and every
+        transport frame from the drive meanwhile finds no exchange open and is dropped; a
+        drive answers within J1939's Tr (200 ms), and our abort went after our RTS, so its
+        CTS to that RTS is on the wire within Tr of our abort. Sender.on_cm also ignores a
+        first CTS that does not ask for packet 1 (the rest of an older session)."""
         out: list[OutFrame] = []
-        if self.current is None and self.queue:
+        if self.current is None and self.queue and now >= self.quiet_until:
             request, done = self.queue.popleft()
             self.current = (Exchange(request, self.fmt, self.ids, now, timeout=self.timeout), done)
         if self.current is not None:
@@ -202,6 +223,8 @@ class ParamChannel:
         if exchange._out:  # its last frames (an EndOfMsgAck, an abort) go first
             return
         self.current = None
+        if exchange.error is not None:  # the drive may still answer it: see poll
+            self.quiet_until = now + ABORT_GUARD
         done(Result(exchange.request, now, exchange.reply, exchange.error))
 
     def on_send_failed(self) -> None:
@@ -210,5 +233,5 @@ class ParamChannel:
 
     def next_deadline(self) -> float:
         if self.current is None:
-            return NOW if self.queue else math.inf
+            return max(NOW, self.quiet_until) if self.queue else math.inf
         return self.current[0].next_deadline()

@@ -10,6 +10,7 @@ Addresses not listed here are shown as hex.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -143,13 +144,55 @@ def to_value(word: int, kind: Kind) -> float:
 
 
 def to_word(value: float, kind: Kind) -> int:
-    if kind == "int":  # a packed float has codes for ±inf and NaN; an integer has none
-        if not math.isfinite(value):
+    """The word the drive is sent for ``value``; refused (:class:`CodecError`) unless the
+    word means that value: NaN and infinities never (a packed float has codes for them,
+    but no setting wants one, and ``set nan`` is a typo); an ``int`` must be a whole number
+    within 32 bits (signed or unsigned); a packed float is rounded to six significant
+    digits and must come back the same within that rounding — one beyond the format's
+    range (about 1e-72 to 1e76) is refused, never written as another magnitude."""
+    if kind == "int":
+        if not math.isfinite(value) or value != int(value) or not INT_MIN <= value <= WORD_MAX:
             raise CodecError(f"{value!r} is not a 32-bit integer")
-        if value != int(value) or not -(2**31) <= value < 2**32:
-            raise CodecError(f"{value!r} is not a 32-bit integer")
-        return int(value) & 0xFFFFFFFF
-    return pack_float(value)
+        return int(value) & WORD_MAX
+    if not math.isfinite(value):
+        raise CodecError(f"{value!r} is not a finite number: NaN and infinities are refused")
+    word = pack_float(value)  # CodecError beyond the exponent's range
+    back = unpack_float(word)
+    if not math.isclose(back, value, rel_tol=PF_ROUNDING):
+        raise CodecError(f"{value!r} does not fit a packed float (it would be {back!r})")
+    return word
+
+
+INT_MIN, WORD_MAX = -(2**31), 2**32 - 1  # an internal value: signed or unsigned 32 bits
+PF_ROUNDING = 5.000001e-6  # six significant digits, rounded: at most half a unit of the 6th
+_WORD = re.compile(r"[+-]?[0-9]+|0[xX][0-9a-fA-F]+")
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def parse_word(text: str) -> int:
+    """An internal value as files write it: decimal (signed ``-2147483648`` … unsigned
+    ``4294967295``) or ``0x`` hex up to ``0xFFFFFFFF``; anything else is refused, never
+    masked to 32 bits."""
+    key = text.strip()
+    if not _WORD.fullmatch(key):
+        raise CodecError(f"{quote(text)} is not an integer (decimal or 0x hex)")
+    value = int(key, 16) if key[:2] in ("0x", "0X") else int(key, 10)
+    if not INT_MIN <= value <= WORD_MAX:
+        raise CodecError(f"{quote(text)} is beyond 32 bits (-2147483648 to 4294967295)")
+    return value & WORD_MAX
+
+
+def quote(text: str) -> str:
+    """A value quoted for a message: control characters escaped, at most 40 characters."""
+    shown = text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+    return f"'{shown if len(shown) <= 40 else shown[:37] + '...'}'"
+
+
+def parse_number(text: str) -> float | None:
+    """A display value that is a plain decimal number (``800``, ``-0.25``, ``1e3``), or
+    None for anything else (a unit after it, a word: the maker's tool writes both)."""
+    key = text.strip()
+    return float(key) if _NUMBER.fullmatch(key) else None
 
 
 def display(value: float) -> str:

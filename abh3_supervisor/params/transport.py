@@ -162,6 +162,11 @@ class Sender(_Machine):
             count, first = data[1], data[2]
             if count == 0:  # hold: the receiver wants a pause; it owes a CTS in time
                 self.deadline = now + self.timeout
+            elif self.window_end == 0 and first != 1:
+                # the first CTS of a session asks for packet 1 (J1939-21): one asking for
+                # another answers an older RTS (the rest of a session we aborted) — not
+                # ours to act on or abort; ours still comes, or the timeout does
+                return
             elif not 1 <= first <= len(self.packets):
                 self._fail(f"{self.peer} asked for DT {first} of {len(self.packets)}", 7, True)
             else:
