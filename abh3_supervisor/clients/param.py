@@ -235,7 +235,7 @@ async def _may_write(backend: Backend, args: argparse.Namespace, what: str) -> b
 
     servo = await backend.servo_on(args.unit)
     if servo is not False and not args.force:  # refused before asking (checked again)
-        why = "reports its servo ON" if servo else "has not reported its servo state"
+        why = "reports its servo ON" if servo else "did not answer whether its servo is on"
         raise ParamFailed(f"unit {args.unit} {why}: not writing (--force to write anyway)")
     if args.yes:
         return True

@@ -42,6 +42,7 @@ from abh3_supervisor.scheduler.core import (
 )
 
 log = logging.getLogger(__name__)
+DP0 = -1  # the waiters' key for DP0 exchanges, beside broadcast packets 0–7
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,7 +104,8 @@ class Supervisor:
         # what each bus's interface reports of itself (bus-off, error-passive, …)
         self.bus_health = {bus: BusHealth(bus) for bus in config.buses}
         self._observers: list[Observer] = []
-        self._waiters: dict[str, list[tuple[float, asyncio.Future[bool]]]] = {}
+        # (unit, DP0 or a broadcast packet) → (requests sent since, future) awaiting a reply
+        self._waiters: dict[tuple[str, int], list[tuple[float, asyncio.Future[bool]]]] = {}
         self.estop = False
         self.stopping = False  # set by safe_state(): every later command is refused
         # per bus: step the scheduler now (set by the runtime; absent on a fake clock)
@@ -163,7 +165,7 @@ class Supervisor:
             if unit.feedback.control is not None:
                 self._word(unit, event.t, "control", unit.feedback.control)
             if event.sent_at is not None:
-                self._wake(unit.name, event.sent_at)
+                self._wake((unit.name, DP0), event.sent_at)
         elif isinstance(event, StatusEvent):
             if isinstance(event.record, frames.Unknown):
                 return
@@ -178,6 +180,8 @@ class Supervisor:
                     self._word(unit, event.t, "control", record.control)
                 if record.inputs is not None:  # 2023: the inputs as the drive sees them
                     self._word(unit, event.t, "drive_inputs", record.inputs)
+            if event.sent_at is not None:
+                self._wake((unit.name, event.packet), event.sent_at)
         elif isinstance(event, HealthEvent):
             unit.online = event.online
             if not event.online and unit.cfg.role is Role.COMMAND:
@@ -429,8 +433,16 @@ class Supervisor:
 
         Registered at once (not on first await), so a reply cannot slip past it.
         """
+        return self._expect((name, DP0), since)
+
+    def expect_status(self, name: str, packet: int, since: float) -> asyncio.Future[bool]:
+        """A future set once broadcast ``packet`` answers a request sent at or after
+        ``since`` (ask for it with :meth:`request_status`): what the drive says *now*."""
+        return self._expect((name, packet), since)
+
+    def _expect(self, key: tuple[str, int], since: float) -> asyncio.Future[bool]:
         future: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
-        waiters = self._waiters.setdefault(name, [])
+        waiters = self._waiters.setdefault(key, [])
         waiters.append((since, future))
         future.add_done_callback(lambda f: waiters.remove((since, f)))
         return future
@@ -442,8 +454,8 @@ class Supervisor:
         except TimeoutError:
             return False
 
-    def _wake(self, name: str, sent_at: float) -> None:
-        waiters = self._waiters.get(name)
+    def _wake(self, key: tuple[str, int], sent_at: float) -> None:
+        waiters = self._waiters.get(key)
         if not waiters:  # the usual case, once per reply on the bus path: no allocation
             return
         for since, future in list(waiters):

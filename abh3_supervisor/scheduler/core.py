@@ -45,6 +45,7 @@ class StatusEvent:
     t: float
     packet: int
     record: frames.Broadcast | frames.Unknown
+    sent_at: float | None = None  # when the request it answers went; None: unasked
 
 
 @dataclass(frozen=True, slots=True)
@@ -230,12 +231,13 @@ class BusScheduler:
             reply = frames.decode_dp0_reply(data, cfg.protocol)
             self.events.append(FeedbackEvent(cfg.name, now, reply, sent_at))
         else:
+            asked_at = None
             if slot.poll_sent_at is not None and slot.poll_packet == packet:
-                slot.poll_sent_at = None
+                asked_at, slot.poll_sent_at = slot.poll_sent_at, None
             slot.stats.broadcasts += 1
             slot.stats.last_seen = now
             record = frames.decode_broadcast(packet, data, cfg.protocol)
-            self.events.append(StatusEvent(cfg.name, now, packet, record))
+            self.events.append(StatusEvent(cfg.name, now, packet, record, asked_at))
         if slot.online is not True:
             slot.online = True
             # back online: resume the normal rate (an offline unit was probed slowly)

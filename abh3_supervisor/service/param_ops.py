@@ -3,9 +3,10 @@ behind ``abh3 param`` on its own bus and the control socket's ``param_*`` method
 
 A request goes to the unit's parameter channel in the bus scheduler and is awaited; the
 channel always ends an exchange (J1939 timeouts, 1.25 s per step), and ``CALL_DEADLINE``
-bounds it again. A write is refused while the unit reports its servo on (``force``
-overrides), reads the old value first and the new one back, and is logged in the event
-log with both (an :class:`OperatorAction`).
+bounds it again. A write is refused while the servo is on — as this supervisor commands it,
+or as the drive reports it when asked at that moment (``force`` overrides) — reads the old
+value first and the new one back, and is logged in the event log with both (an
+:class:`OperatorAction`).
 """
 
 from __future__ import annotations
@@ -14,16 +15,17 @@ import asyncio
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from abh3_supervisor.config.model import Role
 from abh3_supervisor.errors import Abh3Error, RunError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.session import Result
 from abh3_supervisor.params.telabh3 import Command, Request
+from abh3_supervisor.protocol.generation import Generation
 
 if TYPE_CHECKING:
     from abh3_supervisor.core.supervisor import Supervisor
 
 CALL_DEADLINE = 10.0  # s: a transport session always ends within ~4 s; never hang past this
-SERVO_WAIT_STEP = 0.02  # s between looks for the drive's first report of its servo
 
 
 class ParamFailed(RunError):
@@ -66,25 +68,32 @@ class ParamOps:
         return result.reply.data
 
     async def servo_on(self, unit: str) -> bool | None:
-        """As the drive reports it; None if it has not within the unit's timeout."""
+        """The servo as the drive reports it *now*: in an answer to a request sent after
+        this call — a 2023 drive's DP0 reply (every exchange carries its control word), a
+        2021 drive's broadcast 1, asked for whatever the unit's mask polls. None if no such
+        answer comes within the unit's timeout. A word heard before never decides."""
         state = self.sup.unit(unit)
-        if state.words.get("control") is None:
-            self.sup.request_status(unit, 1)  # 2021 reports it there; a 2023 DP0 reply too
-        for _ in range(int(state.cfg.timeout_ms / 1000 / SERVO_WAIT_STEP) + 1):
-            control = state.words.get("control")
-            if control is not None:
-                return bool(control & state.layout.servo.both)
-            await asyncio.sleep(SERVO_WAIT_STEP)  # the drive's first report, in real time
-        return None
+        since = self.sup.clock()
+        if state.layout.generation is Generation.G2023:
+            answered = self.sup.expect_exchange(unit, since)
+        else:
+            answered = self.sup.expect_status(unit, 1, since)
+            self.sup.request_status(unit, 1)
+        try:
+            await asyncio.wait_for(answered, state.cfg.timeout_ms / 1000)
+        except TimeoutError:
+            return None
+        control = state.words.get("control")  # just set from that answer
+        return None if control is None else bool(control & state.layout.servo.both)
 
     async def write(
         self, unit: str, address: int, word: int, *, force: bool, source: str
     ) -> tuple[int, int]:
-        """Write ``word``; (old, read back). Refused while the servo is on, unless forced."""
-        servo = await self.servo_on(unit)
-        if servo is not False and not force:
-            why = "reports its servo ON" if servo else "has not reported its servo state"
-            raise ParamFailed(f"unit {unit} {why}: not writing")
+        """Write ``word``; (old, read back). Refused while the servo is on — commanded on
+        by this supervisor, or reported on by the drive when asked now — or when the drive
+        does not answer that question; ``force`` overrides."""
+        if not force:
+            await self.refuse_unless_servo_off(unit)
         old = await self.read(unit, Command.PARAM, address)
         check(unit, await self.call(unit, Request(Command.PARAM, address, word)), word=False)
         new = await self.read(unit, Command.PARAM, address)
@@ -101,6 +110,17 @@ class ParamOps:
                 f"not {shown(address, word)}"
             )
         return old, new
+
+    async def refuse_unless_servo_off(self, unit: str) -> None:
+        """:class:`ParamFailed` unless the servo is off both as commanded and as the drive
+        reports it in answer to a question asked now."""
+        state = self.sup.unit(unit)
+        if state.cfg.role is Role.COMMAND and state.inputs & state.layout.servo.both:
+            raise ParamFailed(f"unit {unit}: this supervisor commands its servo ON: not writing")
+        servo = await self.servo_on(unit)
+        if servo is not False:
+            why = "reports its servo ON" if servo else "did not answer whether its servo is on"
+            raise ParamFailed(f"unit {unit} {why}: not writing")
 
 
 def check(unit: str, result: Result, word: bool = True) -> int:
