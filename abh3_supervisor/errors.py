@@ -32,6 +32,11 @@ class BusOpenError(RunError):
     """A CAN bus could not be opened (missing device, interface not installed)."""
 
 
+class PartialWrite(RunError):
+    """Some parameters were written and then the run stopped (failure or signal): exit 4,
+    with the journal that undoes them saved."""
+
+
 class PluginError(RunError):
     """A plugin could not start (or blocked starting)."""
 

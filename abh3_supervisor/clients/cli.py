@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
 from abh3_supervisor.clients.argtypes import positive
-from abh3_supervisor.errors import Abh3Error, ConfigError, Interrupted, RunError
+from abh3_supervisor.errors import Abh3Error, ConfigError, Interrupted, PartialWrite, RunError
 
 if TYPE_CHECKING:
     import argparse
@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from abh3_supervisor.service.server import ServiceOptions
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
+EXIT_PARTIAL = 4  # abh3 param restore: some values written, then stopped (journal saved)
 MAX_SHOWN = 20  # problems printed; the rest are counted (one mistake can repeat 10 000 times)
 # the same as runtime.STOP_SIGNALS, without importing python-can before they are caught
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -195,6 +196,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         report(exc.problems)
         return EXIT_USAGE
+    except PartialWrite as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_PARTIAL
     except RunError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_RUNTIME

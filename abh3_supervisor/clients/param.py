@@ -18,13 +18,16 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import signal
 import sys
+import threading
+import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from abh3_supervisor.clients.argtypes import count, finite_positive
-from abh3_supervisor.errors import CommandError
+from abh3_supervisor.errors import CommandError, Interrupted, PartialWrite
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 
@@ -34,6 +37,7 @@ if TYPE_CHECKING:
     from abh3_supervisor.params.files import ParamValue
 
 log = logging.getLogger("abh3")
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 IDENTITY_ADDRESSES = (0x0, 0x2, 0x4, 0x5, 0x8, 0xC)
 
 
@@ -139,7 +143,37 @@ def run(args: argparse.Namespace) -> int:
 
     config = monitor_only(load_config(args.config))
     known_unit(args.unit, config.units)  # before any bus opens
-    return asyncio.run(_on_own_bus(config, lambda backend: op(backend, args)))
+    return asyncio.run(_stoppable(_on_own_bus(config, lambda backend: op(backend, args))))
+
+
+async def _stoppable(work: Coroutine[Any, Any, int]) -> int:
+    """``work`` on the loop, ended by SIGINT/SIGTERM/SIGHUP at once and cleanly: the signal
+    cancels it (its buses close on the way out) and is then raised as :class:`Interrupted`.
+
+    The CLI's own handler raises where the signal lands, which on a running loop is inside
+    a pump's callback, where asyncio logs the exception and goes on: a loop needs its own.
+    (Through ``--connect`` the work blocks in the socket instead, where that handler works.)
+    """
+    loop = asyncio.get_running_loop()
+    task = asyncio.ensure_future(work)
+    caught: list[int] = []
+
+    def stop(signum: int) -> None:
+        if not caught:
+            caught.append(signum)
+            task.cancel(f"stopped by {signal.Signals(signum).name}")
+
+    for sig in STOP_SIGNALS:
+        loop.add_signal_handler(sig, stop, sig)
+    try:
+        return await task
+    except asyncio.CancelledError:
+        if caught:
+            raise Interrupted(caught[0]) from None
+        raise
+    finally:
+        for sig in STOP_SIGNALS:
+            loop.remove_signal_handler(sig)
 
 
 def known_unit(name: str, units: Iterable[str]) -> None:
@@ -241,7 +275,29 @@ async def _may_write(backend: Backend, args: argparse.Namespace, what: str) -> b
         return True
     if not sys.stdin.isatty():
         raise CommandError(f"{what}: confirm with --yes when not on a terminal")
-    return input(f"{what}? [y/N] ").strip().lower() in ("y", "yes")
+    return (await _ask(f"{what}? [y/N] ")).strip().lower() in ("y", "yes")
+
+
+async def _ask(prompt: str) -> str:
+    """``input(prompt)`` on a daemon thread: the loop keeps its buses and its signals (a
+    Ctrl-C at the question ends the command; the thread is left behind, blocked on stdin)."""
+    loop = asyncio.get_running_loop()
+    answer: asyncio.Future[str] = loop.create_future()
+
+    def read() -> None:
+        try:
+            line = input(prompt)
+        except EOFError:
+            line = ""
+
+        def give() -> None:
+            if not answer.done():
+                answer.set_result(line)
+
+        loop.call_soon_threadsafe(give)
+
+    threading.Thread(target=read, name="question", daemon=True).start()
+    return await answer
 
 
 async def _write(backend: Backend, args: argparse.Namespace, new: ParamValue) -> ParamValue:
@@ -279,10 +335,98 @@ async def _restore(backend: Backend, args: argparse.Namespace) -> int:
     if not await _may_write(backend, args, f"write {len(differences)} parameter(s) to {args.unit}"):
         print("not written")
         return 0
-    for _, want in differences:
-        await _write(backend, args, want)
-    print(f"{len(differences)} parameter(s) of {args.unit} restored from {args.file}")
+    journal = Journal(args)
+    total = len(differences)
+    try:
+        for n, (have, want) in enumerate(differences, 1):
+            journal.add(have)  # the old value, kept before the write goes out
+            print(f"[{n}/{total}] {have.name}: {have.shown} → {want.shown}", file=sys.stderr)
+            await _write(backend, args, want)
+            journal.written += 1
+    except (Exception, asyncio.CancelledError, Interrupted) as exc:
+        journal.close()
+        if not journal.entries:
+            raise
+        raise PartialWrite(journal.report(total, _cause(exc))) from exc
+    journal.discard()
+    print(f"{total} parameter(s) of {args.unit} restored from {args.file}")
     return 0
+
+
+def _cause(exc: BaseException) -> str:
+    if isinstance(exc, Interrupted):
+        return f"stopped by {signal.Signals(exc.signum).name}"
+    if isinstance(exc, asyncio.CancelledError):
+        return str(exc.args[0]) if exc.args else "cancelled"
+    return str(exc) or type(exc).__name__
+
+
+class Journal:
+    """The old value of every parameter a restore is about to write, appended to a file
+    before each write goes out (so even ``kill -9`` leaves it): restoring that file undoes
+    the restore. Kept when the restore stops part way, removed when it completes."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.entries: list[ParamValue] = []
+        self.written = 0  # writes confirmed; the entry after them may or may not be written
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        name = f"{args.file.stem}.undo-{args.unit}-{stamp}.csv"
+        self.path: Path | None = args.file.with_name(name)
+        self._file: Any = None
+
+    def add(self, old: ParamValue) -> None:
+        from abh3_supervisor.params import files
+
+        self.entries.append(old)
+        if self._file is None and self.path is not None:
+            self._file = self._open()
+        if self._file is not None:
+            self._file.write(files.dumps([old], "csv").encode(files.ENCODING))
+            self._file.flush()
+
+    def _open(self) -> Any:
+        assert self.path is not None
+        for path in (self.path, Path.cwd() / self.path.name):  # beside the file, else here
+            try:
+                handle = path.open("xb")
+            except OSError:
+                continue
+            self.path = path
+            return handle
+        log.warning("cannot save the undo journal beside %s or here", self.args.file)
+        self.path = None
+        return None
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def discard(self) -> None:
+        self.close()
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+
+    def report(self, total: int, cause: str) -> str:
+        """Print what was written with its old value; the message for the partial exit."""
+        unsure = len(self.entries) - self.written
+        print(f"restore of {self.args.unit} stopped part way ({cause}):", file=sys.stderr)
+        for i, old in enumerate(self.entries):
+            state = "written" if i < self.written else "maybe written"
+            print(f"  {state}: {_line(old)}  (the old value)", file=sys.stderr)
+        args = self.args
+        where = f"-c {args.config} " if args.config else ""
+        where += f"--connect {args.connect} " if args.connect else ""
+        extra = " --allow-unknown" if args.allow_unknown else ""
+        if self.path is None:
+            undo = "the old values above were not saved: write them back with `abh3 param set`"
+        else:
+            undo = f"undo: abh3 param {where}restore {args.unit} {self.path} --yes{extra}"
+            print(f"the old values are saved in {self.path}", file=sys.stderr)
+        print(undo, file=sys.stderr)
+        maybe = f" (and {unsure} maybe)" if unsure else ""
+        return f"partial restore: {self.written} of {total} parameter(s) written{maybe}: see above"
 
 
 async def _monitor(backend: Backend, args: argparse.Namespace) -> int:
