@@ -38,7 +38,8 @@ def test_get_identity_and_a_refused_address(
     assert main(["param", "-c", cfg, "get", "left", "SPEED_AY_0", "0x4117", "16663"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].split() == ["0x5000", "SPEED_AY_0", "800", "(00400008)"]
-    assert out[1].split()[:3] == ["0x4117", "CAN_COMMAND_ZERO_TIMEOUT", "750"]
+    # the simulated drive is set up as the file says: drive_timeout_ms (default 500)
+    assert out[1].split()[:3] == ["0x4117", "CAN_COMMAND_ZERO_TIMEOUT", "500"]
     assert out[2] == out[1]  # 16663 is 0x4117 in decimal, as in the maker's CSV
     assert main(["param", "-c", cfg, "identity", "left"]) == 0
     assert "FIRMWARE_VERSION   2.3.0.1" in capsys.readouterr().out
@@ -77,7 +78,8 @@ def test_monitor_reads_the_simulated_state(
 
 
 def test_dump_formats(tmp_path: Path) -> None:
-    cfg = str(config(tmp_path, "p-dump"))
+    # a drive taking any host (−1), unlike the file's host_id: simulate.params
+    cfg = str(config(tmp_path, "p-dump", "{params: {left: {CAN_HOST_ADDRESS: -1}}}"))
     for name in ("d.csv", "d.yaml", "d.json"):
         assert main(["param", "-c", cfg, "dump", "left", "-o", str(tmp_path / name)]) == 0
     rows = list(csv.reader((tmp_path / "d.csv").read_bytes().decode("cp932").splitlines()))
@@ -103,7 +105,7 @@ def test_diff_and_restore_write_only_what_differs_and_log_it(
     text = saved.read_bytes().decode("cp932")
     text = text.replace("20480,SPEED_AY_0,800,4194312", "20480,SPEED_AY_0,900,4194313")
     text = text.replace(
-        "16663,CAN_COMMAND_ZERO_TIMEOUT,750,2097227", "16663,CAN_COMMAND_ZERO_TIMEOUT,500,"
+        "16663,CAN_COMMAND_ZERO_TIMEOUT,500,4194309", "16663,CAN_COMMAND_ZERO_TIMEOUT,750,"
     )
     saved.write_bytes(
         ("address,name,display,internal\r\n" + text).encode("cp932")
@@ -119,7 +121,7 @@ def test_diff_and_restore_write_only_what_differs_and_log_it(
     assert "2 parameter(s) of left restored" in out
     writes = [r.getMessage() for r in caplog.records if "operator (param)" in r.getMessage()]
     assert writes == [
-        "operator (param) on left: parameter 0x4117 CAN_COMMAND_ZERO_TIMEOUT: 750 (0020004B) → 500 (00400005)",
+        "operator (param) on left: parameter 0x4117 CAN_COMMAND_ZERO_TIMEOUT: 500 (00400005) → 750 (0020004B)",
         "operator (param) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)",
     ]
 

@@ -228,7 +228,9 @@ class Runtime:
                 cfg = simulated(cfg)
                 sim_bus = open_bus(cfg)
                 self._buses.append(sim_bus)
-                sim = SimBus.for_units(self.config.units_on(name), sim_cfg, loop.time())
+                sim = SimBus.for_units(
+                    self.config.units_on(name), sim_cfg, loop.time(), bitrate=cfg.bitrate
+                )
                 self.sims[name] = sim
                 pump = BusPump(sim_bus, sim, name=f"{name} (simulator)", channel=cfg.channel)
                 self._sim_pumps.append(pump)
