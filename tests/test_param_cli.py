@@ -25,6 +25,13 @@ units:
 """
 
 
+async def started(rt: Runtime) -> None:
+    """Once a service's start-up check has read its drives: a tool with the same host
+    address starting a transfer meanwhile would find the drive busy (docs/parameters.md)."""
+    if rt.verifying is not None:
+        await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
+
+
 def config(tmp_path: Path, channel: str, simulate: str = "true", extra: str = "") -> Path:
     path = tmp_path / f"{channel}.yaml"
     path.write_text(SIM.format(channel=channel, simulate=simulate, extra=extra))
@@ -147,6 +154,7 @@ def test_set_is_refused_while_the_running_service_has_the_servo_on(
 
     async def scenario() -> tuple[int, int, int]:
         async with Runtime(service) as rt:
+            await started(rt)  # its start-up check of the drives is done (core/verify.py)
             await rt.supervisor.wait_exchange("left", rt.supervisor.clock(), 2.0)
             refused = await asyncio.to_thread(
                 main, ["param", "-c", tool, "set", "left", "SPEED_AY_0", "900", "--yes"]
@@ -197,6 +205,7 @@ def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
     async def scenario() -> list[int]:
         async with Runtime(service) as rt:
+            await started(rt)  # its start-up check of the drives is done (core/verify.py)
             events = EventLog(rt.supervisor)
 
             def on_event(event: SupervisorEvent) -> None:

@@ -52,8 +52,9 @@ ABORT_GUARD = 0.25
 # While the form is being found, a request the drive acknowledged but does not answer
 # within this long was taken to be in a form it cannot read, and the next form is tried.
 # A drive answers in milliseconds (J1939-21 gives a node 200 ms for a response); shorter
-# than the transport's 1.25 s, so three forms cost at most ~2.3 s with the guards.
-PROBE_REPLY_WAIT = 0.5
+# than the transport's 1.25 s, so all three forms cost at most ~1.7 s with the guards
+# between them, within the start-up check's 2 s (core/verify.py).
+PROBE_REPLY_WAIT = 0.4
 # the harmless read that settles the form when the first request is no read, or a read
 # the drive refused (NAK): every drive has a firmware version (BI 2)
 IDENTITY_PROBE = Request(Command.IDENTITY, 0x2)
