@@ -75,6 +75,7 @@ def test_a_drive_with_a_longer_command_zero_timeout_stops_later() -> None:
         ("{left: {0x4117: fast}}", "expected a number (the value, e.g. 750), got 'fast'"),
         ("{left: {0x4117: true}}", "expected a number"),
         ("{left: {0x4117: 1.0e+80}}", "beyond the packed-float range"),
+        ("{left: {0x4117: 1.0e3}}", "YAML reads 1.0e3 as text: write it with a dot and a signed"),
         ("{left: {0x411A: 1.5}}", "0x411A CAN_CONTROL_FLAG_LOGIC: 1.5 is not a 32-bit integer"),
         ("{left: 750}", "params.left: expected a mapping of address → value"),
     ],

@@ -397,3 +397,36 @@ def test_refuse_never_holds_a_drive_that_cannot_be_read() -> None:
 
     v = asyncio.run(scenario())
     assert v.state is State.NOT_VERIFIED and v.holds() is None
+
+
+def test_the_shipped_faults_config_rehearses_both_mismatches(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from abh3_supervisor.config import load_config
+
+    config = load_config(Path(__file__).parent.parent / "configs" / "faults.yaml")
+    with caplog.at_level(logging.INFO):
+        code = asyncio.run(run_headless(config, duration=1.0, record=None, status_interval=0))
+    assert code == 0
+    assert f"unit left: {ZERO_LINE} (the default)" in caplog.text
+    assert f"unit right: {HOST_LINE} (the default)" in caplog.text
+    assert "not verified" not in caplog.text  # its transport faults start after the check
+
+
+@pytest.mark.parametrize(
+    ("form", "shown"),
+    [
+        ("{header: false, checksum: with_header}", "CP000095 (no header, checksum counting FFFF)"),
+        ("{header: true}", "FFFFCP000095 (the serial form: FFFF header)"),
+        ("{header: false, checksum: as_sent}", "CP0000AD (no header, checksum over what is sent)"),
+    ],
+)
+def test_check_drives_names_the_form_each_drive_reads(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], form: str, shown: str
+) -> None:
+    path = tmp_path / "form.yaml"
+    path.write_text(text(f"{{telabh3_form: {{left: {form}}}}}", channel=f"v-form-{len(form)}"))
+    assert main(["check", str(path), "--drives"]) == 0  # found without a telabh3: setting
+    out = capsys.readouterr().out
+    assert "left (bus b, drive 1): agrees with the file" in out
+    assert f"left (bus b, drive 1): TelABH3 form {shown}, found; pin it with `telabh3: " in out

@@ -13,7 +13,7 @@ import math
 from typing import Any
 
 from abh3_supervisor.config.model import BusConfig, UnitConfig
-from abh3_supervisor.config.source import Section
+from abh3_supervisor.config.source import EXPONENT_ONLY, Section
 from abh3_supervisor.errors import CodecError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum, TelFormat
@@ -63,6 +63,8 @@ def _address(key: Any) -> int | str:
 
 
 def _word(address: int, value: Any) -> int | str:
+    if isinstance(value, str) and EXPONENT_ONLY.match(value):
+        return f"YAML reads {value} as text: write it with a dot and a signed exponent"
     if isinstance(value, bool) or not isinstance(value, int | float):
         return f"expected a number (the value, e.g. 750), got {value!r}"
     if not math.isfinite(value):
