@@ -184,3 +184,15 @@ def test_the_simulator_reads_the_forms_it_is_given() -> None:
     assert sim.forms_of("left") == (TelFormat(True, Checksum.AS_SENT),)  # = the serial form
     assert sim.forms_of("right") is None
     assert config.units["left"].telabh3 is None  # no setting: found at first use
+
+
+def test_a_write_whose_probe_fails_on_the_transport_is_told_its_own_request() -> None:
+    rig = rig_reading("any")
+    rig.drive("left").faults = (Fault(FaultKind.TP_ABORT, 0.0, 100.0),)
+    write = Request(Command.PARAM, 0x5000, 0x00400009)
+    results = submit(rig, write)
+    rig.run(1.0)
+    assert [(r.request, r.error) for r in results] == [
+        (write, "the drive aborted the transfer: resources")
+    ]
+    assert rig.drive("left").tel.params[0x5000] != 0x00400009  # nothing written

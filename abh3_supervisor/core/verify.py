@@ -238,7 +238,7 @@ def where(config: Config, unit: UnitConfig, check: Check) -> str:
 def compare(config: Config, unit: UnitConfig, check: Check, word: int) -> Row:
     value = table.to_value(word, table.kind_of(check.address))
     if not math.isfinite(value):
-        return Row(check.address, f"word {word:08X} (no number)", "", False)
+        return Row(check.address, f"word {word:08X} (no number)", "must be a number", False)
     ok, drive, yaml = check.judge(value, unit, config.buses[unit.bus].bitrate)
     if check.address == 0x4101:
         yaml = f"buses.{unit.bus}.{yaml}"
@@ -319,8 +319,9 @@ class DriveCheck:
         else:
             names = ", ".join(f"0x{r.address:04X} ({r.why})" for r in unread)
             state, reason = State.NOT_VERIFIED, f"not read: {names}"
+        when = t if math.isfinite(t) else None  # a cancelled request has no time
         self.on_done(
-            Verification(state, self.unit.verify, tuple(rows), reason, form_of(self.channel), t)
+            Verification(state, self.unit.verify, tuple(rows), reason, form_of(self.channel), when)
         )
 
 

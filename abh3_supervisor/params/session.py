@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from abh3_supervisor.errors import CodecError
 from abh3_supervisor.params.telabh3 import (
@@ -374,7 +374,7 @@ class ParamChannel:
             return None
         if reply is None and not exchange.unanswered:
             self._probe = None  # not the form: the transport, the bus or the caller
-            return result
+            return replace(result, request=probe.request)  # the caller's, not our BI 2
         outcome = "NAK" if reply is not None else f"no reply within {PROBE_REPLY_WAIT:g} s"
         if exchange.unreadable:
             outcome = "an unreadable reply"
