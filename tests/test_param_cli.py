@@ -25,6 +25,13 @@ units:
 """
 
 
+async def started(rt: Runtime) -> None:
+    """Once a service's start-up check has read its drives: a tool with the same host
+    address starting a transfer meanwhile would find the drive busy (docs/parameters.md)."""
+    if rt.verifying is not None:
+        await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
+
+
 def config(tmp_path: Path, channel: str, simulate: str = "true", extra: str = "") -> Path:
     path = tmp_path / f"{channel}.yaml"
     path.write_text(SIM.format(channel=channel, simulate=simulate, extra=extra))
@@ -38,7 +45,8 @@ def test_get_identity_and_a_refused_address(
     assert main(["param", "-c", cfg, "get", "left", "SPEED_AY_0", "0x4117", "16663"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].split() == ["0x5000", "SPEED_AY_0", "800", "(00400008)"]
-    assert out[1].split()[:3] == ["0x4117", "CAN_COMMAND_ZERO_TIMEOUT", "750"]
+    # the simulated drive is set up as the file says: drive_timeout_ms (default 500)
+    assert out[1].split()[:3] == ["0x4117", "CAN_COMMAND_ZERO_TIMEOUT", "500"]
     assert out[2] == out[1]  # 16663 is 0x4117 in decimal, as in the maker's CSV
     assert main(["param", "-c", cfg, "identity", "left"]) == 0
     assert "FIRMWARE_VERSION   2.3.0.1" in capsys.readouterr().out
@@ -77,7 +85,8 @@ def test_monitor_reads_the_simulated_state(
 
 
 def test_dump_formats(tmp_path: Path) -> None:
-    cfg = str(config(tmp_path, "p-dump"))
+    # a drive taking any host (−1), unlike the file's host_id: simulate.params
+    cfg = str(config(tmp_path, "p-dump", "{params: {left: {CAN_HOST_ADDRESS: -1}}}"))
     for name in ("d.csv", "d.yaml", "d.json"):
         assert main(["param", "-c", cfg, "dump", "left", "-o", str(tmp_path / name)]) == 0
     rows = list(csv.reader((tmp_path / "d.csv").read_bytes().decode("cp932").splitlines()))
@@ -103,7 +112,7 @@ def test_diff_and_restore_write_only_what_differs_and_log_it(
     text = saved.read_bytes().decode("cp932")
     text = text.replace("20480,SPEED_AY_0,800,4194312", "20480,SPEED_AY_0,900,4194313")
     text = text.replace(
-        "16663,CAN_COMMAND_ZERO_TIMEOUT,750,2097227", "16663,CAN_COMMAND_ZERO_TIMEOUT,500,"
+        "16663,CAN_COMMAND_ZERO_TIMEOUT,500,4194309", "16663,CAN_COMMAND_ZERO_TIMEOUT,750,"
     )
     saved.write_bytes(
         ("address,name,display,internal\r\n" + text).encode("cp932")
@@ -119,7 +128,7 @@ def test_diff_and_restore_write_only_what_differs_and_log_it(
     assert "2 parameter(s) of left restored" in out
     writes = [r.getMessage() for r in caplog.records if "operator (param)" in r.getMessage()]
     assert writes == [
-        "operator (param) on left: parameter 0x4117 CAN_COMMAND_ZERO_TIMEOUT: 750 (0020004B) → 500 (00400005)",
+        "operator (param) on left: parameter 0x4117 CAN_COMMAND_ZERO_TIMEOUT: 500 (00400005) → 750 (0020004B)",
         "operator (param) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)",
     ]
 
@@ -145,6 +154,7 @@ def test_set_is_refused_while_the_running_service_has_the_servo_on(
 
     async def scenario() -> tuple[int, int, int]:
         async with Runtime(service) as rt:
+            await started(rt)  # its start-up check of the drives is done (core/verify.py)
             await rt.supervisor.wait_exchange("left", rt.supervisor.clock(), 2.0)
             refused = await asyncio.to_thread(
                 main, ["param", "-c", tool, "set", "left", "SPEED_AY_0", "900", "--yes"]
@@ -195,6 +205,7 @@ def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
     async def scenario() -> list[int]:
         async with Runtime(service) as rt:
+            await started(rt)  # its start-up check of the drives is done (core/verify.py)
             events = EventLog(rt.supervisor)
 
             def on_event(event: SupervisorEvent) -> None:

@@ -31,6 +31,13 @@ units:
 """
 
 
+async def started(rt: Runtime) -> None:
+    """Once a service's start-up check has read its drives: a tool with the same host
+    address starting a transfer meanwhile would find the drive busy (docs/parameters.md)."""
+    if rt.verifying is not None:
+        await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
+
+
 @pytest.mark.parametrize("mask", ["0x7f", "0x04"])
 def test_servo_on_then_an_immediate_write_is_refused_and_off_then_write_succeeds(
     mask: str,
@@ -44,6 +51,7 @@ def test_servo_on_then_an_immediate_write_is_refused_and_off_then_write_succeeds
     async def scenario() -> dict[str, tuple[int, int]]:
         counts: dict[str, tuple[int, int]] = {}
         async with Runtime(driving) as drive_rt, Runtime(writing) as write_rt:
+            await started(drive_rt)  # its start-up check of the drives is done (core/verify.py)
             sup = drive_rt.supervisor
             ops = ParamOps(write_rt.supervisor, lambda bus: write_rt.pumps[bus].wake())
             for unit in ("old", "new"):

@@ -124,6 +124,12 @@ def _parser() -> argparse.ArgumentParser:
     check = sub.add_parser("check", help="validate a configuration and print the bus-load plan")
     check.add_argument("config", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
+    check.add_argument(
+        "--drives",
+        action="store_true",
+        help="only read each drive's CAN settings on the file's buses and compare them with "
+        "the file (nothing is commanded; exit 0 all agree, 1 a mismatch or not verified)",
+    )
 
     scan = sub.add_parser(
         "scan", help="find the ABH3 drives on a bus (sends requests only: moves nothing)"
@@ -223,6 +229,10 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         return client.send(path, args.text, args.unit, every=args.all, hold=args.hold)
     if args.cmd == "check":
         config = load_config(args.config)
+        if args.drives:
+            from abh3_supervisor.clients.drives import check_drives
+
+            return check_drives(config, args.json)
         _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
     if args.cmd == "scan":

@@ -138,9 +138,26 @@ def status_lines(snapshot: dict[str, Any]) -> list[str]:
             _feedback(u["feedback"], model),
             _switches(u["reported"], model, snapshot["t"]) if "reported" in u else None,
             _faults(u),
+            _verify(u.get("verify")),
         ]
         lines.append(" · ".join(p for p in parts if p is not None))
     return lines
+
+
+def _verify(v: dict[str, Any] | None) -> str | None:
+    """The drive's CAN settings against the file (core/verify.py), when it was checked:
+    ``drive settings ok``, ``drive settings MISMATCH: drive 0x4117 … (SERVO/START held)``,
+    ``drive settings not verified (why)``, ``drive settings being read``."""
+    if v is None or v["state"] == "off" or (v["state"] == "not verified" and not v["reason"]):
+        return None
+    if v["state"] == "mismatch":
+        text = "drive settings MISMATCH: " + "; ".join(m["text"] for m in v["mismatches"])
+        return text + (" (SERVO/START refused: verify: refuse)" if v.get("held") else "")
+    if v["state"] == "not verified":
+        return f"drive settings not verified ({v['reason']})"
+    if v["state"] == "pending":
+        return "drive settings being read"
+    return f"drive settings {v['state']}"
 
 
 MOTION_NEEDS_AN_OWNER = (

@@ -8,7 +8,7 @@ from typing import Any
 
 from abh3_supervisor.config.source import Source
 from abh3_supervisor.core.kinematics import Geometry
-from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, TelFormat
+from abh3_supervisor.params.telabh3 import TelFormat
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 
@@ -28,6 +28,14 @@ class VelocityModel(StrEnum):
 class Role(StrEnum):
     COMMAND = "command"  # we send DP0 commands (and so keep the drive's timeout fed)
     MONITOR = "monitor"  # we only ask for DP0 replies (request PGN): never moves a motor
+
+
+class VerifyMode(StrEnum):
+    """What a mismatch between the drive's CAN settings and the file does (core/verify.py)."""
+
+    WARN = "warn"  # logged and shown; the unit runs
+    REFUSE = "refuse"  # the unit stays at its idle word: no SERVO, no START
+    OFF = "off"  # not read at start
 
 
 class FaultKind(StrEnum):
@@ -70,6 +78,18 @@ class SimConfig:
     dp0_period_ms: int = 0  # > 0: the drive also sends DP0 replies periodically
     broadcast_period_ms: int = 0  # > 0: the drive also sends its broadcasts periodically
     faults: tuple[Fault, ...] = ()  # scripted faults, to rehearse them (and for tests)
+    # per unit, parameter words that differ from what the file says (to rehearse a drive
+    # set up differently): ((unit, ((address, word), ...)), ...)
+    params: tuple[tuple[str, tuple[tuple[int, int], ...]], ...] = ()
+    # per unit, the only TelABH3 forms its drive reads (() none); a unit not named reads all
+    telabh3_forms: tuple[tuple[str, tuple[TelFormat, ...]], ...] = ()
+
+    def params_of(self, unit: str) -> dict[int, int]:
+        return dict(next((words for name, words in self.params if name == unit), ()))
+
+    def forms_of(self, unit: str) -> tuple[TelFormat, ...] | None:
+        """The forms ``unit``'s drive reads; None: every form."""
+        return next((forms for name, forms in self.telabh3_forms if name == unit), None)
 
 
 @dataclass(frozen=True)
@@ -124,8 +144,11 @@ class UnitConfig:
     limits: Limits = field(default_factory=Limits)
     data_select: tuple[int, int] = (7, 7)
     startup: tuple[str, ...] = ()
-    # how TelABH3 strings are written on CAN: not settled by public sources (docs/parameters.md)
-    telabh3: TelFormat = DEFAULT_FORMAT
+    # how TelABH3 strings are written on CAN: not settled by public sources
+    # (docs/parameters.md); None (no `telabh3:`): found by the first exchange
+    telabh3: TelFormat | None = None
+    # whether the drive's CAN settings are read at start and compared with this file
+    verify: VerifyMode = VerifyMode.WARN
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,9 @@ from abh3_supervisor.config.model import (
     SimConfig,
     UnitConfig,
     VelocityModel,
+    VerifyMode,
 )
+from abh3_supervisor.config.simdrives import check_sim_units, parse_forms, parse_params
 from abh3_supervisor.config.source import Section, Source, load_source, read_text
 from abh3_supervisor.core.commands import RESPONSE_OK, parse_command
 from abh3_supervisor.core.kinematics import Geometry
@@ -42,6 +44,8 @@ SIM_KEYS = {
     "dp0_period_ms",
     "broadcast_period_ms",
     "faults",
+    "params",
+    "telabh3_form",
 }
 UNIT_KEYS = {
     "name",
@@ -64,6 +68,7 @@ UNIT_KEYS = {
     "data_select",
     "startup",
     "telabh3",
+    "verify",
 }
 TELABH3_KEYS = {"header", "checksum"}
 BROADCAST_KEYS = {"mask", "rate_hz", "listen_only"}
@@ -88,6 +93,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     buses = _buses(top)
     units = _units(top, buses)
     check_fault_units(top, buses, units)
+    check_sim_units(top, buses, units)
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     src.raise_if_problems()
@@ -198,6 +204,8 @@ def _simulate(b: Section) -> SimConfig | None:
         dp0_period_ms=s.integer("dp0_period_ms", d.dp0_period_ms, 0, 1000),
         broadcast_period_ms=s.integer("broadcast_period_ms", d.broadcast_period_ms, 0, 1000),
         faults=parse_faults(s),
+        params=parse_params(s),
+        telabh3_forms=parse_forms(s),
     )
 
 
@@ -305,8 +313,17 @@ def _unit(u: Section, buses: dict[str, BusConfig]) -> UnitConfig | None:
             checksum=Checksum(
                 tel.choice("checksum", DEFAULT_FORMAT.checksum, [c.value for c in Checksum])
             ),
-        ),
+        )
+        if u.has("telabh3")
+        else None,  # found by the first exchange (params/session.py)
+        verify=_verify(u),
     )
+
+
+def _verify(u: Section) -> VerifyMode:
+    if u.data.get("verify") is False:  # YAML 1.1 reads a bare `off` as false
+        return VerifyMode.OFF
+    return VerifyMode(u.choice("verify", VerifyMode.WARN, [m.value for m in VerifyMode]))
 
 
 def _timing(u: Section, unit: UnitConfig) -> None:

@@ -14,7 +14,7 @@ from typing import Any
 
 from abh3_supervisor.config import parse
 from abh3_supervisor.config.interfaces import known_interfaces
-from abh3_supervisor.config.model import ControlMode, FaultKind, Role, VelocityModel
+from abh3_supervisor.config.model import ControlMode, FaultKind, Role, VelocityModel, VerifyMode
 from abh3_supervisor.config.source import MAX_BYTES
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum
 from abh3_supervisor.protocol.frames import Generation
@@ -108,6 +108,23 @@ def _bus() -> Schema:
             "dp0_period_ms": integer(0, 1000, "> 0: DP0 replies also periodically", 0),
             "broadcast_period_ms": integer(0, 1000, "> 0: broadcasts also periodically", 0),
             "faults": {"type": "array", "items": _fault()},
+            "params": {
+                "type": "object",
+                "description": "per unit, drive parameters that differ from the file "
+                "(address: a name of the table or hex; value: a number), to rehearse a "
+                "mismatch",
+                "additionalProperties": {
+                    "type": "object",
+                    "minProperties": 1,
+                    "additionalProperties": {"type": "number"},
+                },
+            },
+            "telabh3_form": {
+                "type": "object",
+                "description": "per unit, the only TelABH3 string form its drive reads "
+                "({header, checksum}), none or any (the default)",
+                "additionalProperties": {"anyOf": [_form(), choice(["none", "any"])]},
+            },
         },
         "simulator options",
     )
@@ -136,6 +153,19 @@ def _bus() -> Schema:
                 "description": "extra keyword arguments for can.Bus(...)",
                 "not": {"anyOf": [{"required": [k]} for k in sorted(parse.BUS_ARGUMENTS)]},
             },
+        }
+    )
+
+
+def _form() -> Schema:
+    return mapping(
+        {
+            "header": boolean("send the FFFF header of the serial form", DEFAULT_FORMAT.header),
+            "checksum": choice(
+                [c.value for c in Checksum],
+                "what the checksum covers",
+                DEFAULT_FORMAT.checksum.value,
+            ),
         }
     )
 
@@ -211,17 +241,13 @@ def _unit() -> Schema:
                 "items": {"type": "string"},
                 "description": "the seed's command language, applied once at start",
             },
-            "telabh3": mapping(  # docs/parameters.md: public sources do not settle it
-                {
-                    "header": boolean(
-                        "send the FFFF header of the serial form", DEFAULT_FORMAT.header
-                    ),
-                    "checksum": choice(
-                        [c.value for c in Checksum],
-                        "what the checksum covers",
-                        DEFAULT_FORMAT.checksum.value,
-                    ),
-                }
+            # docs/parameters.md: public sources do not settle it; without: found at first use
+            "telabh3": _doc(_form(), "the TelABH3 string form; without: found at first use", None),
+            # a bare `off` is YAML 1.1's false, read as "off"
+            "verify": choice(
+                [*(m.value for m in VerifyMode), False],
+                "read the drive's CAN settings at start and compare them with this file",
+                VerifyMode.WARN.value,
             ),
         },
         required=("name",),

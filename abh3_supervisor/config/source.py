@@ -38,7 +38,8 @@ _LOADER: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 _CORE = "tag:yaml.org,2002:"
 SCALAR_TAGS = {_CORE + t for t in ("str", "int", "float", "bool", "null", "timestamp")}
 MERGE_TAG = _CORE + "merge"
-EXPONENT_ONLY = re.compile(r"^[-+]?\d+[eE][-+]?\d+$")  # YAML 1.1 reads 1e3 as text
+# YAML 1.1 reads 1e3 as text, and 1.0e3 too: its floats need a dot and a signed exponent
+EXPONENT_ONLY = re.compile(r"^[-+]?(?:\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
 
 
 def dotted(path: Path) -> str:
@@ -287,7 +288,10 @@ class Section:
 
         def check(v: Any) -> str | None:
             if isinstance(v, str) and EXPONENT_ONLY.match(v):
-                return f"YAML reads {v} as text: write it with a dot, e.g. {_with_dot(v)}"
+                return (
+                    f"YAML reads {v} as text: write it with a dot and a signed exponent, "
+                    f"e.g. {_with_dot(v)}"
+                )
             if isinstance(v, bool) or not isinstance(v, int | float):
                 return f"expected a number ({allowed}), got {_kind(v)} {_shown(v)}"
             if not math.isfinite(v):
@@ -360,8 +364,11 @@ def _kind(value: Any) -> str:
 
 
 def _with_dot(number: str) -> str:
+    """``1e3`` → ``1.0e+3``, ``2.5E-3`` → ``2.5e-3``: what YAML 1.1 reads as a float."""
     mantissa, _, exponent = number.lower().partition("e")
-    return f"{mantissa}.0e{exponent}"
+    if "." not in mantissa:
+        mantissa += ".0"
+    return f"{mantissa}e{exponent if exponent[:1] in '+-' else '+' + exponent}"
 
 
 def _unwritable(path: FsPath) -> str | None:

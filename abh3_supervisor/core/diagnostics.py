@@ -7,7 +7,8 @@ it. Rules, first that applies:
 
 - STALE: the unit never answered, or is offline (silent for its ``timeout_ms``);
 - ERROR: error bits are set (by name);
-- WARN: alarm bits are set, or a commanding unit achieves less than ``RATE_WARN`` of its
+- WARN: alarm bits are set, the drive's CAN settings differ from the file
+  (core/verify.py), or a commanding unit achieves less than ``RATE_WARN`` of its
   requested command rate;
 - OK otherwise.
 
@@ -74,6 +75,8 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
     requested = cfg.command_rate_hz
     commanding = cfg.role is Role.COMMAND
     supplies = unit.status.get(5)
+    verification = unit.verify
+    mismatches = "; ".join(r.line() for r in verification.mismatches)
     brd5 = supplies[1] if supplies is not None else None
     if unit.online is None:
         level, message = Level.STALE, "no answer yet"
@@ -83,12 +86,17 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         level, message = Level.ERROR, "error: " + ", ".join(errors)
     elif alarms:
         level, message = Level.WARN, "alarm: " + ", ".join(alarms)
+    elif mismatches:
+        level, message = Level.WARN, f"drive settings differ from the file: {mismatches}"
     elif commanding and achieved < RATE_WARN * requested and stats.replies >= RATE_SAMPLES:
         level, message = Level.WARN, f"command rate {achieved:.1f} of {requested:g} Hz"
     else:
         level, message = Level.OK, "online"
     if notes and unit.online:
         message += f"; {notes}" if level is not Level.OK else f", {notes}"
+    differ = f"drive settings differ from the file: {mismatches}"
+    if mismatches and not message.startswith(differ):  # under a worse state: still said
+        message += f"; {differ}"
     rtt = stats.rtt_ms(99)
     values = [
         ("online", {None: "unknown", True: "yes", False: "no"}[unit.online]),
@@ -108,6 +116,8 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         ("malformed frames", str(stats.malformed)),
         ("gaps", str(stats.gaps)),
         ("round trip p99 [ms]", "" if rtt is None else f"{rtt:.2f}"),
+        ("drive settings", verification.state.value),
+        ("drive settings differ", mismatches),
     ]
     if isinstance(brd5, frames.Brd5):
         values += [

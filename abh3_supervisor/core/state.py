@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from abh3_supervisor.config.model import ControlMode, UnitConfig, VelocityModel
 from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.verify import Verification
 from abh3_supervisor.protocol import flags, frames
 
 
@@ -49,11 +50,15 @@ class UnitState:
     status: dict[int, tuple[float, frames.Broadcast]] = field(default_factory=dict)
     online: bool | None = None
     words: dict[str, int] = field(default_factory=dict)  # error, alarm, control, io, inputs
+    # the drive's CAN settings against the file (core/verify.py); set in __post_init__
+    verify: Verification = field(default=None)  # type: ignore[assignment]
 
     layout: flags.Layout = field(init=False)  # the unit's generation's flag words
 
     def __post_init__(self) -> None:
         self.layout = flags.layout(self.cfg.protocol)
+        if self.verify is None:
+            self.verify = Verification.initial(self.cfg)
 
     @classmethod
     def initial(cls, cfg: UnitConfig) -> UnitState:

@@ -41,6 +41,32 @@ class TelFormat:
 
 
 DEFAULT_FORMAT = TelFormat()
+# The three strings a request can be on CAN (header and checksum rule; a header always
+# counts in the checksum), in the order a unit without a ``telabh3:`` setting tries them:
+# the maker's only CAN example first (CP000095), then the serial form, then the checksum
+# over exactly what is sent.
+FORMS = (DEFAULT_FORMAT, TelFormat(header=True), TelFormat(False, Checksum.AS_SENT))
+
+
+def wire_form(fmt: TelFormat) -> TelFormat:
+    """The form as it is on the wire: with the header the checksum always counts it, so
+    ``{header: true, checksum: as_sent}`` is the serial form, one of :data:`FORMS`."""
+    return TelFormat(True) if fmt.header else fmt
+
+
+def pin(fmt: TelFormat) -> str:
+    """The unit's YAML setting that pins ``fmt``: ``telabh3: {header: false, ...}``."""
+    fmt = wire_form(fmt)
+    return f"telabh3: {{header: {str(fmt.header).lower()}, checksum: {fmt.checksum.value}}}"
+
+
+def form_name(fmt: TelFormat) -> str:
+    """``CP000095`` and its words: what the form looks like for a parameter read of 0."""
+    example = Request(Command.PARAM, 0).text(fmt)
+    if fmt.header:
+        return f"{example} (the serial form: FFFF header)"
+    rule = "counting FFFF" if fmt.checksum is Checksum.WITH_HEADER else "over what is sent"
+    return f"{example} (no header, checksum {rule})"
 
 
 def checksum(text: str) -> int:

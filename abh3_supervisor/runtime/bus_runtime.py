@@ -24,6 +24,7 @@ import can
 
 from abh3_supervisor.config.interfaces import unknown_interface
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
+from abh3_supervisor.core import verify
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
@@ -200,6 +201,8 @@ class Runtime:
         self._recorder: GuardedRecorder | None = None
         self.fatal: asyncio.Future[object] | None = None
         self.stop_report: dict[str, str] = {}  # unit → CONFIRMED, SENT or "NOT sent: …"
+        # the start-up check of the drives' CAN settings (core/verify.py), while it runs
+        self.verifying: asyncio.Task[dict[str, verify.Verification]] | None = None
 
     async def __aenter__(self) -> Runtime:
         loop = asyncio.get_running_loop()
@@ -228,7 +231,9 @@ class Runtime:
                 cfg = simulated(cfg)
                 sim_bus = open_bus(cfg)
                 self._buses.append(sim_bus)
-                sim = SimBus.for_units(self.config.units_on(name), sim_cfg, loop.time())
+                sim = SimBus.for_units(
+                    self.config.units_on(name), sim_cfg, loop.time(), bitrate=cfg.bitrate
+                )
                 self.sims[name] = sim
                 pump = BusPump(sim_bus, sim, name=f"{name} (simulator)", channel=cfg.channel)
                 self._sim_pumps.append(pump)
@@ -256,10 +261,13 @@ class Runtime:
         for name, pump in self.pumps.items():
             self.supervisor.wakers[name] = pump.wake
             pump.start()
-        for name, unit in self.config.units.items():
-            for text in unit.startup:  # validated when the file loaded
-                response = self.supervisor.apply_text(name, text)
-                log.info("unit %s: startup %r → %r", name, text, response)
+        # the drives' CAN settings against the file, in the background (core/verify.py):
+        # a `verify: refuse` unit's start-up commands wait for it
+        verify.announce_forms(self.supervisor)
+        waiting, self.verifying = verify.begin(self.supervisor)
+        for name in self.config.units:
+            if name not in waiting:
+                verify.run_startup(self.supervisor, name)
 
     def _on_fatal(self, exc: BaseException) -> None:
         if self.fatal is not None and not self.fatal.done():
@@ -268,6 +276,8 @@ class Runtime:
     async def __aexit__(
         self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
     ) -> None:
+        if self.verifying is not None:
+            self.verifying.cancel()  # its requests leave the channels; no start-up after
         try:
             if self.plugins is not None:
                 try:

@@ -77,6 +77,8 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
             if name in unit.layout.words
         },
         "reported": _reported(unit, words.get("control")),
+        # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
+        "verify": unit.verify.to_json(),
         "status": status,
         "stats": {
             "rate_hz": st.achieved_rate_hz(now),

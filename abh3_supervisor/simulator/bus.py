@@ -7,8 +7,19 @@ from collections.abc import Iterable
 from dataclasses import replace
 
 from abh3_supervisor.config.model import SimConfig, UnitConfig
+from abh3_supervisor.params import table
 from abh3_supervisor.protocol.ids import ADDR_ALL
 from abh3_supervisor.simulator.drive import SimDrive
+
+
+def as_the_file_says(unit: UnitConfig, bitrate: int | None) -> dict[int, int]:
+    """The parameter words a drive set up as ``unit`` says has beyond what the drive knows
+    of itself (its address, group and timeouts: :class:`SimDrive`): its host address and
+    the bus's bitrate, in kbit/s as the table's default is (None: that default, 500)."""
+    words = {0x4103: table.to_word(unit.host_id, "pf")}
+    if bitrate is not None:
+        words[0x4101] = table.to_word(bitrate // 1000, "pf")
+    return words
 
 
 class SimBus:
@@ -23,7 +34,12 @@ class SimBus:
         self._due = {a: d.next_deadline() for a, d in self.drives.items()}
 
     @classmethod
-    def for_units(cls, units: Iterable[UnitConfig], cfg: SimConfig, now: float) -> SimBus:
+    def for_units(
+        cls, units: Iterable[UnitConfig], cfg: SimConfig, now: float, bitrate: int | None = None
+    ) -> SimBus:
+        """A drive per unit, set up as the file says (its parameter table follows the
+        unit: see :func:`as_the_file_says`), but for ``cfg.params`` and ``cfg.faults``."""
+
         def drive_cfg(u: UnitConfig) -> SimConfig:
             if cfg.command_zero_timeout_ms is not None:
                 return cfg
@@ -38,6 +54,8 @@ class SimBus:
                 cfg=drive_cfg(u),
                 now=now,
                 faults=tuple(f for f in cfg.faults if f.unit in (None, u.name)),
+                params={**as_the_file_says(u, bitrate), **cfg.params_of(u.name)},
+                accepts=cfg.forms_of(u.name),
             )
             for u in units
         )

@@ -9,6 +9,11 @@ off, and it stays off after the error is gone until the host's SERVO bit of the 
 off and on again — the drive never restarts a motor by itself.
 Fault injection (``silent``, ``extra_delay``, ``inject_error``) is for tests and demos;
 scripted faults (``faults``, from the YAML) switch the same behaviours on and off in time.
+Its parameter table (``tel.params``) says what it does: its address, group, timeouts and
+periodic modes are written there, ``params`` overrides words (the file's view of the
+drive, or a rehearsed mismatch: simulator/bus.py), and the timeouts are then taken from
+the table (0x4117, 0x4118), as a real drive's are. Its address and host stay what the
+frames use whatever 0x4102/0x4103 say, so a mismatch there can be read and reported.
 """
 
 from __future__ import annotations
@@ -16,10 +21,13 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+from collections.abc import Mapping
 
 from abh3_supervisor.config.model import Fault, FaultKind, SimConfig, VelocityModel
 from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
 from abh3_supervisor.core.timing import next_on_grid
+from abh3_supervisor.params import table
+from abh3_supervisor.params.telabh3 import TelFormat
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.ids import (
@@ -33,7 +41,7 @@ from abh3_supervisor.protocol.ids import (
     dp0_reply_id,
 )
 from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
-from abh3_supervisor.simulator.telabh3 import TelResponder
+from abh3_supervisor.simulator.telabh3 import COMMAND_ZERO, ERROR_TIMEOUT, TelResponder, ms_of
 
 PULSES_PER_REV = 4096
 TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode
@@ -50,12 +58,15 @@ class SimDrive:
         cfg: SimConfig | None = None,
         now: float = 0.0,
         faults: tuple[Fault, ...] = (),
+        params: Mapping[int, int] | None = None,
+        accepts: tuple[TelFormat, ...] | None = None,
     ) -> None:
         self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
         self.layout = flags.layout(generation)  # a word of the other generation misleads it
         self.cfg = cfg or SimConfig()
         zero_ms = self.cfg.command_zero_timeout_ms  # None: a drive on its own, the seed's 500
         self.command_zero_ms: int = 500 if zero_ms is None else zero_ms
+        self.error_timeout_ms = self.cfg.error_timeout_ms
         self.inputs = 0
         self.cmd_raw = (0, 0)  # last AY/BX command as written
         self.vel = [0.0, 0.0]  # motor A, B [min⁻¹]
@@ -79,7 +90,23 @@ class SimDrive:
         bp = self.cfg.broadcast_period_ms
         self._next_brd = now + bp / 1000 if bp else math.inf
         self.frames_received = 0
-        self.tel = TelResponder(abh3_id, self, self._fault_value)
+        self.tel = TelResponder(abh3_id, self, self._fault_value, accepts)
+        self.tel.params.update(self._set_up())
+        self.tel.params.update(params or {})
+        self.command_zero_ms = ms_of(self.tel.params[COMMAND_ZERO])
+        self.error_timeout_ms = ms_of(self.tel.params[ERROR_TIMEOUT])
+
+    def _set_up(self) -> dict[int, int]:
+        """The words of the parameters this drive acts on or is: what the table says."""
+        words = {
+            0x4102: self.abh3_id,
+            0x4105: self.cfg.dp0_period_ms,  # 0: a reply on receipt (or request)
+            0x4107: self.group,
+            COMMAND_ZERO: self.command_zero_ms,
+            ERROR_TIMEOUT: self.error_timeout_ms,
+        }
+        words.update({0x4108 + n: self.cfg.broadcast_period_ms for n in range(7)})
+        return {a: table.to_word(v, table.kind_of(a)) for a, v in words.items()}
 
     # ------------------------------------------------------------ fault injection
 
@@ -186,7 +213,7 @@ class SimDrive:
         # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
         last = self.last_command if self.last_command is not None else self.started
         deadline = math.inf
-        for ms in (self.command_zero_ms, self.cfg.error_timeout_ms):
+        for ms in (self.command_zero_ms, self.error_timeout_ms):
             if ms and self.t < last + ms / 1000 < deadline:
                 deadline = last + ms / 1000
         return deadline
@@ -229,7 +256,7 @@ class SimDrive:
         return (
             self.errors
             | (scripted.bits if scripted else 0)
-            | (flags.CAN_COMM_ERROR if self._silence(self.cfg.error_timeout_ms) else 0)
+            | (flags.CAN_COMM_ERROR if self._silence(self.error_timeout_ms) else 0)
         )
 
     def alarm_word(self) -> int:
@@ -302,6 +329,10 @@ class SimDrive:
     def set_command_zero_ms(self, ms: int) -> None:
         """Parameter 0x4117 written: the drive's command-zero timeout from now on."""
         self.command_zero_ms = ms
+
+    def set_error_timeout_ms(self, ms: int) -> None:
+        """Parameter 0x4118 written: the drive's CAN error timeout from now on."""
+        self.error_timeout_ms = ms
 
     def monitor(self, address: int) -> float | None:
         """A ``CM`` monitor (§1.4) from the simulated state; None: no such monitor."""

@@ -1,11 +1,13 @@
 """The simulated drive's TelABH3 side: parameters, monitors and identity over J1939 TP.
 
 Requests come in any of the accepted forms (§1.3 leaves the form open) and are answered
-in the same one. Parameters start from the table's defaults; a write of 0x4117 (command-
-zero timeout) or 0x4119 (wait between the drive's DTs) changes what the drive does.
-Unknown addresses get a NAK. Scripted faults: ``tp_lost_cts`` (an RTS is never
-answered), ``tp_abort`` (the drive aborts, reason 2 resources), ``tp_slow_dt`` (its DTs
-come ``delay_ms`` apart).
+in the same one; ``accepts`` limits them (a request in another form is ignored, as a
+string the drive cannot read: the host gets no reply). Parameters start from the table's
+defaults, which the drive overrides with its own set-up (simulator/drive.py); a write of
+0x4117 (command-zero timeout), 0x4118 (CAN error timeout) or 0x4119 (wait between the
+drive's DTs) changes what the drive does. Unknown addresses get a NAK. Scripted faults:
+``tp_lost_cts`` (an RTS is never answered), ``tp_abort`` (the drive aborts, reason 2
+resources), ``tp_slow_dt`` (its DTs come ``delay_ms`` apart).
 """
 
 from __future__ import annotations
@@ -22,8 +24,10 @@ from abh3_supervisor.params.telabh3 import (
     Command,
     Reply,
     Request,
+    TelFormat,
     decode_request,
     encode_reply,
+    wire_form,
 )
 from abh3_supervisor.params.transport import (
     RTS,
@@ -35,7 +39,7 @@ from abh3_supervisor.params.transport import (
 )
 
 IDENTITY = {0x0: "ABH3", 0x2: "2.3.0.1", 0x4: "SIMULATED", 0x5: "0", 0x8: "AGV", 0xC: "0"}
-COMMAND_ZERO, DT_WAIT = 0x4117, 0x4119
+COMMAND_ZERO, ERROR_TIMEOUT, DT_WAIT = 0x4117, 0x4118, 0x4119
 
 
 class DriveState(Protocol):
@@ -43,6 +47,13 @@ class DriveState(Protocol):
 
     def monitor(self, address: int) -> float | None: ...
     def set_command_zero_ms(self, ms: int) -> None: ...
+    def set_error_timeout_ms(self, ms: int) -> None: ...
+
+
+def ms_of(word: int) -> int:
+    """A timeout parameter's word in whole ms; 0 (off) for anything not positive."""
+    ms = table.to_value(word, "pf")
+    return int(ms) if math.isfinite(ms) and ms > 0 else 0
 
 
 class TelResponder:
@@ -51,8 +62,11 @@ class TelResponder:
         abh3_id: int,
         drive: DriveState,
         fault: Callable[[FaultKind, float], float | None],
+        accepts: tuple[TelFormat, ...] | None = None,
     ) -> None:
         self.abh3_id, self.drive, self.fault = abh3_id, drive, fault
+        # the string forms this drive reads; None: every one
+        self.accepts = None if accepts is None else {wire_form(f) for f in accepts}
         self.params = {e.address: table.to_word(e.default, e.kind) for e in table.PARAMETERS}
         self.host = -1
         self.receiver: Receiver | None = None
@@ -113,6 +127,8 @@ class TelResponder:
             request, fmt = decode_request(message)
         except CodecError:
             return  # the drive ignores what it cannot read: the host times out
+        if self.accepts is not None and fmt not in self.accepts:
+            return  # a form this drive does not read: as above
         self.requests.append(request)
         reply = self._reply(request)
         slow = self.fault(FaultKind.TP_SLOW_DT, now)
@@ -138,8 +154,9 @@ class TelResponder:
             return Reply(True, f"{self.params[address]:08X}")
         self.params[address] = request.value
         if address == COMMAND_ZERO:
-            ms = table.to_value(request.value, "pf")
-            self.drive.set_command_zero_ms(int(ms) if math.isfinite(ms) and ms > 0 else 0)
+            self.drive.set_command_zero_ms(ms_of(request.value))
+        elif address == ERROR_TIMEOUT:
+            self.drive.set_error_timeout_ms(ms_of(request.value))
         return Reply(True, "")
 
     def next_deadline(self) -> float:

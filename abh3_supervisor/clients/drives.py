@@ -1,0 +1,63 @@
+"""``abh3 check CONFIG --drives``: read every drive's CAN settings on the configuration's
+own buses and compare them with the file (core/verify.py), nothing else.
+
+The buses open as ``abh3 param -c`` opens them: every unit a monitor without start-up
+commands, so nothing is commanded and a supervisor driving the same units is not fought.
+Exit: 0 every drive agrees, 1 a mismatch, a drive not verified or a bus that cannot open,
+2 a mistake in the file.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from abh3_supervisor.config import Config
+    from abh3_supervisor.core.verify import Verification
+
+HEADER = ("unit", "address", "name", "drive", "YAML", "verdict")
+
+
+def check_drives(config: Config, as_json: bool) -> int:
+    from abh3_supervisor.clients.param import monitor_only
+
+    results = asyncio.run(_read(monitor_only(config)))
+    if as_json:
+        print(json.dumps({n: v.to_json() for n, v in results.items()}, indent=2))
+    else:
+        for line in table(config, results):
+            print(line)
+    return 0 if all(v.state == "ok" for v in results.values()) else 1
+
+
+async def _read(config: Config) -> dict[str, Verification]:
+    from abh3_supervisor.core.verify import verify_units
+    from abh3_supervisor.runtime.bus_runtime import Runtime
+
+    async with Runtime(config) as rt:
+        return await verify_units(rt.supervisor, list(config.units), act=False)
+
+
+def table(config: Config, results: dict[str, Verification]) -> list[str]:
+    """The rows of every unit, then one verdict line per unit (with its TelABH3 form)."""
+    rows = [HEADER]
+    for name, v in results.items():
+        rows += [
+            (name, f"0x{r.address:04X}", r.name, r.drive or "–", r.yaml or "–", r.verdict)
+            for r in v.rows
+        ]
+    widths = [max(len(row[i]) for row in rows) for i in range(len(HEADER))]
+    out = ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows]
+    for name, v in results.items():
+        unit = config.units[name]
+        where = f"{name} (bus {unit.bus}, drive {unit.abh3_id})"
+        verdict = {
+            "ok": "agrees with the file",
+            "mismatch": f"{len(v.mismatches)} setting(s) differ from the file",
+        }.get(v.state, f"not verified: {v.reason}")
+        out.append(f"{where}: {verdict}")
+        if v.form is not None:
+            out.append(f"{where}: TelABH3 form {v.form}")
+    return out
