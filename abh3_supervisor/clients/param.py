@@ -163,7 +163,9 @@ async def _stoppable(work: Coroutine[Any, Any, int]) -> int:
             caught.append(signum)
             task.cancel(f"stopped by {signal.Signals(signum).name}")
 
-    for sig in STOP_SIGNALS:
+    # signals reach only the main thread (a test may run the CLI on another: no handlers)
+    signals = STOP_SIGNALS if threading.current_thread() is threading.main_thread() else ()
+    for sig in signals:
         loop.add_signal_handler(sig, stop, sig)
     try:
         return await task
@@ -172,7 +174,7 @@ async def _stoppable(work: Coroutine[Any, Any, int]) -> int:
             raise Interrupted(caught[0]) from None
         raise
     finally:
-        for sig in STOP_SIGNALS:
+        for sig in signals:
             loop.remove_signal_handler(sig)
 
 
