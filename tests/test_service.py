@@ -413,3 +413,20 @@ def test_client_text_cannot_forge_a_log_line_or_drive_a_terminal(
     cut = len(forged) + 5000 - MAX_LOGGED
     assert line[1].endswith(f"… (+{cut} characters)") and len(actions[-1].action) < 2 * MAX_LOGGED
     assert clean("plain text") == "plain text"
+
+
+def test_verify_again_and_the_identitys_string_form_over_the_socket(served: Served) -> None:
+    """A client re-checks a drive's CAN settings against the YAML (audited), and the
+    parameter identity says which TelABH3 string form the drive answers."""
+    client = ControlClient(served.path, timeout=10)
+    try:
+        checked = client.call("verify", unit="left")
+        assert checked["state"] == "ok" and checked["mismatches"] == []
+        assert {row["address"] for row in checked["rows"]} >= {0x4102, 0x4103, 0x4117}
+        identity = client.call("param_identity", unit="left", address=2)
+        assert identity["text"] == "2.3.0.1"
+        assert identity["form"].startswith("CP000095") and "telabh3:" in identity["form"]
+        with pytest.raises(RunError, match="no unit named 'middle'"):
+            client.call("verify", unit="middle")
+    finally:
+        client.close()

@@ -86,6 +86,7 @@ class Backend(Protocol):
 
     async def read(self, unit: str, command: Command, address: int) -> int: ...
     async def identity(self, unit: str, address: int) -> str: ...
+    def form(self, unit: str) -> str | None: ...
     async def servo_on(self, unit: str) -> bool | None: ...
     async def write(
         self, unit: str, address: int, word: int, *, force: bool, source: str
@@ -97,13 +98,19 @@ class Remote:
 
     def __init__(self, client: ControlClient) -> None:
         self.client = client
+        self._forms: dict[str, str | None] = {}  # as the service last said
 
     async def read(self, unit: str, command: Command, address: int) -> int:
         reply = self.client.call("param_read", unit=unit, command=command.value, address=address)
         return int(reply["word"])
 
     async def identity(self, unit: str, address: int) -> str:
-        return str(self.client.call("param_identity", unit=unit, address=address)["text"])
+        reply = self.client.call("param_identity", unit=unit, address=address)
+        self._forms[unit] = reply.get("form")
+        return str(reply["text"])
+
+    def form(self, unit: str) -> str | None:
+        return self._forms.get(unit)
 
     async def servo_on(self, unit: str) -> bool | None:
         servo = self.client.call("param_servo", unit=unit)["servo"]
@@ -451,6 +458,8 @@ async def _identity(backend: Backend, args: argparse.Namespace) -> int:
     for address in IDENTITY_ADDRESSES:
         name = table.IDENTITY.get(address) or f"BI 0x{address:X}"
         print(f"{name:<18} {await backend.identity(args.unit, address)}")
+    form = backend.form(args.unit)  # how the drive wants its strings framed on CAN
+    print(f"{'TelABH3 form':<18} {form or 'not known'}")
     return 0
 
 

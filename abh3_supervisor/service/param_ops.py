@@ -61,6 +61,12 @@ class ParamOps:
         """The 32-bit word of a ``CP`` or ``CM`` read."""
         return check(unit, await self.call(unit, Request(command, address)))
 
+    def form(self, unit: str) -> str | None:
+        """The TelABH3 string form the unit's drive answers, once known (core/verify.py)."""
+        from abh3_supervisor.core.verify import form_of
+
+        return form_of(self.sup.schedulers[self.sup.unit(unit).cfg.bus].params[unit])
+
     async def identity(self, unit: str, address: int) -> str:
         result = await self.call(unit, Request(Command.IDENTITY, address))
         check(unit, result, word=False)

@@ -197,6 +197,7 @@ class ControlServer:
             "param_identity": self._param_identity,
             "param_servo": self._param_servo,
             "param_write": self._param_write,
+            "verify": self._verify,
         }
         self._log_handler = _Forward(self)
         self._state_cache: tuple[float, bytes] = (-1e300, b"")  # (loop time, encoded)
@@ -491,7 +492,15 @@ class ControlServer:
 
     async def _param_identity(self, client: _Client, params: dict[str, Any]) -> Any:
         unit, address = self._param_args(params)
-        return {"text": await self._params.identity(unit, address)}
+        text = await self._params.identity(unit, address)
+        return {"text": text, "form": self._params.form(unit)}
+
+    async def _verify(self, client: _Client, params: dict[str, Any]) -> Any:
+        """Compare the drive's CAN settings with the YAML again (a unit ``verify: refuse``
+        holds is released when they agree, and its start-up commands run)."""
+        unit = rpc.units(params, tuple(self.rt.supervisor.units))[0]
+        self.rt.supervisor.audit(client.name, unit, "verify the drive's settings again")
+        return (await self.rt.supervisor.verify_again(unit)).to_json()
 
     async def _param_servo(self, client: _Client, params: dict[str, Any]) -> Any:
         unit = rpc.text(params, "unit")
