@@ -454,6 +454,9 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
         await app.workers.wait_for_complete()
         assert not left.inputs & lay.servo.both
         await until(pilot, lambda: not reported_servo(), "servo off after r")
+        await until(  # the TUI acts on what it was told: the next state push
+            pilot, lambda: not app.sup.units["left"].words.get("control", 0) & 1, "shown off"
+        )
         await pilot.press("v")
         await pilot.pause()
         assert isinstance(app.screen, ConfirmScreen)

@@ -131,7 +131,13 @@ class SupervisorApp(App[None]):
         _b("r", "reset", "error reset", "error reset, servo off after it (asks)"),
         _b("d", "data_select", "data select", "next data-select preset table (asks)"),
         _b("f", "fault", "sim: silence", "simulated units: stop answering / answer again"),
-        _b("colon", "command", "command", "command line in the seed's language", True),
+        _b(
+            "colon",
+            "command",
+            "command",
+            "command line, in capitals (VEL/CUR held while attached)",
+            True,
+        ),
         _b("P", "params", "parameters", "the unit's parameters: r read, w write one, f diff"),
         _b("1", "tab('overview')", "overview", "tab 1: every unit"),
         _b("2", "tab('unit')", "unit", "tab 2: the selected unit, every flag bit"),
@@ -305,7 +311,8 @@ class SupervisorApp(App[None]):
             self._refresh_unit(stale)
         elif active == "bus":
             width = self._width("#bus-view")
-            lines = [
+            lines = [f"STALE: these figures are {age(stale)} old"] if stale is not None else []
+            lines += [
                 line
                 for f in bus_fields(self.sup, self.plans, self.bus_samples)
                 for line in pack(f, width, "  ")
@@ -615,13 +622,14 @@ class SupervisorApp(App[None]):
         do what was asked (looked at once it had time to report)."""
         unit = self.unit
         response, clamped = await self.command_text(unit, text)
-        note = f" · {clamped}" if clamped else ""
+        note = f" · {clamped}" if clamped else ""  # the service's, beside the seed's answer
         self.audit(f":{text!r} → {response!r}{note}", unit)
-        self.say(f"{unit} ← {text!r} → {response!r}{note}")
+        answer = f"{unit} ← {text!r} → {response!r}{note}"
+        self.say(answer)
         if response == RESPONSE_OK:
-            self.set_timer(1.0, lambda: self._explain(unit, text, response + note))
+            self.set_timer(1.0, lambda: self._explain(unit, answer))
 
-    def _explain(self, unit: str, text: str, response: str) -> None:
+    def _explain(self, unit: str, answer: str) -> None:
         state = self.sup.units[unit]
         control = reported(state)
         if control is None:
@@ -634,10 +642,7 @@ class SupervisorApp(App[None]):
                 if state.words.get("error")
                 else "after an error reset it waits to see SERVO off: v cycles it"
             )
-            self.say(
-                f"{unit} ← {text!r} → {response!r}, but the drive reports "
-                f"{' '.join(off)} off ({why})"
-            )
+            self.say(f"{answer}, but the drive reports {' '.join(off)} off ({why})")
 
     @work(exclusive=False)
     async def ask_firmware(self, unit: str) -> None:
@@ -653,13 +658,12 @@ class SupervisorApp(App[None]):
     async def run_commands(self, unit: str, commands: tuple[str, ...]) -> None:
         """One after the other, each once the drive answered a frame carrying the one
         before (so an error reset is a rising edge the drive saw)."""
-        response, clamped = RESPONSE_OK, ""
-        for text in commands:
-            response, clamped = await self.command_text(unit, text)
+        response = RESPONSE_OK
+        for text in commands:  # switches only: nothing a limit clamps
+            response, _ = await self.command_text(unit, text)
             if response != RESPONSE_OK:
                 break
-        note = f" · {clamped}" if clamped else ""
-        self.say(f"{unit} ← {'; '.join(commands)} → {response!r}{note}")
+        self.say(f"{unit} ← {'; '.join(commands)} → {response!r}")
 
     def action_params(self) -> None:
         from abh3_supervisor.clients.tui.params import ParamScreen  # docs/parameters.md
