@@ -22,6 +22,7 @@ from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.params import table
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
+from abh3_supervisor.service.snapshot import supervisor_state
 from tests.test_tui import (
     KEYBOARD,
     mirror_of,
@@ -137,8 +138,9 @@ def test_e_and_ctrl_e_latch_the_estop_on_every_screen_and_in_every_input() -> No
                 seen = len(stops)
                 await press_until(app, pilot, key, lambda s=seen: len(stops) > s, place)
                 assert sup.estop, (place, key)  # every unit zero, START off, latched
-                await until(pilot, lambda: app.sup.estop, "confirmed and shown")
-                assert response(app).startswith("EMERGENCY STOP latched"), (place, key)
+                confirmed = lambda: response(app).startswith("EMERGENCY STOP latched")  # noqa: E731
+                await until(pilot, confirmed, f"{place}: {key} confirmed")
+                assert app.sup.estop, (place, key)
                 # every question and page closed, so the outcome is in sight
                 assert not isinstance(app.screen, ModalScreen) and app.focused is None, place
                 sup.clear_emergency_stop()
@@ -160,10 +162,15 @@ def test_without_the_service_nothing_is_claimed_and_values_are_stale() -> None:
         table_text = app.query_one("#table", Static)
         await until(pilot, lambda: "STALE" in str(table_text.render()), "stale shown")
         assert app.query_one(TabbedContent).has_class("stale")
-        # then gone: a crash, no "bye"
+        await press_until(app, pilot, "d", lambda: isinstance(app.screen, ConfirmScreen), "d")
+        # then gone, a question open: a crash, no "bye"
         for client in list(SERVERS[0].clients):
             client.writer.transport.abort()
         await until(pilot, lambda: app.gone is not None, "the loss seen")
+        await press_until(app, pilot, "y", lambda: "NOT SENT" in response(app), "yes, too late")
+        assert response(app).startswith(
+            "left ← SELECT 6 6 → 'NOT SENT — not connected to the supervisor: the "
+        )  # … supervisor closed the connection, or … connection broke: how it ended
         await press_until(app, pilot, "e", lambda: "E-STOP" in response(app), "e")
         said = response(app)
         assert said.startswith("E-STOP NOT SENT — not connected")
@@ -277,3 +284,15 @@ def test_a_stale_overview_is_dimmed_and_says_how_old() -> None:
     assert {str(span.style) for span in text.spans if span.start > len(lines[0]) + 1} >= {"dim"}
     live = overview.render(mirror, ["left", "right"], 0, 160)
     assert "STALE" not in live.plain and " online " in live.plain
+
+
+def test_a_state_sent_twice_does_not_undo_a_confirmed_estop() -> None:
+    """The service may send one encoded state twice (shared for a few ms): the copy
+    arriving after the e-stop's reply must not show the e-stop cleared again."""
+    rig = snapshot_rig()
+    mirror = mirror_of(rig)
+    state = supervisor_state(rig.sup, {})
+    mirror.estop = True  # the reply confirmed it
+    assert not mirror.apply(state) and mirror.estop
+    rig.run(0.1)
+    assert mirror.apply(supervisor_state(rig.sup, {})) and not mirror.estop  # newer: taken

@@ -78,9 +78,15 @@ def styled(level: int, text: str) -> Text:
     return Text(f"{time.strftime('%H:%M:%S')} {text}", style=style)
 
 
+class NotSent(LinkError):
+    """Not connected: the request never left."""
+
+
 def failed(exc: BaseException) -> str:
-    """Why a request did not do what was asked: refused by the service, or lost with the
-    connection (then whether it acted is not known)."""
+    """Why a request did not do what was asked: never sent, lost with the connection (then
+    whether it acted is not known), or refused by the service."""
+    if isinstance(exc, NotSent):
+        return f"NOT SENT — {exc}"
     if isinstance(exc, LinkLost):
         return f"NOT CONFIRMED — {exc}"
     return f"refused: {exc}"
@@ -201,8 +207,7 @@ class SupervisorApp(App[None]):
         return sorted({key_to_character(k) or format_key(k) for k in keys})
 
     def _notified(self, method: str, params: dict[str, Any]) -> None:
-        if method == "state":
-            self.sup.apply(params)
+        if method == "state" and self.sup.apply(params):
             self.state_at = time.monotonic()
             self.sampler.sample()
         elif method == "event":
@@ -385,7 +390,7 @@ class SupervisorApp(App[None]):
     async def request(self, method: str, **params: Any) -> Any:
         """A request whose answer matters; :class:`LinkError` when refused or not connected."""
         if (why := self._not_connected()) is not None:
-            raise LinkError(why)
+            raise NotSent(why)
         assert self.link is not None
         return await self.link.call(method, **params)
 
