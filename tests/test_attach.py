@@ -71,6 +71,8 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> N
                 await pilot.pause()
                 assert isinstance(app.screen, ConfirmScreen)
                 assert "keeps running" in app.screen.question
+                assert "motion this TUI commanded" in app.screen.question
+                assert "stops at once" in app.screen.question
                 await pilot.press("y")
             await link.close()
             sent = sup.schedulers["b"].slots["left"].stats.commands_sent

@@ -441,7 +441,7 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
         await pilot.pause()
         assert isinstance(app.screen, ConfirmScreen)
         question = app.screen.question
-        assert "START is on and the setpoint is AY 120.0 BX 0.0 min⁻¹" in question
+        assert "START is on and the setpoint is Y 120.0 X 0.0 min⁻¹" in question  # travel
         assert "THE MOTOR WILL MOVE" in question and "Send SERVO OFF, then ON?" in question
         await pilot.press("y")
         await app.workers.wait_for_complete()
@@ -454,6 +454,9 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
         await app.workers.wait_for_complete()
         assert not left.inputs & lay.servo.both
         await until(pilot, lambda: not reported_servo(), "servo off after r")
+        await until(  # the TUI acts on what it was told: the next state push
+            pilot, lambda: not app.sup.units["left"].words.get("control", 0) & 1, "shown off"
+        )
         await pilot.press("v")
         await pilot.pause()
         assert isinstance(app.screen, ConfirmScreen)
@@ -473,6 +476,7 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
 def test_keys_that_cannot_act_say_so_and_ask_nothing() -> None:
     async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
         await pilot.press("ctrl+e")
+        await until(pilot, lambda: app.sup.estop, "the e-stop confirmed")
         for key in ("up", "s"):
             await pilot.press(key)
             await pilot.pause()

@@ -1,6 +1,11 @@
 """An asyncio connection to the control socket, for clients that live on an event loop
 (the TUI): requests with their replies, notifications to a callback, and one future that
-says when and why the connection ended — a service that dies is seen at once."""
+says when and why the connection ended — a service that dies is seen at once.
+
+While connected it proves it is alive: the service drops the motion of a client that
+holds motion and has not said ``alive`` for 0.5 s. The notification is sent from the
+client's own event loop, so a client that hangs or is stopped (SIGSTOP) stops proving.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,7 @@ import asyncio
 import contextlib
 import itertools
 import json
+import socket
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,10 +22,16 @@ from abh3_supervisor.errors import RunError
 from abh3_supervisor.service import protocol as rpc
 
 Notified = Callable[[str, dict[str, Any]], None]
+ALIVE_S = 0.2  # the service wants proof every 0.5 s: this leaves room for a late tick
+ALIVE = rpc.encode({"jsonrpc": "2.0", "method": "alive"})  # a notification: no reply
 
 
 class LinkError(RunError):
     """The service refused a request (its message says why) or the connection is gone."""
+
+
+class LinkLost(LinkError):
+    """The connection is gone: a request had no answer, and may or may not have acted."""
 
 
 class Link:
@@ -32,6 +44,7 @@ class Link:
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._task = asyncio.ensure_future(self._read())
+        self._alive = asyncio.ensure_future(self._prove_alive())
 
     @classmethod
     async def open(cls, path: Path, timeout: float = 5.0) -> Link:
@@ -51,7 +64,7 @@ class Link:
     async def call(self, method: str, **params: Any) -> Any:
         """Send a request and wait for its reply; :class:`LinkError` on an error reply."""
         if self.closed.done():
-            raise LinkError(f"not connected: {self.closed.result()}")
+            raise LinkLost(f"not connected: {self.closed.result()}")
         rid = next(self._ids)
         reply = asyncio.get_running_loop().create_future()
         self._pending[rid] = reply
@@ -61,6 +74,20 @@ class Link:
             return await reply
         finally:
             self._pending.pop(rid, None)
+
+    async def _prove_alive(self) -> None:
+        while not self.closed.done() and not self.writer.is_closing():
+            self.writer.write(ALIVE)
+            await asyncio.sleep(ALIVE_S)
+
+    def detach_now(self) -> None:
+        """Shut the connection down at once, from any thread or a signal handler: the
+        service sees this client leave even if this process's event loop never runs
+        again (a terminal gone can block it). :meth:`close` still tidies up."""
+        sock = self.writer.get_extra_info("socket")
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
 
     async def _read(self) -> None:
         reason = "the supervisor closed the connection"
@@ -72,7 +99,7 @@ class Link:
         finally:
             for reply in self._pending.values():
                 if not reply.done():
-                    reply.set_exception(LinkError(f"{self.path}: {reason}"))
+                    reply.set_exception(LinkLost(f"{self.path}: {reason}"))
             if not self.closed.done():
                 self.closed.set_result(reason)
 
@@ -92,9 +119,10 @@ class Link:
             reply.set_result(message.get("result"))
 
     async def close(self) -> None:
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await self._task
+        for task in (self._alive, self._task):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
         self.writer.close()
         with contextlib.suppress(Exception):
             await self.writer.wait_closed()

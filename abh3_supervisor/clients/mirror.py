@@ -104,8 +104,12 @@ class Mirror:
         config = parse_config(hello["config_text"], hello["config"])
         return cls.of(config, hello.get("simulated", ()))
 
-    def apply(self, state: dict[str, Any]) -> None:
-        """Take a ``state`` (the method's result, or its notification)."""
+    def apply(self, state: dict[str, Any]) -> bool:
+        """Take a ``state`` (the method's result, or its notification) if it is newer than
+        the one held: a service may send one state twice (it shares an encoded state for a
+        few ms), and the copy must not undo what a reply said since (an e-stop confirmed)."""
+        if state["t"] <= self.t:
+            return False
         self.t, self.estop = state["t"], state["estop"]
         self.stopping = state.get("stopping", False)
         for name, data in state["units"].items():
@@ -114,6 +118,7 @@ class Mirror:
         for name, data in state["buses"].items():
             if name in self.buses:
                 _take(self.buses[name], data)
+        return True
 
 
 def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:

@@ -7,6 +7,11 @@ the command language, e-stop and clear. The app owns its terminal: input plugins
 service that read keys get theirs from it (``keys``/``key``), after its own — e-stop,
 tabs and quit always win. Every operator action goes to the supervisor's audit trail.
 Who starts the service and what quitting does is :mod:`abh3_supervisor.clients.tui.run`'s.
+
+It claims nothing it has not seen: ``e``/``ctrl+e`` are the e-stop on every screen and in
+every input line, and the e-stop is shown latched only once the service confirms it;
+without a connection every key that would send says it could NOT be sent; a state that
+is no longer live is dimmed and says how old it is.
 """
 
 from __future__ import annotations
@@ -26,9 +31,10 @@ from textual.binding import Binding, BindingType
 from textual.containers import Grid, VerticalScroll
 from textual.css.query import NoMatches
 from textual.keys import _character_to_key, format_key, key_to_character
+from textual.screen import ModalScreen
 from textual.widgets import Footer, Header, Input, RichLog, Static, TabbedContent, TabPane
 
-from abh3_supervisor.clients.link import Link, LinkError
+from abh3_supervisor.clients.link import Link, LinkError, LinkLost
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import operator, overview, plots
 from abh3_supervisor.clients.tui.help import help_lines
@@ -36,14 +42,16 @@ from abh3_supervisor.clients.tui.model import (
     SERIES,
     BusSample,
     Sampler,
+    age,
     bus_fields,
     detail_fields,
     fault_lines,
     flag_lines,
+    model_name,
     pack,
     reported,
 )
-from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen
+from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen, OperatorInput
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.planner import plan
@@ -56,11 +64,32 @@ FLAG_BOXES = ("inputs", "control", "io")
 SET_STYLE = {"inputs": "bold cyan", "control": "bold green", "io": "bold green"}
 WIDE_FLAGS = 130  # below this the flag boxes go two by two: no name is ever cut
 DRIVE = "(hold; release = stop within 0.5 s)"
+STALE_S = 0.5  # five state pushes missed: what is shown is no longer live
+ESTOP_CONFIRM_S = 0.5  # an e-stop the service has not confirmed by then is said to be so
+HARDWARE = (
+    "use the hardware emergency stop or switch the drives' power off. A supervisor that "
+    "died stops nothing by itself: the drives stop on their own command-zero timeout once "
+    "its frames cease"
+)
 
 
 def styled(level: int, text: str) -> Text:
     style = "bold red" if level >= logging.ERROR else "yellow" if level >= logging.WARNING else ""
     return Text(f"{time.strftime('%H:%M:%S')} {text}", style=style)
+
+
+class NotSent(LinkError):
+    """Not connected: the request never left."""
+
+
+def failed(exc: BaseException) -> str:
+    """Why a request did not do what was asked: never sent, lost with the connection (then
+    whether it acted is not known), or refused by the service."""
+    if isinstance(exc, NotSent):
+        return f"NOT SENT — {exc}"
+    if isinstance(exc, LinkLost):
+        return f"NOT CONFIRMED — {exc}"
+    return f"refused: {exc}"
 
 
 class PaneHandler(logging.Handler):
@@ -83,11 +112,13 @@ class SupervisorApp(App[None]):
     CSS_PATH = "abh3.tcss"
     TITLE = "abh3-supervisor"
     AUTO_FOCUS = None  # keys go to the bindings; the command line takes focus only on ':'
+    ENABLE_COMMAND_PALETTE = False  # its search line would take `e` from the e-stop
 
     ESTOP = "EMERGENCY STOP: every unit zero, START off, latched"
     BINDINGS: ClassVar[list[BindingType]] = [
+        # priority: before any screen, question or input line (OperatorInput leaves `e`)
         Binding("ctrl+e", "estop", "E-STOP", priority=True, tooltip=ESTOP),
-        _b("e", "estop", "E-STOP", ESTOP),
+        Binding("e", "estop", "E-STOP", priority=True, tooltip=ESTOP, show=False),
         _b("E", "clear_estop", "clear e-stop", "clear the e-stop (asks; START again to move)"),
         _b("up", "drive(1, 0)", "forward", f"forward {DRIVE}"),
         _b("down", "drive(-1, 0)", "back", f"back {DRIVE}"),
@@ -106,8 +137,14 @@ class SupervisorApp(App[None]):
         _b("r", "reset", "error reset", "error reset, servo off after it (asks)"),
         _b("d", "data_select", "data select", "next data-select preset table (asks)"),
         _b("f", "fault", "sim: silence", "simulated units: stop answering / answer again"),
-        _b("colon", "command", "command", "command line in the seed's language", True),
-        _b("P", "params", "parameters", "the selected unit's parameters: read, edit, diff"),
+        _b(
+            "colon",
+            "command",
+            "command",
+            "command line, in capitals (VEL/CUR held while attached)",
+            True,
+        ),
+        _b("P", "params", "parameters", "the unit's parameters: r read, w write one, f diff"),
         _b("1", "tab('overview')", "overview", "tab 1: every unit"),
         _b("2", "tab('unit')", "unit", "tab 2: the selected unit, every flag bit"),
         _b("3", "tab('bus')", "bus", "tab 3: frames/s, load, errors per bus"),
@@ -120,8 +157,8 @@ class SupervisorApp(App[None]):
     ]
     QUIT = "Quit? Every unit gets zero, START and SERVO off."
     DETACH = (
-        "Detach from the supervisor? It keeps running and so do the drives; motion from "
-        "this TUI stops within 0.5 s."
+        "Detach from the supervisor? It keeps running and so do the drives; motion this "
+        "TUI commanded (arrow keys, VEL/CUR from the command line) stops at once."
     )
 
     def __init__(
@@ -153,6 +190,7 @@ class SupervisorApp(App[None]):
         self._sending: set[asyncio.Task[Any]] = set()
         self.silenced: set[str] = set()  # simulated units this TUI told to stop answering
         self.gone: str | None = None  # why the service is gone, once it is
+        self.state_at = time.monotonic()  # when the service last pushed its state (ours)
         self.firmware: dict[str, str] = {}  # per unit, read once over the parameter channel
         self.plugin_keys = dict(plugin_keys or {})
         self._plugin_key_names: list[str] = list(self.plugin_keys)
@@ -169,8 +207,8 @@ class SupervisorApp(App[None]):
         return sorted({key_to_character(k) or format_key(k) for k in keys})
 
     def _notified(self, method: str, params: dict[str, Any]) -> None:
-        if method == "state":
-            self.sup.apply(params)
+        if method == "state" and self.sup.apply(params):
+            self.state_at = time.monotonic()
             self.sampler.sample()
         elif method == "event":
             level = logging.getLevelName(str(params.get("level", "INFO")))
@@ -198,8 +236,10 @@ class SupervisorApp(App[None]):
             with TabPane("5 Plots", id="plots"), VerticalScroll(id="plots-scroll"):
                 yield Static(id="plots-view")
         yield Static(id="response")
-        yield Input(
-            placeholder="command for the selected unit, e.g. SERVO ON ON (Esc closes)", id="cmdline"
+        yield OperatorInput(
+            placeholder="command for the selected unit in capitals, e.g. SERVO ON ON "
+            "(e is the e-stop; Esc closes)",
+            id="cmdline",
         )
         yield Footer()
 
@@ -227,7 +267,10 @@ class SupervisorApp(App[None]):
         if self.gone is not None or not self.is_running:
             return
         self.gone = closed.result() if not closed.cancelled() else "closed"
-        text = f"NOT CONNECTED: {self.gone} — the drives' state is unknown here; q quits"
+        text = (
+            f"NOT CONNECTED: {self.gone}. Nothing can be sent from here, the e-stop "
+            f"neither: {HARDWARE}. What is shown is stale. q quits"
+        )
         with contextlib.suppress(NoMatches):
             self.query_one("#gone", Static).update(text)
             self.query_one("#gone").add_class("shown")
@@ -244,20 +287,37 @@ class SupervisorApp(App[None]):
         width = self.query_one(widget_id).content_size.width
         return width if width > 0 else self.size.width - 2
 
+    def stale_for(self) -> float | None:
+        """How old what is shown is once it is no longer live; None while it is (and with
+        no service at all: the layout tests)."""
+        if self.link is None:
+            return None
+        seconds = time.monotonic() - self.state_at
+        return seconds if self.gone is not None or seconds > STALE_S else None
+
     def _refresh(self) -> None:
-        self.query_one("#estop").set_class(self.sup.estop, "latched")
+        stale = self.stale_for()
+        self.query_one(TabbedContent).set_class(stale is not None, "stale")
+        banner = self.query_one("#estop", Static)
+        banner.set_class(self.sup.estop, "latched")
+        banner.update(
+            "EMERGENCY STOP LATCHED — E (shift+e) to clear"
+            if stale is None
+            else f"emergency stop latched as of {age(stale)} ago (stale)"
+        )
         self.query_one("#table", Static).update(
-            overview.render(self.sup, self.names, self.selected, self._width("#table"))
+            overview.render(self.sup, self.names, self.selected, self._width("#table"), stale)
         )
         log = self.query_one("#log-scroll", RichLog)
         while self.pending_log:
             log.write(self.pending_log.popleft())
         active = self.query_one(TabbedContent).active
         if active == "unit":
-            self._refresh_unit()
+            self._refresh_unit(stale)
         elif active == "bus":
             width = self._width("#bus-view")
-            lines = [
+            lines = [f"STALE: these figures are {age(stale)} old"] if stale is not None else []
+            lines += [
                 line
                 for f in bus_fields(self.sup, self.plans, self.bus_samples)
                 for line in pack(f, width, "  ")
@@ -265,8 +325,12 @@ class SupervisorApp(App[None]):
             self.query_one("#bus-view", Static).update("\n".join(lines))
         elif active == "plots":
             height = self.query_one("#plots-scroll").size.height
+            head = f"unit {self.unit} (n/p select) · velocity model "
+            head += model_name(self.sup.units[self.unit])
+            if stale is not None:
+                head += f" · STALE: no samples for {age(stale)}"
             self.query_one("#plots-view", Static).update(
-                Text(f"unit {self.unit} (n/p select)\n", style="bold")
+                Text(head + "\n", style="bold")
                 + plots.render(
                     self.sup.units[self.unit],
                     self.sampler.traces[self.unit],
@@ -280,13 +344,13 @@ class SupervisorApp(App[None]):
             f"speed {self.speed:.2f} m/s, turn {self.turn:.2f} rad/s"
         )
 
-    def _refresh_unit(self) -> None:
+    def _refresh_unit(self, stale: float | None) -> None:
         name = self.unit
         unit = self.sup.units[name]
-        if name not in self.firmware and unit.online and self.link is not None:
+        if name not in self.firmware and unit.online and self._not_connected() is None:
             self.firmware[name] = "…"  # asked once per unit, while the tab shows it
             self.ask_firmware(name)
-        fields = detail_fields(self.sup, name, self.firmware.get(name))
+        fields = detail_fields(self.sup, name, self.firmware.get(name), stale)
         self.query_one("#unit-head", Static).update(
             "\n".join(pack(fields, self._width("#unit-head")))
         )
@@ -317,16 +381,16 @@ class SupervisorApp(App[None]):
         return None
 
     def connected(self) -> bool:
-        """Connected; otherwise says so at once."""
+        """Connected; otherwise says at once that nothing was sent."""
         why = self._not_connected()
         if why is not None:
-            self.say(why)
+            self.say(f"NOT SENT — {why}")
         return why is None
 
     async def request(self, method: str, **params: Any) -> Any:
         """A request whose answer matters; :class:`LinkError` when refused or not connected."""
         if (why := self._not_connected()) is not None:
-            raise LinkError(why)
+            raise NotSent(why)
         assert self.link is not None
         return await self.link.call(method, **params)
 
@@ -340,16 +404,20 @@ class SupervisorApp(App[None]):
 
     def _sent(self, task: asyncio.Task[Any]) -> None:
         self._sending.discard(task)
-        if not task.cancelled() and isinstance(task.exception(), LinkError):
+        exc = None if task.cancelled() else task.exception()
+        if isinstance(exc, LinkError):
             with contextlib.suppress(NoMatches):
-                self.say(f"refused: {task.exception()}")
+                self.say(failed(exc))
 
-    async def command_text(self, unit: str, text: str) -> str:
-        """The seed's exact answer to one command, or why there is none."""
+    async def command_text(self, unit: str, text: str) -> tuple[str, str]:
+        """The seed's exact answer to one command, or why there is none; and the
+        service's note when it clamped the value (``''`` otherwise)."""
         try:
-            return str((await self.request("command", unit=unit, text=text))["response"])
+            reply = await self.request("command", unit=unit, text=text)
         except LinkError as exc:
-            return f"refused: {exc}"
+            return failed(exc), ""
+        notes = reply.get("clamped") or {}  # absent from services before the clamp notes
+        return str(reply["response"]), str(notes.get(unit, ""))
 
     def audit(self, action: str, unit: str | None = None, repeat_after: float = 0.0) -> None:
         """Into the audit trail; the same action again within ``repeat_after`` s (a held
@@ -379,13 +447,38 @@ class SupervisorApp(App[None]):
     # ------------------------------------------------------------ actions
 
     def action_estop(self) -> None:
-        self.send("estop")
-        self.sup.estop = True  # shown at once; the service's next state confirms it
-        self.audit("key e-stop: EMERGENCY STOP")
-        self.say("EMERGENCY STOP: every unit zero, START off — E (shift+e) to clear")
+        """Sent before anything else; then every question, page and input line closes
+        (a question is answered no) so the outcome is in sight. Shown latched only once
+        the service confirms it."""
+        why = self._not_connected()
+        if why is None:
+            self.confirm_estop(asyncio.ensure_future(self.request("estop")))
+        while isinstance(self.screen, ModalScreen):
+            self.screen.dismiss(None)
+        self.key_escape()
+        if why is not None:
+            self.say(f"E-STOP NOT SENT — {why}: {HARDWARE}.")
+            self.pending_log.append(styled(logging.ERROR, f"key e-stop: NOT SENT ({why})"))
+            return
+        self.say("EMERGENCY STOP sent: waiting for the supervisor to confirm it …")
+
+    @work(exclusive=False)
+    async def confirm_estop(self, sent: asyncio.Future[Any]) -> None:
+        try:
+            await asyncio.wait_for(sent, ESTOP_CONFIRM_S)
+        except (LinkError, TimeoutError) as exc:
+            why = str(exc) or f"no answer within {ESTOP_CONFIRM_S:g} s"
+            self.say(f"E-STOP NOT CONFIRMED by the supervisor ({why}): {HARDWARE}.")
+            self.pending_log.append(styled(logging.ERROR, f"key e-stop: NOT CONFIRMED ({why})"))
+            return
+        self.sup.estop = True  # confirmed: shown at once, the next state says it too
         self.refresh_view()
+        self.say("EMERGENCY STOP latched: every unit zero, START off — E (shift+e) to clear")
+        self.audit("key e-stop: EMERGENCY STOP")
 
     def action_clear_estop(self) -> None:
+        if not self.connected():
+            return
         if not self.sup.estop:
             self.say("no emergency stop is latched")
             return
@@ -399,6 +492,8 @@ class SupervisorApp(App[None]):
         self.push_screen(ConfirmScreen("Clear the emergency stop?"), answer)
 
     def action_drive(self, linear: int, angular: int) -> None:
+        if not self.connected():
+            return
         targets = self.targets()
         why = operator.drive_refusal(self.sup, targets, bool(linear or angular))
         if why is not None:
@@ -440,6 +535,8 @@ class SupervisorApp(App[None]):
             pane.scroll_page_up()
 
     def action_plugin_key(self, index: int, char: int) -> None:
+        if not self.connected():
+            return
         name = self._plugin_key_names[index]
         key = chr(char)
         self.audit(f"key {key!r}: {self.plugin_keys[name][key]}", repeat_after=2.0)
@@ -464,7 +561,7 @@ class SupervisorApp(App[None]):
             self.audit(f"key {key}: {asked} → {'yes' if yes else 'no'}", unit)
             if yes:
                 self.run_commands(unit, step.commands)
-            else:
+            elif yes is False:  # None: closed by the e-stop, which says what it did
                 self.say("nothing sent")
 
         self.push_screen(ConfirmScreen(step.question), answer)
@@ -491,6 +588,8 @@ class SupervisorApp(App[None]):
         self.act("d", operator.Plan((command,), question=question))
 
     def action_fault(self) -> None:
+        if not self.connected():
+            return
         cfg = self.sup.units[self.unit].cfg
         if not self.sup.buses[cfg.bus].simulated:
             self.say("not a simulated unit")
@@ -503,6 +602,8 @@ class SupervisorApp(App[None]):
         self.say(what)
 
     def action_command(self) -> None:
+        if not self.connected():
+            return
         cmdline = self.query_one("#cmdline", Input)
         cmdline.add_class("open")
         cmdline.focus()
@@ -525,13 +626,15 @@ class SupervisorApp(App[None]):
         """The command line: the seed's exact response, and a note when the drive does not
         do what was asked (looked at once it had time to report)."""
         unit = self.unit
-        response = await self.command_text(unit, text)
-        self.audit(f":{text!r} → {response!r}", unit)
-        self.say(f"{unit} ← {text!r} → {response!r}")
+        response, clamped = await self.command_text(unit, text)
+        note = f" · {clamped}" if clamped else ""  # the service's, beside the seed's answer
+        self.audit(f":{text!r} → {response!r}{note}", unit)
+        answer = f"{unit} ← {text!r} → {response!r}{note}"
+        self.say(answer)
         if response == RESPONSE_OK:
-            self.set_timer(1.0, lambda: self._explain(unit, text, response))
+            self.set_timer(1.0, lambda: self._explain(unit, answer))
 
-    def _explain(self, unit: str, text: str, response: str) -> None:
+    def _explain(self, unit: str, answer: str) -> None:
         state = self.sup.units[unit]
         control = reported(state)
         if control is None:
@@ -544,10 +647,7 @@ class SupervisorApp(App[None]):
                 if state.words.get("error")
                 else "after an error reset it waits to see SERVO off: v cycles it"
             )
-            self.say(
-                f"{unit} ← {text!r} → {response!r}, but the drive reports "
-                f"{' '.join(off)} off ({why})"
-            )
+            self.say(f"{answer}, but the drive reports {' '.join(off)} off ({why})")
 
     @work(exclusive=False)
     async def ask_firmware(self, unit: str) -> None:
@@ -564,8 +664,8 @@ class SupervisorApp(App[None]):
         """One after the other, each once the drive answered a frame carrying the one
         before (so an error reset is a rising edge the drive saw)."""
         response = RESPONSE_OK
-        for text in commands:
-            response = await self.command_text(unit, text)
+        for text in commands:  # switches only: nothing a limit clamps
+            response, _ = await self.command_text(unit, text)
             if response != RESPONSE_OK:
                 break
         self.say(f"{unit} ← {'; '.join(commands)} → {response!r}")
@@ -573,7 +673,8 @@ class SupervisorApp(App[None]):
     def action_params(self) -> None:
         from abh3_supervisor.clients.tui.params import ParamScreen  # docs/parameters.md
 
-        self.push_screen(ParamScreen(self, self.unit))
+        if self.connected():
+            self.push_screen(ParamScreen(self, self.unit))
 
     def action_help(self) -> None:
         bindings = [b for b in self.BINDINGS if isinstance(b, Binding)]

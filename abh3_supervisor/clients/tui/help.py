@@ -26,6 +26,10 @@ def help_lines(
     lines = [
         "Keys, on every screen. Esc closes this help, a question (= no)",
         "or the command line. The selected unit is marked ▶ (n, p).",
+        "e and ctrl+e are the E-STOP everywhere: on every tab, page and",
+        "question, and in every input line, where text is typed in",
+        "capitals (the command language does not mind). The e-stop closes",
+        "every question and page, so its outcome is in sight.",
         "",
     ]
     for keys, text in by_action.values():

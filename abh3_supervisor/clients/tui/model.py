@@ -2,6 +2,10 @@
 
 State is shown as the drive reports it (its control word) wherever the drive reports
 it; a ``!`` marks a switch the drive reports other than it is commanded.
+
+One axis vocabulary: the drive's A/Y and B/X channels (command, current) are named by
+the unit's velocity model — Y/X for ``travel``, A/B for ``motor`` — and every value
+carries its letter, so no column or series changes meaning from one unit to the next.
 """
 
 from __future__ import annotations
@@ -33,6 +37,39 @@ def pair(a: float | None, b: float | None, digits: int = 1, width: int = 7) -> s
     return f"{fmt(a, digits):>{width}} {fmt(b, digits):>{width}}"
 
 
+def axes(unit: UnitView) -> tuple[str, str]:
+    """The letters of the unit's A/Y and B/X channels in its velocity model."""
+    return ("Y", "X") if unit.cfg.velocity_model is VelocityModel.TRAVEL else ("A", "B")
+
+
+def labelled(
+    letters: tuple[str, str],
+    a: float | None,
+    b: float | None,
+    digits: int = 1,
+    width: int = 7,
+    unit: str = "",
+) -> str:
+    """Two numbers, each after its axis letter (``Y  300.0 X   20.0``), aligned in columns."""
+    return (
+        f"{letters[0]}{fmt(a, digits):>{width}}{unit} {letters[1]}{fmt(b, digits):>{width}}{unit}"
+    )
+
+
+def spoken(letters: tuple[str, str], a: float | None, b: float | None, digits: int = 1) -> str:
+    """The same in running text: ``Y 300.0 X 20.0``."""
+    return f"{letters[0]} {fmt(a, digits)} {letters[1]} {fmt(b, digits)}"
+
+
+def model_name(unit: UnitView) -> str:
+    travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
+    return "travel: Y travel, X turn" if travel else "motor: A, B motors"
+
+
+def age(seconds: float) -> str:
+    return f"{seconds:.1f} s" if seconds < 10 else f"{seconds:.0f} s"
+
+
 def status_record(unit: UnitView, packet: int) -> frames.Broadcast | None:
     return unit.status.get(packet)
 
@@ -58,13 +95,21 @@ def unit_of(unit: UnitView) -> str:
     return "%" if unit.setpoint.kind is ControlMode.CURRENT else "min⁻¹"
 
 
+def model_feedback(unit: UnitView) -> tuple[float | None, float | None]:
+    """Velocity feedback in the unit's own model's axes."""
+    fb = unit.feedback
+    if fb is None:
+        return None, None
+    travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
+    return (fb.vel_y, fb.vel_x) if travel else (fb.vel_a, fb.vel_b)
+
+
 def overview_row(sup: Mirror, name: str) -> dict[str, str]:
     unit = sup.units[name]
     fb = unit.feedback
     brd3, brd5 = status_record(unit, 3), status_record(unit, 5)
     error, alarm = unit.words.get("error", 0), unit.words.get("alarm", 0)
-    travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
-    model_fbk = (fb.vel_y, fb.vel_x) if fb and travel else (fb.vel_a, fb.vel_b) if fb else None
+    letters = axes(unit)
     faults = " ".join(
         f"{mark}{len(flags.FAULT.names(word))}"
         for mark, word in ((ERROR_MARK, error), (ALARM_MARK, alarm))
@@ -79,19 +124,23 @@ def overview_row(sup: Mirror, name: str) -> dict[str, str]:
         "mode": f"{unit.setpoint.kind.value[:3]} {unit.cfg.velocity_model.value}",
         "servo": switch(unit, unit.layout.servo),
         "start": switch(unit, unit.layout.start),
-        "cmd": pair(sp.ay, sp.bx, 2, 6) + " %" if current_mode else pair(sp.ay, sp.bx),
-        "fbk": pair(*model_fbk) if model_fbk else pair(None, None),
-        "fbk A/B": pair(fb.vel_a if fb else None, fb.vel_b if fb else None),
-        "fbk Y/X": pair(fb.vel_y if fb else None, fb.vel_x if fb else None),
-        "current": (
-            pair(brd3.cur_cmd_ay, brd3.cur_cmd_bx, 2, 6)
-            if isinstance(brd3, frames.Brd3)
-            else pair(None, None, 2, 6)
+        "cmd": (
+            labelled(letters, sp.ay, sp.bx, 2, 6, "%")
+            if current_mode
+            else labelled(letters, sp.ay, sp.bx)
         ),
-        "load": (
-            pair(brd3.load_a, brd3.load_b, 0, 4)
+        "fbk": labelled(letters, *model_feedback(unit)),
+        "fbk A/B": labelled(("A", "B"), fb.vel_a if fb else None, fb.vel_b if fb else None),
+        "fbk Y/X": labelled(("Y", "X"), fb.vel_y if fb else None, fb.vel_x if fb else None),
+        "current": (
+            labelled(letters, brd3.cur_cmd_ay, brd3.cur_cmd_bx, 2, 6)
             if isinstance(brd3, frames.Brd3)
-            else pair(None, None, 0, 4)
+            else labelled(letters, None, None, 2, 6)
+        ),
+        "load": (  # per motor, whatever the model
+            labelled(("A", "B"), brd3.load_a, brd3.load_b, 0, 4)
+            if isinstance(brd3, frames.Brd3)
+            else labelled(("A", "B"), None, None, 0, 4)
         ),
         "supply": (
             pair(brd5.main_volt, brd5.control_volt, 1, 5)
@@ -144,12 +193,23 @@ def fault_lines(
     return lines
 
 
-def detail_fields(sup: Mirror, name: str, firmware: str | None = None) -> list[str]:
-    """The unit's figures, one field each: a field is never split across lines."""
+def detail_fields(
+    sup: Mirror, name: str, firmware: str | None = None, stale: float | None = None
+) -> list[str]:
+    """The unit's figures, one field each: a field is never split across lines. ``stale``:
+    how old they are when they are no longer live."""
     unit = sup.units[name]
     st = unit.stats
-    fields = [
+    sp, fb = unit.setpoint, unit.feedback
+    letters = axes(unit)
+    fields = [f"STALE {age(stale)}"] if stale is not None else []
+    fields += [
         f"unit {name}",
+        f"velocity model {model_name(unit)}",
+        f"cmd {spoken(letters, sp.ay, sp.bx, 2 if sp.kind is ControlMode.CURRENT else 1)} "
+        + unit_of(unit),
+        f"fbk {spoken(('Y', 'X'), fb.vel_y, fb.vel_x) if fb else '–'} min⁻¹",
+        f"fbk {spoken(('A', 'B'), fb.vel_a, fb.vel_b) if fb else '–'} min⁻¹",
         f"firmware {firmware or '–'}",
         f"abh3_id {unit.cfg.abh3_id}",
         f"host {unit.cfg.host_id}",
@@ -167,7 +227,13 @@ def detail_fields(sup: Mirror, name: str, firmware: str | None = None) -> list[s
         f"malformed {st.malformed}",
         f"gaps {st.gaps}",
     ]
-    b4, b5, b6 = status_record(unit, 4), status_record(unit, 5), status_record(unit, 6)
+    b3, b4, b5 = status_record(unit, 3), status_record(unit, 4), status_record(unit, 5)
+    b6 = status_record(unit, 6)
+    if isinstance(b3, frames.Brd3):
+        fields += [
+            f"current {spoken(letters, b3.cur_cmd_ay, b3.cur_cmd_bx, 2)} %",
+            f"load {spoken(('A', 'B'), b3.load_a, b3.load_b, 0)} %",
+        ]
     if isinstance(b4, frames.Brd4):
         fields += [f"pulses A {b4.pulse_a}", f"pulses B {b4.pulse_b}"]
     if isinstance(b5, frames.Brd5):
@@ -200,15 +266,16 @@ def pack(fields: list[str], width: int, sep: str = " · ") -> list[str]:
 
 # ---------------------------------------------------------------- plots
 
+# keyed by the drive's channels (AY, BX) or motors (A, B); shown by series_label
 SERIES = (
     ("cmd AY", "velocity or current command, A/Y"),
     ("cmd BX", "velocity or current command, B/X"),
     ("fbk AY", "velocity feedback, A/Y"),
     ("fbk BX", "velocity feedback, B/X"),
-    ("current A", "current command, A/Y [%]"),
-    ("current B", "current command, B/X [%]"),
-    ("load A", "load, A [%]"),
-    ("load B", "load, B [%]"),
+    ("current AY", "current command, A/Y [%]"),
+    ("current BX", "current command, B/X [%]"),
+    ("load A", "load, motor A [%]"),
+    ("load B", "load, motor B [%]"),
 )
 
 
@@ -234,12 +301,10 @@ def series_unit(unit: UnitView, key: str) -> str:
 
 
 def series_label(unit: UnitView, key: str) -> str:
-    """The series' name in the unit's terms: feedback in its velocity model's axes."""
-    if key.startswith("fbk"):
-        travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
-        axis = ("Y" if travel else "A") if key.endswith("AY") else ("X" if travel else "B")
-        return f"fbk {axis}"
-    return key
+    """The series' name in the unit's terms: a channel by its velocity model's letter."""
+    name, axis = key.split()
+    channel = {"AY": 0, "BX": 1}.get(axis)
+    return key if channel is None else f"{name} {axes(unit)[channel]}"
 
 
 class Sampler:
@@ -262,8 +327,8 @@ class Sampler:
                 trace.add(now, "fbk BX", fb.vel_x if travel else fb.vel_b)
             brd3 = status_record(unit, 3)
             if isinstance(brd3, frames.Brd3):
-                trace.add(now, "current A", brd3.cur_cmd_ay)
-                trace.add(now, "current B", brd3.cur_cmd_bx)
+                trace.add(now, "current AY", brd3.cur_cmd_ay)
+                trace.add(now, "current BX", brd3.cur_cmd_bx)
                 trace.add(now, "load A", brd3.load_a)
                 trace.add(now, "load B", brd3.load_b)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from abh3_supervisor.clients.mirror import Mirror, UnitView
-from abh3_supervisor.clients.tui.model import fmt, reported, unit_of
+from abh3_supervisor.clients.tui.model import axes, reported, spoken, unit_of
 from abh3_supervisor.config.model import Role, VelocityModel
 from abh3_supervisor.core.kinematics import twist_to_yx, yx_to_ab
 from abh3_supervisor.protocol import flags
@@ -57,7 +57,7 @@ def mask(unit: UnitView, what: str) -> int:
 
 def motion(unit: UnitView) -> str:
     sp = unit.setpoint
-    return f"AY {fmt(sp.ay)} BX {fmt(sp.bx)} {unit_of(unit)}"
+    return f"{spoken(axes(unit), sp.ay, sp.bx)} {unit_of(unit)}"
 
 
 def _moving(unit: UnitView) -> bool:

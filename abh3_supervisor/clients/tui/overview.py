@@ -2,8 +2,11 @@
 
 An order of magnitude cheaper to render than a table widget, so the UI thread leaves the
 GIL to the buses. Columns never wrap: the widest layout that fits is used, and below it
-the least important columns are left out (the unit tab shows everything). Faults are
-named on a line of their own under their unit, wrapping between names only.
+the least important columns are left out (the unit tab shows everything). Every value of
+an axis carries its letter (Y/X or A/B, model.axes), so whichever columns are left, none
+means one thing on one row and another on the next. Faults are named on a line of their
+own under their unit, wrapping between names only. Once the state is no longer live
+(the service gone or silent) every row is dimmed and says so, with its age.
 """
 
 from __future__ import annotations
@@ -13,7 +16,13 @@ from dataclasses import dataclass
 from rich.text import Text
 
 from abh3_supervisor.clients.mirror import Mirror
-from abh3_supervisor.clients.tui.model import ALARM_MARK, ERROR_MARK, fault_names, overview_row
+from abh3_supervisor.clients.tui.model import (
+    ALARM_MARK,
+    ERROR_MARK,
+    age,
+    fault_names,
+    overview_row,
+)
 
 
 @dataclass(frozen=True)
@@ -31,24 +40,24 @@ COLUMNS = {
         Column("unit", "unit", 10, 100),
         Column("state", "state", 7, 95),
         Column("proto", "gen", 4, 30),
-        Column("mode", "mode", 10, 35),
         Column("servo", "servo", 8, 90),
         Column("start", "start", 8, 90),
-        Column("cmd", "cmd AY BX min⁻¹", 15, 85, right=True),
-        Column("fbk", "fbk AY BX min⁻¹", 15, 85, right=True),
-        Column("fbk A/B", "fbk A  B min⁻¹", 15, 80, right=True),
-        Column("fbk Y/X", "fbk Y  X min⁻¹", 15, 80, right=True),
-        Column("current", "current %", 13, 60, right=True),
-        Column("load", "load %", 9, 55, right=True),
+        Column("cmd", "command", 17, 85, right=True),
+        Column("fbk", "feedback min⁻¹", 17, 85, right=True),
+        Column("fbk A/B", "feedback min⁻¹", 17, 80, right=True),
+        Column("fbk Y/X", "feedback min⁻¹", 17, 80, right=True),
+        Column("current", "current %", 15, 60, right=True),
+        Column("load", "load %", 11, 55, right=True),
         Column("supply", "supply V", 11, 20, right=True),
         Column("faults", "faults", 7, 75),
         Column("rate", "rate Hz", 10, 50, right=True),
     )
 }
-# the full layout, and the one for narrow terminals: feedback in each unit's own model
+# the full layout (feedback in both models), and the one for narrow terminals (feedback
+# in each unit's own model)
 WIDE = [
-    "unit", "state", "mode", "servo", "start", "cmd", "fbk A/B", "fbk Y/X", "current",
-    "load", "supply", "rate", "faults",
+    "unit", "state", "servo", "start", "cmd", "fbk A/B", "fbk Y/X", "current", "load",
+    "supply", "rate", "faults",
 ]  # fmt: skip
 NARROW = ["unit", "state", "servo", "start", "cmd", "fbk", "current", "load", "rate", "faults"]
 GAP = 1
@@ -87,9 +96,21 @@ def _style(key: str, value: str, selected: bool) -> str:
     return ""
 
 
-def render(sup: Mirror, names: list[str], selected: int, width: int) -> Text:
+LEGEND = (
+    "\nY/X travel/turn, A/B motors (each unit's velocity_model); min⁻¹, % in torque mode\n"
+    "servo/start as the drive reports them; ! = not as commanded, ? = not reported yet"
+)
+
+
+def render(
+    sup: Mirror, names: list[str], selected: int, width: int, stale: float | None = None
+) -> Text:
+    """``stale``: how old the state is once it is no longer live (None: live)."""
     columns = fit(width)
-    text = Text(" ".join(_cell(c, c.header) for c in columns).rstrip() + "\n", style="bold")
+    text = Text()
+    if stale is not None:
+        text.append(f"STALE: these values are {age(stale)} old, not live\n", "bold red")
+    text.append(" ".join(_cell(c, c.header) for c in columns).rstrip() + "\n", style="bold")
     for bus, health in sup.buses.items():  # a bus in trouble, above its units
         if health.state != "ok":
             since = sup.t - health.since
@@ -100,12 +121,13 @@ def render(sup: Mirror, names: list[str], selected: int, width: int) -> Text:
     for i, name in enumerate(names):
         row = overview_row(sup, name)
         row["unit"] = ("▶ " if i == selected else "  ") + name
+        if stale is not None:
+            row["state"] = "stale"
         for n, column in enumerate(columns):
             if n:
                 text.append(" " * GAP)
-            text.append(
-                _cell(column, row[column.key]), _style(column.key, row[column.key], i == selected)
-            )
+            style = _style(column.key, row[column.key], i == selected)
+            text.append(_cell(column, row[column.key]), "dim" if stale is not None else style)
         text.append("\n")
         faults = fault_names(sup, name)
         if faults:
@@ -117,8 +139,5 @@ def render(sup: Mirror, names: list[str], selected: int, width: int) -> Text:
                 text.append(f"{mark} {bit}", style)
                 text.append(" ")
             text.append("\n")
-    text.append(
-        "\nservo/start as the drive reports them; ! = not as commanded, ? = not reported yet",
-        style="dim",
-    )
+    text.append(LEGEND, style="dim")
     return text

@@ -1,23 +1,27 @@
-"""The parameter page of one unit (key ``P``): read all, edit one, diff against a file.
+"""The parameter page of one unit (key ``P``): read all, write one, diff against a file.
 
 Every request goes over the control socket to the service's :class:`ParamOps` (the same
 code as ``abh3 param``): a write asks first, is refused while the drive reports its servo
 on, and lands in the event log with the old and the new value. The page reads in a worker, so
-the screen — and the e-stop — stay live while a slow drive answers.
+the screen — and the e-stop — stay live while a slow drive answers. ``e`` is the e-stop
+here as everywhere (the app's priority binding), so writing is ``w`` or Enter, a value is
+typed without ``e`` (``1E3``), and the file to diff against is picked, not typed.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from textual.app import ComposeResult
+from textual.await_complete import AwaitComplete
 from textual.binding import Binding, BindingType
 from textual.containers import Vertical
 from textual.screen import ModalScreen
-from textual.widgets import DataTable, Input, Static
+from textual.widgets import DataTable, DirectoryTree, Input, Static
 
-from abh3_supervisor.clients.tui.screens import ConfirmScreen
+from abh3_supervisor.clients.tui.screens import ConfirmScreen, OperatorInput
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.params import files, table
 from abh3_supervisor.service.param_ops import shown
@@ -26,7 +30,22 @@ if TYPE_CHECKING:
     from abh3_supervisor.clients.tui.app import SupervisorApp
 
 COLUMNS = ("address", "name", "value", "word", "file")
-HINT = "r read all · e edit · f diff against a file · Esc close"
+HINT = "r read all · w or Enter write the selected one · f diff against a file · Esc close"
+
+
+def parameter_file(path: Path) -> bool:
+    try:
+        files.format_of(path)
+    except Abh3Error:
+        return False
+    return True
+
+
+class ParameterFiles(DirectoryTree):
+    """Directories and parameter files only, under the directory the TUI started in."""
+
+    def filter_paths(self, paths: Iterable[Path]) -> Iterable[Path]:
+        return [p for p in paths if p.is_dir() or parameter_file(p)]
 
 
 class ParamScreen(ModalScreen[None]):
@@ -35,13 +54,14 @@ class ParamScreen(ModalScreen[None]):
     #params { width: 100; max-width: 98%; height: 90%; border: thick $primary;
               background: $surface; padding: 0 1; }
     #params DataTable { height: 1fr; }
-    #params-input { display: none; }
+    #params-input, #params-files { display: none; }
     #params-input.open { display: block; }
+    #params-files.open { display: block; height: 12; }
     """
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("escape", "close", "close"),
         Binding("r", "read_all", "read all"),
-        Binding("e", "edit", "edit the selected parameter"),
+        Binding("w", "edit", "write the selected parameter"),
         Binding("f", "diff", "diff against a file"),
     ]
 
@@ -49,17 +69,15 @@ class ParamScreen(ModalScreen[None]):
         super().__init__()
         self.owner, self.unit = owner, unit
         self.words: dict[int, int] = {}
-        self.mode = ""  # what the input line is asking for: "edit" or "diff"
+        self.mode = ""  # what is open below the table: "edit" (the input line) or "diff"
         self.editing = 0
 
     def compose(self) -> ComposeResult:
         with Vertical(id="params"):
             yield Static(f"parameters of {self.unit}", id="params-head")
             yield DataTable(id="params-table", cursor_type="row")
-            yield Input(id="params-input")
-            yield Static(
-                "r read all · e edit · f diff against a file · Esc close", id="params-status"
-            )
+            yield OperatorInput(id="params-input")
+            yield Static(HINT, id="params-status")
 
     def on_mount(self) -> None:
         grid = self.query_one(DataTable)
@@ -72,6 +90,12 @@ class ParamScreen(ModalScreen[None]):
 
     def say(self, text: str) -> None:
         self.query_one("#params-status", Static).update(text)
+
+    def dismiss(self, result: None = None) -> AwaitComplete:
+        """Reads stop first: a reply landing on a page being taken down would find no
+        table (the e-stop closes this page at any moment)."""
+        self.workers.cancel_node(self)
+        return super().dismiss(result)
 
     # ------------------------------------------------------------ reading
 
@@ -104,18 +128,19 @@ class ParamScreen(ModalScreen[None]):
         grid.update_cell(str(address), "value", shown(address, word))
         grid.update_cell(str(address), "word", f"{word:08X}")
 
-    # ------------------------------------------------------------ the input line
+    # ------------------------------------------------------------ the input line, the files
 
-    def _ask(self, mode: str, placeholder: str) -> None:
-        self.mode = mode
+    def _ask(self, placeholder: str) -> None:
+        self.mode = "edit"
         line = self.query_one("#params-input", Input)
         line.placeholder, line.value = placeholder, ""
         line.add_class("open")
         line.focus()
 
     def _close_input(self) -> None:
-        line = self.query_one("#params-input", Input)
-        line.remove_class("open")
+        self.query_one("#params-input", Input).remove_class("open")
+        for tree in self.query(ParameterFiles):
+            tree.remove()
         self.mode = ""
         self.query_one(DataTable).focus()
 
@@ -131,10 +156,16 @@ class ParamScreen(ModalScreen[None]):
         self._close_input()
         if text and mode == "edit":
             self._confirm_edit(text)
-        elif text and mode == "diff":
-            self._diff(Path(text).expanduser())
 
-    # ------------------------------------------------------------ editing
+    def on_directory_tree_file_selected(self, event: DirectoryTree.FileSelected) -> None:
+        event.stop()
+        self._close_input()
+        self._diff(event.path)
+
+    # ------------------------------------------------------------ writing
+
+    def on_data_table_row_selected(self, event: DataTable.RowSelected) -> None:
+        self.action_edit()  # Enter on a row
 
     def action_edit(self) -> None:
         grid = self.query_one(DataTable)
@@ -146,7 +177,7 @@ class ParamScreen(ModalScreen[None]):
             return
         self.editing = address
         now = shown(address, self.words[address])
-        self._ask("edit", f"new value of 0x{address:04X} {table.label(address)} (now {now})")
+        self._ask(f"new value of 0x{address:04X} {table.label(address)} (now {now}; no e)")
 
     def _confirm_edit(self, text: str) -> None:
         address = self.editing
@@ -162,7 +193,7 @@ class ParamScreen(ModalScreen[None]):
         def answer(yes: bool | None) -> None:
             if yes:
                 self.run_worker(self._write(address, word), group="params")
-            else:
+            elif yes is False:  # None: closed by the e-stop, which closes this page too
                 self.say("not written")
 
         self.owner.push_screen(ConfirmScreen(question), answer)
@@ -182,7 +213,14 @@ class ParamScreen(ModalScreen[None]):
     # ------------------------------------------------------------ diff
 
     def action_diff(self) -> None:
-        self._ask("diff", "a parameter file to compare with (.csv, .yaml, .json)")
+        """A file picked under the current directory: a path could not be typed, as it
+        may hold an ``e``."""
+        self._close_input()
+        self.mode = "diff"
+        tree = ParameterFiles(Path.cwd(), id="params-files", classes="open")
+        self.query_one("#params").mount(tree, before="#params-status")
+        tree.focus()
+        self.say("pick a parameter file (.csv, .yaml, .json): arrows, Enter · Esc close")
 
     def _diff(self, path: Path) -> None:
         try:

@@ -1,4 +1,4 @@
-"""Modal screens: confirmation of risky actions and the key help."""
+"""Modal screens (confirmation of risky actions, the key help) and the input line."""
 
 from __future__ import annotations
 
@@ -8,7 +8,18 @@ from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.screen import ModalScreen
-from textual.widgets import Button, Static
+from textual.widgets import Button, Input, Static
+
+ESTOP_KEY = "e"  # the e-stop on every screen, in every input line too
+
+
+class OperatorInput(Input):
+    """An input line that never takes ``e``: it is the e-stop everywhere, so the app's
+    priority binding must see it (an input otherwise claims every printable key). Text
+    is typed in capitals: the command language is case-insensitive, numbers take ``E``."""
+
+    def check_consume_key(self, key: str, character: str | None) -> bool:
+        return character != ESTOP_KEY and super().check_consume_key(key, character)
 
 
 class ConfirmScreen(ModalScreen[bool]):

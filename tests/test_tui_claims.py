@@ -1,0 +1,298 @@
+"""The TUI never misleads the operator (issue 21): the e-stop key is never shadowed, no
+claim is made without the service, stale values say so, one axis vocabulary, and the
+service's clamp notes are shown."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+from textual.screen import ModalScreen
+from textual.widgets import Input, Static, TabbedContent
+
+from abh3_supervisor.clients.tui import overview
+from abh3_supervisor.clients.tui.app import ESTOP_CONFIRM_S, SupervisorApp
+from abh3_supervisor.clients.tui.model import detail_fields, overview_row, series_label
+from abh3_supervisor.clients.tui.params import ParameterFiles, ParamScreen
+from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen
+from abh3_supervisor.core.supervisor import Notice
+from abh3_supervisor.params import table
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.service.server import ControlServer
+from abh3_supervisor.service.snapshot import supervisor_state
+from tests.test_tui import (
+    KEYBOARD,
+    mirror_of,
+    press_until,
+    response,
+    run_app,
+    snapshot_rig,
+    until,
+)
+
+Check = Callable[[SupervisorApp], bool]
+Step = tuple[str, Check] | Callable[[SupervisorApp, Any], Awaitable[None]]
+SERVERS: list[ControlServer] = []
+
+
+@pytest.fixture(autouse=True)
+def remember_servers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The server run_app starts, for the tests that act on the service's side."""
+    SERVERS.clear()
+    real = ControlServer.start
+
+    async def start(self: ControlServer) -> None:
+        SERVERS.append(self)
+        await real(self)
+
+    monkeypatch.setattr(ControlServer, "start", start)
+
+
+async def first_parameter_read(app: SupervisorApp, pilot: Any) -> None:
+    screen = app.screen
+    assert isinstance(screen, ParamScreen)
+    first = table.PARAMETERS[0].address  # the row under the cursor
+    await until(pilot, lambda: first in screen.words, "the first parameter read")
+
+
+async def latched_elsewhere(app: SupervisorApp, pilot: Any) -> None:
+    SERVERS[0].rt.supervisor.emergency_stop()  # another client's: E asks to clear it
+    await until(pilot, lambda: app.sup.estop, "the e-stop shown")
+
+
+def on(kind: type) -> Check:
+    return lambda app: isinstance(app.screen, kind)
+
+
+def typing(kind: type, text: str = "") -> Check:
+    return lambda app: isinstance(app.focused, kind) and getattr(app.focused, "value", "") == text
+
+
+def tab(name: str) -> Check:
+    return lambda app: app.query_one(TabbedContent).active == name
+
+
+async def step(app: SupervisorApp, pilot: Any, what: Step) -> None:
+    """A key as the terminal delivers it, until its effect shows (press_until: a pilot's
+    press waits for an idle process, which the buses in this one rarely allow)."""
+    if callable(what):
+        await what(app, pilot)
+    else:
+        key, done = what
+        await press_until(app, pilot, key, lambda: done(app), key)
+
+
+# every tab, page, question and input line, and how to get there
+PLACES: dict[str, tuple[Step, ...]] = {
+    "tab overview": (("1", tab("overview")),),
+    "tab unit": (("2", tab("unit")),),
+    "tab bus": (("3", tab("bus")),),
+    "tab log": (("4", tab("log")),),
+    "tab plots": (("5", tab("plots")),),
+    "help": (("question_mark", on(HelpScreen)),),
+    "question: servo on": (("v", on(ConfirmScreen)),),
+    "question: data select": (("d", on(ConfirmScreen)),),
+    "question: quit": (("q", on(ConfirmScreen)),),
+    "question: clear the e-stop": (latched_elsewhere, ("E", on(ConfirmScreen))),
+    "command line, typing": (
+        ("colon", typing(Input, "SER")),  # what was typed before is kept …
+        ("S", typing(Input, "S")),  # … and selected: typing replaces it
+        ("E", typing(Input, "SE")),
+        ("R", typing(Input, "SER")),
+    ),
+    "parameter page": (("P", on(ParamScreen)),),
+    "parameter value input": (
+        ("P", on(ParamScreen)),
+        first_parameter_read,
+        ("w", typing(Input)),
+        ("9", typing(Input, "9")),
+    ),
+    "parameter write question": (
+        ("P", on(ParamScreen)),
+        first_parameter_read,
+        ("w", typing(Input)),
+        ("9", typing(Input, "9")),
+        ("enter", on(ConfirmScreen)),
+    ),
+    "parameter file picker": (("P", on(ParamScreen)), ("f", typing(ParameterFiles))),
+}
+
+
+def test_e_and_ctrl_e_latch_the_estop_on_every_screen_and_in_every_input() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        stops: list[Notice] = []
+        sup.subscribe(
+            lambda e: (
+                stops.append(e) if isinstance(e, Notice) and "EMERGENCY" in e.message else None
+            )
+        )
+        app.query_one("#cmdline", Input).value = "SER"
+        for place, steps in PLACES.items():
+            for key in ("e", "ctrl+e"):
+                for what in steps:
+                    await step(app, pilot, what)
+                seen = len(stops)
+                await press_until(app, pilot, key, lambda s=seen: len(stops) > s, place)
+                assert sup.estop, (place, key)  # every unit zero, START off, latched
+                confirmed = lambda: response(app).startswith("EMERGENCY STOP latched")  # noqa: E731
+                await until(pilot, confirmed, f"{place}: {key} confirmed")
+                assert app.sup.estop, (place, key)
+                # every question and page closed, so the outcome is in sight
+                assert not isinstance(app.screen, ModalScreen) and app.focused is None, place
+                sup.clear_emergency_stop()
+                await until(pilot, lambda: not app.sup.estop, "cleared")
+        assert app.query_one("#cmdline", Input).value == "SER"  # `e` was never typed
+
+    run_app(check, size=(140, 45))
+
+
+def test_without_the_service_nothing_is_claimed_and_values_are_stale() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        for text in ("SERVO ON ON", "START ON ON", "VEL 300 20"):
+            assert await sup.command("left", text) == ""
+        await until(pilot, lambda: app.sup.units["left"].setpoint.ay == 300, "driven")
+        # first the service silent while connected: the screen says so within 0.5 s
+        assert app.link is not None
+        await app.link.call("subscribe", events=True, state_hz=0)
+        table_text = app.query_one("#table", Static)
+        await until(pilot, lambda: "STALE" in str(table_text.render()), "stale shown")
+        assert app.query_one(TabbedContent).has_class("stale")
+        await press_until(app, pilot, "d", lambda: isinstance(app.screen, ConfirmScreen), "d")
+        # then gone, a question open: a crash, no "bye"
+        for client in list(SERVERS[0].clients):
+            client.writer.transport.abort()
+        await until(pilot, lambda: app.gone is not None, "the loss seen")
+        await press_until(app, pilot, "y", lambda: "NOT SENT" in response(app), "yes, too late")
+        assert response(app).startswith(
+            "left ← SELECT 6 6 → 'NOT SENT — not connected to the supervisor: the "
+        )  # … supervisor closed the connection, or … connection broke: how it ended
+        await press_until(app, pilot, "e", lambda: "E-STOP" in response(app), "e")
+        said = response(app)
+        assert said.startswith("E-STOP NOT SENT — not connected")
+        assert "hardware emergency stop" in said and "command-zero timeout" in said
+        assert not sup.estop and not app.sup.estop  # nothing sent, nothing claimed
+        app.refresh_view()
+        assert not app.query_one("#estop").has_class("latched")
+        for key in ("v", "s", "up", "space", "E", "colon", "P", "f", "r", "d", "i"):
+            app.say("")
+            refused = lambda: response(app).startswith("NOT SENT — not connected")  # noqa: E731
+            await press_until(app, pilot, key, refused, key)
+            assert not isinstance(app.screen, ModalScreen), key  # nothing asked either
+        rows = str(table_text.render()).splitlines()
+        assert re.match(r"STALE: these values are [\d.]+ s old, not live", rows[0])
+        unit_rows = [r for r in rows if r.lstrip("▶ ").startswith(("left", "right"))]
+        assert len(unit_rows) == 2 and all(" stale " in r and "online" not in r for r in unit_rows)
+        await pilot.press("2")
+        app.refresh_view()
+        assert str(app.query_one("#unit-head", Static).render()).startswith("STALE")
+
+    run_app(check, KEYBOARD, own_terminal=True)
+
+
+def test_an_estop_the_service_does_not_confirm_is_not_shown_latched(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    async def late(self: ControlServer, client: Any, params: dict[str, Any]) -> Any:
+        await asyncio.sleep(2 * ESTOP_CONFIRM_S)  # a service that answers too late …
+        return {"ok": True}  # … and, here, does nothing
+
+    monkeypatch.setattr(ControlServer, "_estop", late)
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await press_until(app, pilot, "e", lambda: "EMERGENCY STOP sent" in response(app), "e")
+        await until(pilot, lambda: "NOT CONFIRMED" in response(app), "the wait given up")
+        said = response(app)
+        assert "(no answer within 0.5 s)" in said and "hardware emergency stop" in said
+        assert not app.sup.estop
+        app.refresh_view()
+        assert not app.query_one("#estop").has_class("latched")
+
+    run_app(check)
+
+
+def test_the_command_line_shows_the_services_clamp_note(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The service's `command` result names the units whose value it clamped; the field
+    is read if present (a service without it answers as before)."""
+    note = "clamped: VEL 5000 0 → 1000 0 (limits.velocity 1000)"
+    real = ControlServer._command
+
+    async def command(self: ControlServer, client: Any, params: dict[str, Any]) -> Any:
+        result = dict(await real(self, client, params))
+        if "5000" in params["text"]:
+            result.setdefault("clamped", {"left": note})
+            result.setdefault("responses", {"left": result["response"]})
+        return result
+
+    monkeypatch.setattr(ControlServer, "_command", command)
+    config = (
+        "buses:\n  b: {interface: virtual, channel: t, simulate: true}\n"
+        "units:\n  - {name: left, abh3_id: 1, limits: {velocity: 1000}}\n"
+    )
+
+    async def command_line(app: SupervisorApp, pilot: Any, text: str) -> None:
+        cmdline = app.query_one("#cmdline", Input)
+        await press_until(app, pilot, "colon", lambda: app.focused is cmdline, ":")
+        cmdline.value = text  # as typed
+        await press_until(app, pilot, "enter", lambda: repr(text) in response(app), text)
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        await command_line(app, pilot, "VEL 5000 0")
+        assert response(app) == f"left ← 'VEL 5000 0' → '' · {note}"
+        await command_line(app, pilot, "VEL 500 0")
+        assert response(app) == "left ← 'VEL 500 0' → ''"  # nothing clamped: no note
+
+    run_app(check, config)
+
+
+def test_every_axis_value_carries_its_letter_at_every_width() -> None:
+    """left is `travel` (Y/X), right `motor` (A/B): no header names channels, and every
+    command, feedback, current and load cell says which axis each number is."""
+    mirror = mirror_of(snapshot_rig())
+    left, right = overview_row(mirror, "left"), overview_row(mirror, "right")
+    letters = {"cmd": (("Y", "X"), ("A", "B")), "fbk": (("Y", "X"), ("A", "B"))}
+    letters |= {"current": letters["cmd"], "load": (("A", "B"), ("A", "B"))}
+    letters |= {"fbk A/B": (("A", "B"),) * 2, "fbk Y/X": (("Y", "X"),) * 2}
+    axis_cell = r"(?P<a>[ABXY]) *-?[\d.–]+%? (?P<b>[ABXY]) *-?[\d.–]+%?"
+    for width in range(40, 201):
+        for column in overview.fit(width):
+            assert not re.search(r"\b(AY|BX|A/Y|B/X)\b", column.header), (width, column)
+            if column.key not in letters:
+                continue
+            for row, want in zip((left, right), letters[column.key], strict=True):
+                m = re.fullmatch(axis_cell, row[column.key].strip())
+                assert m and (m["a"], m["b"]) == want, (width, column.key, row[column.key])
+    assert "cmd Y 300.0 X 20.0 min⁻¹" in detail_fields(mirror, "left")
+    assert "cmd A 0.0 B 0.0 min⁻¹" in detail_fields(mirror, "right")
+    assert "fbk A 320.0 B 280.0 min⁻¹" in detail_fields(mirror, "left")  # both, each named
+    labels = [series_label(mirror.units[n], k) for n in ("left", "right") for k in ("cmd AY",)]
+    assert labels == ["cmd Y", "cmd A"]
+    assert series_label(mirror.units["right"], "current BX") == "current B"
+    assert series_label(mirror.units["left"], "load B") == "load B"  # a motor's, always
+
+
+def test_a_stale_overview_is_dimmed_and_says_how_old() -> None:
+    mirror = mirror_of(snapshot_rig())
+    text = overview.render(mirror, ["left", "right"], 0, 160, stale=3.24)
+    lines = text.plain.splitlines()
+    assert lines[0] == "STALE: these values are 3.2 s old, not live"
+    assert all(" stale " in line for line in lines[2:4])
+    assert {str(span.style) for span in text.spans if span.start > len(lines[0]) + 1} >= {"dim"}
+    live = overview.render(mirror, ["left", "right"], 0, 160)
+    assert "STALE" not in live.plain and " online " in live.plain
+
+
+def test_a_state_sent_twice_does_not_undo_a_confirmed_estop() -> None:
+    """The service may send one encoded state twice (shared for a few ms): the copy
+    arriving after the e-stop's reply must not show the e-stop cleared again."""
+    rig = snapshot_rig()
+    mirror = mirror_of(rig)
+    state = supervisor_state(rig.sup, {})
+    mirror.estop = True  # the reply confirmed it
+    assert not mirror.apply(state) and mirror.estop
+    rig.run(0.1)
+    assert mirror.apply(supervisor_state(rig.sup, {})) and not mirror.estop  # newer: taken
