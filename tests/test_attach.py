@@ -60,7 +60,7 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> N
         try:
             async with app.run_test(size=(160, 45)) as pilot:
                 reply = await other.call("command", unit="left", text="VEL 100 0")
-                assert reply == {"response": ""}
+                assert reply["response"] == "" and reply["held"] is True
                 await until(pilot, lambda: app.sup.units["left"].setpoint.ay == 100, "VEL shown")
                 assert await other.call("estop") == {"ok": True}
                 await until(pilot, lambda: app.sup.estop, "the other client's e-stop shown")

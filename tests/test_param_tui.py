@@ -43,7 +43,15 @@ def test_read_all_write_one_with_confirmation_and_diff(
         grid.move_cursor(row=grid.get_row_index("20480"))
         await pilot.press("w")
         screen.query_one("#params-input", Input).value = "900"  # as typed
+        assert await rt.supervisor.command("left", "SERVO ON ON") == ""  # the drive has it
+        await pilot.press("enter")  # the drive is asked first: on, so no question at all
+        await until(pilot, lambda: "servo ON (asked now)" in str(status.render()), "refused")
+        assert not isinstance(app.screen, ConfirmScreen)
+        assert await rt.supervisor.command("left", "SERVO OFF OFF") == ""
+        await pilot.press("w")
+        screen.query_one("#params-input", Input).value = "900"
         await pilot.press("enter")
+        await until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "asked")
         assert isinstance(app.screen, ConfirmScreen)
         assert app.screen.question == "Write left 0x5000 SPEED_AY_0: 800 → 900?"
         await pilot.press("y")

@@ -1,11 +1,12 @@
 """The parameter page of one unit (key ``P``): read all, write one, diff against a file.
 
 Every request goes over the control socket to the service's :class:`ParamOps` (the same
-code as ``abh3 param``): a write asks first, is refused while the drive reports its servo
-on, and lands in the event log with the old and the new value. The page reads in a worker, so
-the screen — and the e-stop — stay live while a slow drive answers. ``e`` is the e-stop
-here as everywhere (the app's priority binding), so writing is ``w`` or Enter, a value is
-typed without ``e`` (``1E3``), and the file to diff against is picked, not typed.
+code as ``abh3 param``): a write asks the drive whether its servo is off, now, before the
+operator's question; the service asks again at the write and logs the old and the new
+value. The page reads in a worker, so the screen — and the e-stop — stay live while a slow
+drive answers. ``e`` is the e-stop here as everywhere (the app's priority binding), so
+writing is ``w`` or Enter, a value is typed without ``e`` (``1E3``), and the file to diff
+against is picked, not typed.
 """
 
 from __future__ import annotations
@@ -186,9 +187,25 @@ class ParamScreen(ModalScreen[None]):
         except (ValueError, Abh3Error) as exc:
             self.say(f"'{text}': {exc}")
             return
+        self.run_worker(self._ask_to_write(address, word), group="params")
+
+    async def _ask_to_write(self, address: int, word: int) -> None:
+        """The servo is asked of the drive before the question (and again by the write):
+        a question the service would refuse is never asked."""
+        self.say("asking the drive whether its servo is off …")
+        try:
+            servo = (await self.owner.request("param_servo", unit=self.unit))["servo"]
+        except Abh3Error as exc:
+            self.say(f"not written: {exc}")
+            return
+        if servo is not False:
+            why = "reports its servo ON" if servo else "did not answer whether its servo is on"
+            self.say(f"not written: the drive {why} (asked now); SERVO OFF first")
+            return
         old = shown(address, self.words[address])
         new = shown(address, word)
         question = f"Write {self.unit} 0x{address:04X} {table.label(address)}: {old} → {new}?"
+        self.say("the drive reports its servo off")
 
         def answer(yes: bool | None) -> None:
             if yes:
