@@ -19,7 +19,13 @@ from abh3_plugins.ros2 import types
 from abh3_plugins.ros2.diagnostics import DiagnosticsPublisher
 from abh3_supervisor.clients.control import status_lines
 from abh3_supervisor.clients.mirror import Mirror
-from abh3_supervisor.clients.tui.model import fault_lines, fault_names
+from abh3_supervisor.clients.tui.model import (
+    detail_fields,
+    fault_lines,
+    fault_names,
+    overview_row,
+    verify_fields,
+)
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core import readouts
@@ -200,6 +206,35 @@ def test_the_tui_shows_a_monitors_comm_error_as_a_note() -> None:
     assert monitor["note"] == f"·· 22 CAN_COMM_ERROR: {NOTE}"
     commanding = dict(fault_lines(words["error"], words["alarm"]))
     assert commanding["error"] == "✖▲ 22 CAN_COMM_ERROR"
+    # the overview counts faults, not notes: the monitor has none, left has its error
+    assert overview_row(mirror, "watch")["faults"] == "–"
+    assert overview_row(mirror, "left")["faults"].startswith("✖1")
+
+
+def test_the_unit_tab_shows_the_drive_settings_check() -> None:
+    """core/verify.py's state, as the service sends it, on the unit tab."""
+    mismatch = {
+        "state": "mismatch",
+        "mismatches": [{"text": "drive 0x4117 CAN_COMMAND_ZERO_TIMEOUT = 750 ms, "
+                                "YAML drive_timeout_ms: 500 (the default)"}],
+        "held": "its drive's CAN settings differ from the file (verify: refuse): …",
+    }  # fmt: skip
+    assert verify_fields(mismatch) == [
+        "drive settings MISMATCH: drive 0x4117 CAN_COMMAND_ZERO_TIMEOUT = 750 ms, "
+        "YAML drive_timeout_ms: 500 (the default)",
+        "HELD: its drive's CAN settings differ from the file (verify: refuse): …",
+    ]
+    assert verify_fields({"state": "not verified", "reason": "no answer"}) == [
+        "drive settings not verified (no answer)"
+    ]
+    assert verify_fields({"state": "ok"}) == ["drive settings ok"]
+    assert verify_fields(None) == []  # an older service
+    rig = watched()
+    mirror = Mirror.of(rig.config)
+    mirror.apply(supervisor_state(rig.sup, {}))
+    assert mirror.units["left"].verify is not None
+    shown = detail_fields(mirror, "left")
+    assert any(f.startswith("drive settings ") for f in shown)
 
 
 def test_diagnostics_say_ok_for_a_monitors_comm_error_alone() -> None:

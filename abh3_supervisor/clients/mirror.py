@@ -56,6 +56,7 @@ class UnitView:
     online: bool | None = None
     words: dict[str, int] = field(default_factory=dict)
     stats: Stats = field(default_factory=Stats)
+    verify: dict[str, Any] | None = None  # the drive's settings against the YAML, as sent
 
     @property
     def name(self) -> str:
@@ -136,6 +137,7 @@ def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:
             status[int(packet)] = kind(**record)
     unit.status = status
     _take(unit.stats, data["stats"])
+    unit.verify = data.get("verify")  # absent from an older service
 
 
 def _take(record: Stats | BusView, data: dict[str, Any]) -> None:

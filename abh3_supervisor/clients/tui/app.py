@@ -368,7 +368,7 @@ class SupervisorApp(App[None]):
                 text.append(label + "\n", style=SET_STYLE[word] if on else "dim")
             self.query_one(f"#flags-{word}", Static).update(text)
         text = Text("errors ✖ / alarms ▲\n", style="bold")
-        for kind, label in fault_lines(words.get("error"), words.get("alarm")):
+        for kind, label in fault_lines(words.get("error"), words.get("alarm"), unit.cfg.role):
             style = {"error": "bold red", "alarm": "yellow"}.get(kind, "dim")
             text.append(label + "\n", style=style)
         self.query_one("#flags-faults", Static).update(text)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 from abh3_supervisor.clients.mirror import Mirror, UnitView
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
@@ -110,10 +111,11 @@ def overview_row(sup: Mirror, name: str) -> dict[str, str]:
     brd3, brd5 = status_record(unit, 3), status_record(unit, 5)
     error, alarm = unit.words.get("error", 0), unit.words.get("alarm", 0)
     letters = axes(unit)
+    role = unit.cfg.role  # a monitor's "no commands" bit is a note, not a fault
     faults = " ".join(
-        f"{mark}{len(flags.FAULT.names(word))}"
+        f"{mark}{count}"
         for mark, word in ((ERROR_MARK, error), (ALARM_MARK, alarm))
-        if word
+        if (count := len(readouts.read_faults(role, word).names))
     )
     sp = unit.setpoint
     current_mode = sp.kind is ControlMode.CURRENT
@@ -193,6 +195,23 @@ def fault_lines(
     return lines
 
 
+def verify_fields(verify: dict[str, Any] | None) -> list[str]:
+    """The drive's CAN settings against the YAML (core/verify.py), as the service sent them:
+    its state, each mismatch in full, and why a ``verify: refuse`` unit is held."""
+    if verify is None:
+        return []
+    state = verify["state"]
+    if state == "mismatch":
+        shown = [f"drive settings MISMATCH: {row['text']}" for row in verify["mismatches"]]
+    elif state == "not verified" and verify.get("reason"):
+        shown = [f"drive settings not verified ({verify['reason']})"]
+    else:
+        shown = [f"drive settings {state}"]
+    if verify.get("held"):
+        shown.append(f"HELD: {verify['held']}")
+    return shown
+
+
 def detail_fields(
     sup: Mirror, name: str, firmware: str | None = None, stale: float | None = None
 ) -> list[str]:
@@ -226,6 +245,7 @@ def detail_fields(
         f"status packets {st.broadcasts}",
         f"malformed {st.malformed}",
         f"gaps {st.gaps}",
+        *verify_fields(unit.verify),
     ]
     b3, b4, b5 = status_record(unit, 3), status_record(unit, 4), status_record(unit, 5)
     b6 = status_record(unit, 6)

@@ -133,10 +133,11 @@ def render(
         if faults:
             text.append("    ")
             for kind, bit in faults:
-                mark, style = (
-                    (ERROR_MARK, "bold red") if kind == "error" else (ALARM_MARK, "yellow")
-                )
-                text.append(f"{mark} {bit}", style)
+                mark, style = {
+                    "error": (f"{ERROR_MARK} ", "bold red"),
+                    "alarm": (f"{ALARM_MARK} ", "yellow"),
+                }.get(kind, ("", "dim"))  # a note (a monitor's "no commands"): no mark
+                text.append(f"{mark}{bit}", style)
                 text.append(" ")
             text.append("\n")
     text.append(LEGEND, style="dim")
