@@ -253,6 +253,11 @@ class ControlServer:
             return await method(client, request.params)
         except (CommandError, ParamFailed) as exc:
             raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
+        finally:
+            if request.method not in READ_ONLY_METHODS:
+                # the shared encoded state may predate what this call changed (an e-stop):
+                # the next push builds a fresh one
+                self._state_cache = (-1e300, b"")
 
     # ------------------------------------------------------------ events
 
