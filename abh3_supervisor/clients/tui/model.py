@@ -203,8 +203,9 @@ def verify_fields(verify: dict[str, Any] | None) -> list[str]:
     state = verify["state"]
     if state == "mismatch":
         shown = [f"drive settings MISMATCH: {row['text']}" for row in verify["mismatches"]]
-    elif state == "not verified" and verify.get("reason"):
-        shown = [f"drive settings not verified ({verify['reason']})"]
+    elif state == "not verified":  # no reason: it was not tried (yet)
+        reason = verify.get("reason")
+        shown = [f"drive settings not verified ({reason})" if reason else "drive settings unread"]
     else:
         shown = [f"drive settings {state}"]
     if verify.get("held"):
