@@ -464,6 +464,9 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
         await pilot.press("y")
         await app.workers.wait_for_complete()
         await until(pilot, reported_servo, "servo on after v")
+        await until(  # again: the TUI acts on the state pushed to it, not on the drive
+            pilot, lambda: app.sup.units["left"].words.get("control", 0) & 1, "shown on"
+        )
         await pilot.press("v")  # shown on: off at once, nothing asked
         await pilot.pause()
         assert not isinstance(app.screen, ConfirmScreen)
