@@ -64,6 +64,20 @@ class Terminal:
     def stop_reading(self) -> None:
         self.loop.remove_reader(self.master)
 
+    async def start(self, *args: str) -> asyncio.subprocess.Process:
+        """``python ARGS`` in its own session with this terminal as stdin, stdout, stderr."""
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable,
+            *args,
+            stdin=self.slave,
+            stdout=self.slave,
+            stderr=self.slave,
+            start_new_session=True,
+            cwd=ROOT,
+        )
+        os.close(self.slave)
+        return proc
+
     def close(self) -> None:
         self.stop_reading()
         os.close(self.master)
@@ -78,19 +92,7 @@ def test_abh3_tui_detaches_and_exits_within_1_s(way: str) -> None:
         term = Terminal()
         controlling = way != "pty closed, no ctty"
         command = ["-c", AS_CONTROLLING] if controlling else ["-m", "abh3_supervisor"]
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable,
-            *command,
-            "tui",
-            "--connect",
-            str(path),
-            stdin=term.slave,
-            stdout=term.slave,
-            stderr=term.slave,
-            start_new_session=True,
-            cwd=ROOT,
-        )
-        os.close(term.slave)
+        proc = await term.start(*command, "tui", "--connect", str(path))
         try:
             await term.shows(b"online", 2)
             assert [c.name for c in server.clients] == ["tui1"]
@@ -117,15 +119,7 @@ def test_abh3_tui_detaches_and_exits_within_1_s(way: str) -> None:
 def test_abh3_tui_exits_4_when_the_supervisor_went_away() -> None:
     async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
         term = Terminal()
-        proc = await asyncio.create_subprocess_exec(
-            *(sys.executable, "-c", AS_CONTROLLING, "tui", "--connect", str(path)),
-            stdin=term.slave,
-            stdout=term.slave,
-            stderr=term.slave,
-            start_new_session=True,
-            cwd=ROOT,
-        )
-        os.close(term.slave)
+        proc = await term.start("-c", AS_CONTROLLING, "tui", "--connect", str(path))
         try:
             await term.shows(b"online", 2)
             for client in list(server.clients):  # a crash: no "bye", the socket just ends
