@@ -40,6 +40,9 @@ def test_read_all_write_one_with_confirmation_and_diff(
         assert "firmware 2.3.0.1" in str(screen.query_one("#params-head", Static).render())
         grid = screen.query_one(DataTable)
         assert grid.get_cell("20480", "value") == "800"  # SPEED_AY_0
+        from textual.widgets.data_table import ColumnKey
+
+        assert grid.columns[ColumnKey("word")].content_width >= 8  # all of it, not 0040
         grid.move_cursor(row=grid.get_row_index("20480"))
         await pilot.press("w")
         screen.query_one("#params-input", Input).value = "900"  # as typed

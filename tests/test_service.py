@@ -114,7 +114,7 @@ def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None
             u: "clamped: VEL 7000 -10 → 6553.4 -9.362 (wire range -6553.6 … 6553.4)"
             for u in ("left", "right")
         }
-        assert client.call("alive") == {"ok": True}
+        assert client.call("alive") == {"ok": True, "holds": ["left", "right"]}
         state = client.call("state")
         left = state["units"]["left"]
         assert "AY_SERVO_ON" in left["inputs"]["names"] and left["protocol"] == "2021"
@@ -138,7 +138,7 @@ def test_a_clients_motion_is_an_arbitrated_input_that_lets_go_when_it_leaves(
     sup = served.rt.supervisor
     arbiter = served.rt.plugins.arbiter if served.rt.plugins else None
     assert arbiter is not None
-    source = served.on_loop(lambda: arbiter.sources["client1"])
+    source = served.on_loop(lambda: arbiter.sources["client1:right"])  # one per unit
     assert (source.units, source.priority, source.timeout) == (
         ("right",),
         CLIENT_PRIORITY,
@@ -155,7 +155,7 @@ def test_a_clients_motion_is_an_arbitrated_input_that_lets_go_when_it_leaves(
     client.close()  # leaving lets go: its unit stops at once
 
     def settled() -> bool:
-        return "client1" not in arbiter.sources
+        return "client1:right" not in arbiter.sources
 
     for _ in range(1000):  # the loop notices the closed socket; no timing involved
         if served.on_loop(settled):
@@ -428,5 +428,28 @@ def test_verify_again_and_the_identitys_string_form_over_the_socket(served: Serv
         assert identity["form"].startswith("CP000095") and "telabh3:" in identity["form"]
         with pytest.raises(RunError, match="no unit named 'middle'"):
             client.call("verify", unit="middle")
+    finally:
+        client.close()
+
+
+def test_a_client_holds_motion_on_each_unit_and_is_told_when_it_lapsed(served: Served) -> None:
+    """One source per client and unit: a VEL on right does not take left's away; `alive`
+    says which units' motion the client still owns (`abh3 send --hold` stops on a loss)."""
+    assert served.rt is not None and served.rt.plugins is not None
+    sup, arbiter = served.rt.supervisor, served.rt.plugins.arbiter
+    assert arbiter is not None
+    client = ControlClient(served.path)
+    try:
+        for text in ("SERVO ON ON", "START ON ON"):
+            client.call("command", units=["left", "right"], text=text)
+        assert client.call("command", unit="left", text="VEL 100 0")["held"] is True
+        assert client.call("command", unit="right", text="VEL 50 0")["held"] is True
+        setpoints = served.on_loop(lambda: (sup.units["left"].setpoint.ay, sup.units["right"].setpoint.ay))  # fmt: skip
+        assert setpoints == (100.0, 50.0)
+        assert sorted(client.call("alive")["holds"]) == ["left", "right"]
+        # the client goes quiet past the timeout (as the arbiter's timer would see it later)
+        served.on_loop(lambda: arbiter.poll(arbiter.clock() + 2 * CLIENT_TIMEOUT_S))
+        assert client.call("alive")["holds"] == []
+        assert served.on_loop(lambda: sup.units["left"].setpoint.ay) == 0.0
     finally:
         client.close()

@@ -369,15 +369,15 @@ def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
     asyncio.run(scenario())
     refused = [n for n in notices if "refused" in n]
     assert (
-        "'SERVO ON ON' refused: unit 'left': SERVO and START are refused: its drive's CAN "
+        "'SERVO ON ON' refused: unit 'left' is held at its idle word: its drive's CAN "
         "settings are being compared with the file (verify: refuse)"
     ) in refused
     assert (
-        "'SERVO ON ON' refused: unit 'left': SERVO and START are refused: its drive's CAN "
+        "'SERVO ON ON' refused: unit 'left' is held at its idle word: its drive's CAN "
         f"settings differ from the file (verify: refuse): {ZERO_LINE} (the default); fix the "
         "drive or the file, then verify it again"
     ) in refused
-    assert any("SERVO and START are refused until they agree" in n for n in notices)
+    assert any("held at its idle word (SERVO, START, brake, torque refused)" in n for n in notices)
     assert "the drive's CAN settings agree with the file (7 read; TelABH3 CP000095" in notices[-1]
 
 
@@ -430,3 +430,18 @@ def test_check_drives_names_the_form_each_drive_reads(
     out = capsys.readouterr().out
     assert "left (bus b, drive 1): agrees with the file" in out
     assert f"left (bus b, drive 1): TelABH3 form {shown}, found; pin it with `telabh3: " in out
+
+
+def test_a_held_unit_switches_nothing_on_but_data_select_and_error_reset(rig: Rig) -> None:
+    """verify: refuse holds the idle word: a brake released with the servo off would let
+    a load fall, so BRAKE and TORQUE are refused like SERVO and START."""
+    from abh3_supervisor.core.verify import Row
+
+    row = Row(0x4117, "750 ms", "drive_timeout_ms: 500", False)
+    rig.sup.units["left"].verify = Verification(State.MISMATCH, VerifyMode.REFUSE, rows=(row,))
+    before = rig.sup.units["left"].inputs
+    for text in ("SERVO ON ON", "START ON ON", "BRAKE ON ON", "TORQUE ON ON", "DIR ON ON"):
+        assert rig.sup.apply_text("left", text) == RESPONSE_INVALID, text
+    assert rig.sup.units["left"].inputs == before
+    for text in ("SELECT 3 3", "RESET ON ON", "RESET OFF OFF", "SERVO OFF OFF"):
+        assert rig.sup.apply_text("left", text) == "", text

@@ -205,7 +205,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         report(exc.problems)
         return EXIT_USAGE
     except PartialWrite as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        with contextlib.suppress(OSError):  # the reader may be gone: the code still says it
+            print(f"error: {exc}", file=sys.stderr)
         return EXIT_PARTIAL
     except RunError as exc:
         print(f"error: {exc}", file=sys.stderr)

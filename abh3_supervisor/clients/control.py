@@ -191,8 +191,8 @@ def send(path: Path, text: str, units: list[str], *, every: bool, hold: bool) ->
         for unit in names:
             print(repr(answers[unit]) if len(names) == 1 else f"{unit}: {answers[unit]!r}")
         code = 0 if result["response"] == "" else 1
-        if hold and code == 0:
-            _hold(client, text, names)
+        if hold and code == 0 and result.get("held"):
+            code = _hold(client, text, names)
     finally:
         client.close()
     return code
@@ -206,17 +206,32 @@ def _moves(text: str) -> bool:
     return isinstance(command, VelocityCommand | CurrentCommand) and bool(command.ay or command.bx)
 
 
-def _hold(client: ControlClient, text: str, units: list[str]) -> None:
+def _hold(client: ControlClient, text: str, units: list[str]) -> int:
     """Stay present (proof of life every ALIVE_EVERY_S) until a stop signal; leaving then
-    takes the motion with it. A supervisor that goes away ends the hold with an error."""
+    takes the motion with it. Ends with 1, saying so, when the motion is gone without us
+    leaving: the supervisor dropped it (this process was stopped or starved for longer
+    than the service waits) or the supervisor itself went away."""
     print(f"holding {text!r} on {', '.join(units)}: Ctrl-C stops it", file=sys.stderr)
     try:
         while True:
             time.sleep(ALIVE_EVERY_S)
-            client.call("alive")
+            try:
+                holds = client.call("alive").get("holds", units)
+            except RunError:
+                print("the supervisor went away: the motion stopped with it", file=sys.stderr)
+                return 1
+            if set(holds) != set(units):
+                lost = ", ".join(u for u in units if u not in holds)
+                print(
+                    f"the supervisor dropped the motion on {lost}: this command was silent "
+                    "too long (stopped or starved); it is not resumed",
+                    file=sys.stderr,
+                )
+                return 1
     except Interrupted as exc:
         name = signal.Signals(exc.signum).name
         print(f"{name}: released; the motion held by this command stops now", file=sys.stderr)
+    return 0
 
 
 def find_socket(connect: Path | None) -> Path:

@@ -17,12 +17,13 @@ from __future__ import annotations
 # the runtime load in run()
 import argparse
 import asyncio
+import contextlib
 import logging
 import signal
 import sys
 import threading
 import time
-from collections.abc import Awaitable, Callable, Coroutine, Iterable
+from collections.abc import Callable, Coroutine, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -150,39 +151,59 @@ def run(args: argparse.Namespace) -> int:
 
     config = monitor_only(load_config(args.config))
     known_unit(args.unit, config.units)  # before any bus opens
-    return asyncio.run(_stoppable(_on_own_bus(config, lambda backend: op(backend, args))))
+    return asyncio.run(_on_own_bus(config, lambda backend: op(backend, args)))
 
 
-async def _stoppable(work: Coroutine[Any, Any, int]) -> int:
-    """``work`` on the loop, ended by SIGINT/SIGTERM/SIGHUP at once and cleanly: the signal
-    cancels it (its buses close on the way out) and is then raised as :class:`Interrupted`.
+class _Stop:
+    """Stop signals on the loop while ``abh3 param`` works on its own buses: the work is
+    cancelled at once and the signal raised as :class:`Interrupted`; the buses' start and
+    close are never cut short (a signal then is kept and raised after the start).
 
     The CLI's own handler raises where the signal lands, which on a running loop is inside
     a pump's callback, where asyncio logs the exception and goes on: a loop needs its own.
     (Through ``--connect`` the work blocks in the socket instead, where that handler works.)
     """
-    loop = asyncio.get_running_loop()
-    task = asyncio.ensure_future(work)
-    caught: list[int] = []
 
-    def stop(signum: int) -> None:
-        if not caught:
-            caught.append(signum)
-            task.cancel(f"stopped by {signal.Signals(signum).name}")
+    def __init__(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.signum: int | None = None
+        self.task: asyncio.Task[int] | None = None
+        # signals reach only the main thread (a test may run the CLI on another: none)
+        main = threading.current_thread() is threading.main_thread()
+        self.signals = STOP_SIGNALS if main else ()
 
-    # signals reach only the main thread (a test may run the CLI on another: no handlers)
-    signals = STOP_SIGNALS if threading.current_thread() is threading.main_thread() else ()
-    for sig in signals:
-        loop.add_signal_handler(sig, stop, sig)
-    try:
-        return await task
-    except asyncio.CancelledError:
-        if caught:
-            raise Interrupted(caught[0]) from None
-        raise
-    finally:
-        for sig in signals:
-            loop.remove_signal_handler(sig)
+    def __enter__(self) -> _Stop:
+        for sig in self.signals:
+            self.loop.add_signal_handler(sig, self._caught, sig)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig in self.signals:
+            self.loop.remove_signal_handler(sig)
+
+    def _caught(self, signum: int) -> None:
+        if self.signum is None:
+            self.signum = signum
+        self._cancel()
+
+    def _cancel(self) -> None:
+        # again until the work ends: library code that catches a cancellation (3.11's
+        # wait_for, as an answer arrives) must not be able to lose a stop
+        if self.task is not None and not self.task.done() and self.signum is not None:
+            self.task.cancel(f"stopped by {signal.Signals(self.signum).name}")
+            self.loop.call_later(0.1, self._cancel)
+
+    async def run(self, work: Coroutine[Any, Any, int]) -> int:
+        if self.signum is not None:  # stopped while the buses opened
+            work.close()
+            raise Interrupted(self.signum)
+        self.task = asyncio.ensure_future(work)
+        try:
+            return await self.task
+        except asyncio.CancelledError:
+            if self.signum is not None:
+                raise Interrupted(self.signum) from None
+            raise
 
 
 def known_unit(name: str, units: Iterable[str]) -> None:
@@ -194,23 +215,24 @@ def known_unit(name: str, units: Iterable[str]) -> None:
         raise CommandError(f"no unit named '{name}' (units: {', '.join(units)})")
 
 
-async def _on_own_bus(config: Config, op: Callable[[Backend], Awaitable[int]]) -> int:
+async def _on_own_bus(config: Config, op: Callable[[Backend], Coroutine[Any, Any, int]]) -> int:
     from abh3_supervisor.core.eventlog import EventLog
     from abh3_supervisor.core.supervisor import OperatorAction, SupervisorEvent
     from abh3_supervisor.runtime.bus_runtime import Runtime
     from abh3_supervisor.service.param_ops import ParamOps
 
-    async with Runtime(config) as rt:
-        events = EventLog(rt.supervisor)
+    with _Stop() as stop:
+        async with Runtime(config) as rt:
+            events = EventLog(rt.supervisor)
 
-        def on_event(event: SupervisorEvent) -> None:
-            if isinstance(event, OperatorAction):  # the writes: nothing else is news here
-                line = events.line(event)
-                if line is not None:
-                    log.log(*line)
+            def on_event(event: SupervisorEvent) -> None:
+                if isinstance(event, OperatorAction):  # the writes: nothing else is news here
+                    line = events.line(event)
+                    if line is not None:
+                        log.log(*line)
 
-        rt.supervisor.subscribe(on_event)
-        return await op(ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake()))
+            rt.supervisor.subscribe(on_event)
+            return await stop.run(op(ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())))
 
 
 # ------------------------------------------------------------ operations
@@ -349,7 +371,7 @@ async def _restore(backend: Backend, args: argparse.Namespace) -> int:
     try:
         for n, (have, want) in enumerate(differences, 1):
             journal.add(have)  # the old value, kept before the write goes out
-            print(f"[{n}/{total}] {have.name}: {have.shown} → {want.shown}", file=sys.stderr)
+            _say(f"[{n}/{total}] {have.name}: {have.shown} → {want.shown}")
             await _write(backend, args, want)
             journal.written += 1
     except (Exception, asyncio.CancelledError, Interrupted) as exc:
@@ -360,6 +382,13 @@ async def _restore(backend: Backend, args: argparse.Namespace) -> int:
     journal.discard()
     print(f"{total} parameter(s) of {args.unit} restored from {args.file}")
     return 0
+
+
+def _say(text: str) -> None:
+    """A line on stderr that cannot stop a restore: a reader that went away (``| head``,
+    a closed terminal) must not turn a partial restore into an unreported one."""
+    with contextlib.suppress(OSError, ValueError):
+        print(text, file=sys.stderr, flush=True)
 
 
 def _cause(exc: BaseException) -> str:
@@ -420,10 +449,10 @@ class Journal:
     def report(self, total: int, cause: str) -> str:
         """Print what was written with its old value; the message for the partial exit."""
         unsure = len(self.entries) - self.written
-        print(f"restore of {self.args.unit} stopped part way ({cause}):", file=sys.stderr)
+        _say(f"restore of {self.args.unit} stopped part way ({cause}):")
         for i, old in enumerate(self.entries):
             state = "written" if i < self.written else "maybe written"
-            print(f"  {state}: {_line(old)}  (the old value)", file=sys.stderr)
+            _say(f"  {state}: {_line(old)}  (the old value)")
         args = self.args
         where = f"-c {args.config} " if args.config else ""
         where += f"--connect {args.connect} " if args.connect else ""
@@ -432,8 +461,8 @@ class Journal:
             undo = "the old values above were not saved: write them back with `abh3 param set`"
         else:
             undo = f"undo: abh3 param {where}restore {args.unit} {self.path} --yes{extra}"
-            print(f"the old values are saved in {self.path}", file=sys.stderr)
-        print(undo, file=sys.stderr)
+            _say(f"the old values are saved in {self.path}")
+        _say(undo)
         maybe = f" (and {unsure} maybe)" if unsure else ""
         return f"partial restore: {self.written} of {total} parameter(s) written{maybe}: see above"
 

@@ -174,6 +174,11 @@ class InputFeed:
 
         return await execute(self._sup, self._units(), text, submit)
 
+    def holds(self) -> bool:
+        """On the loop: this source still owns standing motion (it did not lapse)."""
+        state = self._arbiter.sources.get(self._name)
+        return state is not None and state.standing and state.fresh(self._arbiter.clock())
+
     def alive(self) -> None:
         """On the loop: the source proves it is alive (its standing motion holds on)."""
         self._arbiter.touch(self._name, self._arbiter.clock())

@@ -302,8 +302,11 @@ class Supervisor:
         if self.estop and new & ~unit.inputs & layout.start.both:
             raise CommandError("emergency stop is latched: clear it before START")
         held = unit.verify.holds()  # verify: refuse (core/verify.py)
-        if held and new & ~unit.inputs & (layout.servo.both | layout.start.both):
-            raise CommandError(f"unit '{name}': SERVO and START are refused: {held}")
+        # held: the idle word only — nothing may be switched on (a brake released with the
+        # servo off lets a load fall) but data select, which picks a table, and error reset
+        harmless = layout.select_mask | layout.error_reset
+        if held and new & ~unit.inputs & ~harmless:
+            raise CommandError(f"unit '{name}' is held at its idle word: {held}")
         torque = new & layout.torque.both
         kind = unit.setpoint.kind
         if torque != unit.inputs & layout.torque.both:

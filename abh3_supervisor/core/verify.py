@@ -124,7 +124,7 @@ class Verification:
         return tuple(r for r in self.rows if r.mismatch)
 
     def holds(self) -> str | None:
-        """Why SERVO and START are refused now (``verify: refuse``), or None."""
+        """Why the unit is held at its idle word now (``verify: refuse``), or None."""
         if self.mode is not VerifyMode.REFUSE:
             return None
         if self.state is State.PENDING:
@@ -429,7 +429,8 @@ def _act(sup: Supervisor, name: str) -> None:
         for row in v.mismatches:
             sup.notice(name, logging.WARNING, row.line())
         what = (
-            "SERVO and START are refused until they agree and the unit is verified again"
+            "held at its idle word (SERVO, START, brake, torque refused) until they agree and "
+            "the unit is verified again"
             if refuse
             else "running as the file says (verify: warn)"
         )

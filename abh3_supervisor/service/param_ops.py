@@ -52,7 +52,10 @@ class ParamOps:
         channel.submit(request, done)
         self.wake(bus)
         try:
-            return await asyncio.wait_for(future, CALL_DEADLINE)
+            # asyncio.timeout, not wait_for: 3.11's wait_for can swallow a cancellation that
+            # arrives as the answer does, and a stop signal would then be lost
+            async with asyncio.timeout(CALL_DEADLINE):
+                return await future
         except TimeoutError:
             channel.withdraw(done, "no answer")
             raise ParamFailed(f"unit {unit}: no answer within {CALL_DEADLINE:g} s") from None
@@ -86,7 +89,8 @@ class ParamOps:
             answered = self.sup.expect_status(unit, 1, since)
             self.sup.request_status(unit, 1)
         try:
-            await asyncio.wait_for(answered, state.cfg.timeout_ms / 1000)
+            async with asyncio.timeout(state.cfg.timeout_ms / 1000):
+                await answered
         except TimeoutError:
             return None
         control = state.words.get("control")  # just set from that answer

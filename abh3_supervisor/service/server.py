@@ -78,10 +78,12 @@ def preflight(options: ServiceOptions) -> None:
 
 
 class ClientSource(InputSource):
-    """One client's motion commands, retargeted to the units each command names."""
+    """One client's motion on one unit (``<client>:<unit>``): a client may hold a ``VEL`` on
+    one unit and another on the next, each its own in the arbitration."""
 
-    def __init__(self, name: str) -> None:
-        super().__init__(name, (), priority=CLIENT_PRIORITY, timeout=CLIENT_TIMEOUT_S)
+    def __init__(self, client: str, unit: str) -> None:
+        name = f"{client}:{unit}"
+        super().__init__(name, (unit,), priority=CLIENT_PRIORITY, timeout=CLIENT_TIMEOUT_S)
         self.feed: InputFeed | None = None
 
     def start(self, feed: InputFeed) -> None:
@@ -104,7 +106,7 @@ class _Client:
         self.read_only = read_only
         self.events = False
         self.state_task: asyncio.Task[None] | None = None
-        self.source: ClientSource | None = None
+        self.sources: dict[str, ClientSource] = {}  # unit → this client's motion on it
         self.label = "client"  # what it calls itself in `hello` (e.g. "tui")
 
     @property
@@ -135,8 +137,9 @@ class _Client:
                 await self.handle(line)
 
     async def handle(self, line: bytes) -> None:
-        if self.source is not None and self.source.feed is not None:
-            self.source.feed.alive()  # any line proves the client alive: its motion holds
+        for source in self.sources.values():
+            if source.feed is not None:
+                source.feed.alive()  # any line proves the client alive: its motion holds
         try:
             request = rpc.parse_request(line)
         except rpc.RpcError as exc:
@@ -154,9 +157,10 @@ class _Client:
     def close(self) -> None:
         if self.state_task is not None:
             self.state_task.cancel()
-        if self.source is not None and self.server.host is not None:
-            self.server.host.detach(self.source.name)
-            self.source = None
+        if self.server.host is not None:
+            for source in self.sources.values():
+                self.server.host.detach(source.name)  # leaving takes the motion with it
+        self.sources.clear()
         with contextlib.suppress(Exception):
             self.writer.close()
 
@@ -360,8 +364,10 @@ class ControlServer:
         return units
 
     async def _alive(self, client: _Client, params: dict[str, Any]) -> Any:
-        """Proof of life (as any line is): a client holding a ``VEL`` sends it ≥ 2 Hz."""
-        return {"ok": True}
+        """Proof of life (as any line is): a client holding a ``VEL`` sends it ≥ 2 Hz.
+        ``holds``: the units whose standing motion this client still owns."""
+        holds = [u for u, s in client.sources.items() if s.feed is not None and s.feed.holds()]
+        return {"ok": True, "holds": holds}
 
     async def _command(self, client: _Client, params: dict[str, Any]) -> Any:
         """The command language; a ``VEL``/``CUR`` is this client's motion, held while it is
@@ -370,8 +376,8 @@ class ControlServer:
         text = rpc.text(params, "text")
 
         def submit(command: Motion) -> None:
-            feed = self._feed(client, units)
-            feed.hold(command)
+            for feed in self._feeds(client, units):
+                feed.hold(command)
 
         outcome = await execute(self.rt.supervisor, units, text, submit)
         response = outcome.response
@@ -390,33 +396,36 @@ class ControlServer:
             "held": outcome.motion and response == RESPONSE_OK,
         }
 
-    def _feed(self, client: _Client, units: tuple[str, ...]) -> InputFeed:
-        if client.source is None:
-            if self.host is None:
-                raise rpc.RpcError(rpc.REFUSED, "this supervisor runs without inputs")
-            client.source = ClientSource(client.name)
-            if self.host.attach(client.source) is None:
-                client.source = None
+    def _feeds(self, client: _Client, units: tuple[str, ...]) -> list[InputFeed]:
+        """The client's motion source on each of ``units``, attached on first use."""
+        if self.host is None:
+            raise rpc.RpcError(rpc.REFUSED, "this supervisor runs without inputs")
+        feeds = []
+        for unit in units:
+            source = client.sources.get(unit)
+            if source is None:
+                source = ClientSource(client.name, unit)
+                if self.host.attach(source) is None:
+                    raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
+                client.sources[unit] = source
+            if source.feed is None:
                 raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
-        feed = client.source.feed
-        if feed is None:
-            raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
-        if units != client.source.units:
-            feed.retarget(units)
-        return feed
+            feeds.append(source.feed)
+        return feeds
 
     async def _motion(self, method: str, client: _Client, params: dict[str, Any]) -> Any:
         values = [rpc.number(params, key) for key in _FIELDS[method]]  # checked before use
         units = self._commanded(params)
         if self.rt.supervisor.estop and any(values):
             raise rpc.RpcError(rpc.REFUSED, "emergency stop is latched: clear it first")
-        feed = self._feed(client, units)
-        getattr(feed, method)(*values)
+        for feed in self._feeds(client, units):
+            getattr(feed, method)(*values)
         return {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
 
     async def _release(self, client: _Client, params: dict[str, Any]) -> Any:
-        if client.source is not None and client.source.feed is not None:
-            client.source.feed.release()
+        for source in client.sources.values():
+            if source.feed is not None:
+                source.feed.release()
         return {"ok": True}
 
     async def _estop(self, client: _Client, params: dict[str, Any]) -> Any:

@@ -687,6 +687,8 @@ class SupervisorApp(App[None]):
         def answer(yes: bool | None) -> None:
             self.audit(f"{'quit' if self.owner else 'detach'}? {'yes' if yes else 'no'}")
             if yes:
+                if not self.owner:  # the motion goes now, not when the UI has wound down
+                    self.send("release")
                 self.exit()
 
         if self.gone is not None:  # nothing left to stop from here

@@ -126,8 +126,9 @@ class ParamScreen(ModalScreen[None]):
     def _show(self, address: int, word: int) -> None:
         self.words[address] = word
         grid = self.query_one(DataTable)
-        grid.update_cell(str(address), "value", shown(address, word))
-        grid.update_cell(str(address), "word", f"{word:08X}")
+        # the columns grow to what they hold (a word is always all eight digits)
+        grid.update_cell(str(address), "value", shown(address, word), update_width=True)
+        grid.update_cell(str(address), "word", f"{word:08X}", update_width=True)
 
     # ------------------------------------------------------------ the input line, the files
 
