@@ -245,3 +245,17 @@ def test_abh3_send_names_its_target_holds_motion_and_reports_clamping(tmp_path: 
         deadline = time.monotonic() + 5
         while setpoint() != 0.0:
             assert time.monotonic() < deadline, "the held VEL outlived its owner"
+
+
+def test_a_stream_beyond_the_limit_says_so_once_a_second(rig: Rig) -> None:
+    """A joystick pushed past the limit must not flood the log: one note a second, and
+    the next one counts what it held back."""
+    notes: list[str] = []
+    rig.sup.subscribe(lambda e: notes.append(e.message) if isinstance(e, Notice) else None)
+    for i in range(50):  # 50 Hz for a second, every value beyond the wire's range
+        rig.sup.set_velocity("left", 7000 + i, 0)
+        rig.run(0.02)
+    rig.sup.set_velocity("left", 8000, 0)
+    clamped = [n for n in notes if n.startswith("clamped: ")]
+    assert len(clamped) == 2
+    assert clamped[1].endswith("(49 more like it since the last line not shown)")

@@ -342,8 +342,10 @@ class Supervisor:
     def _set(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> SetResult:
         self._check(unit, ay, bx, kind)
         ay, bx, note = _limited(unit, ay, bx, kind)
-        if note is not None:
-            self.notice(unit.name, logging.WARNING, note)
+        if note is not None:  # a stream beyond the limit (a joystick) says it once a second
+            held = self._throttle.allow((unit.name, "clamped"), self.clock())
+            if held is not None:
+                self.notice(unit.name, logging.WARNING, note + held_note(held))
         self._store(unit, Setpoint(ay, bx, kind))
         return SetResult(unit.setpoint.ay, unit.setpoint.bx, note is not None)
 
