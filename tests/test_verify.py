@@ -445,3 +445,44 @@ def test_a_held_unit_switches_nothing_on_but_data_select_and_error_reset(rig: Ri
     assert rig.sup.units["left"].inputs == before
     for text in ("SELECT 3 3", "RESET ON ON", "RESET OFF OFF", "SERVO OFF OFF"):
         assert rig.sup.apply_text("left", text) == "", text
+
+
+def test_abh3_verify_asks_a_running_supervisor_and_releases_a_held_unit(tmp_path: Path) -> None:
+    """`abh3 verify UNIT`: the running supervisor reads the drive again; fixed, the unit a
+    `verify: refuse` held runs its start-up commands."""
+    text = (Path(__file__).parent.parent / "configs" / "demo.yaml").read_text()
+    text = text.replace("simulate: true ", "simulate: {params: {left: {0x4117: 750}}} ")
+    text = text.replace('protocol: "2021"', 'verify: refuse\n    protocol: "2021"')
+    config = tmp_path / "held.yaml"
+    config.write_text(text)
+    sock = tmp_path / "s" / "held.sock"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", str(config), "--headless", "--socket",
+         str(sock), "--status-interval", "0"],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert run.stderr is not None
+    try:
+        for line in run.stderr:
+            if "held at its idle word" in line:
+                break
+
+        def abh3(*args: str) -> subprocess.CompletedProcess[str]:
+            cmd = [sys.executable, "-m", "abh3_supervisor", *args, "--connect", str(sock)]
+            return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+
+        held = abh3("verify", "left")
+        assert held.returncode == 1 and "HELD: " in held.stdout and "MISMATCH" in held.stdout
+        fix = ["param", "--connect", str(sock), "set", "left", "0x4117", "500", "--yes"]
+        assert (
+            subprocess.run([sys.executable, "-m", "abh3_supervisor", *fix], timeout=60).returncode
+            == 0
+        )
+        agreed = abh3("verify", "left")
+        assert agreed.returncode == 0 and "left (bus demo, drive 1): agrees" in agreed.stdout
+        assert abh3("verify", "nobody").returncode == 2
+        state = json.loads(abh3("status", "--json").stdout)["units"]["left"]
+        assert state["verify"]["state"] == "ok" and state["verify"]["held"] is None
+    finally:
+        run.terminate()
+        run.communicate(timeout=30)

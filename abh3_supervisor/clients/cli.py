@@ -123,6 +123,17 @@ def _parser() -> argparse.ArgumentParser:
     )
     send.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
 
+    verify = sub.add_parser(
+        "verify",
+        help="a running supervisor compares drives' CAN settings with its file again",
+        description="Ask a running supervisor to read the drives' CAN settings again and "
+        "compare them with its YAML; a unit that verify: refuse holds is released when they "
+        "now agree (its startup: commands run then). Exit 0 when every one agrees.",
+    )
+    verify.add_argument("units", nargs="+", metavar="UNIT")
+    verify.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
+    verify.add_argument("--json", action="store_true", help="the results as JSON")
+
     check = sub.add_parser("check", help="validate a configuration and print the bus-load plan")
     check.add_argument("config", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
@@ -223,6 +234,11 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
 
     if args.cmd == "tui":
         return _tui_attached(args, release)
+    if args.cmd == "verify":
+        from abh3_supervisor.clients import control
+        from abh3_supervisor.clients.drives import verify_running
+
+        return verify_running(control.find_socket(args.connect), args.units, args.json)
     if args.cmd in ("status", "send"):
         from abh3_supervisor.clients import control as client
 

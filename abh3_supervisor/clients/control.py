@@ -152,7 +152,7 @@ def _verify(v: dict[str, Any] | None) -> str | None:
         return None
     if v["state"] == "mismatch":
         text = "drive settings MISMATCH: " + "; ".join(m["text"] for m in v["mismatches"])
-        return text + (" (SERVO/START refused: verify: refuse)" if v.get("held") else "")
+        return text + (" (held at its idle word: verify: refuse)" if v.get("held") else "")
     if v["state"] == "not verified":
         return f"drive settings not verified ({v['reason']})"
     if v["state"] == "pending":

@@ -1,5 +1,6 @@
 """``abh3 check CONFIG --drives``: read every drive's CAN settings on the configuration's
-own buses and compare them with the file (core/verify.py), nothing else.
+own buses and compare them with the file (core/verify.py), nothing else; ``abh3 verify
+UNIT…``: the same asked of a running supervisor, which acts on it (``verify: refuse``).
 
 The buses open as ``abh3 param -c`` opens them: every unit a monitor without start-up
 commands, so nothing is commanded and a supervisor driving the same units is not fought.
@@ -11,7 +12,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from abh3_supervisor.errors import Abh3Error
 
 if TYPE_CHECKING:
     from abh3_supervisor.config import Config
@@ -23,13 +27,36 @@ HEADER = ("unit", "address", "name", "drive", "YAML", "verdict")
 def check_drives(config: Config, as_json: bool) -> int:
     from abh3_supervisor.clients.param import monitor_only
 
-    results = asyncio.run(_read(monitor_only(config)))
+    results = {n: v.to_json() for n, v in asyncio.run(_read(monitor_only(config))).items()}
+    where = {n: f"{n} (bus {u.bus}, drive {u.abh3_id})" for n, u in config.units.items()}
+    return _report(results, where, as_json)
+
+
+def verify_running(path: Path, units: list[str], as_json: bool) -> int:
+    """``abh3 verify UNIT…``: a running supervisor compares those drives with its file
+    again (a unit ``verify: refuse`` holds is released when they now agree)."""
+    from abh3_supervisor.clients.control import ControlClient
+
+    client = ControlClient(path, timeout=10.0)
+    try:
+        known = client.call("state")["units"]
+        for unit in units:
+            if unit not in known:
+                raise Abh3Error(f"no unit named '{unit}' (units: {', '.join(known)})")
+        results = {unit: client.call("verify", unit=unit) for unit in units}
+    finally:
+        client.close()
+    where = {n: f"{n} (bus {known[n]['bus']}, drive {known[n]['abh3_id']})" for n in units}
+    return _report(results, where, as_json)
+
+
+def _report(results: dict[str, dict[str, Any]], where: dict[str, str], as_json: bool) -> int:
     if as_json:
-        print(json.dumps({n: v.to_json() for n, v in results.items()}, indent=2))
+        print(json.dumps(results, indent=2))
     else:
-        for line in table(config, results):
+        for line in table(results, where):
             print(line)
-    return 0 if all(v.state == "ok" for v in results.values()) else 1
+    return 0 if all(v["state"] == "ok" for v in results.values()) else 1
 
 
 async def _read(config: Config) -> dict[str, Verification]:
@@ -40,24 +67,32 @@ async def _read(config: Config) -> dict[str, Verification]:
         return await verify_units(rt.supervisor, list(config.units), act=False)
 
 
-def table(config: Config, results: dict[str, Verification]) -> list[str]:
-    """The rows of every unit, then one verdict line per unit (with its TelABH3 form)."""
+def table(results: dict[str, dict[str, Any]], where: dict[str, str]) -> list[str]:
+    """The rows of every unit (as ``Verification.to_json`` gives them), then one verdict
+    line per unit (with its TelABH3 form)."""
     rows = [HEADER]
     for name, v in results.items():
         rows += [
-            (name, f"0x{r.address:04X}", r.name, r.drive or "–", r.yaml or "–", r.verdict)
-            for r in v.rows
+            (
+                name,
+                f"0x{r['address']:04X}",
+                r["name"],
+                r["drive"] or "–",
+                r["yaml"] or "–",
+                r["verdict"],
+            )
+            for r in v["rows"]
         ]
     widths = [max(len(row[i]) for row in rows) for i in range(len(HEADER))]
     out = ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows]
     for name, v in results.items():
-        unit = config.units[name]
-        where = f"{name} (bus {unit.bus}, drive {unit.abh3_id})"
         verdict = {
             "ok": "agrees with the file",
-            "mismatch": f"{len(v.mismatches)} setting(s) differ from the file",
-        }.get(v.state, f"not verified: {v.reason}")
-        out.append(f"{where}: {verdict}")
-        if v.form is not None:
-            out.append(f"{where}: TelABH3 form {v.form}")
+            "mismatch": f"{len(v['mismatches'])} setting(s) differ from the file",
+        }.get(v["state"], f"{v['state']}: {v['reason']}")
+        out.append(f"{where[name]}: {verdict}")
+        if v["held"]:
+            out.append(f"{where[name]}: HELD: {v['held']}")
+        if v["form"] is not None:
+            out.append(f"{where[name]}: TelABH3 form {v['form']}")
     return out
