@@ -183,6 +183,19 @@ def _parser() -> argparse.ArgumentParser:
     dec.add_argument("file", type=Path)
     dec.add_argument("--config", type=Path, help="name units and pick protocol generations")
     dec.add_argument("--json", action="store_true", help="one JSON object per frame")
+
+    ros2 = sub.add_parser("ros2", help="ROS 2 helpers").add_subparsers(dest="ros2", required=True)
+    build = ros2.add_parser(
+        "build-interface",
+        help="build abh3_can_interface with cmake (no colcon) from a sourced ROS 2 or the wheels",
+    )
+    build.add_argument("--prefix", type=Path, required=True, help="install it here")
+    build.add_argument(
+        "--distro",
+        choices=["kilted", "jazzy"],
+        help="use this distro's wheels from the package registry (default: a sourced "
+        "ROS 2 if there is one, else kilted)",
+    )
     return p
 
 
@@ -281,6 +294,13 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         except OSError as exc:
             raise Abh3Error(f"--output {args.output}: cannot write: {exc.strerror}") from exc
         return EXIT_OK
+    if args.cmd == "ros2":
+        from abh3_supervisor.clients import ros2_interface
+
+        try:
+            return ros2_interface.command(args.prefix, args.distro)
+        except ros2_interface.BuildError as exc:
+            raise RunError(str(exc)) from None
     if args.cmd == "decode":
         from abh3_supervisor.clients.decode import decode_file
 

@@ -28,7 +28,7 @@ from typing import Any
 
 from abh3_plugins.ros2.diagnostics import TOPIC, DiagnosticsPublisher, DiagnosticsThread
 from abh3_plugins.ros2.settings import Settings, parse, schema
-from abh3_plugins.ros2.transport import Transport, open_transport, problem
+from abh3_plugins.ros2.transport import Transport, decide, open_transport
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core import kinematics
@@ -319,9 +319,15 @@ class Ros2Plugin:
     @hookimpl
     def abh3_configure(self, section: Section, config: Config) -> None:
         self.settings = parse(section, config)
-        missing = problem(self.settings.transport)
-        if missing:
-            section.error("transport", missing)
+        kind = self.settings.transport
+        chosen, why = decide(kind)
+        if chosen is None:
+            section.error("transport", why)
+        elif kind == "auto":  # `abh3 check` and `abh3 run` both say which, and why
+            where = section.src.line((*section.path, "transport"))
+            log.info(
+                "%s:%d: plugins.ros2.transport: auto → %s: %s", section.src.file, where, chosen, why
+            )
 
     @hookimpl
     def abh3_start(self, supervisor: Supervisor) -> None:

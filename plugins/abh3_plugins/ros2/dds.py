@@ -15,12 +15,13 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import logging
+import os
 import threading
 from collections.abc import Callable
 from typing import Any
 
 from cyclonedds.core import GuardCondition, Policy, Qos, ReadCondition, SampleState, WaitSet
-from cyclonedds.domain import DomainParticipant
+from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
@@ -58,6 +59,30 @@ LOOPBACK_URI = (
     "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>30</MaxAutoParticipantIndex>"
     "<Peers><Peer address='127.0.0.1'/></Peers></Discovery></Domain></CycloneDDS>"
 )
+# Fast DDS 3 (Kilted and later) announces XTypes type information for every endpoint. Cyclone
+# DDS then asks for the type objects, cannot make all of them out, and never matches our
+# writers to those readers: nothing we publish arrives. ROS 2 does not match on that
+# information either (it compares type names, and its own type hashes in the user data),
+# so ignore eProsima's (vendor id 1.15) and match by type name, as with Fast DDS 2 (Jazzy)
+# and rmw_cyclonedds. Merged after the user's CYCLONEDDS_URI, so it holds with theirs.
+COMPATIBILITY = (
+    "<CycloneDDS><Domain Id='any'><Compatibility>"
+    "<IgnoreTypeInformation>1.15</IgnoreTypeInformation>"
+    "</Compatibility></Domain></CycloneDDS>"
+)
+_domains: dict[int, Domain] = {}  # one per domain id and process, alive as long as it
+
+
+def domain(domain_id: int) -> Domain:
+    """The DDS domain with the user's configuration plus :data:`COMPATIBILITY`."""
+    found = _domains.get(domain_id)
+    if found is None:
+        user = os.environ.get("CYCLONEDDS_URI", "").strip()
+        config = f"{user},{COMPATIBILITY}" if user else COMPATIBILITY
+        found = _domains[domain_id] = Domain(domain_id, config)
+    return found
+
+
 # ROS 2's services default: reliable, volatile, keep the last 10
 SERVICE_QOS = qos(QosSettings())
 
@@ -66,6 +91,7 @@ class DdsTransport:
     msg = types
 
     def __init__(self, settings: Settings) -> None:
+        self.domain = domain(settings.domain_id)
         self.participant = DomainParticipant(settings.domain_id, qos=discovery.PARTICIPANT_QOS)
         self.announcer = (
             discovery.Announcer(self.participant, settings.discovery)

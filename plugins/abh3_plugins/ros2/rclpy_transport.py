@@ -60,10 +60,32 @@ def messages() -> SimpleNamespace:
         found["byte"] = lambda value: bytes([value])  # rclpy's `byte` fields take bytes
     except ImportError as exc:
         raise InterfaceMissing(
-            f"{exc.name or exc}: build and source the abh3_can_interface package "
-            "(plugins/abh3_plugins/ros2/interface, with colcon), or set transport: dds"
+            f"{exc.name or exc} is not importable: build and source the abh3_can_interface "
+            "package (`abh3 ros2 build-interface --prefix DIR`, or colcon), or set "
+            "transport: dds"
         ) from None
     return SimpleNamespace(**found)
+
+
+def interface_problem() -> str | None:
+    """Why the message packages cannot be used through rclpy here, or None: each class is
+    imported and its type support loaded, as creating a publisher will."""
+    try:
+        classes = messages()
+    except InterfaceMissing as exc:
+        return str(exc)
+    for name, cls in vars(classes).items():
+        load = getattr(cls, "__import_type_support__", None)
+        if load is None:  # `byte`, or a stand-in
+            continue
+        try:
+            load()
+        except Exception as exc:  # ImportError, UnsupportedTypeSupport: libraries not found
+            return (
+                f"the type support of {name} does not load ({exc}): put the interface's "
+                "lib/ on LD_LIBRARY_PATH (source its setup), or set transport: dds"
+            )
+    return None
 
 
 class RclpyTransport:

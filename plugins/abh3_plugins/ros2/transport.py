@@ -11,6 +11,7 @@ from __future__ import annotations
 import concurrent.futures
 import importlib.util
 import logging
+import sys
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -35,34 +36,67 @@ class Transport(Protocol):
     def close(self) -> None: ...
 
 
+def _importable(name: str) -> bool:
+    if name in sys.modules:  # imported already (or stood in for)
+        return True
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):
+        return False
+
+
 def rclpy_available() -> bool:
-    return importlib.util.find_spec("rclpy") is not None
+    return _importable("rclpy")
 
 
 def cyclonedds_available() -> bool:
-    return importlib.util.find_spec("cyclonedds") is not None
+    return _importable("cyclonedds")
+
+
+def decide(kind: str) -> tuple[str | None, str]:
+    """The transport ``transport: kind`` will run with (``rclpy``/``dds``), and why; or None
+    and what is missing. The same judgement :func:`open_transport` makes, so ``abh3 check``
+    says what ``abh3 run`` will do."""
+    no_dds = "needs the cyclonedds package: pip install 'abh3-supervisor[ros2]'"
+    if kind == "dds":
+        return ("dds", "transport: dds") if cyclonedds_available() else (None, no_dds)
+    if not rclpy_available():
+        if kind == "rclpy":
+            return None, (
+                "rclpy is not importable: source a ROS 2 install first, or use transport: dds"
+            )
+        if cyclonedds_available():
+            return "dds", "rclpy is not importable (no sourced ROS 2), so plain DDS (cyclonedds)"
+        return None, f"rclpy is not importable and the DDS transport {no_dds}"
+    from abh3_plugins.ros2.rclpy_transport import interface_problem
+
+    missing = interface_problem()
+    if missing is None:
+        return "rclpy", "rclpy and the built abh3_can_interface package are importable"
+    if kind == "rclpy":
+        return None, f"rclpy is importable but {missing}"
+    if cyclonedds_available():
+        return "dds", f"rclpy is importable but {missing}; so plain DDS (cyclonedds)"
+    return None, f"rclpy is importable but {missing}; and the DDS transport {no_dds}"
 
 
 def problem(kind: str) -> str | None:
     """Why ``transport: kind`` cannot work on this machine, or None."""
-    if kind == "rclpy" and not rclpy_available():
-        return "rclpy is not importable: source a ROS 2 install first, or use transport: dds"
-    if (kind == "dds" or (kind == "auto" and not rclpy_available())) and not cyclonedds_available():
-        return "needs the cyclonedds package: pip install 'abh3-supervisor[ros2]'"
-    return None
+    chosen, why = decide(kind)
+    return why if chosen is None else None
 
 
 def open_transport(settings: Settings) -> Transport:
     """rclpy in a sourced ROS 2 install (``auto`` or ``rclpy``), else DDS via cyclonedds."""
-    if settings.transport == "rclpy" or (settings.transport == "auto" and rclpy_available()):
-        from abh3_plugins.ros2.rclpy_transport import InterfaceMissing, RclpyTransport
+    chosen, why = decide(settings.transport)
+    if chosen == "rclpy":
+        from abh3_plugins.ros2.rclpy_transport import RclpyTransport
 
-        try:
-            return RclpyTransport(settings)
-        except InterfaceMissing as exc:
-            if settings.transport == "rclpy" or not cyclonedds_available():
-                raise
-            log.warning("ros2: rclpy found but %s; speaking DDS directly instead", exc)
+        return RclpyTransport(settings)
+    if chosen is None:
+        raise RuntimeError(f"ros2: transport: {settings.transport}: {why}")
+    if settings.transport == "auto" and rclpy_available():
+        log.warning("ros2: %s", why)
     from abh3_plugins.ros2.dds import DdsTransport
 
     return DdsTransport(settings)
