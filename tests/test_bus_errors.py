@@ -197,9 +197,14 @@ def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> 
         assert rt.stops_confirmed
 
     asyncio.run(scenario())
-    assert notices.seen == [
-        "bus robot: BUS-OFF: the controller went bus-off",
+    # the fake bus keeps carrying frames while "bus-off": under load the traffic may
+    # prove the recovery before the injected restart frame does; either is a recovery
+    assert notices.seen[1] in (
         "bus robot: recovered from bus-off: the controller restarted",
+        "bus robot: recovered from bus-off: frames go out and come in again",
+    )
+    assert notices.seen[:1] + notices.seen[2:] == [
+        "bus robot: BUS-OFF: the controller went bus-off",
         "bus robot: TX QUEUE FULL: the transmit queue is full (no node acks?)",
         "bus robot: recovered from tx queue full: frames go out and come in again",
         "bus robot: ERROR-PASSIVE: error-passive (tx errors 0, rx errors 140)",
