@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
 from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
@@ -43,7 +43,6 @@ from abh3_supervisor.scheduler.core import (
 )
 
 log = logging.getLogger(__name__)
-DP0 = -1  # the waiters' key for DP0 exchanges, beside broadcast packets 0–7
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,8 +104,9 @@ class Supervisor:
         # what each bus's interface reports of itself (bus-off, error-passive, …)
         self.bus_health = {bus: BusHealth(bus) for bus in config.buses}
         self._observers: list[Observer] = []
-        # (unit, DP0 or a broadcast packet) → (requests sent since, future) awaiting a reply
-        self._waiters: dict[tuple[str, int], list[tuple[float, asyncio.Future[bool]]]] = {}
+        # unit, or (unit, broadcast packet) → (requests sent since, future) awaiting a reply;
+        # DP0 replies are keyed by the unit alone: no key is built on the bus path
+        self._waiters: dict[Hashable, list[tuple[float, asyncio.Future[bool]]]] = {}
         self.estop = False
         self.stopping = False  # set by safe_state(): every later command is refused
         # per bus: step the scheduler now (set by the runtime; absent on a fake clock)
@@ -166,7 +166,7 @@ class Supervisor:
             if unit.feedback.control is not None:
                 self._word(unit, event.t, "control", unit.feedback.control)
             if event.sent_at is not None:
-                self._wake((unit.name, DP0), event.sent_at)
+                self._wake(unit.name, event.sent_at)
         elif isinstance(event, StatusEvent):
             if isinstance(event.record, frames.Unknown):
                 return
@@ -451,14 +451,14 @@ class Supervisor:
 
         Registered at once (not on first await), so a reply cannot slip past it.
         """
-        return self._expect((name, DP0), since)
+        return self._expect(name, since)
 
     def expect_status(self, name: str, packet: int, since: float) -> asyncio.Future[bool]:
         """A future set once broadcast ``packet`` answers a request sent at or after
         ``since`` (ask for it with :meth:`request_status`): what the drive says *now*."""
         return self._expect((name, packet), since)
 
-    def _expect(self, key: tuple[str, int], since: float) -> asyncio.Future[bool]:
+    def _expect(self, key: Hashable, since: float) -> asyncio.Future[bool]:
         future: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
         waiters = self._waiters.setdefault(key, [])
         waiters.append((since, future))
@@ -472,7 +472,7 @@ class Supervisor:
         except TimeoutError:
             return False
 
-    def _wake(self, key: tuple[str, int], sent_at: float) -> None:
+    def _wake(self, key: Hashable, sent_at: float) -> None:
         waiters = self._waiters.get(key)
         if not waiters:  # the usual case, once per reply on the bus path: no allocation
             return
