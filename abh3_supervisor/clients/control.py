@@ -57,6 +57,15 @@ class ControlClient:
             raise RunError(f"{method}: {reply['error'].get('message')}")
         return reply.get("result")
 
+    def units(self, wanted: list[str]) -> dict[str, Any]:
+        """The service's units as its state has them; each of ``wanted`` must be one (a
+        mistake on the command line: exit 2, in every command's words)."""
+        known: dict[str, Any] = self.call("state")["units"]
+        for unit in wanted:
+            if unit not in known:
+                raise Abh3Error(f"no unit named '{unit}' (units: {', '.join(known)})")
+        return known
+
     def close(self) -> None:
         self.reader.close()
         self.sock.close()
@@ -178,10 +187,7 @@ def send(path: Path, text: str, units: list[str], *, every: bool, hold: bool) ->
         raise Abh3Error(MOTION_NEEDS_AN_OWNER.format(text=text))
     client = ControlClient(path, timeout=10.0)
     try:
-        known = client.call("state")["units"]
-        for unit in units:
-            if unit not in known:
-                raise Abh3Error(f"no unit named '{unit}' (units: {', '.join(known)})")
+        known = client.units(units)
         names = units or [n for n, u in known.items() if u["role"] == "command"]
         result = client.call("command", units=names, text=text)
         answers = result.get("responses") or dict.fromkeys(names, result["response"])

@@ -15,8 +15,6 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from abh3_supervisor.errors import Abh3Error
-
 if TYPE_CHECKING:
     from abh3_supervisor.config import Config
     from abh3_supervisor.core.verify import Verification
@@ -39,10 +37,7 @@ def verify_running(path: Path, units: list[str], as_json: bool) -> int:
 
     client = ControlClient(path, timeout=10.0)
     try:
-        known = client.call("state")["units"]
-        for unit in units:
-            if unit not in known:
-                raise Abh3Error(f"no unit named '{unit}' (units: {', '.join(known)})")
+        known = client.units(units)
         results = {unit: client.call("verify", unit=unit) for unit in units}
     finally:
         client.close()
