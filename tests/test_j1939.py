@@ -14,6 +14,7 @@ from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.params.session import ABORT_GUARD, Result
 from abh3_supervisor.params.telabh3 import Command, Request, decode_reply
 from abh3_supervisor.params.transport import Receiver, Sender, State
+from abh3_supervisor.protocol import ids
 from abh3_supervisor.simulator.timeline import WireFrame
 from tests.conftest import TWO_UNITS, Rig
 
@@ -212,7 +213,6 @@ def test_receiver_asks_for_sixteen_dts_per_cts() -> None:
 def test_a_dump_leaves_every_units_dp0_rate_within_one_percent() -> None:
     from abh3_supervisor.params import table
     from abh3_supervisor.params.telabh3 import pack_float
-    from abh3_supervisor.protocol import ids
 
     rig = Rig(parse_config(TWO_UNITS, "two.yaml"), bitrate=500_000)  # wire time modelled
     rig.drive("left").tel.params[0x4119] = pack_float(30)  # the drive waits 30 ms between DTs
@@ -224,11 +224,7 @@ def test_a_dump_leaves_every_units_dp0_rate_within_one_percent() -> None:
     end = max(r.t for r in results)
     assert all(r.ok for r in results) and end - start > 3.0  # 121 parameters, ~4 s
     for abh3 in (3, 1):  # the other unit, and the one being dumped
-        sent = [
-            f.start
-            for f in rig.timeline.frames
-            if f.arbitration_id == ids.dp0_command_id(abh3, 2) and start <= f.start <= end
-        ]
+        sent = dp0_sends(rig.timeline.frames, abh3, start, end)
         rate = (len(sent) - 1) / (sent[-1] - sent[0])
         assert rate == pytest.approx(50, rel=0.01)
         assert max(b - a for a, b in itertools.pairwise(sent)) < 0.021  # never a late keepalive
@@ -280,3 +276,9 @@ def test_a_caller_that_stops_waiting_takes_back_only_its_own_request(rig: Rig) -
     rig.run(0.5)
     assert [r.error for r in opened] == ["no answer"] and queued == []
     assert len(theirs) == 1 and theirs[0].ok
+
+
+def dp0_sends(frames: list[WireFrame], abh3: int, start: float, end: float) -> list[float]:
+    """When the DP0 commands to drive ``abh3`` (host 2) went on the wire in [start, end]."""
+    dp0 = ids.dp0_command_id(abh3, 2)
+    return [f.start for f in frames if f.arbitration_id == dp0 and start <= f.start <= end]

@@ -34,7 +34,7 @@ from abh3_supervisor.protocol import flags, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from tests.conftest import Rig
-from tests.test_j1939 import check_j1939
+from tests.test_j1939 import check_j1939, dp0_sends
 from tests.test_service import Served
 
 CONFIG = """
@@ -184,11 +184,7 @@ def test_dp0_rates_hold_within_one_percent_while_drives_are_read() -> None:
     r.run(2.1)
     assert min(rounds.values()) > 20  # each unit read its seven settings 20+ times
     for abh3 in (1, 3, 5):
-        sent = [
-            f.start
-            for f in r.timeline.frames
-            if f.arbitration_id == ids.dp0_command_id(abh3, 2) and start <= f.start <= end
-        ]
+        sent = dp0_sends(r.timeline.frames, abh3, start, end)
         rate = (len(sent) - 1) / (sent[-1] - sent[0])
         assert rate == pytest.approx(50, rel=0.01)
         # a command may wait behind transport frames already queued (0.25 ms each, from
