@@ -1,8 +1,10 @@
 """A real rclpy node against ``abh3 run``: run with a ROS 2 venv's Python (tests/test_ros2_real.py).
 
-Prints one JSON object on stdout: what it saw of the graph, the topics, /diagnostics,
-odom, the service, and the wall-clock times of its cmd_vel publishing (for the frames the
-supervisor recorded). Every wait is bounded; a missing thing is reported, not waited for.
+Prints one JSON object on stdout: what it saw of the graph (nodes, per-topic endpoint names
+and GIDs, the node's own endpoints), the topics, /diagnostics, odom at rest and while
+driving, the service, and the wall-clock times of its cmd_vel publishing (for the frames
+the supervisor recorded). Every wait is bounded; a missing thing is reported, not waited
+for (a thing that must be absent only for ``absent_wait`` seconds).
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ def run(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -
     from nav_msgs.msg import Odometry  # type: ignore[import-not-found]
 
     wait = float(args.get("wait", 30))
+    # what must NOT be there: once the bridge's topics are listed, its command entities
+    # would be listed within moments (same participant, same discovery round)
+    patience = wait if args["expect_commands"] else float(args.get("absent_wait", 3))
 
     def in_graph() -> bool:
         return (NODE, "/") in node.get_node_names_and_namespaces()
@@ -58,23 +63,7 @@ def run(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -
     want = args["topics"]  # name -> type the docs give
     spin_until(lambda: all(t in dict(node.get_topic_names_and_types()) for t in want), wait)
     out["topics"] = {t: ty for t, ty in node.get_topic_names_and_types() if t in want}
-    endpoints: dict[str, list[str]] = {}
-    for topic in args["published"]:
-        spin_until(lambda t=topic: node.get_publishers_info_by_topic(t), 5)
-        endpoints[topic] = sorted(
-            f"{i.node_namespace.rstrip('/')}/{i.node_name}"
-            for i in node.get_publishers_info_by_topic(topic)
-        )
-    for topic in args["subscribed"]:
-        spin_until(lambda t=topic: node.get_subscriptions_info_by_topic(t), 5)
-        endpoints[topic] = sorted(
-            f"{i.node_namespace.rstrip('/')}/{i.node_name}"
-            for i in node.get_subscriptions_info_by_topic(topic)
-        )
-    out["endpoints"] = endpoints
-    if in_graph():
-        pubs = node.get_publisher_names_and_types_by_node(NODE, "/")
-        out["node_publishers"] = sorted(t for t, _ in pubs)
+    graph(node, args, out, spin_until)
 
     diags: list[Any] = []
     odoms: list[Any] = []
@@ -83,19 +72,16 @@ def run(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -
     spin_until(lambda: diags and odoms, wait)
     out["diagnostics"] = sorted({(s.name, s.hardware_id) for d in diags for s in d.status})
     if odoms:
-        o = odoms[-1]
-        out["odom"] = {
-            "frame_id": o.header.frame_id,
-            "child_frame_id": o.child_frame_id,
-            "linear_x": o.twist.twist.linear.x,
-            "angular_z": o.twist.twist.angular.z,
-        }
+        out["odom"] = odometry(odoms[-1])
 
-    if "service" in args:
-        service(node, args, out, spin_until)
+    service = args["service"]
+    spin_until(lambda: service in dict(node.get_service_names_and_types()), patience)
+    out["services"] = {s: ty for s, ty in node.get_service_names_and_types() if s == service}
+    if args["commands"]:
+        call(node, args, out, spin_until)
 
     cmd = node.create_publisher(Twist, args["cmd_vel"], 10)
-    spin_until(lambda: cmd.get_subscription_count() > 0, wait)
+    spin_until(lambda: cmd.get_subscription_count() > 0, patience)
     out["cmd_vel_matched"] = cmd.get_subscription_count()
     msg = Twist()
     msg.linear.x, msg.angular.z = args["twist"]
@@ -106,21 +92,59 @@ def run(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -
         last = time.time()
         rclpy.spin_once(node, timeout_sec=0.05)
     out["cmd_vel"] = {"first": first, "last": last}
+    if odoms:  # the latest odom while the twist was still being sent
+        out["odom_driving"] = odometry(odoms[-1])
 
 
-def service(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -> None:
+def graph(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -> None:
+    """Per-topic endpoint info (``ros2 topic info -v``) and the node's own endpoints."""
+
+    def infos(topic: str) -> Any:
+        if topic in args["subscribed"]:
+            return node.get_subscriptions_info_by_topic(topic)
+        return node.get_publishers_info_by_topic(topic)
+
+    endpoints: dict[str, list[str]] = {}
+    gids: dict[str, list[str]] = {}
+    for topic in [*args["published"], *args["subscribed"]]:
+        spin_until(lambda t=topic: infos(t), 5)
+        found = infos(topic)
+        endpoints[topic] = sorted(f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in found)
+        gids[topic] = sorted(bytes(i.endpoint_gid).hex() for i in found)
+    out["endpoints"] = endpoints
+    out["endpoint_gids"] = gids  # the GIDs rmw made of the discovered endpoints' GUIDs
+    if (NODE, "/") in node.get_node_names_and_namespaces():
+        # resolved through the node's GIDs in ros_discovery_info: they equal the above
+        pubs = node.get_publisher_names_and_types_by_node(NODE, "/")
+        subs = node.get_subscriber_names_and_types_by_node(NODE, "/")
+        out["node_publishers"] = sorted(t for t, _ in pubs)
+        out["node_subscribers"] = sorted(t for t, _ in subs)
+
+
+def odometry(o: Any) -> dict[str, Any]:
+    return {
+        "frame_id": o.header.frame_id,
+        "child_frame_id": o.child_frame_id,
+        "linear_x": o.twist.twist.linear.x,
+        "angular_z": o.twist.twist.angular.z,
+    }
+
+
+def call(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -> None:
     from abh3_can_interface.srv import Abh3Input  # type: ignore[import-not-found]
 
     client = node.create_client(Abh3Input, args["service"])
     out["service_ready"] = client.wait_for_service(timeout_sec=float(args.get("wait", 30)))
-    answers = []
+    answers, calls = [], []
     for command in args["commands"]:
         if not out["service_ready"]:
             break
+        sent = time.time()
         future = client.call_async(Abh3Input.Request(command=command))
         spin_until(future.done, 10)
         answers.append(future.result().responce if future.done() else None)
-    out["answers"] = answers
+        calls.append([sent, time.time()])  # wall clock, as the recording's frames
+    out["answers"], out["calls"] = answers, calls
 
 
 if __name__ == "__main__":
