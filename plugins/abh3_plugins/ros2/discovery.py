@@ -6,6 +6,12 @@ naming its nodes and, per node, the GIDs of their readers and writers. rmw_cyclo
 takes an entity's GID from its DDS GUID (16 bytes, zero-padded to the GID's size), so
 ``ros2 node list``/``ros2 node info`` match our entities with what DDS discovered.
 
+The participant GID is our own participant's, as rmw_cyclonedds announces it. Kilted's
+rmw_fastrtps looks Cyclone endpoints up under an all-zero participant GID (Fast DDS 3.2.3
+fills ``participant_guid`` only from a parameter Cyclone never sends), so its per-topic
+info names them ``_CREATED_BY_BARE_DDS_APP_``; announcing the zero GID would fix that view
+but leave a node behind in every graph after we exit (docs/ros2.md).
+
 The GID's size differs by release, under one type name: ``char[24]`` in Humble,
 ``char[16]`` from Iron on (``discovery: humble`` or ``jazzy``, the default). Samples
 of the other size do not decode, so a bridge set for the wrong release stays out of the
