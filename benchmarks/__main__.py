@@ -11,7 +11,7 @@ import importlib.util
 import logging
 import statistics
 
-from benchmarks import bus_model, cycle_timing, host_cpu, ros2_bridge, scale
+from benchmarks import attached, bus_model, cycle_timing, host_cpu, ros2_bridge, scale
 from benchmarks.report import Row, machine, print_rows
 
 COUNTS = [1, 4, 8, 16, 32]
@@ -190,8 +190,8 @@ def main(argv: list[str] | None = None) -> int:
                 jitter,
                 headless_jitter,
                 "ms",
-                "<=2 ms, <=1.2x headless",
-                jitter <= 2 and jitter <= 1.2 * max(headless_jitter, 0.1),
+                "<=2 ms, <=1.5x headless",
+                jitter <= 2 and jitter <= 1.5 * max(headless_jitter, 0.1),
             )
         )
         rows.append(
@@ -205,6 +205,28 @@ def main(argv: list[str] | None = None) -> int:
                 latency <= 11,
             )
         )
+
+    # everything on, as operators run it: `abh3 run --headless` with the ROS 2 bridge and an
+    # MCAP recording, then two `abh3 tui --connect` in tmux (one on the plots tab); jitter
+    # from the run's own recording, before and while they are attached (benchmarks/attached)
+    ran = [attached.run(5.0 if a.quick else 20.0) for _ in range(runs)]
+    how, on = ran[0][0], [figures for _, figures in ran]
+    alone_p99, on_p99 = med(on, "alone_jitter_p99_ms"), med(on, "attached_jitter_p99_ms")
+    rows.append(
+        Row(
+            section,
+            f"everything on, 2 TUIs ({how}): period jitter p99",
+            on_p99,
+            alone_p99,
+            "ms",
+            "<=2 ms, <=1.5x alone",
+            on_p99 <= 2 and on_p99 <= 1.5 * max(alone_p99, 0.1),
+        )
+    )
+    rate = max(med(on, "alone_rate_error_percent"), med(on, "attached_rate_error_percent"))
+    rows.append(
+        Row(section, "everything on, 2 TUIs: rate error", rate, None, "%", "<=1%", rate <= 1)
+    )
 
     # 4. scale and memory (fresh subprocess per measurement)
     section = "4. scale and memory (simulated drives in the same process)"

@@ -27,6 +27,7 @@ from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.priority import Priority, bus_priority
 from abh3_supervisor.scheduler.stats import percentile
 from abh3_supervisor.service.server import ControlServer
 
@@ -120,7 +121,8 @@ def run(n: int, rate: float, seconds: float, channel: str, tuis: int = 0) -> dic
                     client.wait(10)
                 await server.close()
 
-    with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
+    # the loop's priority as `abh3 run` sets it (--priority auto: real-time where allowed)
+    with tempfile.TemporaryDirectory(dir="/tmp") as tmp, bus_priority(Priority.AUTO):
         asyncio.run(scenario(Path(tmp) / "s" / "bench.sock"))
     period = 1.0 / rate
     jitter: list[float] = []

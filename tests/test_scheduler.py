@@ -5,6 +5,8 @@ from __future__ import annotations
 import itertools
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import CommandError
@@ -16,6 +18,7 @@ from abh3_supervisor.scheduler.core import (
     HealthEvent,
     StatusEvent,
 )
+from abh3_supervisor.scheduler.stats import RTT_WINDOW, UnitStats, percentile
 from tests.conftest import TWO_UNITS, Rig
 
 
@@ -197,3 +200,16 @@ def test_requested_status_goes_between_the_regular_polls(rig: Rig) -> None:
     rig.run(1.0)
     right = [e.packet for e in rig.events if isinstance(e, StatusEvent) and e.unit == "right"]
     assert right.count(6) == 1 and set(right) == {0, 1, 2, 3, 6}
+
+
+@given(st.lists(st.floats(0.0, 0.2), min_size=1, max_size=2500), st.sampled_from([1, 50, 99]))
+def test_rtt_percentiles_are_those_of_the_last_window_of_round_trips(
+    rtts: list[float], q: int
+) -> None:
+    """Kept sorted as replies come (no sort per snapshot), equal to sorting the window."""
+    stats = UnitStats(requested_rate_hz=50)
+    for i, rtt in enumerate(rtts):
+        stats.on_reply(float(i), rtt)
+    window = rtts[-RTT_WINDOW:]
+    assert stats.rtt_ms(q) == pytest.approx(percentile(window, q) * 1000)  # type: ignore[operator]
+    assert stats.rtts_ms(q, 99) == (stats.rtt_ms(q), stats.rtt_ms(99))

@@ -71,6 +71,13 @@ def _parser() -> argparse.ArgumentParser:
         "(raw frames and decoded values as ROS 2 messages; the mcap extra)",
     )
     run.add_argument(
+        "--priority",
+        choices=["auto", "realtime", "normal"],
+        default="auto",
+        help="the bus loop's CPU scheduling: real-time (SCHED_FIFO) where allowed, else "
+        "normal (auto, the default); realtime: refuse to start without it",
+    )
+    run.add_argument(
         "--status-interval",
         type=float,
         default=5.0,
@@ -374,11 +381,8 @@ def _in_machinery(frame: FrameType | None) -> bool:
 
 
 def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
-    import asyncio
-
     from abh3_supervisor.config import load_config
     from abh3_supervisor.core.planner import overloads, plan
-    from abh3_supervisor.runtime.headless import run_headless
 
     config = load_config(args.config)
     plugins = _plugins(config)
@@ -406,6 +410,18 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
         from abh3_supervisor.plugin_host import terminal
 
         terminal.claim("the TUI that started this supervisor")  # it hands keys over
+    from abh3_supervisor.runtime.priority import Priority, bus_priority
+
+    with bus_priority(Priority(args.priority)) as priority:  # before any thread starts
+        log.info("%s", priority)
+        return _run_headless(args, config, plugins)
+
+
+def _run_headless(args: argparse.Namespace, config: Config, plugins: PluginHost) -> int:
+    import asyncio
+
+    from abh3_supervisor.runtime.headless import run_headless
+
     running = run_headless(
         config,
         duration=args.duration,
@@ -438,6 +454,7 @@ def _tui_with_child(args: argparse.Namespace, release: Callable[[], None]) -> in
         raise RunError("the TUI attaches through the control socket: --no-socket needs --headless")
     passed: list[str] = []
     for flag, value in (
+        ("--priority", args.priority),
         ("--record", args.record),
         ("--socket-group", args.socket_group),
         ("--read-only-socket", args.read_only_socket),

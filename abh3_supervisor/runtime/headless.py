@@ -36,7 +36,7 @@ def status_lines(sup: Supervisor) -> list[str]:
             else:
                 ay, bx = (fb.vel_y, fb.vel_x) if travel else (fb.vel_a, fb.vel_b)
                 vel = f"fbk {model} {ay:8.1f} {bx:8.1f}"
-            p50, p99 = st.rtt_ms(50), st.rtt_ms(99)
+            p50, p99 = st.rtts_ms(50, 99)
             rtt = (
                 f"rtt p50 {p50:.2f} p99 {p99:.2f} ms"
                 if p50 is not None and p99 is not None

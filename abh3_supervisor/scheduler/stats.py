@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import bisect
 from collections import deque
 from dataclasses import dataclass, field
+
+RTT_WINDOW = 1024  # round trips the RTT percentiles are taken over
+
+
+def _rank(n: int, q: float) -> int:
+    """The index of the nearest-rank ``q`` percentile (0–100) among ``n`` sorted samples."""
+    return max(0, min(n - 1, round(q / 100 * n + 0.5) - 1))
 
 
 def percentile(samples: list[float], q: float) -> float | None:
     """Nearest-rank percentile (``q`` in 0–100); ``None`` without samples."""
-    if not samples:
-        return None
-    ordered = sorted(samples)
-    rank = max(0, min(len(ordered) - 1, round(q / 100 * len(ordered) + 0.5) - 1))
-    return ordered[rank]
+    return sorted(samples)[_rank(len(samples), q)] if samples else None
 
 
 @dataclass
@@ -28,7 +32,10 @@ class UnitStats:
     malformed: int = 0  # frames with our ids but the wrong length or kind: never counted
     gaps: int = 0  # times no exchange completed within the drive's timeout
     last_seen: float | None = None
-    _rtts: deque[float] = field(default_factory=lambda: deque(maxlen=1024))
+    # the last RTT_WINDOW round trips, in arrival order and kept sorted: a percentile is
+    # then an index, not a sort of the window on every snapshot and diagnostics message
+    _rtts: deque[float] = field(default_factory=deque)
+    _rtts_sorted: list[float] = field(default_factory=list)
     _reply_times: deque[float] = field(default_factory=lambda: deque(maxlen=256))
 
     def on_reply(self, now: float, rtt: float | None) -> None:
@@ -36,7 +43,10 @@ class UnitStats:
         self.last_seen = now
         self._reply_times.append(now)
         if rtt is not None:
+            if len(self._rtts) >= RTT_WINDOW:
+                del self._rtts_sorted[bisect.bisect_left(self._rtts_sorted, self._rtts.popleft())]
             self._rtts.append(rtt)
+            bisect.insort(self._rtts_sorted, rtt)
 
     def achieved_rate_hz(self, now: float, window: float = 2.0) -> float:
         """Solicited replies per second over the last ``window`` seconds."""
@@ -52,5 +62,8 @@ class UnitStats:
         return (len(recent) - 1) / span if span > 0 else 0.0
 
     def rtt_ms(self, q: float) -> float | None:
-        value = percentile(list(self._rtts), q)
-        return None if value is None else value * 1000
+        return self.rtts_ms(q)[0]
+
+    def rtts_ms(self, *qs: float) -> tuple[float | None, ...]:
+        ordered = self._rtts_sorted
+        return tuple(None if not ordered else ordered[_rank(len(ordered), q)] * 1000 for q in qs)

@@ -40,6 +40,7 @@ from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
 from abh3_supervisor.service.snapshot import state
+from abh3_supervisor.service.state_push import SharedState
 
 if TYPE_CHECKING:
     from abh3_supervisor.core.supervisor import SupervisorEvent
@@ -204,7 +205,7 @@ class ControlServer:
             "verify": self._verify,
         }
         self._log_handler = _Forward(self)
-        self._state_cache: tuple[float, bytes] = (-1e300, b"")  # (loop time, encoded)
+        self._pushed = SharedState(rt, SHARE_S)  # one build per tick for every client
         self._params = ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())
 
     async def start(self) -> None:
@@ -261,7 +262,7 @@ class ControlServer:
             if request.method not in READ_ONLY_METHODS:
                 # the shared encoded state may predate what this call changed (an e-stop):
                 # the next push builds a fresh one
-                self._state_cache = (-1e300, b"")
+                self._pushed.forget()
 
     # ------------------------------------------------------------ events
 
@@ -340,20 +341,12 @@ class ControlServer:
 
     async def _push_state(self, client: _Client, period: float) -> None:
         """On a grid of ``period`` shared by every client at that rate: one snapshot built
-        and encoded per tick for all of them (0.6 ms on the bus loop for 8 units)."""
+        per tick for all of them, unit by unit between the buses' steps (state_push.py)."""
         loop = asyncio.get_running_loop()
         while not client.writer.is_closing():
-            client.send(self._state_bytes())
+            client.send(await self._pushed.latest())
             now = loop.time()
             await asyncio.sleep((math.floor(now / period) + 1) * period - now)
-
-    def _state_bytes(self) -> bytes:
-        now = asyncio.get_running_loop().time()
-        made, data = self._state_cache
-        if now - made > SHARE_S:
-            data = rpc.notification("state", state(self.rt))
-            self._state_cache = (now, data)
-        return data
 
     def _commanded(self, params: dict[str, Any]) -> tuple[str, ...]:
         sup = self.rt.supervisor

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
@@ -11,10 +12,25 @@ from abh3_supervisor.core import readouts
 from abh3_supervisor.protocol import frames
 
 if TYPE_CHECKING:
+    from abh3_supervisor.config.model import Role
     from abh3_supervisor.core.state import UnitState
     from abh3_supervisor.core.supervisor import Supervisor
+    from abh3_supervisor.core.verify import Verification
+    from abh3_supervisor.protocol.flags import FlagWord
     from abh3_supervisor.runtime.bus_runtime import Runtime
     from abh3_supervisor.scheduler.pump import BusPump
+
+
+_FIELDS: dict[type, tuple[str, ...]] = {}
+
+
+def _record(record: object) -> dict[str, Any]:
+    """A flat status record as a dict: ``dataclasses.asdict`` deep-copies every value,
+    which made it most of a snapshot's cost."""
+    kind = type(record)
+    if (names := _FIELDS.get(kind)) is None:
+        names = _FIELDS[kind] = tuple(f.name for f in dataclasses.fields(kind))  # type: ignore[arg-type]
+    return {name: getattr(record, name) for name in names}
 
 
 def _finite(value: float | None) -> float | None:
@@ -22,13 +38,25 @@ def _finite(value: float | None) -> float | None:
 
 
 def _word(unit: UnitState, name: str, value: int) -> dict[str, Any]:
+    return _word_json(unit.layout.words[name], unit.cfg.role, name, value)
+
+
+@functools.lru_cache(maxsize=1024)
+def _word_json(word: FlagWord, role: Role, name: str, value: int) -> dict[str, Any]:
     """A flag word by value and set bits' names; an error or alarm word also says which
-    set bits are normal for the unit's role, and what they mean there."""
-    out: dict[str, Any] = {"value": value, "names": unit.layout.words[name].names(value)}
+    set bits are normal for the unit's role, and what they mean there. The same few
+    values recur on every push: each is worked out once (callers never mutate it)."""
+    out: dict[str, Any] = {"value": value, "names": word.names(value)}
     if name in ("error", "alarm"):
-        normal = readouts.read_faults(unit.cfg.role, value).normal
-        out["notes"] = {b.name: readouts.fault_note(unit.cfg.role, b) for b in normal}
+        normal = readouts.read_faults(role, value).normal
+        out["notes"] = {b.name: readouts.fault_note(role, b) for b in normal}
     return out
+
+
+@functools.lru_cache(maxsize=256)
+def _verify_json(verification: Verification) -> dict[str, Any]:
+    """A unit's verification (frozen: a new check is a new object) as JSON, once."""
+    return verification.to_json()
 
 
 def _reported(unit: UnitState, control: int | None) -> dict[str, Any] | None:
@@ -43,11 +71,12 @@ def _reported(unit: UnitState, control: int | None) -> dict[str, Any] | None:
 def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
     slot = sup.schedulers[unit.cfg.bus].slots[unit.name]
     st, fb, now = slot.stats, unit.feedback, sup.clock()
+    rtt_p50, rtt_p99 = st.rtts_ms(50, 99)
     words = dict(unit.words)  # copied at once: the bus side may write meanwhile
     status: dict[str, Any] = {}
     for packet, (_, record) in dict(unit.status).items():
         if not isinstance(record, frames.Brd7):
-            status[str(packet)] = dataclasses.asdict(record)
+            status[str(packet)] = _record(record)
     return {
         "bus": unit.cfg.bus,
         "abh3_id": unit.cfg.abh3_id,
@@ -78,7 +107,7 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
         },
         "reported": _reported(unit, words.get("control")),
         # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
-        "verify": unit.verify.to_json(),
+        "verify": _verify_json(unit.verify),
         "status": status,
         "stats": {
             "rate_hz": st.achieved_rate_hz(now),
@@ -90,8 +119,8 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
             "send_errors": st.send_errors,
             "malformed": st.malformed,
             "gaps": st.gaps,
-            "rtt_p50_ms": _finite(st.rtt_ms(50)),
-            "rtt_p99_ms": _finite(st.rtt_ms(99)),
+            "rtt_p50_ms": _finite(rtt_p50),
+            "rtt_p99_ms": _finite(rtt_p99),
         },
     }
 
@@ -113,10 +142,10 @@ def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str,
         "estop": sup.estop,
         "stopping": sup.stopping,
         "units": {name: unit_state(sup, unit) for name, unit in sup.units.items()},
-        "buses": {name: _bus(sup, name, pumps.get(name)) for name in sup.schedulers},
+        "buses": {name: bus_state(sup, name, pumps.get(name)) for name in sup.schedulers},
     }
 
 
-def _bus(sup: Supervisor, name: str, pump: BusPump | None) -> dict[str, Any]:
+def bus_state(sup: Supervisor, name: str, pump: BusPump | None) -> dict[str, Any]:
     counts = ("frames_sent", "frames_received", "send_errors", "bus_errors")
     return {**{key: getattr(pump, key, 0) for key in counts}, **_health(sup, name)}

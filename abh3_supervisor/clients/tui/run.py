@@ -36,6 +36,7 @@ from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp, styled
 from abh3_supervisor.errors import RunError
+from abh3_supervisor.runtime import priority
 
 log = logging.getLogger("abh3")
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -51,7 +52,10 @@ UI_NICENESS = 5  # the UI yields the CPU to the buses when both want it
 
 def yield_to_the_buses() -> None:
     """Lower this process's priority: on a small robot computer the UI and the service
-    share a few cores, and a late frame matters where a late repaint does not."""
+    share a few cores, and a late frame matters where a late repaint does not. A UI
+    started from a real-time process (a benchmark, a supervisor's plugin) drops that too:
+    only the bus loop runs real-time (runtime/priority.py)."""
+    priority.normal()
     with contextlib.suppress(OSError):
         os.nice(UI_NICENESS)
 

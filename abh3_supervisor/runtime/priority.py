@@ -1,0 +1,83 @@
+"""The bus loop's CPU priority: real-time where the system allows it.
+
+Measured on a 2-core machine (docs/performance.md, "What keeps the bus on time"): with two
+TUIs attached, the DP0 period jitter p99 was 3–5 ms whether the TUIs ran at nice 5, nice
+19 or SCHED_IDLE, and whether the supervisor ran at nice 0 or nice -10 — the kernel's fair
+scheduler lets a waking task wait behind a running one whatever their weights. Under
+``SCHED_FIFO`` the same run kept 0.5–0.7 ms: a real-time task preempts every normal one
+the moment its timer fires. So the supervisor's loop asks for ``SCHED_FIFO`` (priority
+``FIFO_PRIORITY``: above every normal task, below the kernel's interrupt threads at 50).
+
+``SCHED_RESET_ON_FORK`` goes with it: every thread or process started afterwards (a
+plugin's worker, DDS's threads, a child) starts at normal priority, so only the loop that
+drives the buses runs ahead of the machine; a plugin that spins cannot starve it.
+Linux throttles real-time tasks to 95 % of a CPU by default, so even a loop gone wrong
+leaves the machine usable.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import os
+import resource
+from collections.abc import Iterator
+
+from abh3_supervisor.errors import Abh3Error
+
+FIFO_PRIORITY = 20
+HOW_TO_ALLOW = (
+    "allow it with a systemd unit's CPUSchedulingPolicy=fifo (docs/service.md), "
+    "or `@group - rtprio 20` in /etc/security/limits.conf"
+)
+
+
+class Priority(enum.StrEnum):
+    AUTO = "auto"  # real-time if this user may; normal otherwise, and say so
+    REALTIME = "realtime"  # real-time, or the run does not start
+    NORMAL = "normal"  # leave the scheduling as the process was started
+
+
+class PriorityError(Abh3Error):
+    """``--priority realtime`` where the system does not allow it (exit 2)."""
+
+
+def normal() -> None:
+    """The calling thread (and what it starts) at normal priority: for a program started
+    from the supervisor (``preexec_fn=normal``) and for clients, which never run real-time."""
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def _may_realtime() -> bool:
+    """Root, CAP_SYS_NICE or an RLIMIT_RTPRIO that covers FIFO_PRIORITY."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    return os.geteuid() == 0 or soft == resource.RLIM_INFINITY or soft >= FIFO_PRIORITY
+
+
+@contextlib.contextmanager
+def bus_priority(mode: Priority) -> Iterator[str]:
+    """The calling thread (the bus loop's) at ``mode``'s priority, for the block; yields
+    a line for the log that says what it got. Restored on the way out."""
+    if mode is Priority.NORMAL or not hasattr(os, "SCHED_FIFO"):
+        yield "bus loop at normal priority" + (
+            "" if mode is Priority.NORMAL else " (no SCHED_FIFO here)"
+        )
+        return
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        if not _may_realtime():
+            raise PermissionError("no permission")  # the kernel would say EPERM too
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+    except OSError as exc:
+        why = f"real-time scheduling refused ({exc.strerror or exc})"
+        if mode is Priority.REALTIME:
+            raise PriorityError(f"--priority realtime: {why}; {HOW_TO_ALLOW}") from exc
+        yield f"bus loop at normal priority: {why}; {HOW_TO_ALLOW}"
+        return
+    try:
+        yield f"bus loop at real-time priority (SCHED_FIFO {FIFO_PRIORITY})"
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, before[0], before[1])
