@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from abh3_supervisor.runtime.bus_runtime import GuardedRecorder, Runtime
+from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.recorder import GuardedRecorder
 
 
 def recording(path: Path) -> str:
