@@ -1,17 +1,26 @@
-"""Recordings on disk between flushes, as a ``kill -9`` leaves them."""
+"""Recordings on disk between flushes, as a ``kill -9`` leaves them; a recording cut short
+by a write error ends the run with exit code 5, the drives stopped as always."""
 
 from __future__ import annotations
 
+import asyncio
+import errno
 import itertools
+import logging
 import time
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
 
 from abh3_supervisor.clients.decode import read_messages
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.runtime.recorder import open_recorder
+from abh3_supervisor.runtime import recorder
+from abh3_supervisor.runtime.headless import run_headless
+from abh3_supervisor.runtime.recorder import WholeLines, open_recorder
+from abh3_supervisor.runtime.stopping import EXIT_RECORDING_FAILED
+from abh3_supervisor.simulator.bus import SimBus
 
 MOVING = """
 buses:
@@ -100,3 +109,63 @@ def test_a_finished_mcap_recording_indexes_every_chunk(tmp_path: Path) -> None:
         ]
         assert len(chunks) == 5
         assert sum(1 for _ in reader.iter_messages()) == 500
+
+
+class FillsUp:
+    """A raw file that takes ``room`` more bytes, then reports the disk full (as write(2)
+    does: a short write first, then ENOSPC)."""
+
+    def __init__(self, real: Any, room: int) -> None:
+        self.real, self.room = real, room
+
+    def write(self, data: bytes) -> int:
+        if self.room <= 0:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        part = bytes(data[: self.room])
+        self.room -= len(part)
+        return int(self.real.write(part))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.real, name)
+
+
+def test_a_full_disk_ends_the_recording_and_the_run_says_so_with_the_drives_stopped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    class FullDisk(WholeLines):
+        def __init__(self, path: Path) -> None:
+            super().__init__(path)
+            self._file = FillsUp(self._file, room=20_000)  # type: ignore[assignment]
+
+    monkeypatch.setattr(recorder, "WholeLines", FullDisk)
+    sims: list[SimBus] = []
+    made = SimBus.for_units
+
+    def for_units(*args: Any, **kwargs: Any) -> SimBus:
+        sims.append(made(*args, **kwargs))
+        return sims[-1]
+
+    monkeypatch.setattr(SimBus, "for_units", for_units)
+    path = tmp_path / "full.log"
+    with caplog.at_level(logging.INFO):
+        code = asyncio.run(run_headless(CONFIG, duration=2.0, record=path, status_interval=0))
+    assert code == EXIT_RECORDING_FAILED
+    # the drives moved, and were stopped as on any way out
+    drives = list(sims[0].drives.values())
+    assert all(d.pulses != [0.0, 0.0] for d in drives)  # they turned before the stop
+    for drive in drives:
+        assert drive.cmd_raw == (0, 0)
+        assert drive.inputs & ~drive.layout.select_mask == 0, hex(drive.inputs)
+        assert not drive.control_word() & (drive.layout.servo.both | drive.layout.start.both)
+    assert caplog.text.count("stop frame confirmed by the drive") == 2
+    # what is on disk: whole lines, every one a frame
+    text = path.read_text(encoding="utf-8")
+    assert text and text.endswith("\n") and len(text.encode()) <= 20_000
+    assert len(on_disk(path)) == text.count("\n")
+    # the stop report says what stopped early, when, and the exit code
+    assert caplog.text.count("the recording ends here") == 1
+    assert f"recording {path.resolve()} stopped early, at " in caplog.text
+    assert "No space left on device" in caplog.text
+    assert f"stopped early on a write error (the disk full?): --record {path}" in caplog.text
+    assert "(exit code 5)" in caplog.text
+    assert "Traceback" not in caplog.text

@@ -1,10 +1,12 @@
 """``kill -9`` during a run: what each recording format keeps (at most its last second
-lost) — ``abh3 run`` in a subprocess, as a user runs it."""
+lost), and a write error's exit code — ``abh3 run`` in a subprocess, as a user runs it."""
 
 from __future__ import annotations
 
 import csv
 import json
+import os
+import resource
 import signal
 import subprocess
 import sys
@@ -98,3 +100,31 @@ def test_a_kill_9_loses_at_most_the_last_second_of_a_recording(tmp_path: Path, f
     expected = RATE_HZ * (killed_at - times[0])
     lost = expected - len(times)
     assert lost <= RATE_HZ * 1.0, f"{lost:.0f} of {expected:.0f} commands lost"
+
+
+def test_a_recording_cut_short_by_a_write_error_is_exit_code_5(tmp_path: Path) -> None:
+    path = tmp_path / "small.log"
+
+    def small_files() -> None:  # as a full disk: no file of this process beyond 16 KiB
+        resource.setrlimit(resource.RLIMIT_FSIZE, (16 << 10, 16 << 10))
+
+    run = subprocess.run(
+        [
+            *abh3("run", str(DEMO), "--headless", "--no-socket", "--duration", "3"),
+            "--record",
+            str(path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        preexec_fn=small_files,
+        env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+    )
+    assert run.returncode == 5, run.stderr
+    assert "File too large" in run.stderr
+    assert f"recording {path.resolve()} stopped early, at " in run.stderr
+    assert "stopped early on a write error" in run.stderr and "(exit code 5)" in run.stderr
+    assert run.stderr.count("stop frame confirmed by the drive") == 2
+    assert "Traceback" not in run.stderr
+    assert 0 < path.stat().st_size <= 16 << 10 and path.read_text().endswith("\n")

@@ -34,7 +34,6 @@ from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
 
 log = logging.getLogger(__name__)
-EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame
 # every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
