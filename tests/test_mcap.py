@@ -22,9 +22,9 @@ import pytest
 from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.decode import decode_file
 from abh3_supervisor.config import Config, parse_config
-from abh3_supervisor.runtime.bus_runtime import GuardedRecorder
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.runtime.mcap_recording import VENDOR, McapRecording, read_frames
+from abh3_supervisor.runtime.recorder import GuardedRecorder
 
 pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader

@@ -4,8 +4,9 @@
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 3 a stop the drives did
 not confirm (``run``), 4 ``abh3 tui``/``abh3 run`` on a terminal: the supervisor went away
-while attached, or ``abh3 param restore`` stopped part way (journal saved), 128 + N stopped
-by signal N before anything was started. The README lists them.
+while attached, or ``abh3 param restore`` stopped part way (journal saved), 5 a recording
+stopped early on a write error (``run``; ``runtime.stopping.final_report``), 128 + N
+stopped by signal N before anything was started. The README lists them.
 """
 
 from __future__ import annotations

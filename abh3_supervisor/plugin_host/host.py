@@ -129,6 +129,7 @@ class PluginHost:
         self._inputs_stopped = False
         self.started: list[str] = []  # plugins whose abh3_start ran: they get abh3_stop
         self.on_error: dict[str, str] = {}  # plugin → "continue" (default) or "stop"
+        self.output_failures: dict[str, str] = {}  # plugin → its output's OSError (the exit code)
         # set by the runtime: end the run, drives stopped (an output failed, on_error: stop)
         self.request_stop: Callable[[str], None] | None = None
         self._sup: Supervisor | None = None
@@ -247,6 +248,7 @@ class PluginHost:
         if name in self.disabled:
             return
         self.disabled.add(name)
+        self.output_failures[name] = str(exc)
         policy = self.on_error.get(name, "continue")
         outcome = (
             "stopping the run (on_error: stop)"

@@ -28,12 +28,12 @@ from abh3_supervisor.core import verify
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
 
 log = logging.getLogger(__name__)
-EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame
 # every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
@@ -109,65 +109,6 @@ def simulated(cfg: BusConfig) -> BusConfig:
     return replace(cfg, interface="virtual", options={})
 
 
-class GuardedRecorder(can.Listener):
-    """``--record``'s writer, which may fail (disk full) without touching the bus path:
-    the first failure is reported once, recording stops, the drives go on being driven."""
-
-    def __init__(self, path: Path, writer: can.Listener) -> None:
-        self.path, self.writer = path, writer
-        self.failed: str | None = None
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if self.failed is not None:
-            return
-        try:
-            self.writer.on_message_received(msg)
-        except Exception as exc:
-            self._fail("writing", exc)
-
-    def observe(self, event: object) -> None:
-        """A supervisor event, for writers that record decoded values too (MCAP)."""
-        if self.failed is not None:
-            return
-        try:
-            self.writer.observe(event)  # type: ignore[attr-defined]
-        except Exception as exc:
-            self._fail("writing", exc)
-
-    def _fail(self, doing: str, exc: Exception) -> None:
-        self.failed = str(exc)
-        log.error(
-            "--record %s: %s failed (%s): the recording ends here; the drives are unaffected",
-            self.path,
-            doing,
-            exc,
-        )
-
-    def stop(self) -> None:
-        try:
-            self.writer.stop()  # flushes and closes the file
-        except Exception as exc:
-            if self.failed is None:  # a writer that failed already says why once
-                self._fail("closing", exc)
-
-
-def open_recorder(path: Path, config: Config | None = None) -> GuardedRecorder:
-    if path.suffix.lower() == ".mcap" and config is not None:
-        # imported here: the mcap libraries are an extra, loaded only when asked for
-        from abh3_supervisor.runtime.mcap_recording import open_mcap
-
-        return GuardedRecorder(path, open_mcap(path, config))
-    try:
-        writer = can.Logger(str(path))  # format from the extension: .log .asc .blf .csv …
-    except ValueError as exc:
-        raise BusOpenError(
-            f"--record {path}: {exc} (use .log, .asc, .blf or .csv, or .mcap)"
-        ) from exc
-    except OSError as exc:
-        raise BusOpenError(f"--record {path}: cannot write: {exc.strerror}") from exc
-    return GuardedRecorder(path, writer)
-
-
 def _refuse_in_fault_windows(
     bus: can.BusABC, sim: SimConfig | None, loop: asyncio.AbstractEventLoop
 ) -> None:
@@ -221,6 +162,7 @@ class Runtime:
     def _start(self, loop: asyncio.AbstractEventLoop) -> None:
         if self.record is not None:
             self._recorder = open_recorder(self.record, self.config)
+            self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
         self.supervisor = Supervisor(self.config, clock=loop.time)
         attach = getattr(self._recorder.writer if self._recorder else None, "attach", None)
         if self._recorder is not None and attach is not None:  # decoded values too (MCAP)

@@ -15,8 +15,9 @@ from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.errors import PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.runtime.bus_runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
-from abh3_supervisor.runtime.recording import recorded
+from abh3_supervisor.runtime.bus_runtime import STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime.recording import recorded, write_failures
+from abh3_supervisor.runtime.stopping import final_report
 from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight
 
 log = logging.getLogger("abh3")
@@ -123,10 +124,8 @@ async def run_headless(
             loop.remove_signal_handler(sig)
     if record is not None:
         log.info("%s", recorded(rt, record))
-    if not rt.stops_confirmed:
-        log.error("not every drive confirmed its stop frame: check them (exit code 3)")
-        return code or EXIT_STOP_UNCONFIRMED
-    return code
+    ending = final_report(rt.stop_report, write_failures(rt, plugins))
+    return code or ending  # a run that failed (1) before a stop not confirmed (3), then 5
 
 
 def _stop_at_end_of_stdin(sup: Supervisor, stop: asyncio.Event) -> None:

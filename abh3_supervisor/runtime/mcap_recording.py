@@ -10,12 +10,15 @@ writes it, so ``ros2 bag info/play``, Foxglove and rosbags open it. Topics:
   ``/<unit>/odom`` when ``geometry.pulses_per_rev`` is known;
 - ``/diagnostics`` once a second and when a level changes (:mod:`..core.diagnostics`).
 
-Written on the event loop as frames and events arrive (a chunk is compressed every
-``CHUNK_BYTES``, about two seconds of eight busy units), so a crash loses at most the chunk
-in progress; the rest reads back (``abh3 decode`` reads a file that breaks off, ``mcap
-recover`` rewrites one with its index). A write that fails (disk full) ends the recording
-through :class:`~.bus_runtime.GuardedRecorder`, never the run. ``mcap`` is imported only
-here, only when an ``.mcap`` recording is asked for.
+Written on the event loop as frames and events arrive. The chunk in progress is closed,
+compressed and written at every :meth:`McapRecording.flush` (every ``FLUSH_S``, see
+:mod:`.recorder`) or at ``CHUNK_BYTES``, whichever comes first, so a ``kill -9`` loses at
+most the last ``FLUSH_S``. What it leaves has no summary (index, statistics, footer):
+readers that go through the file from the start read it (the mcap library's
+``StreamReader`` and ``NonSeekingReader``, ``abh3 decode``); those that seek to the
+summary first need ``mcap recover`` to rewrite it. A write that fails (disk full) ends the
+recording through :class:`~.recorder.GuardedRecorder`, never the run. ``mcap`` is imported
+only here, only when an ``.mcap`` recording is asked for.
 """
 
 from __future__ import annotations
@@ -36,9 +39,10 @@ from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.protocol import frames
+from abh3_supervisor.runtime.mcap_index import pack_chunk_indexes
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
-CHUNK_BYTES = 256 << 10
+CHUNK_BYTES = 256 << 10  # an upper bound: the flush closes a chunk sooner
 DIAGNOSTICS_PERIOD_S = 1.0
 INSTALL_HINT = "pip install 'abh3-supervisor[mcap]'"
 SEP = "=" * 80
@@ -159,6 +163,7 @@ class McapRecording(can.Listener):
 
         self.stream = stream
         self.writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self.index = pack_chunk_indexes(self.writer._writer)  # what grows with the length
         self.schemas = {name: self.writer.register_msgdef(name, t) for name, t in SCHEMAS.items()}
         self.bus_of = {cfg.channel: name for name, cfg in config.buses.items()}
         self.config = config
@@ -293,6 +298,17 @@ class McapRecording(can.Listener):
 
     # ------------------------------------------------------------ the end
 
+    def flush(self) -> None:
+        """Close the chunk in progress and hand the file's bytes to the OS."""
+        if self._finished:
+            return
+        mcap: Any = self.writer._writer  # mcap_ros2 keeps the mcap Writer here
+        if hasattr(mcap, "flush"):  # recent mcap: closes the chunk, flushes the stream
+            mcap.flush()
+            return
+        mcap._Writer__finalize_chunk()  # older mcap: the same, by its private name
+        self.stream.flush()
+
     def stop(self) -> None:
         """Index and close the file (after the stop frames)."""
         if self._finished:
@@ -324,9 +340,10 @@ def _statuses(statuses: list[Status]) -> list[dict[str, Any]]:
 def read_frames(
     path: Path, say: Callable[[str], None]
 ) -> Generator[can.Message, None, tuple[int, int]]:
-    """The raw frames of an MCAP recording, in order, up to where it breaks off (a crash
-    or a full disk leaves no index: it is read as a stream)."""
+    """The raw frames of an MCAP recording, in order, up to where it breaks off: read as a
+    stream from the start, it needs no summary (a ``kill -9`` or a full disk leaves none)."""
     try:
+        from mcap.exceptions import EndOfFile
         from mcap.records import Channel, Message
         from mcap.stream_reader import StreamReader
     except ImportError as exc:
@@ -343,8 +360,14 @@ def read_frames(
                     if topic.startswith("/can/"):
                         read += 1
                         yield _frame(rec.data, topic)
-        except Exception as exc:  # truncated: the end of what was written
-            say(f"{path}: the file breaks off after frame {read} ({exc or type(exc).__name__})")
+        except EndOfFile:  # no summary and footer: the recording did not end normally
+            say(
+                f"{path}: the file breaks off after frame {read}, without the summary a finished"
+                " recording has (killed, or the disk filled): read up to there"
+            )
+            return read, 1
+        except Exception as exc:  # damaged
+            say(f"{path}: cannot read past frame {read} ({str(exc) or type(exc).__name__})")
             return read, 1
     return read, 0
 

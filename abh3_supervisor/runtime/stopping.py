@@ -21,6 +21,8 @@ if TYPE_CHECKING:
     from abh3_supervisor.scheduler.pump import BusPump
 
 log = logging.getLogger(__name__)
+EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame
+EXIT_RECORDING_FAILED = 5  # the run ended, but a recording stopped early on a write error
 STOP_DEADLINE_S = 1.0  # stop frames are repeated until confirmed, at most this long
 STOP_RETRY_S = 0.05  # a stop not confirmed within this is sent again
 CONFIRMED, SENT = "confirmed", "sent, not confirmed"  # else "NOT sent: <reason>"
@@ -108,3 +110,28 @@ def _report(
         else:
             log.error("unit %s: stop frame %s", name, outcome)
     return report
+
+
+def final_report(report: dict[str, str], write_failures: list[str]) -> int:
+    """The last lines of a run and the exit code they call for: 3 when a drive did not
+    confirm its stop (that matters most), else 5 when a recording (``--record``, a
+    plugin's output) stopped early on a write error, else 0. ``report``: the outcome per
+    unit from :func:`stop_drives`; ``write_failures``: what stopped early, by name."""
+    unconfirmed = [name for name, outcome in report.items() if outcome != CONFIRMED]
+    if write_failures:
+        log.error(
+            "stopped early on a write error (the disk full?): %s; each holds what was "
+            "written before that (exit code %d)",
+            ", ".join(write_failures),
+            EXIT_RECORDING_FAILED,
+        )
+    if unconfirmed:
+        log.error(
+            "not every drive confirmed its stop frame: check them (exit code %d)",
+            EXIT_STOP_UNCONFIRMED,
+        )
+        return EXIT_STOP_UNCONFIRMED
+    if write_failures:
+        log.info("every drive confirmed its stop frame")
+        return EXIT_RECORDING_FAILED
+    return 0
