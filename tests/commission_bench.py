@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Sequence
+from typing import TypeVar
 
 from abh3_supervisor.commission.sequence import Bench
 from abh3_supervisor.config import Config
@@ -17,9 +18,11 @@ from abh3_supervisor.plugin_host.host import _apply
 from abh3_supervisor.service.param_ops import ParamOps
 from tests.conftest import Rig
 
+T = TypeVar("T")
+
 
 class _Source(InputSource):
-    def start(self, feed: object) -> None:  # type: ignore[override]
+    def start(self, feed: object) -> None:
         pass
 
     def stop(self) -> None:
@@ -79,7 +82,7 @@ class FakeBench(Rig, Bench):
     def wire(self) -> Sequence[tuple[float, int, bytes]]:
         return [(f.start, f.arbitration_id, f.data) for f in self.timeline.frames if f.node == 0]
 
-    async def _stepping(self, job: asyncio.Future[object]) -> object:
+    async def _stepping(self, job: asyncio.Future[T]) -> T:
         while not job.done():
             self.run(0.002)
             await asyncio.sleep(0)
@@ -87,19 +90,15 @@ class FakeBench(Rig, Bench):
 
     async def identity(self, unit: str) -> str:
         job = asyncio.ensure_future(self.ops.identity(unit, table.FIRMWARE_VERSION))
-        return str(await self._stepping(job))
+        return await self._stepping(job)
 
     async def read_param(self, unit: str, address: int) -> int:
         job = asyncio.ensure_future(self.ops.read(unit, Command.PARAM, address))
-        word = await self._stepping(job)
-        assert isinstance(word, int)
-        return word
+        return await self._stepping(job)
 
     async def verification(self, unit: str) -> Verification:
         job = asyncio.ensure_future(verify_units(self.sup, [unit], act=False))
-        result = await self._stepping(job)
-        assert isinstance(result, dict)
-        return result[unit]  # type: ignore[no-any-return]
+        return (await self._stepping(job))[unit]
 
 
 class Headless:

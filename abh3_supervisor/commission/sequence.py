@@ -11,7 +11,6 @@ stops it at once with the safe word; the e-stop (``Supervisor.estop``) ends the 
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -194,7 +193,7 @@ class UnitSequence:
 
     def _skip(self, steps: Sequence[str], why: str) -> None:
         for step in steps:
-            self.result.add(Check(step, "not run", Verdict.SKIPPED, why))
+            self._check(step, "not run", Verdict.SKIPPED, why)
         self.result.ended = self.result.ended or why
 
     # ------------------------------------------------------------ the steps
@@ -584,14 +583,8 @@ class UnitSequence:
         for c in checks:
             self._check(c.step, c.name, c.verdict, c.measured, c.limit, c.fix)
         if any(c.verdict is Verdict.FAIL for c in checks) or guard.tripped is not None:
-            self._check(
-                step,
-                "stopped",
-                Verdict.FAIL if guard.tripped else Verdict.SKIPPED,
-                guard.tripped or "the jog failed",
-                "",
-                "the sequence ends for this unit",
-            )
+            why = f"unit stopped ({guard.tripped})" if guard.tripped else "the jog failed"
+            self._skip(["motion"], f"the remaining jogs and steps: {why}")
             self.result.ended = f"{step}: {guard.tripped or 'failed'}"
             return False
         scale = analysis.judge_scale(trace, axis, self.cfg.geometry.pulses_per_rev, s)
@@ -615,12 +608,13 @@ class UnitSequence:
         if guard.tripped is not None or not phases:
             self._check(
                 step,
-                "stopped",
+                "unexpected response",
                 Verdict.FAIL,
                 guard.tripped or "no step",
                 "",
-                "the sequence ends for this unit",
+                "see the plot; the unit was stopped",
             )
+            self._skip(["motion"], "the remaining steps: unit stopped")
             self.result.ended = f"{step}: {guard.tripped}"
             return False
         phase = phases[0]
@@ -633,11 +627,15 @@ class UnitSequence:
 
 
 async def commission(
-    bench: Bench, operator: Operator, units: Sequence[str], settings: Settings
-) -> tuple[dict[str, UnitResult], str | None]:
-    """Each unit in turn; (results, why the session ended early or None). The e-stop
-    outside its rehearsal ends the session; every unit is stopped whatever happens."""
-    results: dict[str, UnitResult] = {}
+    bench: Bench,
+    operator: Operator,
+    units: Sequence[str],
+    settings: Settings,
+    results: dict[str, UnitResult],
+) -> str | None:
+    """Each unit in turn, its result in ``results`` as it goes (so an interrupted session
+    still reports what it saw); why the session ended early, or None. The e-stop outside
+    its rehearsal ends the session; every unit is stopped whatever happens."""
     try:
         for unit in units:
             sequence = UnitSequence(bench, operator, unit, settings)
@@ -648,9 +646,8 @@ async def commission(
             result = results.setdefault(unit, UnitResult(bench.sup.units[unit].cfg))
             if unit == list(results)[-1] or not result.checks:
                 result.add(Check("session", "aborted", Verdict.FAIL, str(exc)))
-        return results, str(exc)
-    except asyncio.CancelledError:
+        return str(exc)
+    finally:
         for unit in units:
             halt(bench, unit)
-        raise
-    return results, None
+    return None
