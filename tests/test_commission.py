@@ -376,5 +376,5 @@ def test_settings_outside_their_bounds_are_refused() -> None:
         SettingsError, match=r"--jog-fraction 0.5 is out of bounds \(allowed 0.01–0.2"
     ):
         Settings(jog_fraction=0.5).check()
-    with pytest.raises(SettingsError, match="--jog-s 2 is out of bounds"):
+    with pytest.raises(SettingsError, match="--jog-seconds 2 is out of bounds"):
         Settings(jog_s=2.0).check()

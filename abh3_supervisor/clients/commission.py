@@ -78,11 +78,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         ("scale_tolerance", "pulses/rev against geometry.pulses_per_rev"),
     ):
         lo, hi, _ = bounds[key]
-        flag = {"jog_s": "--jog-seconds", "step_s": "--step-seconds"}.get(
-            key, "--" + key.replace("_", "-")
-        )
         c.add_argument(
-            flag,
+            Settings.flag(key),
             dest=key,
             type=float,
             default=getattr(d, key),

@@ -100,12 +100,19 @@ class Settings:
         "scale_tolerance": (0.005, 0.5, ""),
     }
 
+    @staticmethod
+    def flag(key: str) -> str:
+        """The command-line option that sets ``key``."""
+        return {"jog_s": "--jog-seconds", "step_s": "--step-seconds"}.get(
+            key, "--" + key.replace("_", "-")
+        )
+
     def check(self) -> Settings:
         for key, (lo, hi, unit) in self.BOUNDS.items():
             value = getattr(self, key)
             if not lo <= value <= hi:
                 raise SettingsError(
-                    f"--{key.replace('_', '-')} {value:g} is out of bounds "
+                    f"{self.flag(key)} {value:g} is out of bounds "
                     f"(allowed {lo:g}–{hi:g} {unit})".rstrip()
                 )
         return self
