@@ -48,6 +48,7 @@ from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime.recording import recorded, recording
 from abh3_supervisor.service.param_ops import ParamOps
 
 log = logging.getLogger("abh3")
@@ -287,6 +288,8 @@ async def _session(
     began = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     used = for_commissioning(config, units)
     plugins = PluginHost(used, available={})
+    if args.record is not None:
+        print(recording(args.record), flush=True)
     rt = Runtime(used, record=args.record, plugins=plugins)
     results: dict[str, UnitResult] = {}
     ended: str | None = None
@@ -335,6 +338,8 @@ async def _session(
             for sig in STOP_SIGNALS:
                 loop.remove_signal_handler(sig)
     stops = rt.stop_report
+    if args.record is not None:
+        print(recorded(rt, args.record))
     for unit in units:
         print(f"unit {unit}: stop {stops.get(unit, 'not commanded')}")
     session = Session(
