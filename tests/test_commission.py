@@ -378,3 +378,38 @@ def test_settings_outside_their_bounds_are_refused() -> None:
         Settings(jog_fraction=0.5).check()
     with pytest.raises(SettingsError, match="--jog-seconds 2 is out of bounds"):
         Settings(jog_s=2.0).check()
+
+
+PLAIN = """
+buses:
+  robot: {{interface: virtual, channel: p, simulate: {{faults: [{faults}]}}}}
+units:
+  - {{name: u1, abh3_id: 1, protocol: "{gen}"}}
+  - {{name: u2, abh3_id: 3, protocol: "{gen}"}}
+"""
+
+
+@pytest.mark.parametrize("gen", ["2021", "2023"])
+@pytest.mark.parametrize(
+    ("fault", "name"),
+    [
+        ("{kind: scale, unit: u1, axis: A, factor: 0.8}", "gear/geometry scale: motor B counts"),
+        ("{kind: reversed_axis, unit: u1, axis: A}", "reversed axis A"),
+        ("{kind: swapped_axes, unit: u1}", "swapped axes"),
+        ("{kind: no_encoder, unit: u1, axis: B}", "no encoder on motor B"),
+    ],
+)
+def test_a_plain_file_finds_the_faults_too(fault: str, name: str, gen: str) -> None:
+    """The defaults everywhere: travel model, the ramp at accel, the wire's whole velocity
+    range (jog 327.6 min⁻¹), no geometry.pulses_per_rev (motors held against each other)."""
+    bench = FakeBench(parse_config(PLAIN.format(faults=fault, gen=gen), "plain.yaml"))
+    results, _, _ = session(bench)
+    assert failed(results["u1"])[0].startswith(name), results["u1"].checks
+    assert results["u2"].verdict is Verdict.WARN  # pulses per revolution not in the file
+    assert [c.name for c in results["u2"].checks if c.verdict is not Verdict.PASS] == [
+        "gear/geometry scale of motors A and B"
+    ]
+    speed = Settings().jog_speed(6553.4)
+    for unit in ("u1", "u2"):
+        assert max(max(abs(a), abs(b)) for _, a, b, _ in commands(bench, unit)) <= speed
+        assert_stopped(bench, unit)

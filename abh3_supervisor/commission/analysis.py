@@ -251,6 +251,32 @@ def judge_scale(trace: Trace, axis: int, yaml_ppr: float, settings: Settings) ->
     )
 
 
+def judge_pair(step: str, a: float | None, b: float | None, settings: Settings) -> Check:
+    """Without ``geometry.pulses_per_rev`` the two motors are held against each other: a
+    robot's wheels share a motor, gear and encoder type, so they count alike."""
+    name = "gear/geometry scale of motors A and B"
+    fix = (
+        "give geometry.pulses_per_rev (the encoder's pulses per motor revolution) to check "
+        "the gear and geometry against the YAML"
+    )
+    if a is None or b is None or not a:
+        return Check(step, name, Verdict.WARN, "not checked", "geometry.pulses_per_rev", fix)
+    ratio = b / a
+    measured = f"A {a:.0f}, B {b:.0f} pulses/rev (B ×{ratio:.3f} of A)"
+    limit = f"A = B ±{settings.scale_tolerance:.0%} (no geometry.pulses_per_rev)"
+    if abs(ratio - 1) <= settings.scale_tolerance:
+        return Check(step, name, Verdict.WARN, measured, limit, fix)
+    return Check(
+        step,
+        f"gear/geometry scale: motor B counts {ratio - 1:+.0%} against motor A",
+        Verdict.FAIL,
+        measured,
+        limit,
+        "one motor's encoder, gear or sensor setting differs from the other's (axis A "
+        "0x0002–0x001D, B 0x2002–0x201D); then give geometry.pulses_per_rev",
+    )
+
+
 # ---------------------------------------------------------------- step response
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -118,7 +119,9 @@ class Settings:
         return self
 
     def jog_speed(self, velocity_limit: float) -> float:
-        return round(self.jog_fraction * velocity_limit / 0.2) * 0.2  # on the wire's LSB
+        """Rounded down to 0.4 min⁻¹: half of it (one motor as travel and turn) is still on
+        the wire's 0.2 min⁻¹ grid, so no frame carries more than this."""
+        return round(math.floor(self.jog_fraction * velocity_limit / 0.4 + 1e-9) * 0.4, 1)
 
     def to_json(self) -> dict[str, float]:
         return {k: getattr(self, k) for k in self.__slots__}

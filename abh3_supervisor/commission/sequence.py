@@ -169,6 +169,7 @@ class UnitSequence:
         self.result = UnitResult(self.cfg)
         self.speed = settings.jog_speed(self.cfg.limits.velocity)
         self.collector = Collector(self.sup, unit)
+        self.counted: list[float | None] = [None, None]  # pulses per revolution, A and B
 
     # ------------------------------------------------------------ helpers
 
@@ -587,8 +588,15 @@ class UnitSequence:
             self._skip(["motion"], f"the remaining jogs and steps: {why}")
             self.result.ended = f"{step}: {guard.tripped or 'failed'}"
             return False
-        scale = analysis.judge_scale(trace, axis, self.cfg.geometry.pulses_per_rev, s)
-        self._check(scale.step, scale.name, scale.verdict, scale.measured, scale.limit, scale.fix)
+        ppr = self.cfg.geometry.pulses_per_rev
+        self.counted[axis] = analysis.measured_pulses_per_rev(trace, axis)
+        if ppr > 0:
+            c = analysis.judge_scale(trace, axis, ppr, s)
+        elif axis == 1:  # nothing to hold them against but each other
+            c = analysis.judge_pair(step, self.counted[0], self.counted[1], s)
+        else:
+            return True
+        self._check(c.step, c.name, c.verdict, c.measured, c.limit, c.fix)
         return True
 
     async def _step(self, axis: int) -> bool:
