@@ -61,6 +61,7 @@ ALLOWED = {
     # a python-can interface any program can load: nothing of ours but itself
     "wacousb": {"wacousb"},
     "runtime": DOMAIN | {"runtime", "plugin_host", "service", "simulator"},
+    "commission": DOMAIN | {"commission"},  # sans-I/O: its bench and operator are given
 }
 
 

@@ -182,6 +182,9 @@ def _parser() -> argparse.ArgumentParser:
     from abh3_supervisor.clients.param import add_parser as add_param_parser
 
     add_param_parser(sub)
+    from abh3_supervisor.clients.commission import add_parser as add_commission_parser
+
+    add_commission_parser(sub)
     schema = sub.add_parser(
         "schema", help="print the configuration's JSON Schema (core and installed plugins)"
     )
@@ -291,6 +294,10 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         from abh3_supervisor.clients import param
 
         return param.run(args)
+    if args.cmd == "commission":
+        from abh3_supervisor.clients import commission
+
+        return commission.run(args)
     if args.cmd == "schema":
         from abh3_supervisor.clients.schema import schema_text
 

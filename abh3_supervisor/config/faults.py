@@ -2,15 +2,30 @@
 
 from __future__ import annotations
 
-from abh3_supervisor.config.model import BusConfig, Fault, FaultKind, UnitConfig
+import math
+
+from abh3_supervisor.config.model import (
+    AXIS_KINDS,
+    WIRING_KINDS,
+    BusConfig,
+    Fault,
+    FaultKind,
+    UnitConfig,
+)
 from abh3_supervisor.config.source import Section
 
-FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms"}
+FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms", "axis", "factor"}
 KIND_KEYS = {  # what each kind reads besides kind, at_s, for_s and unit
     FaultKind.ERROR_BITS: {"bits"},
     FaultKind.SLOW_REPLIES: {"delay_ms"},
     FaultKind.TP_SLOW_DT: {"delay_ms"},
+    FaultKind.REVERSED_AXIS: {"axis"},
+    FaultKind.SCALE: {"axis", "factor"},
+    FaultKind.NO_ENCODER: {"axis"},
 }
+# what a wiring kind cannot do without (the others have defaults)
+REQUIRED = {k: KIND_KEYS[k] for k in AXIS_KINDS}
+AXES = ("A", "B")
 MAX_S = 7 * 86400.0
 
 
@@ -31,9 +46,13 @@ def parse_faults(sim: Section) -> tuple[Fault, ...]:
         for key in FAULT_KEYS - {"kind", "at_s", "for_s", "unit"} - KIND_KEYS.get(kind, set()):
             if f.has(key):
                 f.error(key, f"does not apply to kind {kind.value}")
-        for key in ("at_s", "for_s"):
+        wiring = kind in WIRING_KINDS  # from the start, for ever, unless timed
+        for key in ("at_s", "for_s") if not wiring else ():
             if not f.has(key):
                 f.error(key, "missing: when the fault starts and how long it lasts [s]")
+        for key in sorted(REQUIRED.get(kind, set())):
+            if not f.has(key):
+                f.error(key, f"missing: {kind.value} needs it ({_needs(key)})")
         unit = f.text("unit", "") or None
         if unit is not None and kind is FaultKind.BUS_SEND_ERROR:
             f.error("unit", "bus_send_error is a fault of the whole bus: no unit")
@@ -41,13 +60,25 @@ def parse_faults(sim: Section) -> tuple[Fault, ...]:
             Fault(
                 kind=kind,
                 at_s=f.number("at_s", 0.0, 0.0, MAX_S),
-                for_s=f.number("for_s", 1.0, 0.0, MAX_S, lo_open=True),
+                for_s=(
+                    f.number("for_s", 1.0, 0.0, MAX_S, lo_open=True)
+                    if f.has("for_s") or not wiring
+                    else math.inf
+                ),
                 unit=unit,
                 bits=f.integer("bits", Fault.bits, 1, 0xFFFFFFFF),
                 delay_ms=f.number("delay_ms", Fault.delay_ms, 0.0, 10_000.0, lo_open=True),
+                axis=AXES.index(f.choice("axis", "A", list(AXES))),
+                factor=f.number("factor", 1.0, 0.0, 100.0, lo_open=True),
             )
         )
     return tuple(faults)
+
+
+def _needs(key: str) -> str:
+    if key == "axis":
+        return "the motor: A or B"
+    return "pulses counted per pulse the file's geometry expects, e.g. 1.1"
 
 
 def check_fault_units(

@@ -48,6 +48,25 @@ class FaultKind(StrEnum):
     TP_LOST_CTS = "tp_lost_cts"  # an RTS is heard and never answered
     TP_ABORT = "tp_abort"  # an RTS is answered with an abort (reason 2, resources)
     TP_SLOW_DT = "tp_slow_dt"  # the drive's DTs come ``delay_ms`` apart
+    # wiring and set-up mistakes (permanent unless timed): what `abh3 commission` finds
+    REVERSED_AXIS = "reversed_axis"  # the motor's feedback (velocity, pulses) has its sign inverted
+    SWAPPED_AXES = "swapped_axes"  # A's command drives motor B and B's drives motor A
+    SCALE = "scale"  # the motor's pulses count ``factor`` × what the file's geometry expects
+    NO_ENCODER = "no_encoder"  # no feedback, no pulses; the current rises as when stalled
+    OTHER_VELOCITY_MODEL = "other_velocity_model"  # the drive runs the model the file does not
+
+
+# kinds that describe how a drive is wired or set up: from the start, for ever, by default
+WIRING_KINDS = frozenset(
+    {
+        FaultKind.REVERSED_AXIS,
+        FaultKind.SWAPPED_AXES,
+        FaultKind.SCALE,
+        FaultKind.NO_ENCODER,
+        FaultKind.OTHER_VELOCITY_MODEL,
+    }
+)
+AXIS_KINDS = frozenset({FaultKind.REVERSED_AXIS, FaultKind.SCALE, FaultKind.NO_ENCODER})
 
 
 @dataclass(frozen=True)
@@ -60,6 +79,8 @@ class Fault:
     unit: str | None = None  # None: every simulated drive on the bus
     bits: int = 1 << 6  # error_bits: which error bits (default A overcurrent)
     delay_ms: float = 50.0  # slow_replies, tp_slow_dt
+    axis: int = 0  # reversed_axis, scale, no_encoder: motor A (0) or B (1)
+    factor: float = 1.0  # scale: pulses counted per expected pulse
 
     def active(self, since_start: float) -> bool:
         return self.at_s <= since_start < self.at_s + self.for_s
@@ -74,6 +95,10 @@ class SimConfig:
     command_zero_timeout_ms: int | None = None
     error_timeout_ms: int = 1000
     accel: float = 3000.0  # min⁻¹ per second, both directions
+    # a first-order velocity response instead of the ramp at ``accel`` [ms]; None: the ramp
+    time_constant_ms: float | None = None
+    # per unit, a time constant of its own: ((unit, ms), ...)
+    unit_time_constant_ms: tuple[tuple[str, float], ...] = ()
     reply_latency_ms: float = 0.2
     dp0_period_ms: int = 0  # > 0: the drive also sends DP0 replies periodically
     broadcast_period_ms: int = 0  # > 0: the drive also sends its broadcasts periodically
@@ -86,6 +111,10 @@ class SimConfig:
 
     def params_of(self, unit: str) -> dict[int, int]:
         return dict(next((words for name, words in self.params if name == unit), ()))
+
+    def time_constant_of(self, unit: str) -> float | None:
+        """``unit``'s drive's velocity time constant [ms]; None: it ramps at ``accel``."""
+        return dict(self.unit_time_constant_ms).get(unit, self.time_constant_ms)
 
     def forms_of(self, unit: str) -> tuple[TelFormat, ...] | None:
         """The forms ``unit``'s drive reads; None: every form."""

@@ -20,7 +20,13 @@ from abh3_supervisor.config.model import (
     VelocityModel,
     VerifyMode,
 )
-from abh3_supervisor.config.simdrives import check_sim_units, parse_forms, parse_params
+from abh3_supervisor.config.simdrives import (
+    TAU_MAX_MS,
+    check_sim_units,
+    parse_forms,
+    parse_params,
+    parse_time_constants,
+)
 from abh3_supervisor.config.source import Section, Source, load_source, read_text
 from abh3_supervisor.core.commands import RESPONSE_OK, parse_command
 from abh3_supervisor.core.kinematics import Geometry
@@ -40,6 +46,8 @@ SIM_KEYS = {
     "command_zero_timeout_ms",
     "error_timeout_ms",
     "accel",
+    "time_constant_ms",
+    "unit_time_constant_ms",
     "reply_latency_ms",
     "dp0_period_ms",
     "broadcast_period_ms",
@@ -200,6 +208,12 @@ def _simulate(b: Section) -> SimConfig | None:
         ),
         error_timeout_ms=s.integer("error_timeout_ms", d.error_timeout_ms, 0, 60_000),
         accel=s.number("accel", d.accel, 0, 1e6, lo_open=True),
+        time_constant_ms=(
+            s.number("time_constant_ms", 0.0, 0, TAU_MAX_MS, lo_open=True)
+            if s.has("time_constant_ms")
+            else d.time_constant_ms
+        ),
+        unit_time_constant_ms=parse_time_constants(s),
         reply_latency_ms=s.number("reply_latency_ms", d.reply_latency_ms, 0, 10_000),
         dp0_period_ms=s.integer("dp0_period_ms", d.dp0_period_ms, 0, 1000),
         broadcast_period_ms=s.integer("broadcast_period_ms", d.broadcast_period_ms, 0, 1000),

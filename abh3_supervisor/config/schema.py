@@ -14,7 +14,15 @@ from typing import Any
 
 from abh3_supervisor.config import parse
 from abh3_supervisor.config.interfaces import known_interfaces
-from abh3_supervisor.config.model import ControlMode, FaultKind, Role, VelocityModel, VerifyMode
+from abh3_supervisor.config.model import (
+    AXIS_KINDS,
+    WIRING_KINDS,
+    ControlMode,
+    FaultKind,
+    Role,
+    VelocityModel,
+    VerifyMode,
+)
 from abh3_supervisor.config.source import MAX_BYTES
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum
 from abh3_supervisor.protocol.frames import Generation
@@ -104,6 +112,14 @@ def _bus() -> Schema:
             ),
             "error_timeout_ms": integer(0, 60_000, default=1000),
             "accel": number(0, 1e6, "min⁻¹ per second", 3000.0, lo_open=True),
+            "time_constant_ms": number(
+                0, 60_000, "a first-order velocity response instead of the ramp", lo_open=True
+            ),
+            "unit_time_constant_ms": {
+                "type": "object",
+                "description": "per unit, its drive's own velocity time constant [ms]",
+                "additionalProperties": number(0, 60_000, lo_open=True),
+            },
             "reply_latency_ms": number(0, 10_000, default=0.2),
             "dp0_period_ms": integer(0, 1000, "> 0: DP0 replies also periodically", 0),
             "broadcast_period_ms": integer(0, 1000, "> 0: broadcasts also periodically", 0),
@@ -175,17 +191,30 @@ def choice_of_ints(values: list[int], description: str, default: int) -> Schema:
 
 
 def _fault() -> Schema:
-    return mapping(
+    fault = mapping(
         {
             "kind": choice([k.value for k in FaultKind]),
-            "at_s": number(0, 7 * 86400.0, "start, seconds after the run's start"),
-            "for_s": number(0, 7 * 86400.0, "how long [s]", lo_open=True),
+            "at_s": number(0, 7 * 86400.0, "start, seconds after the run's start (wiring: 0)"),
+            "for_s": number(0, 7 * 86400.0, "how long [s] (wiring: for ever)", lo_open=True),
             "unit": text("only this unit (not for bus_send_error)"),
             "bits": integer(1, 0xFFFFFFFF, "error_bits: which error bits", 0x40),
             "delay_ms": number(0, 10_000, "slow_replies: how late", 50.0, lo_open=True),
+            "axis": choice(["A", "B"], "reversed_axis, scale, no_encoder: the motor"),
+            "factor": number(0, 100, "scale: pulses per pulse the geometry expects", lo_open=True),
         },
-        required=("kind", "at_s", "for_s"),
+        required=("kind",),
     )
+    timed = [k.value for k in FaultKind if k not in WIRING_KINDS]
+    axis = [k.value for k in AXIS_KINDS]
+    fault["allOf"] = [  # timed faults say when; wiring faults say where
+        {
+            "if": {"properties": {"kind": {"enum": timed}}},
+            "then": {"required": ["at_s", "for_s"]},
+        },
+        {"if": {"properties": {"kind": {"enum": axis}}}, "then": {"required": ["axis"]}},
+        {"if": {"properties": {"kind": {"const": "scale"}}}, "then": {"required": ["factor"]}},
+    ]
+    return fault
 
 
 def _unit() -> Schema:

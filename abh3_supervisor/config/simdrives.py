@@ -1,5 +1,6 @@
-"""``simulate.params`` and ``simulate.telabh3_form``: simulated drives set up otherwise than
-the file says, to rehearse what `verify` and the TelABH3 form probe report.
+"""``simulate.params``, ``simulate.telabh3_form`` and ``simulate.unit_time_constant_ms``:
+simulated drives set up otherwise than the file says, to rehearse what `verify` and the
+TelABH3 form probe report, or answering with a time constant of their own.
 
 The simulated drives' parameter tables follow the file (their unit's ``abh3_id``,
 ``host_id``, ``brd_group``, ``drive_timeout_ms`` and the bus's bitrate, simulator/bus.py);
@@ -19,6 +20,7 @@ from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum, TelFormat
 
 FORM_KEYS = {"header", "checksum"}
+TAU_MAX_MS = 60_000.0
 ANY, NONE = "any", "none"
 
 
@@ -47,6 +49,16 @@ def parse_params(sim: Section) -> tuple[tuple[str, tuple[tuple[int, int], ...]],
             words[address] = word
         out.append((unit, tuple(words.items())))
     return tuple(out)
+
+
+def parse_time_constants(sim: Section) -> tuple[tuple[str, float], ...]:
+    """``unit_time_constant_ms: {UNIT: MS}``: that unit's drive's own time constant."""
+    if not sim.has("unit_time_constant_ms"):
+        return ()
+    units = sim.sub("unit_time_constant_ms", None)
+    return tuple(
+        (unit, units.number(unit, 0.0, 0.0, TAU_MAX_MS, lo_open=True)) for unit, _ in units.items()
+    )
 
 
 def _address(key: Any) -> int | str:
@@ -114,7 +126,8 @@ def _raw(data: Any, *keys: str) -> dict[Any, Any]:
 def check_sim_units(
     top: Section, buses: dict[str, BusConfig], units: dict[str, UnitConfig]
 ) -> None:
-    """``params`` and ``telabh3_form`` must name units simulated on that bus."""
+    """``params``, ``telabh3_form`` and ``unit_time_constant_ms`` must name units simulated
+    on that bus."""
     for name, bus in buses.items():
         sim = bus.simulate
         if sim is None:
@@ -122,6 +135,7 @@ def check_sim_units(
         here = [u.name for u in units.values() if u.bus == name]
         named = [("params", unit) for unit, _ in sim.params]
         named += [("telabh3_form", unit) for unit, _ in sim.telabh3_forms]
+        named += [("unit_time_constant_ms", unit) for unit, _ in sim.unit_time_constant_ms]
         forms = _raw(top.data, "buses", name, "simulate", "telabh3_form")
         named += [("telabh3_form", str(u)) for u in forms]  # also those that read `any`
         for key, unit in dict.fromkeys(named):

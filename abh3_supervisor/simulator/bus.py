@@ -9,7 +9,7 @@ from dataclasses import replace
 from abh3_supervisor.config.model import SimConfig, UnitConfig
 from abh3_supervisor.params import table
 from abh3_supervisor.protocol.ids import ADDR_ALL
-from abh3_supervisor.simulator.drive import SimDrive
+from abh3_supervisor.simulator.drive import PULSES_PER_REV, SimDrive
 
 
 def as_the_file_says(unit: UnitConfig, bitrate: int | None) -> dict[int, int]:
@@ -38,7 +38,8 @@ class SimBus:
         cls, units: Iterable[UnitConfig], cfg: SimConfig, now: float, bitrate: int | None = None
     ) -> SimBus:
         """A drive per unit, set up as the file says (its parameter table follows the
-        unit: see :func:`as_the_file_says`), but for ``cfg.params`` and ``cfg.faults``."""
+        unit: see :func:`as_the_file_says`; its encoder counts the unit's
+        ``geometry.pulses_per_rev``), but for ``cfg.params`` and ``cfg.faults``."""
 
         def drive_cfg(u: UnitConfig) -> SimConfig:
             if cfg.command_zero_timeout_ms is not None:
@@ -56,6 +57,8 @@ class SimBus:
                 faults=tuple(f for f in cfg.faults if f.unit in (None, u.name)),
                 params={**as_the_file_says(u, bitrate), **cfg.params_of(u.name)},
                 accepts=cfg.forms_of(u.name),
+                pulses_per_rev=u.geometry.pulses_per_rev or PULSES_PER_REV,
+                time_constant_ms=cfg.time_constant_of(u.name),
             )
             for u in units
         )

@@ -8,7 +8,11 @@ an error-reset rising edge ("0→1 resets, servo goes off", §5). An error turns
 off, and it stays off after the error is gone until the host's SERVO bit of the axis goes
 off and on again — the drive never restarts a motor by itself.
 Fault injection (``silent``, ``extra_delay``, ``inject_error``) is for tests and demos;
-scripted faults (``faults``, from the YAML) switch the same behaviours on and off in time.
+scripted faults (``faults``, from the YAML) switch the same behaviours on and off in time,
+and wiring faults (a reversed or missing encoder, swapped motors, a pulse scale, the other
+velocity model) make it the miswired drive a commissioning run must find.
+Velocity follows the command on a ramp at ``accel``, or, given a time constant, as a
+first-order lag (the current then also carries the acceleration).
 Its parameter table (``tel.params``) says what it does: its address, group, timeouts and
 periodic modes are written there, ``params`` overrides words (the file's view of the
 drive, or a rehearsed mismatch: simulator/bus.py), and the timeouts are then taken from
@@ -43,8 +47,10 @@ from abh3_supervisor.protocol.ids import (
 from abh3_supervisor.protocol.scaling import ANALOG, CURRENT, LOAD, SUPPLY_VOLTAGE, VELOCITY
 from abh3_supervisor.simulator.telabh3 import COMMAND_ZERO, ERROR_TIMEOUT, TelResponder, ms_of
 
-PULSES_PER_REV = 4096
+PULSES_PER_REV = 4096  # when the file gives no geometry.pulses_per_rev
 TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode
+STALL_RATE = 400.0  # %/s: how fast the current rises on a motor without encoder feedback
+STALL_MAX = 250.0  # % (the drive's current limit, roughly)
 
 
 class SimDrive:
@@ -60,8 +66,13 @@ class SimDrive:
         faults: tuple[Fault, ...] = (),
         params: Mapping[int, int] | None = None,
         accepts: tuple[TelFormat, ...] | None = None,
+        pulses_per_rev: float = PULSES_PER_REV,
+        time_constant_ms: float | None = None,
     ) -> None:
-        self.abh3_id, self.group, self.generation, self.model = abh3_id, group, generation, model
+        self.abh3_id, self.group, self.generation = abh3_id, group, generation
+        self.file_model = model  # what the file says; the drive may run the other one
+        self.pulses_per_rev = pulses_per_rev
+        self.tau = None if time_constant_ms is None else time_constant_ms / 1000
         self.layout = flags.layout(generation)  # a word of the other generation misleads it
         self.cfg = cfg or SimConfig()
         zero_ms = self.cfg.command_zero_timeout_ms  # None: a drive on its own, the seed's 500
@@ -69,8 +80,10 @@ class SimDrive:
         self.error_timeout_ms = self.cfg.error_timeout_ms
         self.inputs = 0
         self.cmd_raw = (0, 0)  # last AY/BX command as written
-        self.vel = [0.0, 0.0]  # motor A, B [min⁻¹]
+        self.vel = [0.0, 0.0]  # motor A, B [min⁻¹], as they turn
         self.pulses = [0.0, 0.0]
+        self.accel_now = [0.0, 0.0]  # min⁻¹/s, first-order mode only (it costs current)
+        self.stall = [0.0, 0.0]  # % of current pushed into a motor whose encoder is silent
         self.errors = 0  # latched errors (bit 22 is derived from the timeouts)
         self.alarms = 0
         # per axis: the servo went off for an error (or an error reset) while its SERVO
@@ -157,6 +170,27 @@ class SimDrive:
         """For the parameter side: None, or the active fault's ``delay_ms``."""
         fault = self._fault(kind, now)
         return None if fault is None else fault.delay_ms
+
+    @property
+    def model(self) -> VelocityModel:
+        """The velocity model the drive runs: the file's, unless set up otherwise."""
+        if not self._fault(FaultKind.OTHER_VELOCITY_MODEL, self.t):
+            return self.file_model
+        travel = self.file_model is VelocityModel.TRAVEL
+        return VelocityModel.MOTOR if travel else VelocityModel.TRAVEL
+
+    def _axis_fault(self, kind: FaultKind, axis: int) -> Fault | None:
+        for fault in self.faults:
+            if fault.kind is kind and fault.axis == axis and fault.active(self.t - self.started):
+                return fault
+        return None
+
+    def sensed(self, axis: int) -> float:
+        """Motor ``axis``'s velocity as its encoder tells the drive (and the drive tells us)."""
+        if self._axis_fault(FaultKind.NO_ENCODER, axis):
+            return 0.0
+        reversed_ = self._axis_fault(FaultKind.REVERSED_AXIS, axis) is not None
+        return -self.vel[axis] if reversed_ else self.vel[axis]
 
     def _queue(self, now: float, arbitration_id: int, data: bytes) -> None:
         if self.silent or self._fault(FaultKind.SILENT, now):
@@ -309,20 +343,37 @@ class SimDrive:
         travel = self.model is VelocityModel.TRAVEL
         targets = yx_to_ab(t0, t1) if travel else (t0, t1)
         torque = (torque0, torque1)
-        for i in range(2):
-            servo = (
-                self._servo(i)
-                if self.model is VelocityModel.MOTOR
-                else (self._servo(0) and self._servo(1))
-            )
-            if torque[i] and servo:
-                self.vel[i] += targets[i] * TORQUE_ACCEL_PER_PERCENT * dt
+        servo = [
+            self._servo(i) if not travel else (self._servo(0) and self._servo(1)) for i in (0, 1)
+        ]
+        order = (1, 0) if self._fault(FaultKind.SWAPPED_AXES, now) else (0, 1)
+        for i, source in enumerate(order):  # swapped: A's command reaches motor B's windings
+            goal = targets[source] if servo[source] else 0.0
+            before = self.vel[i]
+            if self._axis_fault(FaultKind.NO_ENCODER, i):
+                self._stalled(i, goal, dt)
+                continue
+            if torque[source] and servo[source]:
+                self.vel[i] += targets[source] * TORQUE_ACCEL_PER_PERCENT * dt
+            elif self.tau is not None:
+                self.vel[i] = goal + (self.vel[i] - goal) * math.exp(-dt / self.tau)
             else:
                 step = self.cfg.accel * dt
-                goal = targets[i] if servo else 0.0
                 self.vel[i] += max(-step, min(step, goal - self.vel[i]))
             self.vel[i] = max(VELOCITY.minimum, min(VELOCITY.maximum, self.vel[i]))
-            self.pulses[i] += self.vel[i] / 60 * PULSES_PER_REV * dt
+            self.accel_now[i] = (self.vel[i] - before) / dt if self.tau is not None else 0.0
+            scale = self._axis_fault(FaultKind.SCALE, i)
+            counts = self.sensed(i) * (scale.factor if scale else 1.0)
+            self.pulses[i] += counts / 60 * self.pulses_per_rev * dt
+
+    def _stalled(self, axis: int, goal: float, dt: float) -> None:
+        """No encoder: the drive sees the motor standing and pushes current, up to its
+        limit, while a command asks for motion; nothing turns, nothing is counted."""
+        self.vel[axis], self.accel_now[axis] = 0.0, 0.0
+        rise = STALL_RATE * dt * (1 if goal else -2)
+        magnitude = max(0.0, min(STALL_MAX, abs(self.stall[axis]) + rise))
+        sign = math.copysign(1.0, goal) if goal else math.copysign(1.0, self.stall[axis])
+        self.stall[axis] = sign * magnitude
 
     # ------------------------------------------------------------ parameter side
 
@@ -348,8 +399,8 @@ class SimDrive:
             0x1005: 23.7,
             0x1012: ay,
             0x1022: bx,
-            0x1031: math.copysign(self.load(0), self.vel[0]),
-            0x1041: math.copysign(self.load(1), self.vel[1]),
+            0x1031: self.current(0),
+            0x1041: self.current(1),
             0x103B: self.load(0),
             0x104B: self.load(1),
             0x1054: self.pulse_count(0),
@@ -364,20 +415,27 @@ class SimDrive:
     # ------------------------------------------------------------ frames out
 
     def _ay_bx(self) -> tuple[float, float]:
-        if self.model is VelocityModel.TRAVEL:
-            return ab_to_yx(self.vel[0], self.vel[1])
-        return self.vel[0], self.vel[1]
+        a, b = self.sensed(0), self.sensed(1)
+        return ab_to_yx(a, b) if self.model is VelocityModel.TRAVEL else (a, b)
 
     def _dp0_reply(self) -> bytes:
         r = VELOCITY.to_raw
         if self.generation is Generation.G2023:
             ay, bx = self._ay_bx()
             return frames.encode_dp0_reply_2023(r(ay)[0], r(bx)[0], self.control_word())
-        y, x = ab_to_yx(self.vel[0], self.vel[1])
-        return frames.encode_dp0_reply_2021(r(self.vel[0])[0], r(self.vel[1])[0], r(y)[0], r(x)[0])
+        a, b = self.sensed(0), self.sensed(1)
+        y, x = ab_to_yx(a, b)
+        return frames.encode_dp0_reply_2021(r(a)[0], r(b)[0], r(y)[0], r(x)[0])
 
     def load(self, axis: int) -> float:
-        return min(255.0, 3.0 + abs(self.vel[axis]) / 40)
+        return min(255.0, 3.0 + abs(self.vel[axis]) / 40 + abs(self.stall[axis]))
+
+    def current(self, axis: int) -> float:
+        """Signed current [%]: what holds the speed, what accelerates, what a stall pushes."""
+        if self.stall[axis]:
+            return math.copysign(self.load(axis), self.stall[axis])
+        holding = math.copysign(self.load(axis), self.vel[axis])
+        return holding + self.accel_now[axis] / TORQUE_ACCEL_PER_PERCENT
 
     def io_word(self) -> int:
         """2021: status bits; 2023: the wired digital I/O, of which the simulator has none."""
@@ -410,7 +468,7 @@ class SimDrive:
             return frames.encode_int16x4(v(cmd[0])[0], v(cmd[1])[0], v(fbk[0])[0], v(fbk[1])[0])
         if n == 3:
             loads = [LOAD.to_raw(self.load(i))[0] for i in range(2)]
-            cur = [c(math.copysign(self.load(i), self.vel[i]))[0] for i in range(2)]
+            cur = [c(self.current(i))[0] for i in range(2)]
             return frames.encode_int16x2_uint16x2(cur[0], cur[1], loads[0], loads[1])
         if n == 4:
             return frames.encode_pulses(self.pulse_count(0), self.pulse_count(1))
@@ -423,5 +481,5 @@ class SimDrive:
                 SUPPLY_VOLTAGE.to_raw(23.7)[0],
             )
         if n == 6:
-            return frames.encode_monitors(self.vel[0] / 1000, self.vel[1] / 1000)
+            return frames.encode_monitors(self.sensed(0) / 1000, self.sensed(1) / 1000)
         return bytes(8)

@@ -1,0 +1,147 @@
+"""`abh3 commission` as a user runs it: mistakes answered at once (exit 2, no traceback),
+and two short end-to-end runs in a process of their own — what only they can show: the
+runtime's way out stops every drive on SIGINT mid-jog, and the report written beside a
+recording agrees with the frames in it."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from abh3_supervisor.clients.cli import main
+from abh3_supervisor.protocol import flags, frames, ids
+
+ROOT = Path(__file__).resolve().parent.parent
+DEMO = ROOT / "configs" / "commission-demo.yaml"
+SHORT = ["--jog-seconds", "0.3", "--step-seconds", "0.3"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["middle"], "no unit named 'middle' (units: front, rear)"),
+        (["--jog-fraction", "0.5"], "--jog-fraction 0.5 is out of bounds (allowed 0.01–0.2"),
+        (["--jog-seconds", "3"], "--jog-seconds 3 is out of bounds (allowed 0.2–1 s)"),
+        (["--report", "out.txt"], "--report out.txt: name the HTML file"),
+    ],
+)
+def test_mistakes_are_named_with_exit_2(
+    args: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["commission", str(DEMO), *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def _last_commands(log: Path) -> dict[int, frames.Dp0Command]:
+    """The last DP0 command to each of the demo's drives (a 2021 at 1, a 2023 at 3)."""
+    gens = {1: flags.LAYOUT_2021.generation, 3: flags.LAYOUT_2023.generation}
+    last: dict[int, frames.Dp0Command] = {}
+    for msg in can.LogReader(str(log)):
+        for abh3, gen in gens.items():
+            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
+                cmd = frames.decode_dp0_command(bytes(msg.data), gen)
+                assert isinstance(cmd, frames.Dp0Command)
+                last[abh3] = cmd
+    return last
+
+
+def _safe(cmd: frames.Dp0Command, layout: flags.Layout) -> bool:
+    return (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0) and cmd.inputs & ~layout.select_mask == 0
+
+
+def test_sigint_mid_jog_stops_every_drive(tmp_path: Path) -> None:
+    record = tmp_path / "run.log"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "abh3_supervisor",
+            "commission",
+            str(DEMO),
+            "front",
+            "--yes",
+            "--wheels-off-ground",
+            "--record",
+            str(record),
+            "--report",
+            str(tmp_path / "r.html"),
+            *SHORT,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert proc.stdout is not None
+    deadline = time.monotonic() + 60
+    for line in proc.stdout:
+        if "jog motor A" in line:
+            break
+        assert time.monotonic() < deadline, "the jog never began"
+    time.sleep(0.15)  # the subprocess is mid-jog: what is tested is its way out
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 128 + signal.SIGINT, err
+    assert "unit front: stop confirmed" in out
+    last = _last_commands(record)
+    assert _safe(last[1], flags.LAYOUT_2021)
+    assert 3 not in last  # rear was not named: never commanded
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["ended"] == "stopped by SIGINT"
+    assert report["units"]["front"]["stop"] == "confirmed"
+
+
+def test_the_demo_report_names_the_fault_and_matches_the_recording(tmp_path: Path) -> None:
+    record = tmp_path / "run.log"
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "abh3_supervisor",
+            "commission",
+            str(DEMO),
+            "rear",
+            "--yes",
+            "--wheels-off-ground",
+            "--record",
+            str(record),
+            "--report",
+            str(tmp_path / "r.html"),
+            *SHORT,
+        ],
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=120,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 1, run.stderr  # a check failed
+    assert "rear: FAIL — jog B: reversed axis B" in run.stdout
+    doc = json.loads((tmp_path / "r.json").read_text())
+    rear = doc["units"]["rear"]
+    assert rear["stop"] == "confirmed" and rear["firmware"]
+    fails = [c for c in rear["checks"] if c["verdict"] == "fail"]
+    assert fails[0]["name"].startswith("reversed axis B") and "polarity" in fails[0]["fix"]
+    assert _safe(_last_commands(record)[3], flags.LAYOUT_2023)
+    # every feedback sample of the report is a DP0 reply in the recording, in order
+    replies = []
+    for msg in can.LogReader(str(record)):
+        if msg.arbitration_id == ids.dp0_reply_id(3, 2):
+            reply = frames.decode_dp0_reply(bytes(msg.data), flags.LAYOUT_2023.generation)
+            assert isinstance(reply, frames.Dp0Reply2023)
+            replies.append((reply.vel_ay, reply.vel_bx))
+    for trace in rear["traces"]:
+        seen = list(zip(trace["feedback"]["a"], trace["feedback"]["b"], strict=True))
+        n = len(seen)
+        assert n > 5 and any(replies[i : i + n] == seen for i in range(len(replies) - n + 1))
+    page = (tmp_path / "r.html").read_text()
+    assert "<polyline" in page and "http" not in page
