@@ -47,8 +47,9 @@ from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.runtime.bus_runtime import EXIT_STOP_UNCONFIRMED, STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime.bus_runtime import STOP_SIGNALS, Runtime
 from abh3_supervisor.runtime.recording import recorded, recording
+from abh3_supervisor.runtime.stopping import EXIT_STOP_UNCONFIRMED
 from abh3_supervisor.service.param_ops import ParamOps
 
 log = logging.getLogger("abh3")
