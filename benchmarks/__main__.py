@@ -293,6 +293,23 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
 
+    # everything on (4 units, the bridge, MCAP, CSV, a TUI on the plots tab), after warm-up;
+    # the 10-minute figure with --long (the MCAP chunk index grows with the recording's
+    # length by design: docs/recording.md)
+    mem_secs = 600.0 if a.long else (20.0 if a.quick else 120.0)
+    mem = attached.memory(mem_secs)
+    rows.append(
+        Row(
+            section,
+            f"everything on, 4 units: RSS growth over {mem_secs:g} s after 30 s",
+            mem["rss_growth_mb"],
+            mem["rss_start_mb"],
+            "MB",
+            "<=1 MB (10-min run: --long)",
+            mem["rss_growth_mb"] <= 1,
+        )
+    )
+
     # 5. planner accuracy
     section = "5. planner accuracy (abh3 check vs the simulated wire)"
     planned, measured = bus_model.planner_accuracy()

@@ -35,17 +35,44 @@ UNITS, RATE = 8, 100.0
 SETTLE_S = 2.0  # after a start or an attach: the first screens, discovery
 
 
-def config(channel: str, ros: bool) -> str:
-    units = "".join(
+def config(channel: str, ros: bool, units: int = UNITS, csv: Path | None = None) -> str:
+    listed = "".join(
         f"  - {{name: u{i}, bus: b, abh3_id: {i + 1}, host_id: {HOST}, "
         f"command_rate_hz: {RATE:g}, broadcast: {{mask: 0x7F, rate_hz: 10}}}}\n"
-        for i in range(UNITS)
+        for i in range(units)
     )
     text = f"buses:\n  b: {{interface: virtual, channel: {channel}, simulate: true}}\n"
-    text += f"units:\n{units}"
-    if ros:
-        text += f"plugins: {{ros2: {{domain_id: {DOMAIN}, transport: dds}}}}\n"
+    text += f"units:\n{listed}"
+    plugins = [f"ros2: {{domain_id: {DOMAIN}, transport: dds}}"] if ros else []
+    plugins += [f"csv: {{path: {csv}}}"] if csv is not None else []
+    if plugins:
+        text += f"plugins: {{{', '.join(plugins)}}}\n"
     return text
+
+
+@contextlib.contextmanager
+def supervisor(
+    tmp: Path, text: str, record: Path, seconds: float
+) -> Iterator[tuple[subprocess.Popen[bytes], Path]]:
+    """``abh3 run`` headless on ``text`` for at most ``seconds``: the process and its
+    socket, once it serves it. Stopped (SIGTERM: drives stopped, files closed) after."""
+    cfg, sock = tmp / "bench.yaml", tmp / "s" / "bench.sock"
+    cfg.write_text(text)
+    sup = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless",
+         "--socket", str(sock), "--record", str(record), "--duration", f"{seconds:g}"],
+        cwd=ROOT, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not sock.exists():
+            if sup.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the supervisor did not serve its socket")
+            time.sleep(0.05)
+        yield sup, sock
+    finally:
+        sup.terminate()
+        sup.wait(30)
 
 
 def _env() -> dict[str, str]:
@@ -118,29 +145,15 @@ def run(
     """Alone for ``seconds``, then ``tuis`` attached for ``seconds``; figures per window."""
     with tempfile.TemporaryDirectory(dir="/tmp") as name:
         tmp = Path(name)
-        cfg, sock, rec = tmp / "bench.yaml", tmp / "s" / "bench.sock", tmp / f"run.{record}"
-        cfg.write_text(config(f"attached-{os.getpid()}", ros))
+        rec = tmp / f"run.{record}"
         total = 2 * (seconds + SETTLE_S) + 4 * SETTLE_S
-        sup = subprocess.Popen(
-            [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless",
-             "--socket", str(sock), "--record", str(rec), "--duration", f"{total:g}"],
-            cwd=ROOT, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
-        try:
-            deadline = time.monotonic() + 60
-            while not sock.exists():
-                if sup.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError("the supervisor did not serve its socket")
-                time.sleep(0.05)
+        with supervisor(tmp, config(f"attached-{os.getpid()}", ros), rec, total) as (_, sock):
             time.sleep(SETTLE_S)
             alone = (time.time(), time.time() + seconds)
             time.sleep(seconds)
             with _tuis(sock, tuis, tmp) as how:
                 attached = (time.time(), time.time() + seconds)
                 time.sleep(seconds)
-        finally:
-            sup.terminate()
-            sup.wait(30)
         times: dict[int, list[float]] = defaultdict(list)
         wanted = {ids.dp0_command_id(i + 1, HOST) for i in range(UNITS)}
         for msg in _frames(rec):
@@ -153,6 +166,41 @@ def run(
     }
 
 
-if __name__ == "__main__":  # SECONDS [TUIS [ROS 0|1 [FORMAT mcap|log]]]
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+
+
+def memory(seconds: float, warmup: float = 30.0, units: int = 4) -> dict[str, float]:
+    """RSS of an everything-on supervisor (``units`` at 100 Hz, the ROS 2 bridge, an MCAP
+    recording, the CSV plugin, one TUI on the plots tab) from ``warmup`` to the end."""
+    with tempfile.TemporaryDirectory(dir="/tmp") as name:
+        tmp = Path(name)
+        text = config(f"memory-{os.getpid()}", True, units, csv=tmp / "out.csv")
+        total = warmup + seconds + 4 * SETTLE_S
+        with contextlib.ExitStack() as stack:
+            sup, sock = stack.enter_context(supervisor(tmp, text, tmp / "run.mcap", total))
+            stack.enter_context(_tuis(sock, 1, tmp))
+            time.sleep(max(0.0, warmup - SETTLE_S))
+            start = _rss_mb(sup.pid)
+            samples: list[float] = []
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                time.sleep(min(10.0, max(0.0, end - time.monotonic())))
+                samples.append(_rss_mb(sup.pid))
+    half = samples[len(samples) // 2 :]
+    return {
+        "rss_start_mb": start,
+        "rss_end_mb": samples[-1],
+        "rss_growth_mb": samples[-1] - start,
+        "rss_peak_mb": max(samples),
+        "late_growth_mb_per_min": 60 * (half[-1] - half[0]) / max(1.0, seconds / 2),
+    }
+
+
+if __name__ == "__main__":  # SECONDS [TUIS [ROS 0|1 [FORMAT mcap|log]]] | memory SECONDS
     a = sys.argv[1:] + [""] * 4
-    print(run(float(a[0] or 10), int(a[1] or 2), a[2] != "0", a[3] or "mcap"))
+    if a[0] == "memory":
+        print(memory(float(a[1] or 60)))
+    else:
+        print(run(float(a[0] or 10), int(a[1] or 2), a[2] != "0", a[3] or "mcap"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks import bus_model, cycle_timing, host_cpu, scale
+from benchmarks import attached, bus_model, cycle_timing, host_cpu, scale
 
 
 def test_bus_model_reaches_the_physical_limit_deterministically() -> None:
@@ -37,3 +37,16 @@ def test_ros2_bridge_figures_run(monkeypatch: pytest.MonkeyPatch) -> None:
     result = ros2_bridge.vel_cmd_latency(50, 1.0)
     assert result["delivered_percent"] > 50 and result["latency_p99_ms"] > 0
     assert ros2_bridge.cpu_percent(1, 50, 0.5, bridge=True) > 0
+
+
+def test_everything_on_jitter_and_memory_run() -> None:
+    """The real-process rows: a headless run, TUIs attached, figures from its recording."""
+    pytest.importorskip("cyclonedds")
+    pytest.importorskip("mcap")
+    how, figures = attached.run(1.0, tuis=1)
+    assert how in ("tmux", "headless Textual")
+    for window in ("alone", "attached"):
+        assert figures[f"{window}_jitter_p99_ms"] > 0
+        assert figures[f"{window}_rate_error_percent"] < 50  # frames were read back
+    memory = attached.memory(2.0, warmup=2.0)
+    assert memory["rss_start_mb"] > 10 and memory["rss_end_mb"] > 10
