@@ -7,6 +7,7 @@ import asyncio
 import errno
 import itertools
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -82,8 +83,9 @@ def test_after_a_flush_the_file_holds_every_frame_so_far_and_only_whole_ones(
 
 
 def test_a_finished_mcap_recording_indexes_every_chunk(tmp_path: Path) -> None:
-    """Chunks closed at every flush, and their index kept packed: the summary a seeking
-    reader starts from lists every chunk, and finds every message through it."""
+    """Chunks closed at every flush, and their index kept on disk, not in memory: the
+    summary a seeking reader starts from lists every chunk, and finds every message
+    through it; the index's file has no name, so nothing is left beside the recording."""
     pytest.importorskip("mcap_ros2")
     from mcap.reader import make_reader
     from mcap.records import Chunk
@@ -95,9 +97,12 @@ def test_a_finished_mcap_recording_indexes_every_chunk(tmp_path: Path) -> None:
         for msg in frames(100, 1000.0 + n):
             rec.on_message_received(msg)
         rec.flush()
-    rec.stop()
     index = getattr(rec.writer, "index", None)
-    assert index is not None and index.count == 5  # packed: bytes, not objects
+    assert index is not None and index.count == 5 and index.size > 0  # bytes, on disk
+    assert os.fstat(index.file.fileno()).st_nlink == 0  # unlinked: gone however it ends
+    rec.stop()
+    assert index.file.closed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
     with path.open("rb") as f:
         chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
     with path.open("rb") as f:

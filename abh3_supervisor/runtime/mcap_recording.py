@@ -39,7 +39,7 @@ from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.protocol import frames
-from abh3_supervisor.runtime.mcap_index import pack_chunk_indexes
+from abh3_supervisor.runtime.mcap_index import spill_chunk_indexes
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
 CHUNK_BYTES = 256 << 10  # an upper bound: the flush closes a chunk sooner
@@ -153,17 +153,20 @@ def open_mcap(path: Path, config: Config) -> McapRecording:
         stream = open(path, "wb")  # noqa: SIM115  (closed in stop())
     except OSError as exc:
         raise BusOpenError(f"--record {path}: cannot write: {exc.strerror}") from exc
-    return McapRecording(stream, config)
+    return McapRecording(stream, config, index_dir=path.parent)
 
 
 class McapRecording(can.Listener):
-    def __init__(self, stream: IO[bytes], config: Config) -> None:
+    def __init__(self, stream: IO[bytes], config: Config, index_dir: Path | None = None) -> None:
         from mcap.writer import CompressionType
         from mcap_ros2.writer import Writer
 
         self.stream = stream
         self.writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-        self.index = pack_chunk_indexes(self.writer._writer)  # what grows with the length
+        # what would grow with the length, on disk (None: kept by the writer, in memory)
+        self.index = (
+            None if index_dir is None else spill_chunk_indexes(self.writer._writer, index_dir)
+        )
         self.schemas = {name: self.writer.register_msgdef(name, t) for name, t in SCHEMAS.items()}
         self.bus_of = {cfg.channel: name for name, cfg in config.buses.items()}
         self.config = config
@@ -314,14 +317,18 @@ class McapRecording(can.Listener):
         if self._finished:
             return
         self._finished = True
-        if self.broken:  # after a failed write: keep the whole chunks already written
-            with contextlib.suppress(OSError):
-                self.stream.close()
-            return
         try:
-            self.writer.finish()  # type: ignore[no-untyped-call]
+            if self.broken:  # after a failed write: keep the whole chunks already written
+                with contextlib.suppress(OSError):
+                    self.stream.close()
+                return
+            try:
+                self.writer.finish()  # type: ignore[no-untyped-call]
+            finally:
+                self.stream.close()
         finally:
-            self.stream.close()
+            if self.index is not None:
+                self.index.close()  # unlinked already: closing frees its space
 
 
 def _statuses(statuses: list[Status]) -> list[dict[str, Any]]:
