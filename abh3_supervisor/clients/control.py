@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import socket
@@ -43,7 +44,9 @@ class ControlClient:
         rid = self._next
         message = {"jsonrpc": "2.0", "id": rid, "method": method, "params": params}
         try:
-            self.sock.sendall(rpc.encode(message))
+            # closed on us: what it said before closing, if anything, is read below
+            with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+                self.sock.sendall(rpc.encode(message))
             while True:  # notifications may come between: skip to our reply
                 line = self.reader.readline(rpc.MAX_LINE * 64)
                 if not line:
@@ -51,6 +54,9 @@ class ControlClient:
                 reply = json.loads(line)
                 if reply.get("id") == rid:
                     break
+                if reply.get("id") is None and "error" in reply:  # refused: it says why
+                    why = reply["error"].get("message")
+                    raise RunError(f"{self.path}: the supervisor refused this client: {why}")
         except (OSError, ValueError) as exc:
             raise RunError(f"{self.path}: {exc}") from None
         if "error" in reply:

@@ -110,6 +110,9 @@ class Link:
                 self.closed.set_result(str(params.get("reason", "bye")))
             self.on_notification(message["method"], params if isinstance(params, dict) else {})
             return
+        if message.get("id") is None and "error" in message:  # refused: it says why
+            self._refused(str(message["error"].get("message")))
+            return
         reply = self._pending.get(message.get("id", -1))
         if reply is None or reply.done():
             return
@@ -117,6 +120,14 @@ class Link:
             reply.set_exception(LinkError(str(message["error"].get("message"))))
         else:
             reply.set_result(message.get("result"))
+
+    def _refused(self, why: str) -> None:
+        reason = f"{self.path}: the supervisor refused this client: {why}"
+        for reply in self._pending.values():
+            if not reply.done():
+                reply.set_exception(LinkError(reason))
+        if not self.closed.done():
+            self.closed.set_result(reason)
 
     async def close(self) -> None:
         for task in (self._alive, self._task):
