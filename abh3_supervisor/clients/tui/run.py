@@ -34,6 +34,7 @@ from typing import Any
 
 from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.clients.mirror import Mirror
+from abh3_supervisor.clients.ssh import Endpoint
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp, styled
 from abh3_supervisor.errors import RunError
 
@@ -150,7 +151,7 @@ def _modes(fd: int) -> list[Any] | None:
 
 
 async def attach(
-    path: Path,
+    path: Endpoint,
     *,
     owner: bool,
     duration: float | None = None,
