@@ -61,6 +61,7 @@ def test_a_line_too_long_is_reported_once_and_the_next_line_is_whole() -> None:
     assert splitter.feed(b"ghijklmnopq") == [None]  # past the limit: said at once
     assert splitter.feed(b"rest of it\nnext\n") == [b"next"]  # its rest dropped
     assert splitter.feed(b"0123456789\n" + b"x" * 11 + b"\nok\n") == [b"0123456789", None, b"ok"]
+    assert splitter.feed(b"\n \n\t\n" * 1000 + b"last\n") == [b"last"]  # blank: none
 
 
 @pytest.mark.parametrize(
@@ -141,7 +142,8 @@ def test_hostile_lines_each_get_an_error_and_the_connection_goes_on(served: Serv
 
 def test_a_flood_of_pipelined_requests_is_answered_in_order(served: Served) -> None:
     """2000 requests in one write: each answered, none lost, the order kept (they are
-    spread over loop turns, a few at a time, and the reading pauses while they wait)."""
+    spread over loop turns, a few at a time, and the reading pauses while they wait);
+    a megabyte of blank lines is no request at all."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(20)
         sock.connect(str(served.path))
@@ -149,6 +151,8 @@ def test_a_flood_of_pipelined_requests_is_answered_in_order(served: Served) -> N
         sock.sendall(b"".join(request("alive", i) for i in range(2000)))
         ids = [json.loads(reader.readline())["id"] for _ in range(2000)]
         assert ids == list(range(2000))
+        sock.sendall(b"\n" * (1 << 20) + request("hello", 2000))
+        assert json.loads(reader.readline())["id"] == 2000
 
 
 def test_a_fault_of_ours_is_an_internal_error_and_the_connection_goes_on(

@@ -81,9 +81,11 @@ def shown(text: str) -> str:
 
 
 class LineSplitter:
-    """Bytes from a client in, complete lines out. A line longer than ``MAX_LINE`` comes
-    out as ``None`` (once) and the rest of it, up to its newline, is dropped, so the
-    connection goes on with the next line; what is buffered never passes ``MAX_LINE``."""
+    """Bytes from a client in, complete lines out, blank ones left out. A line longer than
+    ``MAX_LINE`` comes out as ``None`` (once, as soon as it is too long) and the rest of it,
+    up to its newline, is dropped, so the connection goes on with the next line; what is
+    buffered never passes ``MAX_LINE``. Split in C (``bytes.split``): 64 KiB of newlines
+    cost 56 ms a line at a time."""
 
     def __init__(self, limit: int = MAX_LINE) -> None:
         self.limit = limit
@@ -91,20 +93,21 @@ class LineSplitter:
         self._dropping = False
 
     def feed(self, data: bytes) -> list[bytes | None]:
+        parts = data.split(b"\n")
         lines: list[bytes | None] = []
-        start = 0
-        while (end := data.find(b"\n", start)) >= 0:
-            if self._dropping:
-                self._dropping = False
-            elif len(self._buf) + end - start > self.limit:
-                lines.append(None)
-            else:
-                self._buf += data[start:end]
-                lines.append(bytes(self._buf))
+        if len(parts) > 1:  # the line in progress ends with the first part
+            if not self._dropping:
+                self._buf += parts[0]
+                if len(self._buf) > self.limit:
+                    lines.append(None)
+                elif self._buf.strip():
+                    lines.append(bytes(self._buf))
             self._buf.clear()
-            start = end + 1
-        if not self._dropping:
-            self._buf += data[start:]
+            self._dropping = False
+            limit = self.limit
+            lines += [p if len(p) <= limit else None for p in parts[1:-1] if p and not p.isspace()]
+        if not self._dropping:  # the last part begins the next line
+            self._buf += parts[-1]
             if len(self._buf) > self.limit:
                 lines.append(None)
                 self._buf.clear()
