@@ -285,8 +285,3 @@ def test_a_private_directory_of_ours_is_used_as_it_is(tmp_path: Path) -> None:
     assert stat.S_IMODE(ours.stat().st_mode) == 0o755
     assert frames(tmp_path / "r.log") > 0
     assert f"serving the control socket {ours / 'x.sock'}" in out.stderr
-
-
-def test_the_socket_is_owner_only_from_its_bind(served: Served) -> None:
-    assert stat.S_IMODE(served.path.stat().st_mode) == 0o600
-    assert stat.S_IMODE(served.path.parent.stat().st_mode) == 0o700  # made by it: private
