@@ -99,7 +99,7 @@ def test_the_service_gone_is_shown_at_once_and_keys_say_so() -> None:
         app, link = await attached(path, owner=True)
         async with app.run_test(size=(160, 45)) as pilot:
             for client in list(server.clients):  # a crash: no "bye", the socket just ends
-                client.writer.transport.abort()
+                client.writer.close()
             await until(pilot, lambda: app.gone is not None, "the loss seen")
             banner = str(app.query_one("#gone").render())
             assert banner.startswith("NOT CONNECTED") and app.query_one("#gone").has_class("shown")

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from abh3_supervisor.clients.control import ControlClient, status_lines
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.errors import RunError
+from abh3_supervisor.errors import Abh3Error, RunError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service import paths
@@ -310,7 +310,7 @@ def test_a_live_socket_is_not_taken_over_and_a_stale_one_is_removed(
     assert not stale.exists()
     not_a_socket = tmp_path / "file.sock"
     not_a_socket.write_text("x")
-    with pytest.raises(RunError, match="not a socket"):
+    with pytest.raises(Abh3Error, match="not a socket"):
         paths.remove_stale(not_a_socket)
 
 

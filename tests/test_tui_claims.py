@@ -165,7 +165,7 @@ def test_without_the_service_nothing_is_claimed_and_values_are_stale() -> None:
         await press_until(app, pilot, "d", lambda: isinstance(app.screen, ConfirmScreen), "d")
         # then gone, a question open: a crash, no "bye"
         for client in list(SERVERS[0].clients):
-            client.writer.transport.abort()
+            client.writer.close()
         await until(pilot, lambda: app.gone is not None, "the loss seen")
         await press_until(app, pilot, "y", lambda: "NOT SENT" in response(app), "yes, too late")
         assert response(app).startswith(

@@ -123,7 +123,7 @@ def test_abh3_tui_exits_4_when_the_supervisor_went_away() -> None:
         try:
             await term.shows(b"online", 2)
             for client in list(server.clients):  # a crash: no "bye", the socket just ends
-                client.writer.transport.abort()
+                client.writer.close()
             await term.shows(b"NOT CONNECTED")
             os.write(term.master, b"q")  # nothing to stop from here: leaves without asking
             assert await asyncio.wait_for(proc.wait(), 10) == EXIT_SUPERVISOR_GONE

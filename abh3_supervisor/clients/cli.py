@@ -40,11 +40,14 @@ MAX_SHOWN = 20  # problems printed; the rest are counted (one mistake can repeat
 # the same as runtime.STOP_SIGNALS, without importing python-can before they are caught
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 log = logging.getLogger("abh3")
+CONNECT_HELP = "its control socket, or ssh://[user@]host[:port]/path/to.sock on another host"
 
 
 def _parser() -> argparse.ArgumentParser:
     import argparse
     from pathlib import Path
+
+    from abh3_supervisor.clients.ssh import endpoint
 
     p = argparse.ArgumentParser(prog="abh3", description="Supervise ABH3 drives on CAN buses.")
     p.add_argument("--version", action="version", version=f"abh3-supervisor {__version__}")
@@ -107,10 +110,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--exit-with-stdin", action="store_true", help=argparse.SUPPRESS)
 
     tui = sub.add_parser("tui", help="attach the terminal UI to a running supervisor")
-    tui.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
+    tui.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
 
     status = sub.add_parser("status", help="the state of a running supervisor (exit 0: all online)")
-    status.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
+    status.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
     status.add_argument("--json", action="store_true", help="the whole state as JSON")
 
     send = sub.add_parser(
@@ -129,7 +132,7 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="keep the session: motion holds until Ctrl-C, SIGTERM or SIGHUP, then stops",
     )
-    send.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
+    send.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
 
     verify = sub.add_parser(
         "verify",
@@ -139,7 +142,7 @@ def _parser() -> argparse.ArgumentParser:
         "now agree (its startup: commands run then). Exit 0 when every one agrees.",
     )
     verify.add_argument("units", nargs="+", metavar="UNIT")
-    verify.add_argument("--connect", type=Path, metavar="PATH", help="its control socket")
+    verify.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
     verify.add_argument("--json", action="store_true", help="the results as JSON")
 
     check = sub.add_parser("check", help="validate a configuration and print the bus-load plan")

@@ -1,8 +1,10 @@
 """A small blocking client of the control socket, and the one-shot commands built on it:
-``abh3 status`` (health checks: exit 0 when every unit is online) and ``abh3 send``."""
+``abh3 status`` (health checks: exit 0 when every unit is online) and ``abh3 send``.
+The socket is local, or on another host through SSH (``ssh://…``, :mod:`.ssh`)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import socket
@@ -11,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.clients.ssh import Endpoint, SshTarget, Tunnel
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
 from abh3_supervisor.core import readouts
 from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
@@ -20,42 +23,65 @@ from abh3_supervisor.service.paths import default_socket
 
 
 class ControlClient:
-    def __init__(self, path: Path, timeout: float = 5.0) -> None:
+    def __init__(self, path: Endpoint, timeout: float = 5.0) -> None:
         self.path = path
+        self.tunnel: Tunnel | None = None
+        local = path if isinstance(path, Path) else self._forward(path)
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self.sock.settimeout(timeout)
         try:
-            self.sock.connect(str(path))
+            self.sock.connect(str(local))
         except (FileNotFoundError, ConnectionRefusedError):
-            self.sock.close()
+            self._close_all()
             raise RunError(
                 f"no supervisor serves {path} (is `abh3 run CONFIG --headless` running? "
                 "give its socket with --connect PATH)"
             ) from None
         except OSError as exc:
-            self.sock.close()
+            self._close_all()
             raise RunError(f"cannot connect to {path}: {exc.strerror or exc}") from None
+        if self.tunnel is not None:
+            self.tunnel.forget_path()
         self.reader = self.sock.makefile("rb")
         self._next = 0
+
+    def _forward(self, target: SshTarget) -> Path:
+        self.tunnel = Tunnel(target)
+        try:
+            self.tunnel.start()
+            return self.tunnel.wait_ready()
+        except BaseException:
+            self.tunnel.close()
+            raise
 
     def call(self, method: str, **params: Any) -> Any:
         self._next += 1
         rid = self._next
         message = {"jsonrpc": "2.0", "id": rid, "method": method, "params": params}
         try:
-            self.sock.sendall(rpc.encode(message))
+            # closed on us: what it said before closing, if anything, is read below
+            with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+                self.sock.sendall(rpc.encode(message))
             while True:  # notifications may come between: skip to our reply
                 line = self.reader.readline(rpc.MAX_LINE * 64)
                 if not line:
-                    raise RunError(f"{self.path}: the supervisor closed the connection")
+                    raise RunError(self._lost("the supervisor closed the connection"))
                 reply = json.loads(line)
                 if reply.get("id") == rid:
                     break
+                if reply.get("id") is None and "error" in reply:  # refused: it says why
+                    why = reply["error"].get("message")
+                    raise RunError(f"{self.path}: the supervisor refused this client: {why}")
         except (OSError, ValueError) as exc:
-            raise RunError(f"{self.path}: {exc}") from None
+            raise RunError(self._lost(str(exc))) from None
         if "error" in reply:
             raise RunError(f"{method}: {reply['error'].get('message')}")
         return reply.get("result")
+
+    def _lost(self, why: str) -> str:
+        """Why the connection ended: through SSH, ssh itself may know better."""
+        said = self.tunnel.explain() if self.tunnel is not None else None
+        return said or f"{self.path}: {why}"
 
     def units(self, wanted: list[str]) -> dict[str, Any]:
         """The service's units as its state has them; each of ``wanted`` must be one (a
@@ -68,10 +94,15 @@ class ControlClient:
 
     def close(self) -> None:
         self.reader.close()
+        self._close_all()
+
+    def _close_all(self) -> None:
         self.sock.close()
+        if self.tunnel is not None:
+            self.tunnel.close()
 
 
-def status(path: Path, as_json: bool) -> int:
+def status(path: Endpoint, as_json: bool) -> int:
     client = ControlClient(path)
     try:
         snapshot = client.call("state")
@@ -178,7 +209,7 @@ MOTION_NEEDS_AN_OWNER = (
 ALIVE_EVERY_S = 0.2  # well inside the service's 0.5 s: a late wake-up costs nothing
 
 
-def send(path: Path, text: str, units: list[str], *, every: bool, hold: bool) -> int:
+def send(path: Endpoint, text: str, units: list[str], *, every: bool, hold: bool) -> int:
     """``abh3 send``: the seed's exact answer per unit; clamp notes on stderr. A motion
     command is refused unless ``hold`` keeps this client present to own it."""
     if not units and not every:
@@ -240,8 +271,9 @@ def _hold(client: ControlClient, text: str, units: list[str]) -> int:
     return 0
 
 
-def find_socket(connect: Path | None) -> Path:
-    """The socket to talk to: the one given, else the only one in the default place."""
+def find_socket(connect: Endpoint | None) -> Endpoint:
+    """The socket to talk to: the one given (local or ``ssh://``), else the only one in
+    the default place."""
     if connect is not None:
         return connect
     here = default_socket("x").parent

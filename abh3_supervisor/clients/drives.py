@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from abh3_supervisor.clients.ssh import Endpoint
     from abh3_supervisor.config import Config
     from abh3_supervisor.core.verify import Verification
 
@@ -30,7 +30,7 @@ def check_drives(config: Config, as_json: bool) -> int:
     return _report(results, where, as_json)
 
 
-def verify_running(path: Path, units: list[str], as_json: bool) -> int:
+def verify_running(path: Endpoint, units: list[str], as_json: bool) -> int:
     """``abh3 verify UNIT…``: a running supervisor compares those drives with its file
     again (a unit ``verify: refuse`` holds is released when they now agree)."""
     from abh3_supervisor.clients.control import ControlClient

@@ -1,6 +1,8 @@
 """An asyncio connection to the control socket, for clients that live on an event loop
 (the TUI): requests with their replies, notifications to a callback, and one future that
-says when and why the connection ended — a service that dies is seen at once.
+says when and why the connection ended — a service that dies is seen at once. The socket
+is local, or on another host through SSH (``ssh://…``, :mod:`.ssh`: the tunnel lives as
+long as the link).
 
 While connected it proves it is alive: the service drops the motion of a client that
 holds motion and has not said ``alive`` for 0.5 s. The notification is sent from the
@@ -18,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.clients.ssh import Endpoint, Tunnel
 from abh3_supervisor.errors import RunError
 from abh3_supervisor.service import protocol as rpc
 
@@ -36,9 +39,13 @@ class LinkLost(LinkError):
 
 class Link:
     def __init__(
-        self, path: Path, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+        self,
+        path: Endpoint,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        tunnel: Tunnel | None = None,
     ) -> None:
-        self.path, self.reader, self.writer = path, reader, writer
+        self.path, self.reader, self.writer, self.tunnel = path, reader, writer, tunnel
         self.on_notification: Notified = lambda method, params: None
         self.closed: asyncio.Future[str] = asyncio.get_running_loop().create_future()
         self._ids = itertools.count(1)
@@ -47,19 +54,35 @@ class Link:
         self._alive = asyncio.ensure_future(self._prove_alive())
 
     @classmethod
-    async def open(cls, path: Path, timeout: float = 5.0) -> Link:
+    async def open(cls, path: Endpoint, timeout: float = 5.0) -> Link:
+        tunnel = None
+        local = path
+        if not isinstance(path, Path):
+            tunnel = Tunnel(path)
+            try:
+                tunnel.start()  # on this thread: ssh's parent-death signal follows it
+                local = await asyncio.to_thread(tunnel.wait_ready)
+            except BaseException:
+                tunnel.close()
+                raise
         try:
             reader, writer = await asyncio.wait_for(
-                asyncio.open_unix_connection(str(path), limit=rpc.MAX_LINE * 64), timeout
+                asyncio.open_unix_connection(str(local), limit=rpc.MAX_LINE * 64), timeout
             )
         except (FileNotFoundError, ConnectionRefusedError):
+            if tunnel is not None:
+                tunnel.close()
             raise LinkError(
                 f"no supervisor serves {path} (is `abh3 run CONFIG --headless` running? "
                 "give its socket with --connect PATH)"
             ) from None
         except (OSError, TimeoutError) as exc:
+            if tunnel is not None:
+                tunnel.close()
             raise LinkError(f"cannot connect to {path}: {exc}") from None
-        return cls(path, reader, writer)
+        if tunnel is not None:
+            tunnel.forget_path()
+        return cls(path, reader, writer, tunnel)
 
     async def call(self, method: str, **params: Any) -> Any:
         """Send a request and wait for its reply; :class:`LinkError` on an error reply."""
@@ -97,6 +120,8 @@ class Link:
         except (OSError, ValueError) as exc:
             reason = f"the connection broke: {exc}"
         finally:
+            if self.tunnel is not None:  # through SSH: ssh may know better
+                reason = self.tunnel.explain() or reason
             for reply in self._pending.values():
                 if not reply.done():
                     reply.set_exception(LinkLost(f"{self.path}: {reason}"))
@@ -110,6 +135,9 @@ class Link:
                 self.closed.set_result(str(params.get("reason", "bye")))
             self.on_notification(message["method"], params if isinstance(params, dict) else {})
             return
+        if message.get("id") is None and "error" in message:  # refused: it says why
+            self._refused(str(message["error"].get("message")))
+            return
         reply = self._pending.get(message.get("id", -1))
         if reply is None or reply.done():
             return
@@ -117,6 +145,14 @@ class Link:
             reply.set_exception(LinkError(str(message["error"].get("message"))))
         else:
             reply.set_result(message.get("result"))
+
+    def _refused(self, why: str) -> None:
+        reason = f"{self.path}: the supervisor refused this client: {why}"
+        for reply in self._pending.values():
+            if not reply.done():
+                reply.set_exception(LinkError(reason))
+        if not self.closed.done():
+            self.closed.set_result(reason)
 
     async def close(self) -> None:
         for task in (self._alive, self._task):
@@ -126,3 +162,5 @@ class Link:
         self.writer.close()
         with contextlib.suppress(Exception):
             await self.writer.wait_closed()
+        if self.tunnel is not None:
+            await asyncio.to_thread(self.tunnel.close)

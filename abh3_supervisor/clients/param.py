@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from abh3_supervisor.clients.argtypes import count, finite_positive
+from abh3_supervisor.clients.ssh import endpoint
 from abh3_supervisor.errors import CommandError, Interrupted, PartialWrite
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
@@ -47,7 +48,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     where = p.add_mutually_exclusive_group()
     where.add_argument("--config", "-c", type=Path, help="use this configuration's buses")
     where.add_argument(
-        "--connect", type=Path, metavar="PATH", help="a running supervisor's control socket"
+        "--connect",
+        type=endpoint,
+        metavar="PATH",
+        help="a running supervisor's control socket (ssh://[user@]host[:port]/path: on "
+        "another host)",
     )
     ops = p.add_subparsers(dest="op", required=True, metavar="OP")
     get = ops.add_parser("get", help="read parameters")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import os
 import signal
+import socket
 import sys
 from pathlib import Path
 
@@ -18,7 +20,7 @@ from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import STOP_SIGNALS, Runtime
 from abh3_supervisor.runtime.recording import recorded, write_failures
 from abh3_supervisor.runtime.stopping import final_report
-from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight
+from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight, release
 
 log = logging.getLogger("abh3")
 
@@ -68,8 +70,8 @@ async def run_headless(
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     code = 0
-    if service is not None:
-        preflight(service)  # a socket that cannot be served fails the run before motion
+    # a socket that cannot be served fails the run before the first frame: bound now
+    bound = preflight(service) if service is not None else {}
     rt = Runtime(config, record=record, plugins=plugins)
     try:
         async with rt:
@@ -99,7 +101,11 @@ async def run_headless(
                 len(config.buses),
                 f" for {duration:g} s" if duration is not None else "",
             )
-            servers = await _serve(rt, plugins, service)
+            servers = await _serve(rt, plugins, service, bound)
+            # what start-up built lives as long as the run: the collector's full passes
+            # need not walk it (10-15 ms on the bus loop once clients come and go by the
+            # thousand, whose asyncio objects leave cycles to collect)
+            gc.freeze()
             reporter = asyncio.ensure_future(_report(sup, status_interval))
             try:
                 await rt.run_until(stop, duration)
@@ -120,6 +126,7 @@ async def run_headless(
                     log.info("final %s", line)
                 log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
     finally:
+        release(bound)  # what was bound and never served (the buses did not open)
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
     if record is not None:
@@ -146,20 +153,27 @@ def _stop_at_end_of_stdin(sup: Supervisor, stop: asyncio.Event) -> None:
 
 
 async def _serve(
-    rt: Runtime, plugins: PluginHost | None, service: ServiceOptions | None
+    rt: Runtime,
+    plugins: PluginHost | None,
+    service: ServiceOptions | None,
+    bound: dict[Path, socket.socket],
 ) -> list[ControlServer]:
+    """The control servers on the sockets ``bound`` before the buses opened (handed over:
+    each server closes its own)."""
     if service is None:
         return []
-    servers = [ControlServer(rt, plugins, service.path, group=service.group)]
+    main = bound.pop(service.path)
+    servers = [ControlServer(rt, plugins, service.path, group=service.group, sock=main)]
     if service.read_only_path is not None:
-        servers.append(ControlServer(rt, plugins, service.read_only_path, read_only=True))
-    started: list[ControlServer] = []
+        sock = bound.pop(service.read_only_path)
+        servers.append(
+            ControlServer(rt, plugins, service.read_only_path, read_only=True, sock=sock)
+        )
     try:
         for server in servers:
             await server.start()
-            started.append(server)
     except BaseException:
-        for server in started:
+        for server in servers:
             await server.close()
         raise
     return servers

@@ -1,21 +1,32 @@
 """Where the control socket lives and who may open it.
 
 Default: ``$XDG_RUNTIME_DIR/abh3/<config name>.sock`` (systemd's per-user runtime
-directory), else ``/tmp/abh3-<uid>/<config name>.sock``. The directory is ours alone
-(0700; 0750 with a group) and the socket owner-only (0600; 0660 with a group), so another
-user's process cannot connect. A directory that exists with other owners or wider rights
-is refused rather than used.
+directory: private, on a tmpfs, emptied at logout), else ``/tmp/abh3-<uid>/<config
+name>.sock``. The socket's directory is what keeps other users out, so it must be private:
+one this process creates is made 0700 (0750 with a group); one that already exists is
+used as it is — never chmodded, it may be someone's /tmp — and refused, with the reason,
+when another user owns it or anyone but its owner may write in it (a shared directory
+such as /tmp, mode 1777, where anyone could replace the socket). The socket itself is
+owner-only (0600; 0660 with a group) from the moment it is bound.
+
+Everything that can fail about a path is found by :func:`bind`, before any drive is
+commanded: a mistake in the path is exit 2 (:class:`Abh3Error`), another supervisor
+already serving it is exit 1 (:class:`RunError`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import grp
 import os
+import pwd
 import socket
 import stat
 from pathlib import Path
 
-from abh3_supervisor.errors import RunError
+from abh3_supervisor.errors import Abh3Error, RunError
+
+MAX_PATH_BYTES = 107  # sockaddr_un.sun_path holds 108 bytes with the terminating NUL
 
 
 def default_socket(config_file: str) -> Path:
@@ -32,23 +43,103 @@ def group_id(group: str | None) -> int | None:
     try:
         return grp.getgrnam(group).gr_gid
     except KeyError:
-        raise RunError(f"--socket-group {group}: no such group") from None
+        raise Abh3Error(f"--socket-group {group}: no such group") from None
+
+
+def bind(path: Path, gid: int | None) -> socket.socket:
+    """The control socket bound at ``path`` (not yet listening: until the service starts,
+    a client is told nobody serves), in a directory checked or made private."""
+    size = len(os.fsencode(path))
+    if size > MAX_PATH_BYTES:
+        raise Abh3Error(
+            f"control socket {path}: the path is {size} bytes; a Unix socket's may have at "
+            f"most {MAX_PATH_BYTES}: give a shorter --socket PATH"
+        )
+    prepare_directory(path, gid)
+    remove_stale(path)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    # bound owner-only at once: no moment in which the socket is open to others
+    saved = os.umask(0o117 if gid is not None else 0o177)
+    try:
+        sock.bind(str(path))
+    except OSError as exc:
+        sock.close()
+        raise Abh3Error(f"control socket {path}: cannot serve there: {exc.strerror}") from None
+    finally:
+        os.umask(saved)
+    try:
+        restrict(path, gid)
+    except OSError as exc:
+        sock.close()
+        path.unlink(missing_ok=True)
+        raise Abh3Error(f"control socket {path}: cannot set its permissions: {exc}") from None
+    return sock
 
 
 def prepare_directory(path: Path, gid: int | None) -> None:
-    """Create the socket's directory, or check an existing one is ours and private."""
+    """Create the socket's directory private, or check that an existing one is private."""
     directory = path.parent
     mode = 0o750 if gid is not None else 0o700
     try:
-        directory.mkdir(mode=mode, parents=True, exist_ok=True)
+        directory.mkdir(mode=mode)
+    except FileExistsError:
+        _check_existing(path, gid)
+        return
+    except FileNotFoundError:
+        raise Abh3Error(
+            f"control socket {path}: {directory.parent} does not exist (only the socket's "
+            "own directory is created)"
+        ) from None
+    except OSError as exc:
+        raise Abh3Error(
+            f"control socket {path}: cannot create {directory}: {exc.strerror}"
+        ) from None
+    try:  # ours: made exactly as meant, whatever the umask
+        if gid is not None:
+            os.chown(directory, -1, gid)
+        os.chmod(directory, mode)
+    except OSError as exc:
+        raise Abh3Error(f"control socket {path}: cannot make {directory} private: {exc}") from None
+
+
+def _check_existing(path: Path, gid: int | None) -> None:
+    directory = path.parent
+    try:
         info = directory.stat()
     except OSError as exc:
-        raise RunError(f"control socket {path}: cannot create {directory}: {exc}") from exc
-    if info.st_uid != os.getuid():
-        raise RunError(f"control socket {path}: {directory} belongs to another user")
-    if gid is not None and info.st_gid != gid:
-        os.chown(directory, -1, gid)
-    os.chmod(directory, mode)
+        raise Abh3Error(f"control socket {path}: {directory}: {exc.strerror}") from None
+    if not stat.S_ISDIR(info.st_mode):
+        raise Abh3Error(f"control socket {path}: {directory} is not a directory")
+    where = "put it in a directory of your own, or leave out --socket for the default"
+    if info.st_uid != os.geteuid():
+        raise Abh3Error(
+            f"control socket {path}: {directory} belongs to {_user(info.st_uid)}, not to this "
+            f"user: {where}"
+        )
+    mode = stat.S_IMODE(info.st_mode)
+    if mode & 0o022:
+        raise Abh3Error(
+            f"control socket {path}: {directory} (mode {mode:04o}) is writable by other users, "
+            f"who could replace the socket: {where} (it is never chmodded)"
+        )
+    if gid is not None and (info.st_gid != gid or not mode & 0o010):
+        raise Abh3Error(
+            f"control socket {path}: --socket-group members cannot reach it in {directory} "
+            f"(group {_group(info.st_gid)}, mode {mode:04o}): give that directory the group and "
+            "mode 0750, or a --socket in a directory that does not exist yet"
+        )
+
+
+def _user(uid: int) -> str:
+    with contextlib.suppress(KeyError):
+        return f"user {pwd.getpwuid(uid).pw_name}"
+    return f"uid {uid}"
+
+
+def _group(gid: int) -> str:
+    with contextlib.suppress(KeyError):
+        return grp.getgrgid(gid).gr_name
+    return str(gid)
 
 
 def remove_stale(path: Path) -> None:
@@ -56,7 +147,7 @@ def remove_stale(path: Path) -> None:
     if not path.exists() and not path.is_symlink():
         return
     if not stat.S_ISSOCK(path.lstat().st_mode):
-        raise RunError(f"control socket {path}: exists and is not a socket")
+        raise Abh3Error(f"control socket {path}: exists and is not a socket")
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         probe.settimeout(0.5)

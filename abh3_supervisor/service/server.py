@@ -10,6 +10,11 @@ any line from it, ``alive`` at the least, every ``CLIENT_TIMEOUT_S`` — and lea
 dying or going quiet lets go at once (docs/architecture.md, "who owns motion"). Switches,
 e-stop and clear act at once. A read-only listener answers only what changes nothing
 (``READ_ONLY_METHODS``).
+
+No client can take the socket down or hold up the loop: whatever a line holds is answered
+with a JSON-RPC error (a fault of ours while answering too: ``INTERNAL_ERROR``, logged),
+and the connection goes on; accepting, refusing and answering are bounded per loop turn
+(:mod:`.accepting`).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import itertools
 import logging
 import math
 import re
+import socket
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +44,8 @@ from abh3_supervisor.plugin_host.terminal import KeyInput
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
+from abh3_supervisor.service.accepting import Acceptor, Tally, Turns
+from abh3_supervisor.service.connection import Connection
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
 from abh3_supervisor.service.snapshot import state
 from abh3_supervisor.service.state_push import SharedState
@@ -69,13 +77,27 @@ class ServiceOptions:
     read_only_path: Path | None = None
 
 
-def preflight(options: ServiceOptions) -> None:
-    """Everything about the sockets that can fail, checked before any drive is commanded."""
+def preflight(options: ServiceOptions) -> dict[Path, socket.socket]:
+    """The sockets bound, before any drive is commanded: whatever about them can fail
+    fails here (exit 2 for a path that cannot be served). Each is handed to its
+    :class:`ControlServer`; :func:`release` what was not."""
     gid = paths.group_id(options.group)
-    for path in (options.path, options.read_only_path):
-        if path is not None:
-            paths.prepare_directory(path, gid)
-            paths.remove_stale(path)
+    bound = {options.path: paths.bind(options.path, gid)}
+    if options.read_only_path is not None:
+        try:
+            bound[options.read_only_path] = paths.bind(options.read_only_path, None)
+        except BaseException:
+            release(bound)
+            raise
+    return bound
+
+
+def release(bound: dict[Path, socket.socket]) -> None:
+    """Sockets bound and never served: closed, their files removed."""
+    for path, sock in bound.items():
+        sock.close()
+        path.unlink(missing_ok=True)
+    bound.clear()
 
 
 class ClientSource(InputSource):
@@ -99,11 +121,10 @@ class _Client:
         self,
         server: ControlServer,
         n: int,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
+        writer: Connection,
         read_only: bool,
     ) -> None:
-        self.server, self.n, self.reader, self.writer = server, n, reader, writer
+        self.server, self.n, self.writer = server, n, writer
         self.read_only = read_only
         self.events = False
         self.state_task: asyncio.Task[None] | None = None
@@ -117,7 +138,7 @@ class _Client:
     def send(self, data: bytes) -> None:
         if self.writer.is_closing():
             return
-        if self.writer.transport.get_write_buffer_size() > MAX_BUFFER:
+        if self.writer.queued > MAX_BUFFER:
             log.warning("control %s: not reading its messages; disconnected", self.name)
             self.writer.close()
             return
@@ -126,44 +147,52 @@ class _Client:
     async def serve(self) -> None:
         while True:
             try:
-                line = await self.reader.readline()
-            except (ValueError, asyncio.LimitOverrunError):
-                self.send(rpc.error(None, rpc.INVALID_REQUEST, f"line over {rpc.MAX_LINE} bytes"))
+                line = await self.writer.read_line()
+            except EOFError:
                 return
-            except (ConnectionError, OSError):
-                return
-            if not line:
-                return
-            if line.strip():
+            await self.server.turns.enter()
+            if line is None:  # its rest is dropped up to the newline: go on after it
+                too_long = f"line over {rpc.MAX_LINE} bytes: dropped"
+                self.send(rpc.error(None, rpc.INVALID_REQUEST, too_long))
+            elif line.strip():
                 await self.handle(line)
 
     async def handle(self, line: bytes) -> None:
         for source in self.sources.values():
             if source.feed is not None:
                 source.feed.alive()  # any line proves the client alive: its motion holds
+        rid: int | str | None = None
         try:
-            request = rpc.parse_request(line)
-        except rpc.RpcError as exc:
-            self.send(rpc.error(rpc.request_id(line), exc.code, exc.message))
-            return
-        try:
-            value = await self.server.call(self, request)
-        except rpc.RpcError as exc:
-            if request.id is not None:
-                self.send(rpc.error(request.id, exc.code, exc.message))
-            return
-        if request.id is not None:
-            self.send(rpc.result(request.id, value))
+            try:
+                request = rpc.parse_request(line)
+            except rpc.RpcError as exc:
+                self.send(rpc.error(rpc.request_id(line), exc.code, exc.message))
+                return
+            rid = request.id
+            try:
+                value = await self.server.call(self, request)
+            except rpc.RpcError as exc:
+                if rid is not None:
+                    self.send(rpc.error(rid, exc.code, exc.message))
+                return
+            if rid is not None:
+                self.send(rpc.result(rid, value))
+        except Exception:  # a fault of ours: said to the client and logged; it goes on
+            self.server.faults.note(asyncio.get_running_loop())
+            log.debug("control %s: fault answering %r", self.name, line[: rpc.SHOWN], exc_info=True)
+            self.send(
+                rpc.error(rid, rpc.INTERNAL_ERROR, "internal error (logged by the supervisor)")
+            )
 
     def close(self) -> None:
         if self.state_task is not None:
             self.state_task.cancel()
+            self.state_task = None  # it refers to this client: no cycle left to collect
         if self.server.host is not None:
             for source in self.sources.values():
                 self.server.host.detach(source.name)  # leaving takes the motion with it
         self.sources.clear()
-        with contextlib.suppress(Exception):
-            self.writer.close()
+        self.writer.close()
 
 
 class ControlServer:
@@ -175,13 +204,19 @@ class ControlServer:
         *,
         read_only: bool = False,
         group: str | None = None,
+        sock: socket.socket | None = None,
     ) -> None:
+        """``sock``: the socket :func:`preflight` bound at ``path`` (else bound on start)."""
         self.rt, self.host, self.path = rt, host, path
         self.read_only = read_only
         self.gid = paths.group_id(group)
         self.clients: set[_Client] = set()
+        self.turns = Turns()
+        self.faults = Tally(logging.ERROR, f"control socket {path}: a fault answering a client")
+        self._tasks: set[asyncio.Task[None]] = set()
         self._ids = itertools.count(1)
-        self._server: asyncio.AbstractServer | None = None
+        self._sock = sock
+        self._acceptor: Acceptor | None = None
         self._events = EventLog(rt.supervisor)
         self._methods: dict[str, Callable[[_Client, dict[str, Any]], Awaitable[Any]]] = {
             "hello": self._hello,
@@ -209,12 +244,19 @@ class ControlServer:
         self._params = ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())
 
     async def start(self) -> None:
-        paths.prepare_directory(self.path, self.gid)
-        paths.remove_stale(self.path)
-        self._server = await asyncio.start_unix_server(
-            self._connected, path=str(self.path), limit=rpc.MAX_LINE
+        if self._sock is None:
+            self._sock = paths.bind(self.path, self.gid)
+        refusal = rpc.error(
+            None,
+            rpc.REFUSED,
+            f"too many clients: this supervisor serves at most {MAX_CLIENTS} at once",
         )
-        paths.restrict(self.path, self.gid)
+        refused = Tally(
+            logging.WARNING,
+            f"control socket {self.path}: refused a client ({MAX_CLIENTS} connected)",
+        )
+        self._acceptor = Acceptor(self._sock, self._admit, self._full, refusal, refused)
+        self._acceptor.start()
         self.rt.supervisor.subscribe(self._on_event)
         self._log_handler.loop = asyncio.get_running_loop()
         logging.getLogger().addHandler(self._log_handler)
@@ -222,26 +264,34 @@ class ControlServer:
         log.info("serving the %scontrol socket %s", kind, self.path)
 
     async def close(self, reason: str = "the supervisor is stopping") -> None:
+        """Also for a server never started: its bound socket is let go all the same."""
         logging.getLogger().removeHandler(self._log_handler)
-        if self._server is not None:
-            self._server.close()
+        if self._acceptor is not None:
+            self._acceptor.close()
+        elif self._sock is not None:
+            self._sock.close()
+        self.faults.close()
         for client in list(self.clients):
             client.send(rpc.notification("bye", {"reason": reason}))
             client.close()
         self.clients.clear()
-        if self._server is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(self._server.wait_closed(), 1.0)
-            self._server = None
+        for task in list(self._tasks):
+            task.cancel()
+        if self._tasks:
+            await asyncio.wait(self._tasks, timeout=1.0)
         self.path.unlink(missing_ok=True)
 
-    async def _connected(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        client = _Client(self, next(self._ids), reader, writer, self.read_only)
-        if len(self.clients) >= MAX_CLIENTS:
-            client.send(rpc.error(None, rpc.REFUSED, f"more than {MAX_CLIENTS} clients"))
-            client.close()
-            return
+    def _full(self) -> bool:
+        return len(self.clients) >= MAX_CLIENTS
+
+    def _admit(self, conn: socket.socket) -> None:
+        client = _Client(self, next(self._ids), Connection(conn), self.read_only)
         self.clients.add(client)
+        task = asyncio.ensure_future(self._serve(client))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _serve(self, client: _Client) -> None:
         try:
             await client.serve()
         finally:
@@ -251,7 +301,7 @@ class ControlServer:
     async def call(self, client: _Client, request: rpc.Request) -> Any:
         method = self._methods.get(request.method)
         if method is None:
-            raise rpc.RpcError(rpc.METHOD_NOT_FOUND, f"no method {request.method!r}")
+            raise rpc.RpcError(rpc.METHOD_NOT_FOUND, f"no method {rpc.shown(request.method)!r}")
         if client.read_only and request.method not in READ_ONLY_METHODS:
             raise rpc.RpcError(rpc.READ_ONLY, "this connection is read-only")
         try:

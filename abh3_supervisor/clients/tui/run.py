@@ -34,9 +34,11 @@ from typing import Any
 
 from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.clients.mirror import Mirror
+from abh3_supervisor.clients.ssh import Endpoint
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp, styled
 from abh3_supervisor.errors import RunError
 from abh3_supervisor.runtime import priority
+from abh3_supervisor.service import paths
 
 log = logging.getLogger("abh3")
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -154,7 +156,7 @@ def _modes(fd: int) -> list[Any] | None:
 
 
 async def attach(
-    path: Path,
+    path: Endpoint,
     *,
     owner: bool,
     duration: float | None = None,
@@ -201,7 +203,11 @@ class ServiceChild:
         self.terminated = self.killed = False
 
     async def start(self) -> None:
-        self.socket.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        # made here for the log, as the child would make it (with --socket-group, the
+        # group's): the child uses a directory it finds as it is, never chmodding it
+        args = self.args
+        group = args[args.index("--socket-group") + 1] if "--socket-group" in args else None
+        paths.prepare_directory(self.socket, paths.group_id(group))
         rotate(self.log_path)
         with self.log_path.open("wb") as out:
             self.proc = await asyncio.create_subprocess_exec(

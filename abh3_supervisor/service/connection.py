@@ -1,0 +1,137 @@
+"""One client's socket on the event loop: lines in, bytes out, nothing else.
+
+Not asyncio's transports and streams: each of those leaves a reference cycle behind
+(the transport keeps a bound method of itself), so thousands of clients coming and going
+left thousands of objects for the cycle collector, whose full pass then held the bus loop
+for 10-15 ms. Here a closed connection is freed by reference counting alone. It is also
+as small as the control socket needs: reading pauses while ``MAX_PENDING`` lines wait to be
+answered (a client pipelining requests waits for its answers, it does not fill our memory),
+and writing never blocks — what the socket does not take is queued, and the caller decides
+when a queue is too long (the server drops a client that stops reading).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import socket
+
+from abh3_supervisor.service.protocol import LineSplitter
+
+READ_CHUNK = 16 * 1024  # what one turn splits: 16 KiB of newlines cost ~1 ms
+MAX_PENDING = 256  # lines read and not yet answered: reading pauses beyond this
+
+
+class Connection:
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock, self.fd = sock, sock.fileno()
+        self.loop = asyncio.get_running_loop()
+        self._splitter = LineSplitter()
+        self._pending: collections.deque[bytes | None] = collections.deque()
+        self._out = bytearray()
+        self._waiter: asyncio.Future[None] | None = None
+        self._reading = self._ended = self._closed = False
+        self._resume()
+
+    async def read_line(self) -> bytes | None:
+        """The next line (without its newline); ``None`` for one longer than the protocol
+        allows, whose rest was dropped. :class:`EOFError` once the client hung up."""
+        while not self._pending:
+            if self._ended or self._closed:
+                raise EOFError
+            self._resume()
+            self._waiter = self.loop.create_future()
+            try:
+                await self._waiter
+            finally:
+                self._waiter = None
+        return self._pending.popleft()
+
+    def write(self, data: bytes) -> None:
+        if self._closed:
+            return
+        if not self._out:
+            try:
+                sent = self.sock.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError:
+                self.close()  # it is gone: nothing more can reach it
+                return
+            if sent == len(data):
+                return
+            data = data[sent:]
+            self.loop.add_writer(self.fd, self._writable)
+        self._out += data
+
+    @property
+    def queued(self) -> int:
+        """Bytes written and not yet taken by the socket."""
+        return len(self._out)
+
+    def is_closing(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """At once: one more try to send what is queued, what the client sent is read and
+        dropped (closing with input unread would reset the connection and could lose our
+        last line on its side), and the socket is closed. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._pause()
+        if self._out:
+            self.loop.remove_writer(self.fd)
+            with contextlib.suppress(OSError):  # a client that does not read loses the rest
+                self.sock.send(self._out)
+            self._out.clear()
+        with contextlib.suppress(OSError):
+            for _ in range(4):  # what the socket holds; a client still sending may lose
+                if not self.sock.recv(READ_CHUNK):
+                    break
+        self.sock.close()
+        self._pending.clear()
+        self._wake()
+
+    def _readable(self) -> None:
+        try:
+            data = self.sock.recv(READ_CHUNK)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if data:
+            self._pending.extend(self._splitter.feed(data))
+            if len(self._pending) >= MAX_PENDING:
+                self._pause()  # until they are answered (lines() resumes)
+        else:
+            self._ended = True
+            self._pause()
+        self._wake()
+
+    def _writable(self) -> None:
+        try:
+            sent = self.sock.send(self._out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self.close()
+            return
+        del self._out[:sent]
+        if not self._out:
+            self.loop.remove_writer(self.fd)
+
+    def _resume(self) -> None:
+        if not self._reading and not self._ended and not self._closed:
+            self._reading = True
+            self.loop.add_reader(self.fd, self._readable)
+
+    def _pause(self) -> None:
+        if self._reading:
+            self._reading = False
+            self.loop.remove_reader(self.fd)
+
+    def _wake(self) -> None:
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(None)
