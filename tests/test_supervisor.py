@@ -152,7 +152,7 @@ def test_error_and_alarm_changes_are_events_with_names(rig: Rig) -> None:
 
 def test_model_mismatch_is_reported() -> None:
     rig = Rig(parse_config(TWO_UNITS, "t.yaml"))
-    rig.drive("left").model = rig.config.units["right"].velocity_model  # drive says motor
+    rig.drive("left").file_model = rig.config.units["right"].velocity_model  # runs motor
     rig.run(1.0)
     assert any(
         isinstance(e, Notice) and "configuration says velocity_model: travel" in e.message

@@ -85,6 +85,8 @@ VENDOR = {
     "Abh3Brd5": "float64 analog0\nfloat64 analog1\nfloat64 main_volt\nfloat64 control_volt\n",
     "Abh3Brd6": "float64 monitor0\nfloat64 monitor1\n",
 }
+# each vendor message's field names, split once (not per broadcast on the bus loop)
+FIELDS = {name: tuple(text.split()[1::2]) for name, text in VENDOR.items()}
 SCHEMAS = {
     "can_msgs/msg/Frame": _msgdef(
         "std_msgs/Header header\nuint32 id\nbool is_rtr\nbool is_extended\nbool is_error\n"
@@ -136,8 +138,7 @@ def brd_fields(record: frames.Broadcast) -> tuple[str, dict[str, Any]] | None:
     name = f"Abh3Brd{type(record).__name__.removeprefix('Brd')}"
     if name not in VENDOR or not hasattr(record, "__dataclass_fields__"):
         return None  # broadcast 7 is not defined
-    keys = VENDOR[name].split()[1::2]
-    return name, {k: getattr(record, k) for k in keys}
+    return name, {k: getattr(record, k) for k in FIELDS[name]}
 
 
 def open_mcap(path: Path, config: Config) -> McapRecording:
