@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import fcntl
 import os
 import pty
@@ -17,6 +18,7 @@ import termios
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -188,3 +190,21 @@ def headless_demo(sock: Path) -> Iterator[HeadlessRun]:
         run.terminate()
         served.log = run.stderr.read()
         assert run.wait(30) == 0, served.log
+
+
+class FillsUp:
+    """A raw file that takes ``room`` more bytes, then reports the disk full (as write(2)
+    does: a short write first, then ENOSPC)."""
+
+    def __init__(self, real: Any, room: int) -> None:
+        self.real, self.room = real, room
+
+    def write(self, data: bytes) -> int:
+        if self.room <= 0:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        part = bytes(data[: self.room])
+        self.room -= len(part)
+        return int(self.real.write(part))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.real, name)

@@ -16,25 +16,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.headless import run_headless
-from tests.conftest import TWO_UNITS
-
-
-class FillsUp:
-    """A raw file that takes ``room`` more bytes, then reports the disk full (as write(2)
-    does: a short write first, then ENOSPC)."""
-
-    def __init__(self, real: Any, room: int) -> None:
-        self.real, self.room = real, room
-
-    def write(self, data: bytes) -> int:
-        if self.room <= 0:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        part = data[: self.room]
-        self.room -= len(part)
-        return int(self.real.write(part))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.real, name)
+from tests.conftest import TWO_UNITS, FillsUp
 
 
 def row(i: int) -> dict[str, Any]:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import errno
 import json
 import logging
 import re
@@ -29,6 +28,8 @@ from abh3_supervisor.runtime.recorder import GuardedRecorder
 pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+
+from tests.conftest import FillsUp
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = """
@@ -216,23 +217,6 @@ def test_a_file_that_breaks_off_reads_up_to_where_it_does(
 def _drain(gen: Any) -> Any:
     result = yield from gen
     return result
-
-
-class FillsUp:
-    """A file that takes ``room`` more bytes, then reports the disk full."""
-
-    def __init__(self, real: Any, room: int) -> None:
-        self.real, self.room = real, room
-
-    def write(self, data: bytes) -> int:
-        if self.room <= 0:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        part = bytes(data[: self.room])
-        self.room -= len(part)
-        return int(self.real.write(part))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.real, name)
 
 
 def test_a_full_disk_ends_the_recording_once_and_keeps_what_was_written(

@@ -4,7 +4,6 @@ by a write error ends the run with exit code 5, the drives stopped as always."""
 from __future__ import annotations
 
 import asyncio
-import errno
 import itertools
 import logging
 import os
@@ -22,6 +21,7 @@ from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.runtime.recorder import WholeLines, open_recorder
 from abh3_supervisor.runtime.stopping import EXIT_RECORDING_FAILED
 from abh3_supervisor.simulator.bus import SimBus
+from tests.conftest import FillsUp
 
 MOVING = """
 buses:
@@ -114,24 +114,6 @@ def test_a_finished_mcap_recording_indexes_every_chunk(tmp_path: Path) -> None:
         ]
         assert len(chunks) == 5
         assert sum(1 for _ in reader.iter_messages()) == 500
-
-
-class FillsUp:
-    """A raw file that takes ``room`` more bytes, then reports the disk full (as write(2)
-    does: a short write first, then ENOSPC)."""
-
-    def __init__(self, real: Any, room: int) -> None:
-        self.real, self.room = real, room
-
-    def write(self, data: bytes) -> int:
-        if self.room <= 0:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        part = bytes(data[: self.room])
-        self.room -= len(part)
-        return int(self.real.write(part))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.real, name)
 
 
 def test_a_full_disk_ends_the_recording_and_the_run_says_so_with_the_drives_stopped(
