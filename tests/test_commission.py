@@ -14,8 +14,9 @@ import pytest
 from abh3_supervisor.commission import analysis
 from abh3_supervisor.commission.model import Settings, SettingsError, Trace, Verdict
 from abh3_supervisor.commission.report import Session, html_text, json_text, to_json
-from abh3_supervisor.commission.sequence import UnitResult, commission
+from abh3_supervisor.commission.sequence import commission
 from abh3_supervisor.commission.svg import LEFT, PANEL, RIGHT, WIDTH
+from abh3_supervisor.commission.unit import UnitResult
 from abh3_supervisor.config import load_config, parse_config
 from abh3_supervisor.core.kinematics import yx_to_ab
 from abh3_supervisor.protocol import flags, frames, ids
@@ -241,6 +242,33 @@ def test_cancelling_mid_jog_stops_the_drive() -> None:
 
     asyncio.run(main())
     bench.run(0.5)
+    assert_stopped(bench, "u1")
+
+
+def test_a_session_cancelled_mid_jog_fails_the_unit_it_interrupted_and_those_not_begun() -> None:
+    """Ctrl-C after u1's identity and e-stop passed: u1 is not a pass (its wiring was never
+    judged), and u2, never begun, is not commissioned."""
+    bench = robot()
+    results: dict[str, UnitResult] = {}
+
+    async def main() -> None:
+        task = asyncio.ensure_future(
+            commission(bench, Headless(bench), ["u1", "u2"], FAST, results)
+        )
+        while not any(a for _, a, _, _ in commands(bench, "u1")):
+            await asyncio.sleep(0)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(main())
+    bench.run(0.5)
+    u1, u2 = results["u1"], results["u2"]
+    assert any(c.step == "e-stop" and c.verdict is Verdict.PASS for c in u1.checks)
+    assert u1.verdict is Verdict.FAIL and failed(u1) == ["interrupted"]
+    assert u2.verdict is Verdict.FAIL and failed(u2) == ["interrupted"]
+    assert u1.ended and u2.ended
+    assert not commands(bench, "u2") or not any(a or b for _, a, b, _ in commands(bench, "u2"))
     assert_stopped(bench, "u1")
 
 

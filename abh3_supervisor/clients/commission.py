@@ -34,11 +34,8 @@ from pathlib import Path
 from abh3_supervisor import __version__
 from abh3_supervisor.commission.model import Settings, Verdict
 from abh3_supervisor.commission.report import Session, html_text, json_text
-from abh3_supervisor.commission.sequence import (
-    SOURCE_TIMEOUT_S,
-    UnitResult,
-    commission,
-)
+from abh3_supervisor.commission.sequence import SOURCE_TIMEOUT_S, commission
+from abh3_supervisor.commission.unit import UnitResult
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.kinematics import ab_to_yx
