@@ -399,6 +399,14 @@ def test_pulses_per_rev_from_counts_and_the_integrated_feedback() -> None:
     assert analysis.judge_scale(trace, 0, 0, Settings()).verdict is Verdict.WARN
 
 
+def test_without_pulses_per_rev_motors_that_count_alike_pass_and_unlike_fail() -> None:
+    s = Settings()
+    assert analysis.judge_pair("jog B", 4096, 4080, s).verdict is Verdict.PASS
+    unlike = analysis.judge_pair("jog B", 4096, 4096 * 1.2, s)
+    assert unlike.verdict is Verdict.FAIL and unlike.name.endswith("+20% against motor A")
+    assert analysis.judge_pair("jog B", None, 4096, s).verdict is Verdict.WARN  # not counted
+
+
 def test_settings_outside_their_bounds_are_refused() -> None:
     with pytest.raises(
         SettingsError, match=r"--jog-fraction 0.5 is out of bounds \(allowed 0.01–0.2"
@@ -433,10 +441,10 @@ def test_a_plain_file_finds_the_faults_too(fault: str, name: str, gen: str) -> N
     bench = FakeBench(parse_config(PLAIN.format(faults=fault, gen=gen), "plain.yaml"))
     results, _, _ = session(bench)
     assert failed(results["u1"])[0].startswith(name), results["u1"].checks
-    assert results["u2"].verdict is Verdict.WARN  # pulses per revolution not in the file
-    assert [c.name for c in results["u2"].checks if c.verdict is not Verdict.PASS] == [
-        "gear/geometry scale of motors A and B"
-    ]
+    # pulses per revolution not in the file: its motors agree with each other, a pass
+    assert results["u2"].verdict is Verdict.PASS, results["u2"].checks
+    (pair,) = [c for c in results["u2"].checks if c.name == "gear/geometry scale of motors A and B"]
+    assert "geometry.pulses_per_rev" in pair.measured
     speed = Settings().jog_speed(6553.4)
     for unit in ("u1", "u2"):
         assert max(max(abs(a), abs(b)) for _, a, b, _ in commands(bench, unit)) <= speed
