@@ -5,18 +5,25 @@ recording agrees with the frames in it."""
 
 from __future__ import annotations
 
+import argparse
+import asyncio
 import json
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import cast
 
 import can
 import pytest
 
 from abh3_supervisor.clients.cli import main
+from abh3_supervisor.clients.commission import LiveBench, TerminalOperator, for_commissioning
+from abh3_supervisor.config import load_config
+from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.runtime.bus_runtime import Runtime
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "configs" / "commission-demo.yaml"
@@ -38,6 +45,75 @@ def test_mistakes_are_named_with_exit_2(
     assert main(["commission", str(DEMO), *args]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--report", "{tmp}/missing/r.html"], "--report {tmp}/missing/r.html: cannot write"),
+        (["--report", "{tmp}/r.html"], "--report {tmp}/r.html: cannot write"),
+        (["--record", "{tmp}/missing/r.mcap"], "--record {tmp}/missing/r.mcap: cannot write"),
+    ],
+)
+def test_an_unwritable_report_or_recording_is_refused_before_anything_opens(
+    args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "r.html").mkdir()  # a directory where the page would go
+    argv = [a.format(tmp=tmp_path) for a in args]
+    assert main(["commission", str(DEMO), "--yes", "--wheels-off-ground", *argv]) == 2
+    out, err = capsys.readouterr()
+    assert message.format(tmp=tmp_path) in err and "Traceback" not in err
+    assert "commissioning" not in out  # no bus opened, nothing moved
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.html"]  # nothing left behind
+
+
+def test_units_may_follow_the_options(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["commission", str(DEMO), "--yes", "middle", "--jog-seconds", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "no unit named 'middle'" in err and "unrecognized arguments" not in err
+
+
+def test_enter_at_a_question_is_no_and_y_is_yes() -> None:
+    consent = argparse.Namespace(wheels_off_ground=False, yes=False)
+    operator = TerminalOperator(cast(LiveBench, None), consent, keys=True)
+
+    async def answer(key: str) -> bool:
+        question = asyncio.ensure_future(operator.confirm("jog motor A? [y/N]"))
+        await asyncio.sleep(0)
+        operator.key("x")  # not an answer: still asking
+        await asyncio.sleep(0)
+        assert not question.done()
+        operator.key(key)
+        await asyncio.sleep(0)
+        assert question.done()
+        return question.result()
+
+    assert asyncio.run(answer("\r")) is False
+    assert asyncio.run(answer("\n")) is False
+    assert asyncio.run(answer("Y")) is True
+
+
+def test_the_e_stop_key_puts_every_commanded_units_stop_frame_on_the_wire_at_once() -> None:
+    """Not on the unit's next command period: the rehearsal's figure is the key's path."""
+    config = for_commissioning(load_config(DEMO), ["front"])
+
+    async def main() -> tuple[float, list[tuple[float, int, bytes]]]:
+        async with Runtime(config, plugins=PluginHost(config, available={})) as rt:
+            bench = LiveBench(rt, PluginHost(config, available={}), ["front"])
+            rt.supervisor.apply_text("front", "START ON ON")
+            await asyncio.sleep(0.1)
+            before = len(bench.sent)
+            t = bench.estop()
+            return t, list(bench.sent[before:])  # before any await: sent by the key itself
+
+    t, sent = asyncio.run(main())
+    front = ids.dp0_command_id(1, 2) & 0x03FFFFFF
+    stops = [s for s in sent if s[1] & 0x03FFFFFF == front]
+    assert len(stops) == 1 and stops[0][0] >= t
+    cmd = frames.decode_dp0_command(stops[0][2], flags.LAYOUT_2021.generation)
+    assert isinstance(cmd, frames.Dp0Command) and not cmd.inputs & flags.LAYOUT_2021.start.both
+    rear = ids.dp0_command_id(3, 2) & 0x03FFFFFF
+    assert not [s for s in sent if s[1] & 0x03FFFFFF == rear]  # a monitor here: not commanded
 
 
 def _last_commands(log: Path) -> dict[int, frames.Dp0Command]:
