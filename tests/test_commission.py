@@ -292,6 +292,25 @@ def test_monitor_and_moving_units_are_refused() -> None:
     assert not [c for c in results["u1"].checks if c.step.startswith("jog")]
 
 
+def test_a_unit_whose_startup_sets_it_moving_is_refused() -> None:
+    """The file's startup: is not run, but a unit it would set moving is not at rest as the
+    robot is used: refused, never commanded beyond its idle word."""
+    bench = robot()
+    results: dict[str, UnitResult] = {}
+    startups = {"u1": ("SERVO ON ON", "START ON ON", "VEL 100 0"), "u2": ("SERVO ON ON",)}
+    asyncio.run(commission(bench, Headless(bench), ["u1", "u2"], FAST, results, startups))
+    bench.run(0.5)
+    u1 = results["u1"]
+    assert failed(u1) == ["at rest"], u1.checks
+    assert "'VEL 100 0'" in next(c.measured for c in u1.checks if c.name == "at rest")
+    assert not [c for c in u1.checks if c.step.startswith(("jog", "step"))]
+    assert {c.verdict for c in u1.checks if c.step == "e-stop"} == {Verdict.SKIPPED}
+    layout = flags.layout(Generation.G2021)
+    sent = commands(bench, "u1")
+    assert sent and all(a == b == 0 and not i & ~layout.select_mask for _, a, b, i in sent)
+    assert results["u2"].verdict is Verdict.PASS  # SERVO ON alone moves nothing
+
+
 def test_without_consent_nothing_moves() -> None:
     bench = robot()
     operator = Headless(bench, answers=False)

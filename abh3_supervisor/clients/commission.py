@@ -361,7 +361,10 @@ async def _session(
                     )
                 )
                 fatal = asyncio.ensure_future(rt.fatal) if rt.fatal is not None else None
-                run = asyncio.ensure_future(commission(bench, operator, units, settings, results))
+                startups = {u: config.units[u].startup for u in units}
+                run = asyncio.ensure_future(
+                    commission(bench, operator, units, settings, results, startups)
+                )
                 waiting = {run} | ({fatal} if fatal is not None else set())
                 try:
                     await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)

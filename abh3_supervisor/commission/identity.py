@@ -5,9 +5,13 @@ A unit that fails here is refused: nothing after this step runs for it."""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+
 from abh3_supervisor.commission.model import Verdict
 from abh3_supervisor.commission.unit import UnitSteps
-from abh3_supervisor.config.model import Role, VelocityModel
+from abh3_supervisor.config.model import Config, Role, VelocityModel
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.core.verify import State
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.params import table
@@ -36,6 +40,19 @@ PARAMS_READ = (
     0x5060,
     0x5070,
 )
+
+
+def startup_motion(config: Config, unit: str, startup: Sequence[str]) -> str | None:
+    """The first ``startup:`` line after which ``unit`` has a speed or current set (run on
+    a supervisor that sends nothing), or None: such a unit moves as soon as a run starts."""
+    cfg = dataclasses.replace(config.units[unit], role=Role.COMMAND, startup=tuple(startup))
+    scratch = Supervisor(dataclasses.replace(config, units={unit: cfg}), clock=lambda: 0.0)
+    for text in startup:
+        scratch.apply_text(unit, text)
+        setpoint = scratch.units[unit].setpoint
+        if setpoint.ay or setpoint.bx:
+            return text
+    return None
 
 
 class IdentitySteps(UnitSteps):
@@ -86,6 +103,18 @@ class IdentitySteps(UnitSteps):
                 f"A {fb.vel_a:+.1f}, B {fb.vel_b:+.1f} min⁻¹",
                 f"|v| ≤ {still:g} min⁻¹",
                 "the unit is already moving: stop whatever drives it first",
+            )
+            ok = False
+        moves = startup_motion(self.sup.config, self.unit, self.startup)
+        if moves is not None:
+            self._check(
+                "identity",
+                "at rest",
+                Verdict.FAIL,
+                f"startup: {moves!r} sets it moving when a run starts",
+                "a unit at rest (no speed or current in startup:)",
+                f"take the motion out of units.{self.unit}.startup in the YAML (or commission "
+                "a copy without it): a bring-up begins with the robot still",
             )
             ok = False
         if state.verify.holds():

@@ -13,7 +13,7 @@ session.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 from abh3_supervisor.commission import analysis
 from abh3_supervisor.commission.analysis import Phase
@@ -262,13 +262,16 @@ async def commission(
     units: Sequence[str],
     settings: Settings,
     results: dict[str, UnitResult],
+    startups: Mapping[str, Sequence[str]] | None = None,
 ) -> str | None:
     """Each unit in turn, its result in ``results`` as it goes (so an interrupted session
     still reports what it saw); why the session ended early, or None. The e-stop outside
-    its rehearsal ends the session; every unit is stopped whatever happens."""
+    its rehearsal ends the session; every unit is stopped whatever happens. ``startups``:
+    the file's ``startup:`` per unit, not run; one that sets a unit moving refuses it."""
     try:
         for unit in units:
-            sequence = UnitSequence(bench, operator, unit, settings)
+            startup = (startups or {}).get(unit, ())
+            sequence = UnitSequence(bench, operator, unit, settings, startup)
             results[unit] = sequence.result
             await sequence.run()
     except Aborted as exc:

@@ -126,8 +126,16 @@ def halt(bench: Bench, unit: str) -> None:
 class UnitSteps:
     """A unit's state, result and collector, and the helpers of every step."""
 
-    def __init__(self, bench: Bench, operator: Operator, unit: str, settings: Settings) -> None:
+    def __init__(
+        self,
+        bench: Bench,
+        operator: Operator,
+        unit: str,
+        settings: Settings,
+        startup: Sequence[str] = (),
+    ) -> None:
         self.bench, self.op, self.settings = bench, operator, settings
+        self.startup = startup  # the file's, which commissioning does not run
         self.sup = bench.sup
         self.state = self.sup.units[unit]
         self.cfg = self.state.cfg
