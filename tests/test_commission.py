@@ -311,6 +311,17 @@ def test_a_unit_whose_startup_sets_it_moving_is_refused() -> None:
     assert results["u2"].verdict is Verdict.PASS  # SERVO ON alone moves nothing
 
 
+def test_a_jog_too_slow_to_judge_is_a_fail_not_a_pass_of_nothing() -> None:
+    """limits.velocity 30 × 5 % rounds to a jog of 1.2 min⁻¹: too slow to judge."""
+    text = ROBOT.format(faults="", gen="2023", model="motor", tau=50)
+    bench = FakeBench(parse_config(text.replace("velocity: 2000", "velocity: 30"), "r.yaml"))
+    results, _, _ = session(bench, units=["u1"])
+    u1 = results["u1"]
+    assert failed(u1) == ["jog speed"] and "below the 2 min⁻¹" in u1.checks[-1].fix
+    assert not [c for c in u1.checks if c.step.startswith(("jog", "step"))]
+    assert not any(a or b for _, a, b, _ in commands(bench, "u1"))
+
+
 def test_without_consent_nothing_moves() -> None:
     bench = robot()
     operator = Headless(bench, answers=False)

@@ -67,6 +67,19 @@ def test_an_unwritable_report_or_recording_is_refused_before_anything_opens(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.html"]  # nothing left behind
 
 
+def test_a_limit_too_low_to_jog_is_refused_before_anything_opens(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    slow = tmp_path / "slow.yaml"
+    slow.write_text(DEMO.read_text().replace("limits: {velocity: 3000}", "limits: {velocity: 30}"))
+    assert main(["commission", str(slow), "front", "--yes", "--wheels-off-ground"]) == 2
+    out, err = capsys.readouterr()
+    assert f"{slow}: units.front.limits.velocity 30 × --jog-fraction 0.05 is a jog of 1.2" in err
+    assert "--jog-fraction 0.1" not in err and "commissioning" not in out
+    assert main(["commission", str(slow), "front", "--jog-fraction", "0.1", "--report", "x.txt"])
+    assert "--report x.txt" in capsys.readouterr().err  # 30 × 0.1 = 3 min⁻¹ is enough
+
+
 def test_units_may_follow_the_options(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["commission", str(DEMO), "--yes", "middle", "--jog-seconds", "0.5"]) == 2
     err = capsys.readouterr().err

@@ -124,6 +124,14 @@ def run(args: argparse.Namespace) -> int:
                 for u in unknown
             ]
         )
+    slow = [
+        f"{config.file}: {why}"
+        for u in units
+        if config.units[u].role is Role.COMMAND
+        and (why := settings.too_slow(u, config.units[u].limits.velocity))
+    ]
+    if slow:
+        raise ConfigError(slow)
     if args.report is not None:
         if args.report.suffix.lower() not in (".html", ".htm"):
             raise Abh3Error(

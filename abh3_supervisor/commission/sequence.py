@@ -92,6 +92,10 @@ class UnitSequence(IdentitySteps):
 
     async def motion(self) -> None:
         await self.estop()
+        slow = self.settings.too_slow(self.unit, self.cfg.limits.velocity)
+        if slow is not None:  # the client refuses it first; a bench given it moves nothing
+            self._check("motion", "jog speed", Verdict.FAIL, f"{self.speed:g} min⁻¹", "", slow)
+            return
         question = (
             f"unit {self.unit}: are its wheels OFF THE GROUND (or the robot secured so it "
             f"cannot move)? Jogs at {self.speed:g} min⁻¹ follow"
