@@ -20,6 +20,7 @@ import pytest
 
 from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.commission import LiveBench, TerminalOperator, for_commissioning
+from abh3_supervisor.commission.unit import Aborted
 from abh3_supervisor.config import load_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import flags, frames, ids
@@ -104,6 +105,30 @@ def test_enter_at_a_question_is_no_and_y_is_yes() -> None:
     assert asyncio.run(answer("\r")) is False
     assert asyncio.run(answer("\n")) is False
     assert asyncio.run(answer("Y")) is True
+
+
+def test_the_e_stop_key_at_a_question_ends_the_session_without_an_answer() -> None:
+    class Bench:
+        pressed = 0
+
+        def estop(self) -> float:
+            self.pressed += 1
+            return 0.0
+
+    bench = Bench()
+    consent = argparse.Namespace(wheels_off_ground=False, yes=False)
+    operator = TerminalOperator(cast(LiveBench, bench), consent, keys=True)
+
+    async def main() -> None:
+        question = asyncio.ensure_future(operator.confirm("jog motor A? [y/N]"))
+        await asyncio.sleep(0)
+        operator.key("e")
+        await asyncio.sleep(0)
+        assert question.done() and bench.pressed == 1
+        with pytest.raises(Aborted, match="e-stop pressed"):
+            question.result()
+
+    asyncio.run(main())
 
 
 def test_the_e_stop_key_puts_every_commanded_units_stop_frame_on_the_wire_at_once() -> None:

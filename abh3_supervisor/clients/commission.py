@@ -35,7 +35,7 @@ from abh3_supervisor import __version__
 from abh3_supervisor.commission.model import Settings, Verdict
 from abh3_supervisor.commission.report import Session, html_text, json_text
 from abh3_supervisor.commission.sequence import SOURCE_TIMEOUT_S, commission
-from abh3_supervisor.commission.unit import UnitResult
+from abh3_supervisor.commission.unit import Aborted, UnitResult
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.kinematics import ab_to_yx
@@ -267,9 +267,12 @@ class TerminalOperator:
         """A key from the terminal (on the loop): the e-stop acts before anything else."""
         if char in ("e", "E"):
             t = self.bench.estop()
-            self.say("  E-STOP: every unit zero, START off")
+            asking = self._answer is not None and not self._answer.done()
+            self.say(("\n" if asking else "") + "  E-STOP: every unit zero, START off")
             if self._estop is not None and not self._estop.done():
                 self._estop.set_result(t)
+            elif self._answer is not None and not self._answer.done():
+                self._answer.set_exception(Aborted("e-stop pressed"))  # ends the session now
         elif self._answer is not None and not self._answer.done() and char in "yYnN\r\n":
             self._answer.set_result("y" if char in "yY" else "n")  # [y/N]: Enter is no
 
