@@ -81,6 +81,11 @@ def test_a_limit_too_low_to_jog_is_refused_before_anything_opens(
     assert "--report x.txt" in capsys.readouterr().err  # 30 × 0.1 = 3 min⁻¹ is enough
 
 
+def test_a_unit_named_twice_is_commissioned_once(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["commission", str(DEMO), "middle", "front", "middle"]) == 2
+    assert capsys.readouterr().err.count("no unit named 'middle'") == 1
+
+
 def test_units_may_follow_the_options(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["commission", str(DEMO), "--yes", "middle", "--jog-seconds", "0.5"]) == 2
     err = capsys.readouterr().err

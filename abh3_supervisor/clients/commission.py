@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         step_s=args.step_s,
         scale_tolerance=args.scale_tolerance,
     ).check()
-    units = list(args.units) or list(config.units)
+    units = list(dict.fromkeys(args.units)) or list(config.units)  # each once, in order
     unknown = [u for u in units if u not in config.units]
     if unknown:
         raise ConfigError(
