@@ -267,7 +267,8 @@ def test_a_session_cancelled_mid_jog_fails_the_unit_it_interrupted_and_those_not
     assert any(c.step == "e-stop" and c.verdict is Verdict.PASS for c in u1.checks)
     assert u1.verdict is Verdict.FAIL and failed(u1) == ["interrupted"]
     assert u2.verdict is Verdict.FAIL and failed(u2) == ["interrupted"]
-    assert u1.ended and u2.ended
+    assert u1.checks[-1].measured == "the session was stopped during its sequence"
+    assert u2.checks[-1].measured == "not commissioned: the session was stopped before it began"
     assert not commands(bench, "u2") or not any(a or b for _, a, b, _ in commands(bench, "u2"))
     assert_stopped(bench, "u1")
 

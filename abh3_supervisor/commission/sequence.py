@@ -282,7 +282,7 @@ async def commission(
         _ended(bench, units, results, "aborted", str(exc))
         return str(exc)
     except asyncio.CancelledError:  # Ctrl-C, a signal, the runtime's fatal error
-        _ended(bench, units, results, "interrupted", "the session was stopped during it")
+        _ended(bench, units, results, "interrupted", "the session was stopped")
         raise
     finally:
         for unit in units:
@@ -300,8 +300,9 @@ def _ended(
         result = results.get(unit)
         if result is None:
             result = results[unit] = UnitResult(bench.sup.units[unit].cfg)
-            result.add(Check("session", name, Verdict.FAIL, f"not commissioned: {why}"))
-            result.ended = why
+            before = f"not commissioned: {why} before it began"
+            result.add(Check("session", name, Verdict.FAIL, before))
+            result.ended = before
         elif unit == current:
-            result.add(Check("session", name, Verdict.FAIL, why))
+            result.add(Check("session", name, Verdict.FAIL, f"{why} during its sequence"))
             result.ended = result.ended or why
