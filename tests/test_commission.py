@@ -323,6 +323,25 @@ def test_a_jog_too_slow_to_judge_is_a_fail_not_a_pass_of_nothing() -> None:
     assert not any(a or b for _, a, b, _ in commands(bench, "u1"))
 
 
+@pytest.mark.parametrize("gen", ["2021", "2023"])
+def test_a_unit_in_current_control_is_jogged_in_velocity_control(gen: str) -> None:
+    """`control: current` sets the torque bits at start; the bring-up's jogs are velocity
+    commands (they were refused, and the report blamed the power stage)."""
+    text = ROBOT.format(
+        faults="{kind: reversed_axis, unit: u1, axis: B}", gen=gen, model="motor", tau=50
+    )
+    bench = FakeBench(
+        parse_config(text.replace("abh3_id: 1,", "abh3_id: 1, control: current,"), "c.yaml")
+    )
+    results, _, _ = session(bench, units=["u1"])
+    assert failed(results["u1"]) == ["reversed axis B (+100 min⁻¹)"], results["u1"].checks
+    layout = flags.layout(Generation(gen))
+    moving = [(a, i) for _, a, _, i in commands(bench, "u1") if a]
+    assert moving and all(not i & layout.torque.both for _, i in moving)
+    assert max(abs(a) for a, _ in moving) <= 100
+    assert_stopped(bench, "u1")
+
+
 def test_without_consent_nothing_moves() -> None:
     bench = robot()
     operator = Headless(bench, answers=False)

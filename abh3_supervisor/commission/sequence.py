@@ -103,7 +103,8 @@ class UnitSequence(IdentitySteps):
         if not await self.op.confirm(question):
             self._skip(["motion"], "the operator did not confirm the wheels are off the ground")
             return
-        for text in ("SERVO ON ON", "START ON ON"):
+        # velocity commands need the torque bits off: `control: current` sets them at start
+        for text in ("TORQUE OFF OFF", "SERVO ON ON", "START ON ON"):
             answer = self.sup.apply_text(self.unit, text)
             if answer:
                 self._check("motion", text, Verdict.FAIL, answer)
