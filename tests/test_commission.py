@@ -342,6 +342,18 @@ def test_a_unit_in_current_control_is_jogged_in_velocity_control(gen: str) -> No
     assert_stopped(bench, "u1")
 
 
+def test_a_unit_whose_data_select_stops_an_axis_is_refused() -> None:
+    """data_select 0 is set #7 & STOP: a jog could only fail, blaming the power stage."""
+    text = ROBOT.format(faults="", gen="2021", model="motor", tau=50)
+    text = text.replace("abh3_id: 1,", "abh3_id: 1, data_select: {ay: 7, bx: 0},")
+    bench = FakeBench(parse_config(text, "d.yaml"))
+    results, _, _ = session(bench, units=["u1"])
+    u1 = results["u1"]
+    assert failed(u1) == ["data select"]
+    assert "data_select.bx" in next(c.fix for c in u1.checks if c.name == "data select")
+    assert not any(a or b for _, a, b, _ in commands(bench, "u1"))
+
+
 def test_without_consent_nothing_moves() -> None:
     bench = robot()
     operator = Headless(bench, answers=False)

@@ -105,6 +105,18 @@ class IdentitySteps(UnitSteps):
                 "the unit is already moving: stop whatever drives it first",
             )
             ok = False
+        selects = zip(("ay", "bx"), cfg.data_select, strict=True)
+        stopped = [f"data_select.{k}" for k, s in selects if s == 0]
+        if stopped:  # the drive holds that axis at zero whatever it is asked: nothing to judge
+            self._check(
+                "identity",
+                "data select",
+                Verdict.FAIL,
+                f"{', '.join(stopped)}: 0 (set #7 & STOP)",
+                "1–7",
+                f"units.{self.unit}.{stopped[0]} in the YAML: 0 stops the axis; 7 is set #0",
+            )
+            ok = False
         moves = startup_motion(self.sup.config, self.unit, self.startup)
         if moves is not None:
             self._check(
