@@ -100,6 +100,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             Settings.flag(key),
             dest=key,
             type=float,
+            metavar="S" if key.endswith("_s") else "F",
             default=getattr(d, key),
             help=f"{help_text} ({lo:g}–{hi:g}; default {getattr(d, key):g})",
         )
