@@ -7,7 +7,7 @@ import asyncio
 from collections.abc import Sequence
 from typing import TypeVar
 
-from abh3_supervisor.commission.sequence import Bench
+from abh3_supervisor.commission.unit import Bench
 from abh3_supervisor.config import Config
 from abh3_supervisor.core.inputs import InputArbiter, InputSource, VelocityYX
 from abh3_supervisor.core.kinematics import ab_to_yx

@@ -14,8 +14,9 @@ import pytest
 from abh3_supervisor.commission import analysis
 from abh3_supervisor.commission.model import Settings, SettingsError, Trace, Verdict
 from abh3_supervisor.commission.report import Session, html_text, json_text, to_json
-from abh3_supervisor.commission.sequence import UnitResult, commission
+from abh3_supervisor.commission.sequence import commission
 from abh3_supervisor.commission.svg import LEFT, PANEL, RIGHT, WIDTH
+from abh3_supervisor.commission.unit import UnitResult
 from abh3_supervisor.config import load_config, parse_config
 from abh3_supervisor.core.kinematics import yx_to_ab
 from abh3_supervisor.protocol import flags, frames, ids
@@ -244,6 +245,34 @@ def test_cancelling_mid_jog_stops_the_drive() -> None:
     assert_stopped(bench, "u1")
 
 
+def test_a_session_cancelled_mid_jog_fails_the_unit_it_interrupted_and_those_not_begun() -> None:
+    """Ctrl-C after u1's identity and e-stop passed: u1 is not a pass (its wiring was never
+    judged), and u2, never begun, is not commissioned."""
+    bench = robot()
+    results: dict[str, UnitResult] = {}
+
+    async def main() -> None:
+        task = asyncio.ensure_future(
+            commission(bench, Headless(bench), ["u1", "u2"], FAST, results)
+        )
+        while not any(a for _, a, _, _ in commands(bench, "u1")):
+            await asyncio.sleep(0)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(main())
+    bench.run(0.5)
+    u1, u2 = results["u1"], results["u2"]
+    assert any(c.step == "e-stop" and c.verdict is Verdict.PASS for c in u1.checks)
+    assert u1.verdict is Verdict.FAIL and failed(u1) == ["interrupted"]
+    assert u2.verdict is Verdict.FAIL and failed(u2) == ["interrupted"]
+    assert u1.checks[-1].measured == "the session was stopped during its sequence"
+    assert u2.checks[-1].measured == "not commissioned: the session was stopped before it began"
+    assert not commands(bench, "u2") or not any(a or b for _, a, b, _ in commands(bench, "u2"))
+    assert_stopped(bench, "u1")
+
+
 def test_monitor_and_moving_units_are_refused() -> None:
     text = ROBOT.format(faults="", gen="2021", model="motor", tau=50).replace(
         "host_id: 9,", "host_id: 9, role: monitor,"
@@ -262,6 +291,67 @@ def test_monitor_and_moving_units_are_refused() -> None:
     results, _, _ = session(bench, units=["u1"])
     assert "at rest" in failed(results["u1"])
     assert not [c for c in results["u1"].checks if c.step.startswith("jog")]
+
+
+def test_a_unit_whose_startup_sets_it_moving_is_refused() -> None:
+    """The file's startup: is not run, but a unit it would set moving is not at rest as the
+    robot is used: refused, never commanded beyond its idle word."""
+    bench = robot()
+    results: dict[str, UnitResult] = {}
+    startups = {"u1": ("SERVO ON ON", "START ON ON", "VEL 100 0"), "u2": ("SERVO ON ON",)}
+    asyncio.run(commission(bench, Headless(bench), ["u1", "u2"], FAST, results, startups))
+    bench.run(0.5)
+    u1 = results["u1"]
+    assert failed(u1) == ["at rest"], u1.checks
+    assert "'VEL 100 0'" in next(c.measured for c in u1.checks if c.name == "at rest")
+    assert not [c for c in u1.checks if c.step.startswith(("jog", "step"))]
+    assert {c.verdict for c in u1.checks if c.step == "e-stop"} == {Verdict.SKIPPED}
+    layout = flags.layout(Generation.G2021)
+    sent = commands(bench, "u1")
+    assert sent and all(a == b == 0 and not i & ~layout.select_mask for _, a, b, i in sent)
+    assert results["u2"].verdict is Verdict.PASS  # SERVO ON alone moves nothing
+
+
+def test_a_jog_too_slow_to_judge_is_a_fail_not_a_pass_of_nothing() -> None:
+    """limits.velocity 30 × 5 % rounds to a jog of 1.2 min⁻¹: too slow to judge."""
+    text = ROBOT.format(faults="", gen="2023", model="motor", tau=50)
+    bench = FakeBench(parse_config(text.replace("velocity: 2000", "velocity: 30"), "r.yaml"))
+    results, _, _ = session(bench, units=["u1"])
+    u1 = results["u1"]
+    assert failed(u1) == ["jog speed"] and "below the 2 min⁻¹" in u1.checks[-1].fix
+    assert not [c for c in u1.checks if c.step.startswith(("jog", "step"))]
+    assert not any(a or b for _, a, b, _ in commands(bench, "u1"))
+
+
+@pytest.mark.parametrize("gen", ["2021", "2023"])
+def test_a_unit_in_current_control_is_jogged_in_velocity_control(gen: str) -> None:
+    """`control: current` sets the torque bits at start; the bring-up's jogs are velocity
+    commands (they were refused, and the report blamed the power stage)."""
+    text = ROBOT.format(
+        faults="{kind: reversed_axis, unit: u1, axis: B}", gen=gen, model="motor", tau=50
+    )
+    bench = FakeBench(
+        parse_config(text.replace("abh3_id: 1,", "abh3_id: 1, control: current,"), "c.yaml")
+    )
+    results, _, _ = session(bench, units=["u1"])
+    assert failed(results["u1"]) == ["reversed axis B (+100 min⁻¹)"], results["u1"].checks
+    layout = flags.layout(Generation(gen))
+    moving = [(a, i) for _, a, _, i in commands(bench, "u1") if a]
+    assert moving and all(not i & layout.torque.both for _, i in moving)
+    assert max(abs(a) for a, _ in moving) <= 100
+    assert_stopped(bench, "u1")
+
+
+def test_a_unit_whose_data_select_stops_an_axis_is_refused() -> None:
+    """data_select 0 is set #7 & STOP: a jog could only fail, blaming the power stage."""
+    text = ROBOT.format(faults="", gen="2021", model="motor", tau=50)
+    text = text.replace("abh3_id: 1,", "abh3_id: 1, data_select: {ay: 7, bx: 0},")
+    bench = FakeBench(parse_config(text, "d.yaml"))
+    results, _, _ = session(bench, units=["u1"])
+    u1 = results["u1"]
+    assert failed(u1) == ["data select"]
+    assert "data_select.bx" in next(c.fix for c in u1.checks if c.name == "data select")
+    assert not any(a or b for _, a, b, _ in commands(bench, "u1"))
 
 
 def test_without_consent_nothing_moves() -> None:
@@ -371,6 +461,14 @@ def test_pulses_per_rev_from_counts_and_the_integrated_feedback() -> None:
     assert analysis.judge_scale(trace, 0, 0, Settings()).verdict is Verdict.WARN
 
 
+def test_without_pulses_per_rev_motors_that_count_alike_pass_and_unlike_fail() -> None:
+    s = Settings()
+    assert analysis.judge_pair("jog B", 4096, 4080, s).verdict is Verdict.PASS
+    unlike = analysis.judge_pair("jog B", 4096, 4096 * 1.2, s)
+    assert unlike.verdict is Verdict.FAIL and unlike.name.endswith("+20% against motor A")
+    assert analysis.judge_pair("jog B", None, 4096, s).verdict is Verdict.WARN  # not counted
+
+
 def test_settings_outside_their_bounds_are_refused() -> None:
     with pytest.raises(
         SettingsError, match=r"--jog-fraction 0.5 is out of bounds \(allowed 0.01–0.2"
@@ -405,10 +503,10 @@ def test_a_plain_file_finds_the_faults_too(fault: str, name: str, gen: str) -> N
     bench = FakeBench(parse_config(PLAIN.format(faults=fault, gen=gen), "plain.yaml"))
     results, _, _ = session(bench)
     assert failed(results["u1"])[0].startswith(name), results["u1"].checks
-    assert results["u2"].verdict is Verdict.WARN  # pulses per revolution not in the file
-    assert [c.name for c in results["u2"].checks if c.verdict is not Verdict.PASS] == [
-        "gear/geometry scale of motors A and B"
-    ]
+    # pulses per revolution not in the file: its motors agree with each other, a pass
+    assert results["u2"].verdict is Verdict.PASS, results["u2"].checks
+    (pair,) = [c for c in results["u2"].checks if c.name == "gear/geometry scale of motors A and B"]
+    assert "geometry.pulses_per_rev" in pair.measured
     speed = Settings().jog_speed(6553.4)
     for unit in ("u1", "u2"):
         assert max(max(abs(a), abs(b)) for _, a, b, _ in commands(bench, unit)) <= speed

@@ -5,18 +5,26 @@ recording agrees with the frames in it."""
 
 from __future__ import annotations
 
+import argparse
+import asyncio
 import json
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import cast
 
 import can
 import pytest
 
 from abh3_supervisor.clients.cli import main
+from abh3_supervisor.clients.commission import LiveBench, TerminalOperator, for_commissioning
+from abh3_supervisor.commission.unit import Aborted
+from abh3_supervisor.config import load_config
+from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.runtime.bus_runtime import Runtime
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "configs" / "commission-demo.yaml"
@@ -38,6 +46,117 @@ def test_mistakes_are_named_with_exit_2(
     assert main(["commission", str(DEMO), *args]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--report", "{tmp}/missing/r.html"], "--report {tmp}/missing/r.html: cannot write"),
+        (["--report", "{tmp}/r.html"], "--report {tmp}/r.html: cannot write"),
+        (["--record", "{tmp}/missing/r.mcap"], "--record {tmp}/missing/r.mcap: cannot write"),
+    ],
+)
+def test_an_unwritable_report_or_recording_is_refused_before_anything_opens(
+    args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "r.html").mkdir()  # a directory where the page would go
+    argv = [a.format(tmp=tmp_path) for a in args]
+    assert main(["commission", str(DEMO), "--yes", "--wheels-off-ground", *argv]) == 2
+    out, err = capsys.readouterr()
+    assert message.format(tmp=tmp_path) in err and "Traceback" not in err
+    assert "commissioning" not in out  # no bus opened, nothing moved
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.html"]  # nothing left behind
+
+
+def test_a_limit_too_low_to_jog_is_refused_before_anything_opens(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    slow = tmp_path / "slow.yaml"
+    slow.write_text(DEMO.read_text().replace("limits: {velocity: 3000}", "limits: {velocity: 30}"))
+    assert main(["commission", str(slow), "front", "--yes", "--wheels-off-ground"]) == 2
+    out, err = capsys.readouterr()
+    assert f"{slow}: units.front.limits.velocity 30 × --jog-fraction 0.05 is a jog of 1.2" in err
+    assert "--jog-fraction 0.1" not in err and "commissioning" not in out
+    assert main(["commission", str(slow), "front", "--jog-fraction", "0.1", "--report", "x.txt"])
+    assert "--report x.txt" in capsys.readouterr().err  # 30 × 0.1 = 3 min⁻¹ is enough
+
+
+def test_a_unit_named_twice_is_commissioned_once(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["commission", str(DEMO), "middle", "front", "middle"]) == 2
+    assert capsys.readouterr().err.count("no unit named 'middle'") == 1
+
+
+def test_units_may_follow_the_options(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["commission", str(DEMO), "--yes", "middle", "--jog-seconds", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "no unit named 'middle'" in err and "unrecognized arguments" not in err
+
+
+def test_enter_at_a_question_is_no_and_y_is_yes() -> None:
+    consent = argparse.Namespace(wheels_off_ground=False, yes=False)
+    operator = TerminalOperator(cast(LiveBench, None), consent, keys=True)
+
+    async def answer(key: str) -> bool:
+        question = asyncio.ensure_future(operator.confirm("jog motor A? [y/N]"))
+        await asyncio.sleep(0)
+        operator.key("x")  # not an answer: still asking
+        await asyncio.sleep(0)
+        assert not question.done()
+        operator.key(key)
+        await asyncio.sleep(0)
+        assert question.done()
+        return question.result()
+
+    assert asyncio.run(answer("\r")) is False
+    assert asyncio.run(answer("\n")) is False
+    assert asyncio.run(answer("Y")) is True
+
+
+def test_the_e_stop_key_at_a_question_ends_the_session_without_an_answer() -> None:
+    class Bench:
+        pressed = 0
+
+        def estop(self) -> float:
+            self.pressed += 1
+            return 0.0
+
+    bench = Bench()
+    consent = argparse.Namespace(wheels_off_ground=False, yes=False)
+    operator = TerminalOperator(cast(LiveBench, bench), consent, keys=True)
+
+    async def main() -> None:
+        question = asyncio.ensure_future(operator.confirm("jog motor A? [y/N]"))
+        await asyncio.sleep(0)
+        operator.key("e")
+        await asyncio.sleep(0)
+        assert question.done() and bench.pressed == 1
+        with pytest.raises(Aborted, match="e-stop pressed"):
+            question.result()
+
+    asyncio.run(main())
+
+
+def test_the_e_stop_key_puts_every_commanded_units_stop_frame_on_the_wire_at_once() -> None:
+    """Not on the unit's next command period: the rehearsal's figure is the key's path."""
+    config = for_commissioning(load_config(DEMO), ["front"])
+
+    async def main() -> tuple[float, list[tuple[float, int, bytes]]]:
+        async with Runtime(config, plugins=PluginHost(config, available={})) as rt:
+            bench = LiveBench(rt, PluginHost(config, available={}), ["front"])
+            rt.supervisor.apply_text("front", "START ON ON")
+            await asyncio.sleep(0.1)
+            before = len(bench.sent)
+            t = bench.estop()
+            return t, list(bench.sent[before:])  # before any await: sent by the key itself
+
+    t, sent = asyncio.run(main())
+    front = ids.dp0_command_id(1, 2) & 0x03FFFFFF
+    stops = [s for s in sent if s[1] & 0x03FFFFFF == front]
+    assert len(stops) == 1 and stops[0][0] >= t
+    cmd = frames.decode_dp0_command(stops[0][2], flags.LAYOUT_2021.generation)
+    assert isinstance(cmd, frames.Dp0Command) and not cmd.inputs & flags.LAYOUT_2021.start.both
+    rear = ids.dp0_command_id(3, 2) & 0x03FFFFFF
+    assert not [s for s in sent if s[1] & 0x03FFFFFF == rear]  # a monitor here: not commanded
 
 
 def _last_commands(log: Path) -> dict[int, frames.Dp0Command]:

@@ -34,11 +34,8 @@ from pathlib import Path
 from abh3_supervisor import __version__
 from abh3_supervisor.commission.model import Settings, Verdict
 from abh3_supervisor.commission.report import Session, html_text, json_text
-from abh3_supervisor.commission.sequence import (
-    SOURCE_TIMEOUT_S,
-    UnitResult,
-    commission,
-)
+from abh3_supervisor.commission.sequence import SOURCE_TIMEOUT_S, commission
+from abh3_supervisor.commission.unit import Aborted, UnitResult
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.kinematics import ab_to_yx
@@ -56,12 +53,31 @@ log = logging.getLogger("abh3")
 ESTOP_KEY_WAIT_S = 30.0  # the rehearsal waits this long for the key
 
 
+class _Intermixed(argparse.ArgumentParser):
+    """UNIT… may follow the options (`abh3 commission robot.yaml --yes front`): Python
+    3.11's argparse gives a ``*`` positional its (empty) share at the first one."""
+
+    _inside = False
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        if self._inside:  # the intermixed parse calls back here, twice
+            return super().parse_known_args(args, namespace)
+        self._inside = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._inside = False
+
+
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     d = Settings()
     c = sub.add_parser(
         "commission",
         help="bring up drives step by step (identity, e-stop, wiring, step response) and report",
     )
+    c.__class__ = _Intermixed
     c.add_argument("config", type=Path)
     c.add_argument("units", nargs="*", metavar="UNIT", help="the units to commission (all)")
     c.add_argument("--report", type=Path, metavar="FILE.html", help="the HTML report; .json beside")
@@ -84,6 +100,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             Settings.flag(key),
             dest=key,
             type=float,
+            metavar="S" if key.endswith("_s") else "F",
             default=getattr(d, key),
             help=f"{help_text} ({lo:g}–{hi:g}; default {getattr(d, key):g})",
         )
@@ -99,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         step_s=args.step_s,
         scale_tolerance=args.scale_tolerance,
     ).check()
-    units = list(args.units) or list(config.units)
+    units = list(dict.fromkeys(args.units)) or list(config.units)  # each once, in order
     unknown = [u for u in units if u not in config.units]
     if unknown:
         raise ConfigError(
@@ -108,9 +125,37 @@ def run(args: argparse.Namespace) -> int:
                 for u in unknown
             ]
         )
-    if args.report is not None and args.report.suffix.lower() not in (".html", ".htm"):
-        raise Abh3Error(f"--report {args.report}: name the HTML file (FILE.html; FILE.json beside)")
+    slow = [
+        f"{config.file}: {why}"
+        for u in units
+        if config.units[u].role is Role.COMMAND
+        and (why := settings.too_slow(u, config.units[u].limits.velocity))
+    ]
+    if slow:
+        raise ConfigError(slow)
+    if args.report is not None:
+        if args.report.suffix.lower() not in (".html", ".htm"):
+            raise Abh3Error(
+                f"--report {args.report}: name the HTML file (FILE.html; FILE.json beside)"
+            )
+        _writable("--report", args.report)
+        _writable("--report", args.report.with_suffix(".json"))
+    if args.record is not None:
+        _writable("--record", args.record)
     return asyncio.run(_session(config, units, settings, args))
+
+
+def _writable(option: str, path: Path) -> None:
+    """Can ``path`` be written? Asked before anything opens or moves, not found out after
+    the session (a report lost at the end of a bring-up); leaves no file behind."""
+    existed = path.exists()
+    try:
+        with path.open("a", encoding="utf-8"):
+            pass
+    except OSError as exc:
+        raise Abh3Error(f"{option} {path}: cannot write: {exc.strerror}") from None
+    if not existed:
+        path.unlink(missing_ok=True)
 
 
 def for_commissioning(config: Config, units: Sequence[str]) -> Config:
@@ -165,6 +210,18 @@ class LiveBench:
     def now(self) -> float:
         return self.loop.time()
 
+    def estop(self) -> float:
+        """The e-stop key, pressed now (its time returned): latched in the supervisor, and
+        each commanded unit's stop frame sent at once, not on its next command period, as
+        the way-out stop does."""
+        t = self.now()
+        self.sup.emergency_stop()
+        for name, unit in self.sup.units.items():
+            pump = self.rt.pumps.get(unit.cfg.bus)
+            if unit.cfg.role is Role.COMMAND and pump is not None:
+                pump.send(*self.sup.schedulers[unit.cfg.bus].send_now(name, self.loop.time()))
+        return t
+
     async def wait(self, seconds: float) -> None:
         await asyncio.sleep(max(0.0, seconds))
 
@@ -210,15 +267,15 @@ class TerminalOperator:
     def key(self, char: str) -> None:
         """A key from the terminal (on the loop): the e-stop acts before anything else."""
         if char in ("e", "E"):
-            t = self.bench.now()
-            self.bench.sup.emergency_stop()
-            for pump in self.bench.rt.pumps.values():
-                pump.wake()
-            self.say("  E-STOP: every unit zero, START off")
+            t = self.bench.estop()
+            asking = self._answer is not None and not self._answer.done()
+            self.say(("\n" if asking else "") + "  E-STOP: every unit zero, START off")
             if self._estop is not None and not self._estop.done():
                 self._estop.set_result(t)
-        elif self._answer is not None and not self._answer.done() and char in "yYnN":
-            self._answer.set_result(char.lower())
+            elif self._answer is not None and not self._answer.done():
+                self._answer.set_exception(Aborted("e-stop pressed"))  # ends the session now
+        elif self._answer is not None and not self._answer.done() and char in "yYnN\r\n":
+            self._answer.set_result("y" if char in "yY" else "n")  # [y/N]: Enter is no
 
     async def confirm(self, question: str) -> bool:
         wheels = "OFF THE GROUND" in question
@@ -238,9 +295,7 @@ class TerminalOperator:
     async def press_estop(self, prompt: str) -> float | None:
         if not self.keys:
             self.say(f"{prompt} (no terminal: pressed by the tool itself)")
-            t = self.bench.now()
-            self.bench.sup.emergency_stop()
-            return t
+            return self.bench.estop()
         self._estop = asyncio.get_running_loop().create_future()
         self.say(prompt)
         try:
@@ -318,7 +373,10 @@ async def _session(
                     )
                 )
                 fatal = asyncio.ensure_future(rt.fatal) if rt.fatal is not None else None
-                run = asyncio.ensure_future(commission(bench, operator, units, settings, results))
+                startups = {u: config.units[u].startup for u in units}
+                run = asyncio.ensure_future(
+                    commission(bench, operator, units, settings, results, startups)
+                )
                 waiting = {run} | ({fatal} if fatal is not None else set())
                 try:
                     await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)

@@ -10,6 +10,7 @@ from typing import Any
 from abh3_supervisor.errors import Abh3Error
 
 AXES = ("A", "B")  # the motors; every jog and step moves one of them
+MIN_JOG = 2.0  # min⁻¹: ten steps of the wire's 0.2, so that ±15 % of a jog can be told
 
 
 class Verdict(StrEnum):
@@ -122,6 +123,18 @@ class Settings:
         """Rounded down to 0.4 min⁻¹: half of it (one motor as travel and turn) is still on
         the wire's 0.2 min⁻¹ grid, so no frame carries more than this."""
         return round(math.floor(self.jog_fraction * velocity_limit / 0.4 + 1e-9) * 0.4, 1)
+
+    def too_slow(self, unit: str, velocity_limit: float) -> str | None:
+        """Why ``unit``'s jog would be too slow to judge (a speed of 0 would pass every jog
+        by moving nothing), or None."""
+        speed = self.jog_speed(velocity_limit)
+        if speed >= MIN_JOG:
+            return None
+        return (
+            f"units.{unit}.limits.velocity {velocity_limit:g} × --jog-fraction "
+            f"{self.jog_fraction:g} is a jog of {speed:g} min⁻¹, below the {MIN_JOG:g} min⁻¹ "
+            "a jog needs to be judged: raise --jog-fraction (up to 0.2) or the limit"
+        )
 
     def to_json(self) -> dict[str, float]:
         return {k: getattr(self, k) for k in self.__slots__}

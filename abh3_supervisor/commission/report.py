@@ -11,8 +11,8 @@ from html import escape
 from typing import Any
 
 from abh3_supervisor.commission.model import Settings, Verdict
-from abh3_supervisor.commission.sequence import UnitResult
 from abh3_supervisor.commission.svg import plot
+from abh3_supervisor.commission.unit import UnitResult
 from abh3_supervisor.params import table
 
 
