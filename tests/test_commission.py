@@ -227,13 +227,12 @@ def test_e_stop_outside_the_rehearsal_ends_the_session_with_everything_stopped()
         assert bench.drive(unit).vel == pytest.approx([0.0, 0.0], abs=0.5)
 
 
-def test_cancelling_mid_jog_stops_the_drive() -> None:
-    """Ctrl-C reaches the sequence as a cancellation: the unit it moves is stopped."""
-    bench = robot()
+def cancel_mid_jog(bench: FakeBench, units: list[str]) -> dict[str, UnitResult]:
+    """Run the sequence on ``units`` and cancel it (as Ctrl-C does) once u1 moves."""
+    results: dict[str, UnitResult] = {}
 
     async def main() -> None:
-        results: dict[str, UnitResult] = {}
-        task = asyncio.ensure_future(commission(bench, Headless(bench), ["u1"], FAST, results))
+        task = asyncio.ensure_future(commission(bench, Headless(bench), units, FAST, results))
         while not any(a for _, a, _, _ in commands(bench, "u1")):
             await asyncio.sleep(0)
         task.cancel()
@@ -242,6 +241,13 @@ def test_cancelling_mid_jog_stops_the_drive() -> None:
 
     asyncio.run(main())
     bench.run(0.5)
+    return results
+
+
+def test_cancelling_mid_jog_stops_the_drive() -> None:
+    """Ctrl-C reaches the sequence as a cancellation: the unit it moves is stopped."""
+    bench = robot()
+    cancel_mid_jog(bench, ["u1"])
     assert_stopped(bench, "u1")
 
 
@@ -249,20 +255,7 @@ def test_a_session_cancelled_mid_jog_fails_the_unit_it_interrupted_and_those_not
     """Ctrl-C after u1's identity and e-stop passed: u1 is not a pass (its wiring was never
     judged), and u2, never begun, is not commissioned."""
     bench = robot()
-    results: dict[str, UnitResult] = {}
-
-    async def main() -> None:
-        task = asyncio.ensure_future(
-            commission(bench, Headless(bench), ["u1", "u2"], FAST, results)
-        )
-        while not any(a for _, a, _, _ in commands(bench, "u1")):
-            await asyncio.sleep(0)
-        task.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await task
-
-    asyncio.run(main())
-    bench.run(0.5)
+    results = cancel_mid_jog(bench, ["u1", "u2"])
     u1, u2 = results["u1"], results["u2"]
     assert any(c.step == "e-stop" and c.verdict is Verdict.PASS for c in u1.checks)
     assert u1.verdict is Verdict.FAIL and failed(u1) == ["interrupted"]
