@@ -45,6 +45,7 @@ from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime.priority import Priority, bus_priority
 from abh3_supervisor.runtime.recording import recorded, recording
 from abh3_supervisor.runtime.stopping import EXIT_STOP_UNCONFIRMED
 from abh3_supervisor.service.param_ops import ParamOps
@@ -142,7 +143,10 @@ def run(args: argparse.Namespace) -> int:
         _writable("--report", args.report.with_suffix(".json"))
     if args.record is not None:
         _writable("--record", args.record)
-    return asyncio.run(_session(config, units, settings, args))
+    # the jogs and the e-stop figure are timed on the bus loop: as `abh3 run` runs it
+    with bus_priority(Priority.AUTO) as priority:
+        log.debug("%s", priority)  # -v; the figures in the report are what it shows
+        return asyncio.run(_session(config, units, settings, args))
 
 
 def _writable(option: str, path: Path) -> None:
