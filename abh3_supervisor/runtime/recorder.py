@@ -15,7 +15,6 @@ import asyncio
 import contextlib
 import logging
 import os
-import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -138,44 +137,40 @@ def _flush(writer: Any) -> None:
 class GuardedRecorder(can.Listener):
     """``--record``'s writer, which may fail (disk full) without touching the bus path:
     the first failure is reported once, recording stops, the drives go on being driven.
-    :meth:`start_flushing` flushes it every ``FLUSH_S`` on the loop. Thread-safe: the
-    frames, the events and the flushes may come from different threads."""
+    :meth:`start_flushing` flushes it every ``FLUSH_S`` on the loop. Frames (the pumps),
+    events (the supervisor) and flushes all come on the loop thread, one at a time."""
 
     def __init__(self, path: Path, writer: can.Listener) -> None:
         self.path, self.writer = path, writer
         self.failed: str | None = None
         self.failed_at: float | None = None  # wall clock of the failure
-        self._lock = threading.Lock()
         self._timer: asyncio.TimerHandle | None = None
         self._stopped = False
 
     def on_message_received(self, msg: can.Message) -> None:
-        with self._lock:
-            if self.failed is not None or self._stopped:
-                return
-            try:
-                self.writer.on_message_received(msg)
-            except Exception as exc:
-                self._fail("writing", exc)
+        if self.failed is not None or self._stopped:
+            return
+        try:
+            self.writer.on_message_received(msg)
+        except Exception as exc:
+            self._fail("writing", exc)
 
     def observe(self, event: object) -> None:
         """A supervisor event, for writers that record decoded values too (MCAP)."""
-        with self._lock:
-            if self.failed is not None or self._stopped:
-                return
-            try:
-                self.writer.observe(event)  # type: ignore[attr-defined]
-            except Exception as exc:
-                self._fail("writing", exc)
+        if self.failed is not None or self._stopped:
+            return
+        try:
+            self.writer.observe(event)  # type: ignore[attr-defined]
+        except Exception as exc:
+            self._fail("writing", exc)
 
     def flush(self) -> None:
-        with self._lock:
-            if self.failed is not None or self._stopped:
-                return
-            try:
-                _flush(self.writer)
-            except Exception as exc:
-                self._fail("writing", exc)
+        if self.failed is not None or self._stopped:
+            return
+        try:
+            _flush(self.writer)
+        except Exception as exc:
+            self._fail("writing", exc)
 
     def start_flushing(self, loop: asyncio.AbstractEventLoop) -> None:
         """Flush now (the file's header reaches the disk) and every ``FLUSH_S`` on
@@ -206,15 +201,14 @@ class GuardedRecorder(can.Listener):
     def stop(self) -> None:
         if self._timer is not None:
             self._timer.cancel()
-        with self._lock:
-            if self._stopped:
-                return
-            self._stopped = True
-            try:
-                self.writer.stop()  # flushes and closes the file
-            except Exception as exc:
-                if self.failed is None:  # a writer that failed already says why once
-                    self._fail("closing", exc)
+        if self._stopped:
+            return
+        self._stopped = True
+        try:
+            self.writer.stop()  # flushes and closes the file
+        except Exception as exc:
+            if self.failed is None:  # a writer that failed already says why once
+                self._fail("closing", exc)
 
 
 def open_recorder(path: Path, config: Config | None = None) -> GuardedRecorder:

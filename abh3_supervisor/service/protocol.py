@@ -16,6 +16,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from abh3_supervisor.core.text import clean
+
 PROTOCOL = 1
 MAX_LINE = 64 * 1024  # a request is a few hundred bytes; anything longer is refused
 SHOWN = 80  # characters of a client's own text quoted back in an error
@@ -77,7 +79,8 @@ def request_id(line: bytes) -> int | str | None:
 
 
 def shown(text: str) -> str:
-    return text if len(text) <= SHOWN else text[:SHOWN] + "…"
+    """A client's own text quoted back in an error: escaped and capped as in a log line."""
+    return clean(text, SHOWN)
 
 
 class LineSplitter:
@@ -115,8 +118,13 @@ class LineSplitter:
         return lines
 
 
+def dumps(value: Any) -> bytes:
+    """Compact JSON, finite numbers only (every message is one line of it)."""
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
+
+
 def encode(message: dict[str, Any]) -> bytes:
-    return json.dumps(message, separators=(",", ":"), allow_nan=False).encode() + b"\n"
+    return dumps(message) + b"\n"
 
 
 def result(rid: int | str | None, value: Any) -> bytes:

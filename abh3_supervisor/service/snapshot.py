@@ -135,12 +135,15 @@ def _health(sup: Supervisor, bus: str) -> dict[str, Any]:
     return {"state": health.state.value, "since": health.since, "detail": health.detail}
 
 
+def head(sup: Supervisor) -> dict[str, Any]:
+    """What a state says before its units: when, and the supervisor's own switches."""
+    return {"t": sup.clock(), "estop": sup.estop, "stopping": sup.stopping}
+
+
 def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str, Any]:
     """The state of a supervisor and the pumps of its buses (none: a test's fake time)."""
     return {
-        "t": sup.clock(),
-        "estop": sup.estop,
-        "stopping": sup.stopping,
+        **head(sup),
         "units": {name: unit_state(sup, unit) for name, unit in sup.units.items()},
         "buses": {name: bus_state(sup, name, pumps.get(name)) for name in sup.schedulers},
     }

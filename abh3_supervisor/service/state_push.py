@@ -15,17 +15,13 @@ began; each unit's values carry their own times (feedback ``t``, ``reported.t``)
 from __future__ import annotations
 
 import asyncio
-import json
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-from abh3_supervisor.service.snapshot import bus_state, unit_state
+from abh3_supervisor.service.protocol import dumps
+from abh3_supervisor.service.snapshot import bus_state, head, unit_state
 
 if TYPE_CHECKING:
     from abh3_supervisor.runtime.bus_runtime import Runtime
-
-
-def _dumps(value: Any) -> bytes:
-    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
 
 
 class SharedState:
@@ -57,21 +53,21 @@ class SharedState:
 
     async def _build(self, generation: int, began: float) -> bytes:
         sup = self.rt.supervisor
-        head = _dumps({"t": sup.clock(), "estop": sup.estop, "stopping": sup.stopping})
+        opening = dumps(head(sup))
         units: list[bytes] = []
         for name, unit in list(sup.units.items()):
-            units.append(_dumps(name) + b":" + _dumps(unit_state(sup, unit)))
+            units.append(dumps(name) + b":" + dumps(unit_state(sup, unit)))
             await asyncio.sleep(0)  # the buses' turn: a deadline may have fallen due
         pumps = self.rt.pumps
         buses = {name: bus_state(sup, name, pumps.get(name)) for name in sup.schedulers}
         data = b"".join(
             (
                 b'{"jsonrpc":"2.0","method":"state","params":',
-                head[:-1],  # the object left open: units and buses follow
+                opening[:-1],  # the object left open: units and buses follow
                 b',"units":{',
                 b",".join(units),
                 b'},"buses":',
-                _dumps(buses),
+                dumps(buses),
                 b"}}\n",
             )
         )
