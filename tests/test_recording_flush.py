@@ -116,6 +116,29 @@ def test_a_finished_mcap_recording_indexes_every_chunk(tmp_path: Path) -> None:
         assert sum(1 for _ in reader.iter_messages()) == 500
 
 
+def test_a_full_disk_under_the_mcap_index_ends_the_recording_keeping_its_chunks(
+    tmp_path: Path,
+) -> None:
+    """The index file beside the recording fills the disk too: the recording ends once,
+    as for its own file, and the chunks already written read back."""
+    pytest.importorskip("mcap_ros2")
+    path = tmp_path / "run.mcap"
+    rec = open_recorder(path, CONFIG)
+    index = rec.writer.index  # type: ignore[attr-defined]
+    for msg in frames(100, 1000.0):
+        rec.on_message_received(msg)
+    rec.flush()
+    index.file = FillsUp(index.file, room=0)
+    for msg in frames(100, 1001.0):
+        rec.on_message_received(msg)
+    rec.flush()  # closes a chunk: its index record meets the full disk
+    assert rec.failed is not None and "No space left" in rec.failed
+    for msg in frames(100, 1002.0):
+        rec.on_message_received(msg)  # ignored from now on: no second error
+    rec.stop()
+    assert len(on_disk(path)) >= 100
+
+
 def test_a_full_disk_ends_the_recording_and_the_run_says_so_with_the_drives_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
