@@ -103,6 +103,7 @@ class _Worker:
                 log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
 
     def _run(self) -> None:
+        self.host.thread_setup()
         while (item := self.queue.get()) is not _STOP:
             hook, kwargs = cast(tuple[str, dict[str, Any]], item)
             self.host.call_one(self.name, hook, **kwargs)
@@ -132,6 +133,9 @@ class PluginHost:
         self.output_failures: dict[str, str] = {}  # plugin → its output's OSError (the exit code)
         # set by the runtime: end the run, drives stopped (an output failed, on_error: stop)
         self.request_stop: Callable[[str], None] | None = None
+        # run first on every thread plugins run on (and so inherited by the threads they
+        # start); the runtime drops the bus loop's real-time priority there
+        self.thread_setup: Callable[[], None] = lambda: None
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._load(config, installed() if available is None else available)
@@ -238,9 +242,12 @@ class PluginHost:
 
     def _bounded(self, name: str, hook: str, deadline: float, **kwargs: Any) -> str | None:
         """Run one plugin's lifecycle hook with a deadline (see :func:`bounded`)."""
-        return bounded(
-            f"plugin {name} {hook}", deadline, lambda: self._caller(name, hook)(**kwargs)
-        )
+
+        def call() -> object:
+            self.thread_setup()
+            return self._caller(name, hook)(**kwargs)
+
+        return bounded(f"plugin {name} {hook}", deadline, call)
 
     def _output_failed(self, name: str, exc: OSError) -> None:
         """Its output failed (disk full): one clear line, no traceback; the plugin writes

@@ -28,6 +28,7 @@ from abh3_supervisor.core import verify
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.runtime import priority
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.scheduler.pump import BusPump
@@ -199,6 +200,9 @@ class Runtime:
                 loop.call_soon_threadsafe(self._on_fatal, PluginError(why))
 
             self.plugins.request_stop = request_stop
+            # plugins' threads (DDS, rclpy's executor) at normal priority: at the loop's
+            # real-time one they delayed rclpy's cmd_vel by 150–250 ms (runtime/priority.py)
+            self.plugins.thread_setup = priority.normal
             self.plugins.start(self.supervisor, loop)  # fails the run before motion
         for name, pump in self.pumps.items():
             self.supervisor.wakers[name] = pump.wake

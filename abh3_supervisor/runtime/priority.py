@@ -8,9 +8,10 @@ scheduler lets a waking task wait behind a running one whatever their weights. U
 the moment its timer fires. So the supervisor's loop asks for ``SCHED_FIFO`` (priority
 ``FIFO_PRIORITY``: above every normal task, below the kernel's interrupt threads at 50).
 
-``SCHED_RESET_ON_FORK`` goes with it: every thread or process started afterwards (a
-plugin's worker, DDS's threads, a child) starts at normal priority, so only the loop that
-drives the buses runs ahead of the machine; a plugin that spins cannot starve it.
+Threads started afterwards inherit it, which the bus's own need (python-can's reader of a
+bus without a file descriptor: at a lower priority, holding the GIL, it held the loop up
+by 5 ms). Plugins' threads call :func:`normal` first (``PluginHost.thread_setup``), so
+DDS and rclpy run at normal priority (at the loop's, rclpy delivered ``cmd_vel`` late).
 Linux throttles real-time tasks to 95 % of a CPU by default, so even a loop gone wrong
 leaves the machine usable.
 """
