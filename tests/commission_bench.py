@@ -14,7 +14,6 @@ from abh3_supervisor.core.kinematics import ab_to_yx
 from abh3_supervisor.core.verify import Verification, verify_units
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
-from abh3_supervisor.plugin_host.host import _apply
 from abh3_supervisor.service.param_ops import ParamOps
 from tests.conftest import Rig
 
@@ -56,9 +55,7 @@ class _ArbiterMachine:
 class FakeBench(Rig, Bench):
     def __init__(self, config: Config, timeout: float = 0.3) -> None:
         super().__init__(config)
-        self.arbiter = InputArbiter(
-            apply=lambda unit, command: _apply(self.sup, unit, command), clock=self.timeline.clock
-        )
+        self.arbiter = self.sup.arbiter
         for unit in config.units:
             self.arbiter.add(_Source(f"commission:{unit}", (unit,), priority=10, timeout=timeout))
         self.timeline.add(_ArbiterMachine(self.arbiter))

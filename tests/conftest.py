@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import errno
 import fcntl
+import math
 import os
 import pty
 import select
@@ -26,6 +27,7 @@ from can.interfaces import virtual
 
 from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.config.model import SimConfig
+from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.supervisor import Notice, Supervisor, SupervisorEvent
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator import SimBus
@@ -57,12 +59,35 @@ class Rig:
         self.timeline.add(self.sim)
         self.events: list[object] = []
         self.sup.subscribe(self.events.append)
+        for unit in config.units:  # the test is the operator: its API commands stand
+            self.sup.arbiter.add(_TestSource(f"api:{unit}", (unit,), timeout=math.inf))
 
     def run(self, seconds: float) -> None:
         self.timeline.run_until(self.timeline.now + seconds)
 
     def drive(self, unit: str):  # type: ignore[no-untyped-def]
         return self.sim.drives[self.config.units[unit].abh3_id]
+
+    def own(self, unit: str) -> str:
+        """A source present for the whole test that owns ``unit``'s motion (pass it as
+        ``source=``): the API's own source is streamed and lapses after 0.5 s."""
+        return present(self.sup, unit)
+
+
+def present(sup: Supervisor, unit: str) -> str:
+    """Register a test's input source for ``unit`` that never lapses; its name."""
+    name = f"test:{unit}"
+    if name not in sup.arbiter.sources:
+        sup.arbiter.add(_TestSource(name, (unit,), timeout=math.inf))
+    return name
+
+
+class _TestSource(InputSource):
+    def start(self, feed: InputFeed) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
 
 
 @pytest.fixture

@@ -78,7 +78,8 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> N
             sent = sup.schedulers["b"].slots["left"].stats.commands_sent
             await sup.wait_exchange("left", sup.clock(), 1.0)
             assert sup.schedulers["b"].slots["left"].stats.commands_sent > sent  # still running
-            assert sup.units["left"].inputs & sup.units["left"].layout.servo.both  # servo on
+            # the e-stop powered it off once it reported stopped (stop category 1)
+            assert not sup.units["left"].inputs & sup.units["left"].layout.servo.both
             assert not sup.stopping
             again, link2 = await attached(path, owner=False)  # re-attach: the same state
             async with again.run_test(size=(160, 45)) as pilot:

@@ -15,7 +15,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.protocol import frames
-from tests.conftest import Rig
+from tests.conftest import Rig, present
 
 BASE = """
 buses:
@@ -40,7 +40,7 @@ def rig(sim: str, gen: str = "2021", model: str = "motor") -> Rig:
 def moving(r: Rig, unit: str, a: float, b: float, seconds: float) -> None:
     r.sup.apply_text(unit, "SERVO ON ON")
     r.sup.apply_text(unit, "START ON ON")
-    r.sup.set_velocity_ab(unit, a, b)
+    r.sup.set_velocity_ab(unit, a, b, source=present(r.sup, unit))
     r.run(seconds)
 
 

@@ -76,9 +76,7 @@ def test_release_means_zero_at_once() -> None:
 
 
 def test_silence_zeroes_a_unit_in_current_mode_too(rig: Rig) -> None:
-    from abh3_supervisor.plugin_host.host import _apply
-
-    arb = InputArbiter(apply=lambda u, c: _apply(rig.sup, u, c), clock=rig.timeline.clock)
+    arb = rig.sup.arbiter
     arb.add(Source("net", ("left",), priority=0, timeout=0.5))
     assert rig.sup.apply_text("left", "TORQUE ON ON") == ""
     arb.submit("net", CurrentCommand(12.5, -3.0), 0.0)

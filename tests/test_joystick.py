@@ -12,8 +12,7 @@ from abh3_plugins.joystick import (
     JsEvent,
     Mapping,
 )
-from abh3_supervisor.core.inputs import InputArbiter, Twist
-from abh3_supervisor.plugin_host.host import _apply
+from abh3_supervisor.core.inputs import Twist
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from tests.conftest import Rig
@@ -112,7 +111,7 @@ def test_deadman_release_sends_release_and_device_loss_means_zero_then_reopen() 
 
 
 def test_deadman_release_gives_zero_on_the_very_next_command_frame(rig: Rig) -> None:
-    arb = InputArbiter(apply=lambda u, c: _apply(rig.sup, u, c), clock=rig.timeline.clock)
+    arb = rig.sup.arbiter
     source = JoystickSource(("left",), 10, 0.5, Mapping(), lambda: None)
     arb.add(source)
     rig.sup.apply_text("left", "SERVO ON ON")

@@ -15,10 +15,9 @@ import pytest
 from abh3_supervisor.core.commands import VelocityCommand
 from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
 from abh3_supervisor.core.supervisor import Notice
-from abh3_supervisor.plugin_host.host import _apply
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
-from tests.conftest import Rig, headless_demo
+from tests.conftest import Rig, headless_demo, present
 
 PERIOD = 0.02  # 50 Hz: TWO_UNITS' command rate
 
@@ -64,7 +63,7 @@ class ArbiterNode:
 
 
 def owned_rig(rig: Rig) -> tuple[InputArbiter, ArbiterNode]:
-    arb = InputArbiter(apply=lambda u, c: _apply(rig.sup, u, c), clock=rig.timeline.clock)
+    arb = rig.sup.arbiter
     for name in ("tui1", "client2"):
         arb.add(Source(name, ("left",), priority=50, timeout=0.5))
     node = ArbiterNode(arb)
@@ -133,7 +132,8 @@ def test_a_replaced_setpoint_never_comes_back(rig: Rig) -> None:
 
 def test_a_startup_vel_never_comes_back_after_a_client_took_over(rig: Rig) -> None:
     arb, node = owned_rig(rig)
-    assert rig.sup.apply_text("left", "VEL 300 0") == ""  # the YAML's startup: VEL
+    # the YAML's startup: VEL, as Supervisor.run_startup gives it
+    assert rig.sup.apply_text("left", "VEL 300 0", source="startup:left", standing=True) == ""
     rig.run(0.3)
     assert commanded(rig) == 300.0
     node.alive["tui1"] = 10.0
@@ -178,9 +178,7 @@ def test_a_gap_still_voids_a_standing_command(rig: Rig) -> None:
     node.alive["tui1"] = 10.0
     arb.submit("tui1", VelocityCommand(200, 0), 0.1, standing=True)
     rig.run(0.5)
-    rig.sup.subscribe(
-        lambda e: arb.hold(e.unit, e.t) if isinstance(e, GapEvent) and e.started else None
-    )
+    rig.sup.subscribe(lambda e: arb.hold(e.unit) if isinstance(e, GapEvent) and e.started else None)
     rig.drive("left").silent = True
     rig.run(1.5)
     rig.drive("left").silent = False
@@ -195,7 +193,7 @@ def test_clamp_note_names_the_limit_and_reaches_the_event_log(rig: Rig) -> None:
         "clamped: VEL 99999 0 → 6553.4 0 (wire range -6553.6 … 6553.4)"
     )
     assert rig.sup.admit("left", VelocityCommand(10, 0)) is None
-    rig.sup.set_velocity("left", 99999, 0)
+    rig.sup.set_velocity("left", 99999, 0, source=present(rig.sup, "left"))
     assert notes[-1] == "clamped: VEL 99999 0 → 6553.4 0 (wire range -6553.6 … 6553.4)"
 
 
@@ -253,9 +251,9 @@ def test_a_stream_beyond_the_limit_says_so_once_a_second(rig: Rig) -> None:
     notes: list[str] = []
     rig.sup.subscribe(lambda e: notes.append(e.message) if isinstance(e, Notice) else None)
     for i in range(50):  # 50 Hz for a second, every value beyond the wire's range
-        rig.sup.set_velocity("left", 7000 + i, 0)
+        rig.sup.set_velocity("left", 7000 + i, 0, source=present(rig.sup, "left"))
         rig.run(0.02)
-    rig.sup.set_velocity("left", 8000, 0)
+    rig.sup.set_velocity("left", 8000, 0, source=present(rig.sup, "left"))
     clamped = [n for n in notes if n.startswith("clamped: ")]
     assert len(clamped) == 2
     assert clamped[1].endswith("(49 more like it since the last line not shown)")

@@ -238,14 +238,13 @@ def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str])
             finally:
                 await server.close()
 
-    assert asyncio.run(scenario()) == [0, 1, 0, 0, 1]
+    # --force skips asking the drive, never the lock: this supervisor commands SERVO ON
+    assert asyncio.run(scenario()) == [0, 1, 1, 0, 1]
     out, err = capsys.readouterr()
-    assert "unit left reports its servo ON: not writing (--force to write anyway)" in err
+    assert "unit left: this supervisor commands its servo ON (switch it off first)" in err
     assert "the drive refused it (NAK)" in err
-    assert "written: 0x5000 SPEED_AY_0" in out and "FIRMWARE_VERSION   2.3.0.1" in out
-    assert logged == [
-        "operator (param client3) on left: parameter 0x5000 SPEED_AY_0: 800 (00400008) → 900 (00400009)"
-    ]
+    assert "written:" not in out and "FIRMWARE_VERSION   2.3.0.1" in out
+    assert logged == []  # nothing was written
 
 
 def test_parameter_files_read_back_and_refuse_with_file_and_row(tmp_path: Path) -> None:

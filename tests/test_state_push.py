@@ -108,7 +108,7 @@ def test_a_change_during_a_build_is_in_what_every_waiting_client_gets() -> None:
         waiting = asyncio.ensure_future(shared.latest())
         await asyncio.sleep(0)  # the build has begun, estop still False in its head
         await asyncio.sleep(0)
-        sup.estop = True  # what the e-stop call does …
+        sup.gate.latch(sup.clock())  # what the e-stop call does …
         shared.forget()  # … and the server after every state-changing call
         return await waiting, await shared.latest()
 

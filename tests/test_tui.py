@@ -33,9 +33,9 @@ from abh3_supervisor.clients.tui.model import Trace, bus_fields, overview_row
 from abh3_supervisor.clients.tui.run import warnings
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.inputs import InputCommand, Twist
 from abh3_supervisor.core.kinematics import twist_to_yx
 from abh3_supervisor.core.planner import plan
-from abh3_supervisor.core.supervisor import SetResult
 from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
@@ -44,7 +44,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service.server import ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.conftest import TWO_UNITS, Rig, assert_demo_stopped, in_a_terminal
+from tests.conftest import TWO_UNITS, Rig, assert_demo_stopped, in_a_terminal, present
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 
@@ -108,7 +108,7 @@ def test_estop_from_every_screen_stops_both_units() -> None:
         for unit in ("left", "right"):
             assert await sup.command(unit, "SERVO ON ON") == ""
             assert await sup.command(unit, "START ON ON") == ""
-        sup.set_velocity("left", 100, 0)
+        sup.set_velocity("left", 100, 0, source=present(sup, "left"))
         await pilot.press("2")  # the unit screen: e-stop works from here too
         await pilot.press("ctrl+e")
         await until(pilot, lambda: sup.estop, "the e-stop reaches the service")
@@ -161,13 +161,14 @@ def test_risky_toggles_ask_first_and_arrows_drive_the_selected_unit() -> None:
         await press("d", "y")  # data select: written 7 → 6 (set #1) on both axes
         assert left.data_select(sup.units["left"].inputs) == (6, 6)
         driven: list[tuple[str, float, float]] = []
-        real = sup.set_twist
+        real = sup.arbiter.apply
 
-        def spy(name: str, linear_x: float, angular_z: float) -> SetResult:
-            driven.append((name, linear_x, angular_z))
-            return real(name, linear_x, angular_z)
+        def spy(name: str, command: InputCommand) -> bool | None:
+            if isinstance(command, Twist):  # what the arbitration applies to the unit
+                driven.append((name, command.linear_x, command.angular_z))
+            return real(name, command)
 
-        sup.set_twist = spy  # type: ignore[method-assign]
+        sup.arbiter.apply = spy
         await press("n", "up")  # select right, drive forward
         assert response(app).startswith("drive right")
         for _ in range(100):  # the feed hands the twist over through the loop
@@ -232,7 +233,7 @@ def snapshot_rig() -> Rig:
     for unit in ("left", "right"):
         rig.sup.apply_text(unit, "SERVO ON ON")
     rig.sup.apply_text("left", "START ON ON")
-    rig.sup.set_velocity("left", 300, 20)
+    rig.sup.set_velocity("left", 300, 20, source=present(rig.sup, "left"))
     rig.run(1.0)
     rig.drive("right").errors = flags.FAULT.mask("A_OVERCURRENT")
     rig.drive("right").alarms = flags.FAULT.mask("CONTROL_UNDERVOLTAGE")
@@ -254,7 +255,7 @@ def test_layout_snapshots(
         app = SupervisorApp(mirror, None)
         for step in range(60):  # 30 s, sampled as the app does
             if step == 30:
-                rig.sup.set_velocity("left", -150, 0)
+                rig.sup.set_velocity("left", -150, 0, source=present(rig.sup, "left"))
             rig.run(0.5)
             mirror.apply(supervisor_state(rig.sup, {}))
             app.sampler.sample()
@@ -401,13 +402,14 @@ def test_every_e_stop_wins_with_the_keyboard_plugin_configured() -> None:
         assert honoured == 100 and len(stops) == 100
         assert handed == ["i", "l"] * 100  # every teleop key reached the plugin, none else
         driven: list[tuple[str, float, float]] = []
-        real = sup.set_twist
+        real = sup.arbiter.apply
 
-        def spy(name: str, linear_x: float, angular_z: float) -> SetResult:
-            driven.append((name, linear_x, angular_z))
-            return real(name, linear_x, angular_z)
+        def spy(name: str, command: InputCommand) -> bool | None:
+            if isinstance(command, Twist):  # what the arbitration applies to the unit
+                driven.append((name, command.linear_x, command.angular_z))
+            return real(name, command)
 
-        sup.set_twist = spy  # type: ignore[method-assign]
+        sup.arbiter.apply = spy
         # a teleop key, handed to the plugin
         await press_until(app, pilot, "i", lambda: driven, "the keyboard plugin drives")
         assert driven[0][0] == "left" and driven[0][1] == pytest.approx(0.2)
@@ -425,7 +427,7 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
             return bool(left.words.get("control", 0) & lay.servo.both)
 
         for text in ("SERVO ON ON", "START ON ON", "VEL 120 0"):
-            assert await sup.command("left", text) == ""
+            assert await sup.command("left", text, source=present(sup, "left")) == ""
         await until(pilot, reported_servo, "servo on")
         # an error reset from the command line: the drive holds the servo off
         for text in ("RESET ON ON", "RESET OFF OFF"):
@@ -523,9 +525,9 @@ def test_operator_actions_and_state_changes_are_in_the_event_log() -> None:
     async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
         await pilot.press("colon", *"SERVO ON ON", "enter")
         await app.workers.wait_for_complete()
+        await until(pilot, lambda: rt.supervisor.units["left"].words.get("control", 0) & 1, "servo")
         await pilot.press("s", "n")  # START on? no
         await pilot.press("ctrl+e", "E", "y")
-        await until(pilot, lambda: rt.supervisor.units["left"].words.get("control", 0) & 1, "servo")
         await pilot.press("4")  # the log tab: the log lays its lines out once shown
         await pilot.pause(0.1)
         lines = [line.text for line in app.query_one("#log-scroll", RichLog).lines]

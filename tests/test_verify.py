@@ -377,22 +377,29 @@ def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
     assert "the drive's CAN settings agree with the file (7 read; TelABH3 CP000095" in notices[-1]
 
 
-def test_refuse_never_holds_a_drive_that_cannot_be_read() -> None:
-    """Not verified is not a mismatch: the start-up commands run after the bound."""
+def test_refuse_fails_closed_on_a_drive_that_cannot_be_read() -> None:
+    """Not verified under verify: refuse is held: its start-up commands never run, the
+    drive sees only the safe word, a VEL is refused in its answer, and the hold says why."""
     config = parse_config(
         text("{telabh3_form: {left: none}}", left=", verify: refuse", channel="v-unread"), "v.yaml"
     )
 
-    async def scenario() -> Verification:
+    async def scenario() -> tuple[Verification, str, int, float]:
         async with Runtime(config) as rt:
             assert rt.verifying is not None
             await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
-            await rt.supervisor.command("left", "VEL 0 0")
-            assert rt.sims["b"].drives[1].inputs & rt.supervisor.units["left"].layout.servo.both
-            return rt.supervisor.units["left"].verify
+            answer = await rt.supervisor.command("left", "VEL 100 0")
+            await rt.supervisor.wait_exchange("left", rt.supervisor.clock(), 1.0)
+            drive = rt.sims["b"].drives[1]
+            return rt.supervisor.units["left"].verify, answer, drive.inputs, drive.cmd_raw[0]
 
-    v = asyncio.run(scenario())
-    assert v.state is State.NOT_VERIFIED and v.holds() is None
+    v, answer, inputs, cmd = asyncio.run(scenario())
+    assert v.state is State.NOT_VERIFIED
+    assert v.holds() is not None and "could not be verified" in v.holds()  # type: ignore[operator]
+    assert answer == RESPONSE_INVALID
+    layout = flags.LAYOUT_2021
+    assert not inputs & (layout.servo.both | layout.start.both | layout.brake_release)
+    assert cmd == 0
 
 
 def test_the_shipped_faults_config_rehearses_both_mismatches(

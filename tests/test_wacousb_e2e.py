@@ -15,7 +15,7 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.simulator import SimBus
-from tests.conftest import BusNotices, drives_on
+from tests.conftest import BusNotices, drives_on, present
 from tests.wacousb_emulator import AdapterEmulator, check_host_frame
 
 
@@ -56,8 +56,8 @@ units:
                 for unit in ("left", "right"):
                     assert await sup.command(unit, "SERVO ON ON") == ""
                     assert await sup.command(unit, "START ON ON") == ""
-                assert await sup.command("left", "VEL 300 20") == ""
-                assert await sup.command("right", "VEL 150 -150") == ""
+                for unit, vel in (("left", "VEL 300 20"), ("right", "VEL 150 -150")):
+                    assert await sup.command(unit, vel, source=present(sup, unit)) == ""
                 # until both drives report (through the adapter) the speed they were given
                 for _ in range(500):  # bounded: 10 s of exchanges
                     if reached(sup.unit("left").feedback, 300.0, 320.0) and reached(

@@ -215,15 +215,10 @@ class LiveBench:
         return self.loop.time()
 
     def estop(self) -> float:
-        """The e-stop key, pressed now (its time returned): latched in the supervisor, and
-        each commanded unit's stop frame sent at once, not on its next command period, as
-        the way-out stop does."""
+        """The e-stop key, pressed now (its time returned): latched in the supervisor,
+        which sends each commanded unit's stop frame at once (core/gate.py)."""
         t = self.now()
-        self.sup.emergency_stop()
-        for name, unit in self.sup.units.items():
-            pump = self.rt.pumps.get(unit.cfg.bus)
-            if unit.cfg.role is Role.COMMAND and pump is not None:
-                pump.send(*self.sup.schedulers[unit.cfg.bus].send_now(name, self.loop.time()))
+        self.sup.emergency_stop("commission")
         return t
 
     async def wait(self, seconds: float) -> None:

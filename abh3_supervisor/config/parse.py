@@ -124,6 +124,7 @@ def _dry_run_startup(src: Source, config: Config) -> None:
     would be refused at start (VEL in current control, anything on a monitor unit, VEL
     after TORQUE ON ON) is a mistake in the file, said now rather than logged at start."""
     from abh3_supervisor.core.supervisor import Notice, Supervisor, SupervisorEvent
+    from abh3_supervisor.core.verify import State, Verification
 
     sup = Supervisor(config, clock=lambda: 0.0)
     reasons: list[str] = []
@@ -133,10 +134,13 @@ def _dry_run_startup(src: Source, config: Config) -> None:
             reasons.append(event.message)
 
     sup.subscribe(keep)
+    for state in sup.units.values():  # start-up runs once a unit is verified (or not held)
+        state.verify = Verification(State.OK, state.cfg.verify)
     for index, (name, unit) in enumerate(config.units.items()):
         for i, text in enumerate(unit.startup):
             reasons.clear()
-            if sup.apply_text(name, text) != RESPONSE_OK:
+            answer = sup.apply_text(name, text, source=f"startup:{name}", standing=True)
+            if answer != RESPONSE_OK:
                 why = reasons[-1] if reasons else "not a command"
                 src.error(("units", index, "startup", i), f"would be refused at start: {why}")
 

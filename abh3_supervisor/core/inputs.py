@@ -276,6 +276,7 @@ class _SourceState:
     heard: float = -math.inf
     standing: bool = False  # the command holds while the source proves it is alive
     alive: float = -math.inf  # when the source last proved it is alive
+    seq: int = 0  # the arbiter's count at its last submission (orders them on any clock)
 
     def expires(self) -> float:
         return (self.alive if self.standing else self.heard) + self.timeout
@@ -286,7 +287,9 @@ class _SourceState:
 
 @dataclass
 class InputArbiter:
-    apply: Callable[[str, InputCommand], None]
+    # apply the winner's command (or ZERO) to a unit; False: the unit refused it, so it
+    # is not the unit's command (a later identical one is applied anew)
+    apply: Callable[[str, InputCommand], bool | None]
     clock: Callable[[], float]
     sources: dict[str, _SourceState] = field(default_factory=dict)
     # per unit: (winning source, the command applied) — None when nobody drives it
@@ -295,8 +298,9 @@ class InputArbiter:
     # a standing command lapsed: its source stopped proving it is alive (hung, stopped)
     on_lapse: Callable[[str], None] | None = None
     closed: bool = False  # inputs stopped: submissions are ignored from now on
-    # per unit: what was heard before this time no longer counts (the drive stopped itself)
-    held: dict[str, float] = field(default_factory=dict)
+    # per unit: what was submitted up to this count no longer counts (the unit stopped)
+    held: dict[str, int] = field(default_factory=dict)
+    submissions: int = 0  # submissions counted, so "after the hold" needs no clock
     # per unit: a standing command heard before this time was replaced (its owner lost the
     # unit to another source, which has since left): it must not come back
     superseded: dict[str, float] = field(default_factory=dict)
@@ -321,7 +325,8 @@ class InputArbiter:
         """``standing``: the command holds without repetition while the source keeps
         proving it is alive (:meth:`touch`), instead of for ``timeout`` after ``now``."""
         state = self.sources[name]
-        state.command, state.heard = command, now
+        self.submissions += 1
+        state.command, state.heard, state.seq = command, now, self.submissions
         state.standing, state.alive = standing, now
         self._decide(state.units, now)
 
@@ -338,10 +343,16 @@ class InputArbiter:
         before, state.units = state.units, units
         self._decide(tuple(sorted(set(before) | set(units))), self.clock())
 
-    def hold(self, unit: str, since: float) -> None:
-        """The drive stopped itself (gap, offline): only a command heard after ``since``
-        may move it again; a value that was fresh before is never resumed."""
-        self.held[unit] = since
+    def owner(self, unit: str) -> str | None:
+        """The source whose command the unit has now, or None (zero)."""
+        current = self.current.get(unit)
+        return None if current is None else current[0]
+
+    def hold(self, unit: str) -> None:
+        """The unit stopped (a gap, offline, the e-stop, a hold, a parameter write): only a
+        command submitted after this call may move it again; a value that was fresh before
+        is never resumed. The caller zeroes the unit."""
+        self.held[unit] = self.submissions
         self.current[unit] = None
 
     def poll(self, now: float) -> None:
@@ -357,14 +368,14 @@ class InputArbiter:
 
     def _decide(self, units: tuple[str, ...], now: float) -> None:
         for unit in units:
-            since = self.held.get(unit, -math.inf)
+            since = self.held.get(unit, 0)
             replaced = self.superseded.get(unit, -math.inf)
             candidates = [
                 s
                 for s in self.sources.values()
                 if unit in s.units
                 and s.fresh(now)
-                and s.heard > since
+                and s.seq > since
                 and not (s.standing and s.heard < replaced)
             ]
             if candidates:
@@ -387,7 +398,8 @@ class InputArbiter:
                         chosen = None
             self.current[unit] = chosen
             if chosen is not None:
-                self.apply(unit, chosen[1])
+                if self.apply(unit, chosen[1]) is False:
+                    self.current[unit] = None  # refused: not the unit's command
             elif previous is not None:
                 self.apply(unit, ZERO)  # silence or release means zero (velocity or current)
         for state in self.sources.values():

@@ -34,11 +34,13 @@ class Feedback:
 
 @dataclass(frozen=True, slots=True)
 class Setpoint:
-    """The AY/BX command in the unit's model: min⁻¹, or % when ``kind`` is current."""
+    """The AY/BX command in the unit's model: min⁻¹, or % when ``kind`` is current;
+    ``owner``: the input source it came from (core/inputs.py), None for zero."""
 
     ay: float = 0.0
     bx: float = 0.0
     kind: ControlMode = ControlMode.VELOCITY
+    owner: str | None = None
 
 
 @dataclass

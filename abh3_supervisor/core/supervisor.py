@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
@@ -22,6 +23,17 @@ from abh3_supervisor.core.commands import (
     SelectCommand,
     SwitchCommand,
     VelocityCommand,
+)
+from abh3_supervisor.core.gate import ESTOP_POWER_OFF_S, STOPPED_BELOW, MotionGate, moving_switches
+from abh3_supervisor.core.inputs import (
+    DEFAULT_TIMEOUT,
+    InputArbiter,
+    InputCommand,
+    InputFeed,
+    InputSource,
+    Stop,
+    Twist,
+    VelocityYX,
 )
 from abh3_supervisor.core.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
@@ -43,6 +55,8 @@ from abh3_supervisor.scheduler.core import (
 )
 
 log = logging.getLogger(__name__)
+API_SOURCE = "api"  # the source of a programmatic command: api:<unit>
+STARTUP_SOURCE = "startup"  # the source of a unit's startup: motion: startup:<unit>
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,11 +121,21 @@ class Supervisor:
         # unit, or (unit, broadcast packet) → (requests sent since, future) awaiting a reply;
         # DP0 replies are keyed by the unit alone: no key is built on the bus path
         self._waiters: dict[Hashable, list[tuple[float, asyncio.Future[bool]]]] = {}
-        self.estop = False
-        self.stopping = False  # set by safe_state(): every later command is refused
+        # the one place every command frame is decided (core/gate.py): e-stop, stopping,
+        # parameter-write locks; the verification hold and the owner are asked of it
+        self.gate = MotionGate()
+        # who owns each unit's motion (core/inputs.py): every setpoint is a source's
+        self.arbiter = InputArbiter(apply=self._arbitrated, clock=clock)
+        self.arbiter.on_lapse = lambda name: self.notice(
+            None,
+            logging.WARNING,
+            f"input {name} stopped proving it is alive: the motion it held dropped to zero",
+        )
         # per bus: step the scheduler now (set by the runtime; absent on a fake clock)
         self.wakers: dict[str, Callable[[], None]] = {}
+        self._send_now: dict[str, Callable[[str], None]] = {}  # see senders()
         self._throttle = Throttle(1.0)
+        self._last_clamped = False
         for unit in self.units.values():
             self._push(unit)
 
@@ -143,6 +167,14 @@ class Supervisor:
         for event in self.schedulers[bus].drain_events():
             self._apply(event)
             self._emit(event)
+        now = self.clock()
+        estop = self.gate.estop
+        if estop is not None and now >= estop.t + ESTOP_POWER_OFF_S:
+            for unit in self._commanded():  # the drive did not say it stopped: power off now
+                if unit.cfg.bus == bus:
+                    self._power_off(unit)
+        if now >= self.arbiter.next_deadline():  # without a timer (a fake clock): expire here
+            self.arbiter.poll(now)
         health = self.bus_health[bus]
         for change in health.drain() if health.changes else ():
             bad = change.new is not BusState.OK
@@ -163,6 +195,8 @@ class Supervisor:
             if isinstance(event.reply, frames.Unknown):
                 return
             unit.feedback = Feedback.from_reply(event.t, event.reply, unit.cfg.velocity_model)
+            if self.gate.estop is not None:
+                self._estop_progress(unit, event)
             if unit.feedback.control is not None:
                 self._word(unit, event.t, "control", unit.feedback.control)
             if event.sent_at is not None:
@@ -187,7 +221,9 @@ class Supervisor:
             unit.online = event.online
             if not event.online and unit.cfg.role is Role.COMMAND:
                 # a lost drive stops itself (command-zero timeout); do not resume it moving
-                # on return with a stale setpoint: its command drops to zero
+                # on return with a stale setpoint: its command drops to zero, and only a
+                # command heard after this may move it again
+                self.arbiter.hold(unit.name)
                 self._zero(unit)
         elif isinstance(event, GapEvent):
             self._gap(unit, event)
@@ -205,6 +241,7 @@ class Supervisor:
         ms = unit.cfg.drive_timeout_ms
         if event.started:
             moving = bool(unit.setpoint.ay or unit.setpoint.bx)
+            self.arbiter.hold(unit.name)
             self._zero(unit)
             self.notice(
                 unit.name,
@@ -250,44 +287,125 @@ class Supervisor:
             raise CommandError(f"unit '{name}' is configured role: monitor and takes no commands")
         return unit
 
-    def set_velocity_ab(self, name: str, a: float, b: float) -> SetResult:
+    # Motion has an owner: every setpoint reaches a unit through the arbitration
+    # (core/inputs.py), as a source's command. The methods below are the programmatic
+    # way in: each submits a *streamed* command of the source ``api:<unit>`` (or the one
+    # named), fresh for that source's timeout — repeat it to keep moving; silence is zero.
+
+    def set_velocity_ab(
+        self, name: str, a: float, b: float, *, source: str | None = None
+    ) -> SetResult:
         """Motor-axis velocities [min⁻¹], converted to the drive's model."""
         unit = self._commandable(name)
         _finite(a, b)
         if unit.cfg.velocity_model is VelocityModel.TRAVEL:
-            return self._set(unit, *ab_to_yx(a, b), ControlMode.VELOCITY)
-        return self._set(unit, a, b, ControlMode.VELOCITY)
+            return self.set_velocity(name, *ab_to_yx(a, b), source=source)
+        return self.set_velocity(name, a, b, source=source)
 
-    def set_velocity_yx(self, name: str, y: float, x: float) -> SetResult:
+    def set_velocity_yx(
+        self, name: str, y: float, x: float, *, source: str | None = None
+    ) -> SetResult:
         """Travel/turn velocities [min⁻¹], converted to the drive's model."""
-        unit = self._commandable(name)
+        self._commandable(name)
         _finite(y, x)
-        if unit.cfg.velocity_model is VelocityModel.MOTOR:
-            return self._set(unit, *yx_to_ab(y, x), ControlMode.VELOCITY)
-        return self._set(unit, y, x, ControlMode.VELOCITY)
+        return self._submit(name, VelocityYX(y, x), source)
 
-    def set_velocity(self, name: str, ay: float, bx: float) -> SetResult:
+    def set_velocity(
+        self, name: str, ay: float, bx: float, *, source: str | None = None
+    ) -> SetResult:
         """AY/BX velocities as the drive reads them (its configured model) [min⁻¹]."""
-        unit = self._commandable(name)
+        self._commandable(name)
         _finite(ay, bx)
-        return self._set(unit, ay, bx, ControlMode.VELOCITY)
+        return self._submit(name, VelocityCommand(ay, bx), source)
 
-    def set_twist(self, name: str, linear_x: float, angular_z: float) -> SetResult:
+    def set_twist(
+        self, name: str, linear_x: float, angular_z: float, *, source: str | None = None
+    ) -> SetResult:
         """Robot twist [m/s, rad/s] through the unit's geometry."""
-        unit = self._commandable(name)
+        self._commandable(name)
         _finite(linear_x, angular_z)
-        return self.set_velocity_yx(name, *twist_to_yx(linear_x, angular_z, unit.cfg.geometry))
+        return self._submit(name, Twist(linear_x, angular_z), source)
 
-    def set_current(self, name: str, ay: float, bx: float) -> SetResult:
+    def set_current(
+        self, name: str, ay: float, bx: float, *, source: str | None = None
+    ) -> SetResult:
         """Current commands [%]; the unit must be in torque mode on both axes."""
-        unit = self._commandable(name)
+        self._commandable(name)
         _finite(ay, bx)
-        return self._set(unit, ay, bx, ControlMode.CURRENT)
+        return self._submit(name, CurrentCommand(ay, bx), source)
 
     def zero(self, name: str) -> None:
-        """Zero command in the unit's current mode (velocity or current); flags unchanged."""
+        """Zero command in the unit's current mode (velocity or current); flags unchanged.
+        Whoever drove the unit loses it: only a command given after this moves it."""
         unit = self._commandable(name)
+        self.arbiter.hold(name)
         self._zero(unit)
+
+    def _submit(
+        self, name: str, command: InputCommand, source: str | None, *, standing: bool = False
+    ) -> SetResult:
+        """``command`` as ``source``'s (default ``api:<name>``, streamed) in the arbitration;
+        refused (raised) if the unit cannot take it now, or if another source owns it."""
+        unit = self.unit(name)
+        ay, bx, kind = self._target(unit, command)
+        self._check(unit, ay, bx, kind)  # the caller hears a refusal, not a notice
+        owner = source if source is not None else f"{API_SOURCE}:{name}"
+        if owner not in self.arbiter.sources:
+            # the start-up's motion stands for the whole run; the API's is streamed
+            timeout = math.inf if owner.startswith(STARTUP_SOURCE) else DEFAULT_TIMEOUT
+            self.arbiter.add(_Api(owner, (name,), timeout=timeout))
+        if self.arbiter.closed:
+            raise CommandError("the supervisor is stopping: commands are refused")
+        self._last_clamped = False
+        self.arbiter.submit(owner, command, self.clock(), standing=standing)
+        if unit.setpoint.owner != owner and (ay or bx):
+            holder = self.arbiter.owner(name)
+            raise CommandError(
+                f"unit '{name}' is driven by input {holder}: not applied"
+                if holder is not None and holder != owner
+                else f"unit '{name}' did not take the command (see the notices)"
+            )
+        return SetResult(unit.setpoint.ay, unit.setpoint.bx, self._last_clamped)
+
+    def _target(self, unit: UnitState, command: InputCommand) -> tuple[float, float, ControlMode]:
+        """The AY/BX values ``command`` asks of ``unit`` in its model, and their kind."""
+        if isinstance(command, Stop):
+            return 0.0, 0.0, unit.setpoint.kind
+        if isinstance(command, CurrentCommand):
+            return command.ay, command.bx, ControlMode.CURRENT
+        if isinstance(command, VelocityCommand):
+            return command.ay, command.bx, ControlMode.VELOCITY
+        if isinstance(command, Twist):
+            y, x = twist_to_yx(command.linear_x, command.angular_z, unit.cfg.geometry)
+        else:
+            y, x = command.y, command.x
+        if unit.cfg.velocity_model is VelocityModel.MOTOR:
+            y, x = yx_to_ab(y, x)
+        return y, x, ControlMode.VELOCITY
+
+    def _arbitrated(self, name: str, command: InputCommand) -> bool:
+        """The arbitration's winner for ``name`` (or zero): applied, owned by the source
+        the arbitration names; False (and a notice) if the unit refused it."""
+        unit = self.units[name]
+        if isinstance(command, Stop):
+            self._zero(unit)
+            return True
+        try:
+            self._commandable(name)
+            _finite(*_values(command))
+            ay, bx, kind = self._target(unit, command)
+            self._set(unit, ay, bx, kind, self.arbiter.owner(name))
+        except CommandError as exc:
+            if unit.cfg.role is Role.COMMAND and not self.stopping:
+                self._zero(unit)  # the owner asked for something else: not the old value
+            held = self._throttle.allow((name, "refused"), self.clock())
+            if held is not None:
+                source = self.arbiter.owner(name) or "?"
+                self.notice(
+                    name, logging.WARNING, f"input {source} refused: {exc}{held_note(held)}"
+                )
+            return False
+        return True
 
     def set_inputs(self, name: str, data: int, mask: int) -> None:
         """Change the input bits selected by ``mask`` to those of ``data`` (seed inp_data)."""
@@ -299,27 +417,19 @@ class Supervisor:
                 f"word of unit '{name}': refused, nothing sent"
             )
         new = (unit.inputs & ~mask | data & mask) & 0xFFFFFFFF
-        if self.estop and new & ~unit.inputs & layout.start.both:
-            raise CommandError("emergency stop is latched: clear it before START")
-        held = unit.verify.holds()  # verify: refuse (core/verify.py)
-        # held: the idle word only — nothing may be switched on (a brake released with the
-        # servo off lets a load fall) but data select, which picks a table, and error reset
-        harmless = layout.select_mask | layout.error_reset
-        if held and new & ~unit.inputs & ~harmless:
-            raise CommandError(f"unit '{name}' is held at its idle word: {held}")
+        self.gate.refuse_inputs(unit, new)
         torque = new & layout.torque.both
-        kind = unit.setpoint.kind
         if torque != unit.inputs & layout.torque.both:
             # the meaning of the command fields changes: never reinterpret an old value
             kind = ControlMode.CURRENT if torque else ControlMode.VELOCITY
+            self.arbiter.hold(name)
             unit.setpoint = Setpoint(kind=kind)
         unit.inputs = new
         self._push(unit)
 
     def _check(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> None:
-        """Refuse what the unit cannot take now: motion under the e-stop, the wrong mode."""
-        if self.estop and (ay or bx):
-            raise CommandError("emergency stop is latched: clear it before commanding motion")
+        """Refuse what the unit cannot take now: what the gate forbids, the wrong mode."""
+        self.gate.refuse_motion(unit, ay, bx)
         both = unit.layout.torque.both
         torque = unit.inputs & both
         want = both if kind is ControlMode.CURRENT else 0
@@ -330,6 +440,12 @@ class Supervisor:
                 f"TORQUE {'ON ON' if want else 'OFF OFF'} first"
             )
 
+    def refuse_motion(self, name: str) -> None:
+        """Raise :class:`CommandError` if ``name`` may not move now (e-stop, held, a
+        parameter write, stopping, a monitor), whatever the value."""
+        unit = self._commandable(name)
+        self.gate.refuse_motion(unit, 1.0, 1.0)
+
     def admit(self, name: str, command: VelocityCommand | CurrentCommand) -> str | None:
         """Check a ``VEL``/``CUR`` as it would be applied now, without applying it: raise
         :class:`CommandError` if refused; the clamp note if it would be clamped."""
@@ -339,15 +455,17 @@ class Supervisor:
         self._check(unit, command.ay, command.bx, kind)
         return _limited(unit, command.ay, command.bx, kind)[2]
 
-    def _set(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> SetResult:
+    def _set(
+        self, unit: UnitState, ay: float, bx: float, kind: ControlMode, owner: str | None
+    ) -> None:
         self._check(unit, ay, bx, kind)
         ay, bx, note = _limited(unit, ay, bx, kind)
+        self._last_clamped = note is not None
         if note is not None:  # a stream beyond the limit (a joystick) says it once a second
             held = self._throttle.allow((unit.name, "clamped"), self.clock())
             if held is not None:
                 self.notice(unit.name, logging.WARNING, note + held_note(held))
-        self._store(unit, Setpoint(ay, bx, kind))
-        return SetResult(unit.setpoint.ay, unit.setpoint.bx, note is not None)
+        self._store(unit, Setpoint(ay, bx, kind, owner if ay or bx else None))
 
     def _store(self, unit: UnitState, setpoint: Setpoint) -> None:
         unit.setpoint = setpoint
@@ -358,14 +476,13 @@ class Supervisor:
         self._store(unit, Setpoint(kind=unit.setpoint.kind))
 
     def _push(self, unit: UnitState) -> None:
+        """Hand the unit's frame, as the motion gate decides it, to its scheduler: the one
+        way a command word reaches the wire."""
         if unit.cfg.role is not Role.COMMAND:
             return
-        scale = CURRENT if unit.setpoint.kind is ControlMode.CURRENT else VELOCITY
-        raw_ay, _ = scale.to_raw(unit.setpoint.ay)
-        raw_bx, _ = scale.to_raw(unit.setpoint.bx)
-        self.schedulers[unit.cfg.bus].set_payload(
-            unit.name, frames.encode_dp0_command(raw_ay, raw_bx, unit.inputs)
-        )
+        owner = unit.setpoint.owner
+        owned = owner is not None and self.arbiter.owner(unit.name) == owner
+        self.schedulers[unit.cfg.bus].set_payload(unit.name, self.gate.word(unit, owned).payload())
 
     def request_status(self, name: str, packet: int) -> None:
         """Ask the drive for broadcast ``packet`` (0-6) once, soon (seed ``brd_num``).
@@ -391,19 +508,25 @@ class Supervisor:
 
     # ------------------------------------------------------------ command language
 
-    def apply(self, name: str, command: Command) -> None:
+    def apply(
+        self, name: str, command: Command, *, source: str | None = None, standing: bool = False
+    ) -> None:
+        """Apply a command-language record now. Motion (``VEL``/``CUR``) is ``source``'s
+        in the arbitration (default ``api:<name>``, streamed; ``standing``: held while the
+        source proves it is alive, as the start-up's is for the whole run)."""
         if isinstance(command, SwitchCommand | SelectCommand):
             change = commands.input_change(command, self.unit(name).layout)
             self.set_inputs(name, change.data, change.mask)
         elif isinstance(command, InputChange):
             self.set_inputs(name, command.data, command.mask)
-        elif isinstance(command, VelocityCommand):
-            self.set_velocity(name, command.ay, command.bx)
         else:
-            assert isinstance(command, CurrentCommand)
-            self.set_current(name, command.ay, command.bx)
+            self._commandable(name)
+            _finite(command.ay, command.bx)
+            self._submit(name, command, source, standing=standing)
 
-    def apply_text(self, name: str, text: str) -> str:
+    def apply_text(
+        self, name: str, text: str, *, source: str | None = None, standing: bool = False
+    ) -> str:
         """Apply a command-language string now; answer as the seed's service does."""
         self.unit(name)  # an unknown unit is the caller's error, not the command's
         try:
@@ -411,10 +534,20 @@ class Supervisor:
         except CommandError:
             return commands.RESPONSE_INVALID
         try:
-            self.apply(name, command)
+            self.apply(name, command, source=source, standing=standing)
         except CommandError as exc:
             return self.refusal(name, text, exc)
         return commands.RESPONSE_OK
+
+    def run_startup(self, name: str) -> list[tuple[str, str]]:
+        """The unit's ``startup:`` commands, now: its motion is owned by the supervisor
+        (source ``startup:<unit>``) for the whole run, until another source replaces it.
+        The answer to each, in order."""
+        source = f"{STARTUP_SOURCE}:{name}"
+        return [
+            (text, self.apply_text(name, text, source=source, standing=True))
+            for text in self.unit(name).cfg.startup
+        ]
 
     def refusal(self, name: str, text: str, exc: CommandError) -> str:
         """The seed's answer to a command the unit refused, and a notice saying why."""
@@ -423,10 +556,10 @@ class Supervisor:
         self.notice(name, logging.WARNING, f"{clean(text)!r} refused: {exc}")
         return commands.RESPONSE_INVALID
 
-    async def command(self, name: str, text: str) -> str:
+    async def command(self, name: str, text: str, *, source: str | None = None) -> str:
         """As :meth:`apply_text`, then wait for the drive to answer a frame carrying it."""
         since = self.clock()
-        response = self.apply_text(name, text)
+        response = self.apply_text(name, text, source=source)
         if response != commands.RESPONSE_OK:
             return response
         return await self.confirm(name, since)
@@ -482,28 +615,127 @@ class Supervisor:
 
     # ------------------------------------------------------------ safety
 
-    def emergency_stop(self) -> None:
-        """Zero and START off on every commanded unit; latched until cleared."""
-        self.estop = True
-        for unit in self.units.values():
-            if unit.cfg.role is Role.COMMAND:
-                unit.inputs &= ~unit.layout.start.both
-                self._zero(unit)
-        self.notice(None, logging.CRITICAL, "EMERGENCY STOP: all units zero, START off (latched)")
+    @property
+    def estop(self) -> bool:
+        """The e-stop is latched (the motion gate's state)."""
+        return self.gate.estop is not None
+
+    @property
+    def stopping(self) -> bool:
+        """The way out has begun: every later command is refused (the gate's state)."""
+        return self.gate.stopping
+
+    def senders(self, bus: str, send: Callable[[str], None]) -> None:
+        """Set by the runtime: send ``unit``'s frame on ``bus`` now, outside its schedule
+        (the e-stop's frames go at once, not at each unit's next period)."""
+        self._send_now[bus] = send
+
+    def _commanded(self) -> list[UnitState]:
+        return [u for u in self.units.values() if u.cfg.role is Role.COMMAND]
+
+    def emergency_stop(self, source: str = "api") -> None:
+        """Stop category 1 on every commanded unit, latched until cleared: zero and START
+        off now (each unit's stop frame is sent at once), SERVO and brake release off once
+        the drive reports it stopped (:mod:`.gate`). Whoever drove a unit loses it."""
+        now = self.clock()
+        self.gate.latch(now)  # a second e-stop keeps the first one's time
+        for unit in self._commanded():
+            self.arbiter.hold(unit.name)
+            unit.inputs &= ~unit.layout.start.both
+            self._zero(unit)
+            send = self._send_now.get(unit.cfg.bus)
+            if send is not None:
+                send(unit.name)
+        self.notice(
+            None,
+            logging.CRITICAL,
+            f"EMERGENCY STOP ({clean(source)}): all units zero, START off; SERVO and brake "
+            "release off once each drive reports it stopped (latched)",
+        )
 
     def clear_emergency_stop(self) -> None:
-        self.estop = False
+        """Unlatch: nothing heard before this moment moves anything (the arbitration is
+        voided again); START, SERVO and motion must be given anew."""
+        if self.gate.estop is None:
+            return
+        self.gate.clear()
+        for unit in self._commanded():
+            self.arbiter.hold(unit.name)
+            self._push(unit)
         self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
+
+    def _power_off(self, unit: UnitState) -> None:
+        """The e-stop's second step: SERVO and brake release off (forgotten, not masked)."""
+        if self.gate.power_off(unit.name):
+            unit.inputs &= ~moving_switches(unit.layout)
+            self._push(unit)
+
+    def _estop_progress(self, unit: UnitState, event: FeedbackEvent) -> None:
+        """A drive's answer to a frame sent after the e-stop that says it has stopped."""
+        estop = self.gate.estop
+        if estop is None or event.sent_at is None or event.sent_at < estop.t:
+            return
+        feedback = unit.feedback
+        if feedback is not None and max(abs(feedback.vel_a), abs(feedback.vel_b)) < STOPPED_BELOW:
+            self._power_off(unit)
+
+    def restrict(self, name: str) -> None:
+        """``name`` entered a state that forbids motion (held, a parameter write): what it
+        forbids is forgotten — SERVO, START, brake release, motion, the arbitration — so
+        nothing comes back when the state ends; the frame is the gate's safe word."""
+        unit = self.unit(name)
+        if unit.cfg.role is not Role.COMMAND:
+            return
+        self.arbiter.hold(name)
+        unit.inputs &= ~moving_switches(unit.layout)
+        self._zero(unit)
+
+    @contextmanager
+    def param_write(self, name: str) -> Iterator[None]:
+        """The parameter-write lock of ``name`` for the ``with`` block: the unit sends the
+        safe word and SERVO ON (from anyone) is refused until the block ends; refused at
+        once while this supervisor commands its SERVO on."""
+        unit = self.unit(name)
+        if unit.cfg.role is not Role.COMMAND:
+            yield
+            return
+        with self.gate.writing(unit):
+            self.restrict(name)
+            try:
+                yield
+            finally:
+                self._push(unit)
 
     def safe_state(self) -> None:
         """The way-out state on every unit we drove, final: zero velocity in the safe word
         (SERVO, START, brake release, torque and every other switch off; data select kept).
         """
-        self.stopping = True
-        for unit in self.units.values():
-            if unit.cfg.role is Role.COMMAND:
-                unit.inputs = unit.layout.safe(unit.inputs)
-                self._store(unit, Setpoint())  # torque is off: the fields are velocities
+        self.gate.stopping = True
+        self.arbiter.closed = True  # nothing queued from a source may act any more
+        for unit in self._commanded():
+            unit.inputs = unit.layout.safe(unit.inputs)
+            self._store(unit, Setpoint())  # torque is off: the fields are velocities
+
+
+class _Api(InputSource):
+    """The source behind a programmatic command (``api:<unit>``, ``startup:<unit>``): it
+    has no device and no thread; its commands are submitted by the Supervisor itself."""
+
+    def start(self, feed: InputFeed) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+
+def _values(command: InputCommand) -> tuple[float, ...]:
+    if isinstance(command, Twist):
+        return command.linear_x, command.angular_z
+    if isinstance(command, VelocityYX):
+        return command.y, command.x
+    if isinstance(command, Stop):
+        return ()
+    return command.ay, command.bx
 
 
 def _limited(

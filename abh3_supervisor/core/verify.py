@@ -16,10 +16,13 @@ the fake clock too); :func:`verify_units` runs checks on a live supervisor, all 
 once, bounded by :data:`VERIFY_DEADLINE`, and acts on the outcome per the unit's
 ``verify`` (warn, refuse, off). Its outcome is the unit's :class:`Verification`
 (``UnitState.verify``), which the snapshot, ``abh3 status`` and the diagnostics show. A
-unit with ``verify: refuse`` whose drive differs keeps its idle word: SERVO and START are
-refused (:meth:`Verification.holds`, asked by ``Supervisor.set_inputs``) and its start-up
-commands wait, until a new verification (``Supervisor.verify_again``) finds them agreeing.
-A drive that does not answer is "not verified": reported, never a reason to hold.
+unit with ``verify: refuse`` is *held* — the motion gate (core/gate.py) sends its safe
+word, SERVO, START, brake release and motion are refused, its start-up commands wait —
+until a verification finds its drive agreeing: it fails closed, so a drive that differs,
+does not answer, or has not been checked yet keeps it held (:meth:`Verification.holds`)
+until ``abh3 verify`` (``Supervisor.verify_again``) succeeds. A unit already verified
+runs on while it is checked again; if the new check does not agree it is held. With
+``verify: warn`` a drive that differs or does not answer is reported, never held.
 """
 
 from __future__ import annotations
@@ -110,6 +113,7 @@ class Verification:
     form: str | None = None  # the TelABH3 form the drive was read in
     t: float | None = None  # when it started (pending) or ended
     startup_due: bool = False
+    prior_ok: bool = False  # pending again after agreeing: it runs on until the answer
 
     @classmethod
     def initial(cls, cfg: UnitConfig) -> Verification:
@@ -127,8 +131,15 @@ class Verification:
         """Why the unit is held at its idle word now (``verify: refuse``), or None."""
         if self.mode is not VerifyMode.REFUSE:
             return None
-        if self.state is State.PENDING:
+        if self.state is State.PENDING and not self.prior_ok:
             return "its drive's CAN settings are being compared with the file (verify: refuse)"
+        if self.state is State.NOT_VERIFIED:
+            if self.reason is None:
+                return "its drive's CAN settings are not verified yet (verify: refuse)"
+            return (
+                f"its drive's CAN settings could not be verified (verify: refuse): "
+                f"{self.reason}; `abh3 verify` it again once the drive answers"
+            )
         if self.state is State.MISMATCH:
             first = self.mismatches[0].line()
             more = f" and {len(self.mismatches) - 1} more" if len(self.mismatches) > 1 else ""
@@ -389,7 +400,10 @@ def start_checks(sup: Supervisor, names: Iterable[str]) -> Checks:
 
         channel = sup.schedulers[unit.cfg.bus].params[name]
         checks[name] = (DriveCheck(sup.config, unit.cfg, channel, done), future)
-        unit.verify = replace(unit.verify, state=State.PENDING, rows=(), t=sup.clock())
+        ok = unit.verify.state is State.OK
+        unit.verify = replace(unit.verify, state=State.PENDING, rows=(), t=sup.clock(), prior_ok=ok)
+        if unit.verify.holds():
+            sup.restrict(name)  # held from now: nothing it had comes back on its own
     for name, (check, _) in checks.items():
         check.start()
         _wake(sup, name)
@@ -410,6 +424,8 @@ async def end_checks(
     for name, (_, future) in checks.items():
         unit = sup.unit(name)
         out[name] = unit.verify = replace(future.result(), startup_due=unit.verify.startup_due)
+        if unit.verify.holds():
+            sup.restrict(name)  # fails closed: held, whatever it had is forgotten
         if act:
             _act(sup, name)
     return out
@@ -440,8 +456,6 @@ def _act(sup: Supervisor, name: str) -> None:
             logging.WARNING,
             f"the drive's CAN settings differ from the file ({count}): {what}",
         )
-        if refuse:
-            _idle(sup, name)
     elif v.state is State.OK:
         form = f"; TelABH3 {v.form}" if v.form else ""
         sup.notice(
@@ -450,28 +464,28 @@ def _act(sup: Supervisor, name: str) -> None:
             f"the drive's CAN settings agree with the file ({len(v.rows)} read{form})",
         )
     elif v.state is State.NOT_VERIFIED:
-        level = logging.WARNING if refuse else logging.INFO
-        sup.notice(
-            name, level, f"the drive's CAN settings are not verified: {v.reason}; the unit runs"
-        )
+        if refuse:
+            sup.notice(
+                name,
+                logging.WARNING,
+                f"the drive's CAN settings are not verified: {v.reason}; held at its idle "
+                "word (verify: refuse) until `abh3 verify` finds them agreeing",
+            )
+        else:
+            sup.notice(
+                name,
+                logging.INFO,
+                f"the drive's CAN settings are not verified: {v.reason}; the unit runs",
+            )
     if v.startup_due and v.holds() is None:
         unit.verify = replace(v, startup_due=False)
         run_startup(sup, name)
 
 
-def _idle(sup: Supervisor, name: str) -> None:
-    """A refused unit that was running (verified again): its SERVO and START go off."""
-    unit = sup.unit(name)
-    switches = unit.layout.servo.both | unit.layout.start.both
-    if unit.cfg.role is Role.COMMAND and unit.inputs & switches and not sup.stopping:
-        sup.zero(name)
-        sup.set_inputs(name, 0, switches)
-
-
 def run_startup(sup: Supervisor, name: str) -> None:
-    """The unit's ``startup:`` commands, now (validated when the file loaded)."""
-    for text in sup.unit(name).cfg.startup:
-        response = sup.apply_text(name, text)
+    """The unit's ``startup:`` commands, now (validated when the file loaded); its
+    motion is owned by the supervisor for the run (``Supervisor.run_startup``)."""
+    for text, response in sup.run_startup(name):
         log.info("unit %s: startup %r → %r", name, text, response)
 
 

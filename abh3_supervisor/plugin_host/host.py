@@ -16,7 +16,6 @@ from __future__ import annotations
 import _thread
 import asyncio
 import logging
-import math
 import queue
 import threading
 import time
@@ -29,20 +28,11 @@ import pluggy
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.schema import ON_ERROR_VALUES
 from abh3_supervisor.config.source import Section, Source
-from abh3_supervisor.core.inputs import (
-    InputArbiter,
-    InputCommand,
-    InputFeed,
-    InputSource,
-    Stop,
-    Twist,
-    VelocityYX,
-)
+from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
 from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
-from abh3_supervisor.errors import CommandError, ConfigError, PluginError
+from abh3_supervisor.errors import ConfigError, PluginError
 from abh3_supervisor.plugin_host import hookspecs
-from abh3_supervisor.scheduler.core import FeedbackEvent, GapEvent, HealthEvent, StatusEvent
-from abh3_supervisor.scheduler.timer import DeadlineTimer
+from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
 log = logging.getLogger(__name__)
 GROUP = "abh3_supervisor"
@@ -126,7 +116,6 @@ class PluginHost:
         self.workers: dict[str, _Worker] = {}
         self.sources: list[InputSource] = []
         self.arbiter: InputArbiter | None = None
-        self._timer: DeadlineTimer | None = None
         self._inputs_stopped = False
         self.started: list[str] = []  # plugins whose abh3_start ran: they get abh3_stop
         self.on_error: dict[str, str] = {}  # plugin → "continue" (default) or "stop"
@@ -298,31 +287,8 @@ class PluginHost:
         self._start_inputs(sup, loop)  # always: service clients may attach sources later
 
     def _start_inputs(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
-        arbiter = self.arbiter = InputArbiter(apply=lambda u, c: _apply(sup, u, c), clock=loop.time)
-        self._timer = DeadlineTimer(loop, lambda: arbiter.poll(loop.time()))
-        timer = self._timer
-
-        def rearm() -> None:
-            deadline = arbiter.next_deadline()
-            if math.isfinite(deadline):
-                timer.arm(deadline)
-            else:
-                timer.cancel()
-
-        arbiter.on_change = rearm
-        arbiter.on_lapse = lambda name: sup.notice(
-            None,
-            logging.WARNING,
-            f"input {name} stopped proving it is alive: the motion it held dropped to zero",
-        )
-
-        def hold(event: SupervisorEvent) -> None:
-            if (isinstance(event, GapEvent) and event.started) or (
-                isinstance(event, HealthEvent) and not event.online
-            ):
-                arbiter.hold(event.unit, event.t)
-
-        sup.subscribe(hold)
+        """The plugins' sources join the supervisor's arbitration (core/inputs.py)."""
+        arbiter = self.arbiter = sup.arbiter
         for source in self.sources:
             unknown = [u for u in source.units if u not in sup.units]
             if unknown:
@@ -383,8 +349,6 @@ class PluginHost:
         if self._inputs_stopped:
             return
         self._inputs_stopped = True
-        if self._timer is not None:
-            self._timer.close()
         if self.arbiter is not None:
             self.arbiter.closed = True  # calls still queued are dropped
 
@@ -430,17 +394,3 @@ def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None
         if done.acquire(timeout=min(left, 0.05)):
             return failure[0] if failure else None
     return f"did not return within {deadline:g} s"
-
-
-def _apply(sup: Supervisor, unit: str, command: InputCommand) -> None:
-    try:
-        if isinstance(command, Twist):
-            sup.set_twist(unit, command.linear_x, command.angular_z)
-        elif isinstance(command, VelocityYX):
-            sup.set_velocity_yx(unit, command.y, command.x)
-        elif isinstance(command, Stop):
-            sup.zero(unit)
-        else:
-            sup.apply(unit, command)  # VEL / CUR records, as the command language applies them
-    except CommandError as exc:
-        sup.notice(unit, logging.WARNING, f"input refused: {exc}")

@@ -14,6 +14,7 @@ import asyncio
 import errno
 import functools
 import logging
+import math
 import signal
 from dataclasses import replace
 from pathlib import Path
@@ -31,7 +32,9 @@ from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import priority
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
+from abh3_supervisor.scheduler.core import BusScheduler
 from abh3_supervisor.scheduler.pump import BusPump
+from abh3_supervisor.scheduler.timer import DeadlineTimer
 from abh3_supervisor.simulator.bus import SimBus
 
 log = logging.getLogger(__name__)
@@ -145,6 +148,7 @@ class Runtime:
         self.stop_report: dict[str, str] = {}  # unit → CONFIRMED, SENT or "NOT sent: …"
         # the start-up check of the drives' CAN settings (core/verify.py), while it runs
         self.verifying: asyncio.Task[dict[str, verify.Verification]] | None = None
+        self._timer: DeadlineTimer | None = None
 
     async def __aenter__(self) -> Runtime:
         loop = asyncio.get_running_loop()
@@ -165,6 +169,7 @@ class Runtime:
             self._recorder = open_recorder(self.record, self.config)
             self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
         self.supervisor = Supervisor(self.config, clock=loop.time)
+        self._arbitrate(loop)
         attach = getattr(self._recorder.writer if self._recorder else None, "attach", None)
         if self._recorder is not None and attach is not None:  # decoded values too (MCAP)
             attach(self.supervisor, loop.time)
@@ -206,6 +211,8 @@ class Runtime:
             self.plugins.start(self.supervisor, loop)  # fails the run before motion
         for name, pump in self.pumps.items():
             self.supervisor.wakers[name] = pump.wake
+            scheduler = self.supervisor.schedulers[name]
+            self.supervisor.senders(name, functools.partial(_send_now, pump, scheduler))
             pump.start()
         # the drives' CAN settings against the file, in the background (core/verify.py):
         # a `verify: refuse` unit's start-up commands wait for it
@@ -214,6 +221,21 @@ class Runtime:
         for name in self.config.units:
             if name not in waiting:
                 verify.run_startup(self.supervisor, name)
+
+    def _arbitrate(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The arbitration's deadline timer: a silent source's units get zero the moment
+        its timeout passes, not at the next frame (core/inputs.py)."""
+        arbiter = self.supervisor.arbiter
+        timer = self._timer = DeadlineTimer(loop, lambda: arbiter.poll(loop.time()))
+
+        def rearm() -> None:
+            deadline = arbiter.next_deadline()
+            if math.isfinite(deadline):
+                timer.arm(deadline)
+            else:
+                timer.cancel()
+
+        arbiter.on_change = rearm
 
     def _on_fatal(self, exc: BaseException) -> None:
         if self.fatal is not None and not self.fatal.done():
@@ -225,9 +247,12 @@ class Runtime:
         if self.verifying is not None:
             self.verifying.cancel()  # its requests leave the channels; no start-up after
         try:
+            self.supervisor.arbiter.closed = True  # nothing may command motion from here on
+            if self._timer is not None:
+                self._timer.close()
             if self.plugins is not None:
                 try:
-                    self.plugins.stop_inputs()  # nothing may command motion from here on
+                    self.plugins.stop_inputs()
                 except Exception:  # never a reason not to stop the drives
                     log.exception("stopping the inputs failed; stopping the drives anyway")
             await self.stop_drives()
@@ -267,3 +292,8 @@ class Runtime:
         for bus in self._buses:
             bus.shutdown()
         self._buses.clear()
+
+
+def _send_now(pump: BusPump, scheduler: BusScheduler, unit: str) -> None:
+    """``unit``'s frame on ``pump``'s bus now, outside its schedule (the e-stop's)."""
+    pump.send(*scheduler.send_now(unit, pump.loop.time()))

@@ -15,8 +15,7 @@ import asyncio
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from abh3_supervisor.config.model import Role
-from abh3_supervisor.errors import Abh3Error, RunError
+from abh3_supervisor.errors import Abh3Error, CommandError, RunError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.session import Result
 from abh3_supervisor.params.telabh3 import Command, Request
@@ -99,14 +98,21 @@ class ParamOps:
     async def write(
         self, unit: str, address: int, word: int, *, force: bool, source: str
     ) -> tuple[int, int]:
-        """Write ``word``; (old, read back). Refused while the servo is on — commanded on
-        by this supervisor, or reported on by the drive when asked now — or when the drive
-        does not answer that question; ``force`` overrides."""
-        if not force:
-            await self.refuse_unless_servo_off(unit)
-        old = await self.read(unit, Command.PARAM, address)
-        check(unit, await self.call(unit, Request(Command.PARAM, address, word)), word=False)
-        new = await self.read(unit, Command.PARAM, address)
+        """Write ``word``; (old, read back). Under the unit's parameter-write lock (the
+        motion gate: its safe word on the wire, SERVO ON refused from anyone until the write
+        ends), taken only while this supervisor does not command its servo on; then refused
+        unless the drive, asked now, reports its servo off — ``force`` skips that question."""
+        try:
+            with self.sup.param_write(unit):
+                if not force:
+                    await self.refuse_unless_servo_off(unit)
+                old = await self.read(unit, Command.PARAM, address)
+                check(
+                    unit, await self.call(unit, Request(Command.PARAM, address, word)), word=False
+                )
+                new = await self.read(unit, Command.PARAM, address)
+        except CommandError as exc:
+            raise ParamFailed(f"unit {unit}: {exc}: not writing") from None  # the lock refused
         name = table.label(address)
         self.sup.audit(
             source,
@@ -122,11 +128,8 @@ class ParamOps:
         return old, new
 
     async def refuse_unless_servo_off(self, unit: str) -> None:
-        """:class:`ParamFailed` unless the servo is off both as commanded and as the drive
-        reports it in answer to a question asked now."""
-        state = self.sup.unit(unit)
-        if state.cfg.role is Role.COMMAND and state.inputs & state.layout.servo.both:
-            raise ParamFailed(f"unit {unit}: this supervisor commands its servo ON: not writing")
+        """:class:`ParamFailed` unless the drive reports its servo off in answer to a
+        question asked now (the lock already keeps this supervisor's SERVO off)."""
         servo = await self.servo_on(unit)
         if servo is not False:
             why = "reports its servo ON" if servo else "did not answer whether its servo is on"

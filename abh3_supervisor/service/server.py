@@ -459,8 +459,12 @@ class ControlServer:
     async def _motion(self, method: str, client: _Client, params: dict[str, Any]) -> Any:
         values = [rpc.number(params, key) for key in _FIELDS[method]]  # checked before use
         units = self._commanded(params)
-        if self.rt.supervisor.estop and any(values):
-            raise rpc.RpcError(rpc.REFUSED, "emergency stop is latched: clear it first")
+        if any(values):  # refused in the answer, not only in a notice: e-stop, held, …
+            for unit in units:
+                try:
+                    self.rt.supervisor.refuse_motion(unit)
+                except CommandError as exc:
+                    raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
         for feed in self._feeds(client, units):
             getattr(feed, method)(*values)
         return {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
@@ -472,7 +476,7 @@ class ControlServer:
         return {"ok": True}
 
     async def _estop(self, client: _Client, params: dict[str, Any]) -> Any:
-        self.rt.supervisor.emergency_stop()  # on every unit's next command frame
+        self.rt.supervisor.emergency_stop(client.name)  # each unit's stop frame at once
         log.warning("control %s: EMERGENCY STOP", client.name)
         return {"ok": True}
 
