@@ -6,14 +6,19 @@ constant, the control socket's methods and what a read-only socket answers.
 
 from __future__ import annotations
 
+import argparse
 import ast
+import grp
 import importlib
 import math
+import os
 import re
+import stat
 from pathlib import Path
 
 import pytest
 
+from abh3_supervisor.clients import cli
 from abh3_supervisor.service import server
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -114,3 +119,49 @@ def test_the_read_only_socket_answers_what_the_docs_list() -> None:
     listed = set(re.findall(r"`(\w+)`", row.split("answers only", 1)[1]))
     assert listed == server.READ_ONLY_METHODS
     assert methods_in_the_code() >= server.READ_ONLY_METHODS
+
+
+def test_the_read_only_socket_is_owner_only_whatever_the_group(tmp_path: Path) -> None:
+    """docs/service.md: `--socket-group` opens the control socket to a group, never the
+    read-only one, which stays 0600 until its owner loosens it."""
+    group = grp.getgrgid(os.getgid()).gr_name
+    control, read_only = tmp_path / "ctl" / "a.sock", tmp_path / "ctl" / "a-ro.sock"
+    bound = server.preflight(server.ServiceOptions(control, group, read_only))
+    try:
+        assert stat.S_IMODE(control.stat().st_mode) == 0o660
+        assert stat.S_IMODE(read_only.stat().st_mode) == 0o600
+    finally:
+        server.release(bound)
+    service = re.sub(r"\s+", " ", (ROOT / "docs/service.md").read_text())
+    assert "The read-only socket is owner-only (0600) whatever `--socket-group` says" in service
+
+
+def test_every_command_and_option_the_docs_show_exists() -> None:
+    """`abh3 WORD` is a subcommand and `--option` an option of `abh3` (or of `python -m
+    benchmarks`), in inline code and in code blocks alike."""
+    subcommands, options = set(), set()
+
+    def walk(parser: argparse.ArgumentParser) -> None:
+        for action in parser._actions:
+            options.update(o for o in action.option_strings if o.startswith("--"))
+            if isinstance(action, argparse._SubParsersAction):
+                subcommands.update(action.choices)
+                for sub in action.choices.values():
+                    walk(sub)
+
+    walk(cli._parser())
+    for path in (ROOT / "benchmarks").glob("*.py"):
+        options.update(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"", path.read_text()))
+    options |= {"--check", "--pdeathsig"}  # `ruff format --check`, `setpriv --pdeathsig`
+    unknown = []
+    for doc in DOCS:
+        text = doc.read_text()
+        blocks = re.findall(r"^```[^\n]*\n(.*?)^```", text, re.M | re.S)
+        for code in [*re.findall(r"`([^`\n]+)`", text), *"\n".join(blocks).splitlines()]:
+            words = re.findall(r"(?<![\w.-])abh3 ([a-z][\w-]*)", code)
+            unknown += [f"{doc.name}: abh3 {w}" for w in words if w not in subcommands]
+            if words or code.startswith("--") or "benchmarks" in code:
+                flags = re.findall(r"(?<![\w-])(--[a-z][\w-]*)", code)
+                unknown += [f"{doc.name}: {f} in {code!r}" for f in flags if f not in options]
+    assert subcommands >= {"run", "send", "param"} and "--hold" in options  # the reader works
+    assert not unknown, "\n".join(unknown)
