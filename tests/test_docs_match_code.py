@@ -139,7 +139,8 @@ def test_the_read_only_socket_is_owner_only_whatever_the_group(tmp_path: Path) -
 def test_every_command_and_option_the_docs_show_exists() -> None:
     """`abh3 WORD` is a subcommand and `--option` an option of `abh3` (or of `python -m
     benchmarks`), in inline code and in code blocks alike."""
-    subcommands, options = set(), set()
+    subcommands: set[str] = set()
+    options: set[str] = set()
 
     def walk(parser: argparse.ArgumentParser) -> None:
         for action in parser._actions:
