@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from abh3_supervisor.clients import cli
+from abh3_supervisor.config.model import FaultKind
 from abh3_supervisor.service import server
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -166,3 +167,10 @@ def test_every_command_and_option_the_docs_show_exists() -> None:
                 unknown += [f"{doc.name}: {f} in {code!r}" for f in flags if f not in options]
     assert subcommands >= {"run", "send", "param"} and "--hold" in options  # the reader works
     assert not unknown, "\n".join(unknown)
+
+
+def test_every_scripted_fault_is_documented() -> None:
+    for name in ("configuration.md", "architecture.md"):
+        text = (ROOT / "docs" / name).read_text()
+        missing = [k.value for k in FaultKind if f"`{k.value}`" not in text]
+        assert not missing, f"docs/{name} does not name the fault kinds {missing}"
