@@ -55,7 +55,8 @@ LAYOUT = ROOT / "docs/architecture.md"  # its "Package layout" table is the rule
 def layout_rules() -> dict[str, set[str] | None]:
     """The table in docs/architecture.md: each folder or module of the package and what of
     ours it may import besides itself (None: anything)."""
-    rows = re.findall(r"^\| `([\w.]+?)(?:/|\.py)?` \|.*\| ([^|]+) \|$", LAYOUT.read_text(), re.M)
+    section = LAYOUT.read_text().split("\n## Package layout\n", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\| `([\w.]+?)(?:/|\.py)?` \|.*\| ([^|]+) \|$", section, re.M)
     rules: dict[str, set[str] | None] = {}
     for name, cell in rows:
         cell = cell.strip()
