@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import re
+import resource
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -43,7 +46,37 @@ def test_without_permission_auto_says_how_to_allow_it_and_realtime_refuses(
     with bus_priority(Priority.AUTO) as note:
         assert os.sched_getscheduler(0) == before
     assert note.startswith("bus loop at normal priority: real-time scheduling refused")
-    assert "CPUSchedulingPolicy=fifo" in note and "rtprio" in note
+    assert f"LimitRTPRIO={priority.FIFO_PRIORITY}" in note and "rtprio 20" in note
     refused = pytest.raises(PriorityError, match="--priority realtime: real-time scheduling")
     with refused, bus_priority(Priority.REALTIME):
         pytest.fail("must not run without real-time priority")  # pragma: no cover
+
+
+@pytest.mark.parametrize(
+    ("euid", "limit", "allowed"),
+    [
+        (0, 0, True),  # root
+        (1000, priority.FIFO_PRIORITY, True),  # LimitRTPRIO=20, limits.conf's rtprio 20
+        (1000, resource.RLIM_INFINITY, True),
+        (1000, priority.FIFO_PRIORITY - 1, False),
+        (1000, 0, False),  # CAP_SYS_NICE alone (or CPUSchedulingPolicy=) does not count
+    ],
+)
+def test_real_time_is_tried_with_root_or_a_real_time_limit_and_nothing_else(
+    monkeypatch: pytest.MonkeyPatch, euid: int, limit: int, allowed: bool
+) -> None:
+    """What the docs and the log line say is needed is what the check accepts."""
+    monkeypatch.setattr(os, "geteuid", lambda: euid)
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (limit, resource.RLIM_INFINITY))
+    assert priority._may_realtime() is allowed
+
+
+def test_the_shipped_systemd_unit_allows_what_the_advice_names() -> None:
+    root = Path(__file__).resolve().parent.parent
+    unit = (root / "docs/examples/systemd/abh3-supervisor.service").read_text()
+    (limit,) = re.findall(r"^LimitRTPRIO=(\d+)$", unit, re.MULTILINE)
+    assert int(limit) == priority.FIFO_PRIORITY
+    assert "CPUSchedulingPolicy" not in unit  # the supervisor sets its own policy
+    assert f"LimitRTPRIO={limit}" in priority.HOW_TO_ALLOW
+    service = (root / "docs/service.md").read_text()
+    assert f"`LimitRTPRIO={limit}`" in service and "CPUSchedulingPolicy=fifo" not in service

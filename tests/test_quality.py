@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ast
+import re
 import shutil
 import subprocess
 import sys
@@ -46,44 +48,83 @@ def test_the_core_never_imports_textual_or_plugin_dependencies() -> None:
     assert out.returncode == 0, out.stdout + out.stderr
 
 
-# what each folder may import of ours (docs/architecture.md, "Package layout")
-SANS_IO = {"errors", "protocol", "params"}
-DOMAIN = SANS_IO | {"config", "core", "scheduler"}
-ALLOWED = {
-    "protocol": {"errors", "protocol"},
-    "params": SANS_IO,  # sans-I/O like protocol
-    "config": SANS_IO | {"config", "core"},  # startup: commands are dry-run
-    "core": DOMAIN,
-    "scheduler": DOMAIN,
-    "plugin_host": DOMAIN - {"params"} | {"plugin_host"},
-    "service": DOMAIN | {"runtime", "plugin_host", "service"},
-    "simulator": DOMAIN | {"simulator"},
-    # a python-can interface any program can load: nothing of ours but itself
-    "wacousb": {"wacousb"},
-    "runtime": DOMAIN | {"runtime", "plugin_host", "service", "simulator"},
-    "commission": DOMAIN | {"commission"},  # sans-I/O: its bench and operator are given
-}
+PACKAGE = ROOT / "abh3_supervisor"
+LAYOUT = ROOT / "docs/architecture.md"  # its "Package layout" table is the rule
+
+
+def layout_rules() -> dict[str, set[str] | None]:
+    """The table in docs/architecture.md: each folder or module of the package and what of
+    ours it may import besides itself (None: anything)."""
+    section = LAYOUT.read_text().split("\n## Package layout\n", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\| `([\w.]+?)(?:/|\.py)?` \|.*\| ([^|]+) \|$", section, re.M)
+    rules: dict[str, set[str] | None] = {}
+    for name, cell in rows:
+        cell = cell.strip()
+        rules[name] = (
+            None
+            if cell == "anything"
+            else set()
+            if cell == "nothing of ours"
+            else set(re.findall(r"`(\w+)`", cell))
+        )
+    return rules
+
+
+def ours(module: str) -> list[str]:
+    """The top-level folders or modules of the package that importing ``module`` names."""
+    parts = module.split(".")
+    return [parts[1]] if parts[0] == "abh3_supervisor" and len(parts) > 1 else []
+
+
+def imports_of_ours(path: Path) -> set[str]:
+    """Every folder or module of ours ``path`` imports, wherever in it the import is."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(top for a in node.names for top in ours(a.name))
+        elif isinstance(node, ast.ImportFrom) and node.module == "abh3_supervisor":
+            # `from abh3_supervisor import X`: a folder or module, or the package's own
+            # names (`__version__`), which anyone may read
+            found.update(a.name for a in node.names if (PACKAGE / a.name).exists())
+            found.update(a.name for a in node.names if (PACKAGE / f"{a.name}.py").exists())
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            found.update(ours(node.module or ""))
+        elif isinstance(node, ast.ImportFrom):
+            found.add("<a relative import>")  # the rule reads absolute names only
+    return found
+
+
+def test_the_layout_table_covers_the_package_and_names_only_what_exists() -> None:
+    rules = layout_rules()
+    tops = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()}
+    tops |= {p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__"}
+    assert set(rules) == tops, "docs/architecture.md's Package layout: a row per folder"
+    named = {n for allowed in rules.values() if allowed is not None for n in allowed}
+    assert named <= tops, f"the table allows what does not exist: {named - tops}"
 
 
 def test_each_folder_imports_only_what_the_layout_allows() -> None:
-    import ast
-
-    root = Path(__file__).parent.parent / "abh3_supervisor"
     wrong: list[str] = []
-    for folder, allowed in ALLOWED.items():
-        for path in (root / folder).rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text())):
-                names = (
-                    [node.module or ""]
-                    if isinstance(node, ast.ImportFrom)
-                    else [a.name for a in node.names]
-                    if isinstance(node, ast.Import)
-                    else []
-                )
-                for name in names:
-                    if not name.startswith("abh3_supervisor."):
-                        continue
-                    ours = name.removeprefix("abh3_supervisor.")
-                    if not any(ours == a or ours.startswith(a + ".") for a in allowed):
-                        wrong.append(f"{path.relative_to(root)} imports {name}")
-    assert not wrong, "\n".join(wrong)
+    for top, allowed in layout_rules().items():
+        if allowed is None:
+            continue
+        paths = [PACKAGE / f"{top}.py"] if (PACKAGE / f"{top}.py").exists() else []
+        for path in paths or sorted((PACKAGE / top).rglob("*.py")):
+            for name in sorted(imports_of_ours(path) - allowed - {top}):
+                wrong.append(f"{path.relative_to(PACKAGE)} imports {name}")
+    assert not wrong, "not allowed by docs/architecture.md's Package layout:\n" + "\n".join(wrong)
+
+
+def test_the_import_rule_sees_every_form_of_import(tmp_path: Path) -> None:
+    """The check above would pass vacuously if it missed a form: each is found."""
+    path = tmp_path / "m.py"
+    path.write_text(
+        "import abh3_supervisor.core.state\n"
+        "from abh3_supervisor.service import server\n"
+        "from abh3_supervisor import runtime, __version__\n"
+        "def f() -> None:\n"
+        "    from abh3_supervisor.clients.tui import app\n"
+        "from . import sibling\n"
+    )
+    found = imports_of_ours(path)
+    assert found == {"core", "service", "runtime", "clients", "<a relative import>"}

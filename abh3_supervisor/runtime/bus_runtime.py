@@ -3,9 +3,10 @@
 ``async with Runtime(config) as rt:`` opens every bus, attaches simulators, and starts the
 schedulers; leaving the block by any path (normal end, Ctrl-C, SIGTERM, an exception)
 sends every commanded unit its stop frame (zero, the safe word: SERVO, START, brake and
-every other switch off), repeated until the drive answers it or ``STOP_DEADLINE_S``
-passes, whatever else fails (a recorder, a plugin, a UI); then the recording and the
-buses are closed. :attr:`Runtime.stop_report` says per unit what became of its stop.
+every other switch off), repeated until the drive reports SERVO and START off, for at
+most ``STOP_DEADLINE_S`` (runtime/stopping.py), whatever else fails (a recorder, a
+plugin, a UI); then the recording and the buses are closed. :attr:`Runtime.stop_report`
+says per unit what became of its stop.
 """
 
 from __future__ import annotations

@@ -27,9 +27,11 @@ from collections.abc import Iterator
 from abh3_supervisor.errors import Abh3Error
 
 FIFO_PRIORITY = 20
+# what _may_realtime accepts, and how to give it (the shipped systemd unit does the first)
 HOW_TO_ALLOW = (
-    "allow it with a systemd unit's CPUSchedulingPolicy=fifo (docs/service.md), "
-    "or `@group - rtprio 20` in /etc/security/limits.conf"
+    f"it needs root or an RLIMIT_RTPRIO of at least {FIFO_PRIORITY}: LimitRTPRIO={FIFO_PRIORITY} "
+    f"in a systemd unit (docs/service.md), or `@group - rtprio {FIFO_PRIORITY}` in "
+    "/etc/security/limits.conf"
 )
 
 
@@ -52,7 +54,9 @@ def normal() -> None:
 
 
 def _may_realtime() -> bool:
-    """Root, CAP_SYS_NICE or an RLIMIT_RTPRIO that covers FIFO_PRIORITY."""
+    """Root, or an RLIMIT_RTPRIO that covers FIFO_PRIORITY: checked before asking, so
+    CAP_SYS_NICE without the limit is not enough, and a policy systemd set beforehand
+    (``CPUSchedulingPolicy=``) is not looked at."""
     soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
     return os.geteuid() == 0 or soft == resource.RLIM_INFINITY or soft >= FIFO_PRIORITY
 
