@@ -14,7 +14,6 @@ import asyncio
 import errno
 import functools
 import logging
-import signal
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
@@ -35,8 +34,6 @@ from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.simulator.bus import SimBus
 
 log = logging.getLogger(__name__)
-# every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def open_bus(cfg: BusConfig, *, from_file: bool = True) -> can.BusABC:
