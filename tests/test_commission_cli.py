@@ -308,14 +308,17 @@ def test_a_drive_gone_silent_mid_jog_gets_no_jog_a_quarter_second_after_its_last
     assert run.returncode == 3, run.stdout + run.stderr  # silent still: the stop unconfirmed
     assert "Traceback" not in run.stderr
     gen = flags.LAYOUT_2021.generation
-    replies, jogs, last = [], [], None
+    replies: list[float] = []
+    jogs: list[float] = []
+    last: frames.Dp0Command | None = None
     for msg in can.LogReader(str(record)):
         if msg.arbitration_id == ids.dp0_reply_id(1, 2):
             replies.append(msg.timestamp)
         elif msg.arbitration_id == ids.dp0_command_id(1, 2):
-            last = frames.decode_dp0_command(bytes(msg.data), gen)
-            assert isinstance(last, frames.Dp0Command)
-            if (last.cmd_ay, last.cmd_bx) != (0.0, 0.0):
+            cmd = frames.decode_dp0_command(bytes(msg.data), gen)
+            assert isinstance(cmd, frames.Dp0Command)
+            last = cmd
+            if (cmd.cmd_ay, cmd.cmd_bx) != (0.0, 0.0):
                 jogs.append(msg.timestamp)
     assert jogs and jogs[0] < replies[-1], "the silence did not come mid-jog"
     assert jogs[-1] - replies[-1] <= 0.25, jogs[-1] - replies[-1]
