@@ -7,7 +7,9 @@ one."""
 from __future__ import annotations
 
 import json
+import os
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -19,6 +21,7 @@ import pytest
 
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime import signals
+from tests.conftest import in_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs" / "signals.md"
@@ -172,6 +175,35 @@ def test_a_fault_prints_where_it_happened(tmp_path: Path) -> None:
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == -signal.SIGSEGV, err
     assert "Fatal Python error: Segmentation fault" in err and "Thread 0x" in err
+
+
+@pytest.mark.wallclock
+@pytest.mark.parametrize("sig", [signal.SIGUSR1, signal.SIGXCPU], ids=signals.name)
+def test_abh3_run_on_a_terminal_stops_its_child_on_any_terminating_signal(
+    tmp_path: Path, sig: int
+) -> None:
+    """The TUI's half leaves (SIGTERM to its child) on any of them, as on SIGTERM."""
+    cfg = tmp_path / "two.yaml"  # two units: the terminal shows "online" twice when up
+    cfg.write_text(
+        MOVING + '  - {name: v, abh3_id: 3, host_id: 2, protocol: "2023", command_rate_hz: 50,\n'
+        '     broadcast: {mask: 0x03, rate_hz: 4}, startup: ["SERVO ON ON", "START ON ON"]}\n'
+    )
+    record = tmp_path / "run.log"
+    sock = tmp_path / "tui.sock"  # the child's log goes beside it, as tui.log
+    pid, fd = in_a_terminal(["run", str(cfg), "--socket", str(sock), "--record", str(record)])
+    os.kill(pid, sig)
+    while True:  # drain the terminal until the program has gone
+        ready, _, _ = select.select([fd], [], [], 20)
+        try:
+            if not ready or not os.read(fd, 65536):
+                break
+        except OSError:
+            break
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    _stopped_on_the_wire(record)
+    v = _commands(record, 3, LAYOUT)
+    assert v and _safe(v[-1], LAYOUT)
 
 
 # ---------------------------------------------------------------- abh3 commission
