@@ -73,7 +73,9 @@ async def run_headless(
     # a socket that cannot be served fails the run before the first frame: bound now
     bound = preflight(service) if service is not None else {}
     rt = Runtime(config, record=record, plugins=plugins)
-    handled = contextlib.ExitStack()  # closed after the runtime's stop: a signal then is moot
+    # the signal handlers outlive the runtime's stop and the last lines: a signal then
+    # changes nothing (the CLI's own handlers, once back, would say no drive started)
+    handled = contextlib.ExitStack()
     try:
         async with rt:
             sup = rt.supervisor
@@ -126,12 +128,15 @@ async def run_headless(
                 for line in status_lines(sup):
                     log.info("final %s", line)
                 log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
+    except BaseException:
+        handled.close()
+        raise
     finally:
         release(bound)  # what was bound and never served (the buses did not open)
-        handled.close()
-    if record is not None:
-        log.info("%s", recorded(rt, record))
-    ending = final_report(rt.stop_report, write_failures(rt, plugins))
+    with handled:
+        if record is not None:
+            log.info("%s", recorded(rt, record))
+        ending = final_report(rt.stop_report, write_failures(rt, plugins))
     return code or ending  # a run that failed (1) before a stop not confirmed (3), then 5
 
 
