@@ -69,6 +69,16 @@ def test_names_of_real_time_signals() -> None:
     assert signals.name(signal.SIGRTMAX) == "SIGRTMAX"
 
 
+def test_handlers_installed_from_c_are_not_in_the_way() -> None:
+    """Under PYTHONFAULTHANDLER, SIGABRT's handler is faulthandler's (C): Python reads it
+    as None and cannot put it back; the CLI still gives its handlers back cleanly."""
+    out = subprocess.run(
+        [sys.executable, "-m", "abh3_supervisor", "check", str(ROOT / "configs" / "demo.yaml")],
+        capture_output=True, text=True, timeout=60, env={**os.environ, "PYTHONFAULTHANDLER": "1"},
+    )  # fmt: skip
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+
+
 # ---------------------------------------------------------------- helpers
 
 

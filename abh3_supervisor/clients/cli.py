@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -348,11 +347,10 @@ def _interruptible() -> Iterator[Callable[[], None]]:
         yield lambda: None  # signals are only ever delivered to the main thread
         return
     signals.ignore_harmless()
-    saved = {sig: signal.signal(sig, _interrupt) for sig in signals.STOP_SIGNALS}
+    saved = signals.catch(_interrupt)
 
     def release() -> None:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
+        signals.restore(saved)
 
     try:
         yield release

@@ -19,12 +19,13 @@ import faulthandler
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import asyncio
+    from types import FrameType
 
 
 class Action(enum.Enum):
@@ -146,6 +147,25 @@ def report_faults() -> None:
         faulthandler.enable(sys.stderr, all_threads=True)
 
 
+_Handler = Callable[[int, "FrameType | None"], object]
+
+
+def catch(handler: _Handler) -> dict[int, object]:
+    """Python-level ``handler`` for every stop signal; the handlers it replaced, for
+    :func:`restore` (for code that must run while the loop is blocked, or before one)."""
+    return {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+
+
+def restore(saved: Mapping[int, object]) -> None:
+    """The handlers :func:`catch` replaced. One installed from C (faulthandler's, under
+    ``PYTHONFAULTHANDLER``) reads as None and cannot be put back: the default then."""
+    for sig, handler in saved.items():
+        if callable(handler) or isinstance(handler, int):
+            signal.signal(sig, handler)
+        else:
+            signal.signal(sig, signal.SIG_DFL)
+
+
 @contextlib.contextmanager
 def on_loop(
     loop: asyncio.AbstractEventLoop, caught: Callable[[int], None]
@@ -164,7 +184,6 @@ def on_loop(
     try:
         yield STOP_SIGNALS
     finally:
-        for sig, handler in saved.items():
+        for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
-            if handler is not None:
-                signal.signal(sig, handler)
+        restore(saved)

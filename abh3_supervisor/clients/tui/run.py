@@ -92,16 +92,14 @@ class Departure:
         self._modes = {fd: _modes(fd) for fd in self._ttys}
 
     def __enter__(self) -> Departure:
-        for sig in signals.STOP_SIGNALS:  # every one that would end us (docs/signals.md)
-            self._saved[sig] = signal.signal(sig, self._signalled)
+        self._saved = signals.catch(self._signalled)  # all that would end us: docs/signals.md
         threading.Thread(target=self._watch, name="abh3-departure", daemon=True).start()
         return self
 
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        for sig, handler in self._saved.items():
-            signal.signal(sig, handler)  # type: ignore[arg-type]
+        signals.restore(self._saved)
         if self.why is None:
             self.why = ""  # done: the watcher ends (a deadline, once leaving, stays armed)
             os.write(self._wake_w, b"x")
