@@ -274,7 +274,7 @@ buses:
     bitrate: 500000
     simulate:
       time_constant_ms: 60
-      faults: [{kind: silent, unit: front, at_s: 2.0, for_s: 60}]
+      faults: [{kind: silent, unit: front, at_s: 2.1, for_s: 60}]
 units:
   - name: front
     abh3_id: 1
@@ -292,10 +292,11 @@ units:
 def test_a_drive_gone_silent_mid_jog_gets_no_jog_a_quarter_second_after_its_last_answer(
     tmp_path: Path,
 ) -> None:
-    """End to end, judged from the recording alone: the drive falls silent 2 s in (the
-    identity takes about 1.4 s, so in the first 1 s jog); no DP0 frame carries a jog
-    setpoint later than 0.25 s after the drive's last reply, the last one is the safe
-    word, and the report names the communication loss with its fix."""
+    """End to end, judged from the recording alone: the drive falls silent 2.1 s in (the
+    identity takes about 1.45 s, so mid-way through the first 1 s jog; a slower start
+    puts it earlier in the jog); no DP0 frame carries a jog setpoint later
+    than 0.25 s after the drive's last reply, the last one is the safe word, and the
+    report names the communication loss with its fix."""
     cfg = tmp_path / "silent.yaml"
     cfg.write_text(SILENT_MID_JOG)
     record = tmp_path / "run.log"
