@@ -105,6 +105,16 @@ def _until(stream: object, text: str, limit_s: float = 60) -> list[str]:
     raise AssertionError(f"never saw {text!r}: {''.join(seen)[-2000:]}")
 
 
+def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
+    """The rest of stdout and stderr once it has ended: read through the text streams,
+    whose buffers may hold lines already read ahead (``communicate`` reads the pipes)."""
+    assert proc.stdout is not None and proc.stderr is not None
+    out = proc.stdout.read()  # a few lines: stderr's pipe cannot fill meanwhile
+    err = proc.stderr.read()
+    proc.wait(timeout=30)
+    return out, err
+
+
 def _commands(log: Path, abh3: int, layout: flags.Layout) -> list[frames.Dp0Command]:
     out = []
     for msg in can.LogReader(str(log)):
@@ -156,9 +166,22 @@ REAL_TIME = [signal.SIGRTMIN, signal.SIGRTMIN + 5, signal.SIGRTMAX]
 def test_every_catchable_terminating_signal_stops_a_moving_unit(tmp_path: Path, sig: int) -> None:
     proc, record = _headless(tmp_path)
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=30)
+    _, err = _finish(proc)
     assert proc.returncode == 0, err
     assert f"(signal): {signals.name(sig)}: stop" in err
+    assert "stop frame confirmed by the drive" in err and "Traceback" not in err
+    _stopped_on_the_wire(record)
+
+
+@pytest.mark.wallclock
+def test_a_second_signal_during_the_stop_changes_nothing(tmp_path: Path) -> None:
+    proc, record = _headless(tmp_path)
+    proc.send_signal(signal.SIGINT)
+    assert proc.stderr is not None
+    _until(proc.stderr, "stopping: zero")  # the stop path has begun
+    proc.send_signal(signal.SIGTERM)
+    _, err = _finish(proc)
+    assert proc.returncode == 0, err
     assert "stop frame confirmed by the drive" in err and "Traceback" not in err
     _stopped_on_the_wire(record)
 
@@ -170,7 +193,7 @@ def test_sigpipe_and_sigxfsz_change_nothing(tmp_path: Path) -> None:
     proc.send_signal(signal.SIGPIPE)
     proc.send_signal(signal.SIGXFSZ)
     proc.send_signal(signal.SIGUSR2)  # a stop signal after them: the run was still there
-    _, err = proc.communicate(timeout=30)
+    _, err = _finish(proc)
     assert proc.returncode == 0, err
     assert "SIGUSR2: stop" in err and "SIGPIPE" not in err and "SIGXFSZ" not in err
     _stopped_on_the_wire(record)
@@ -182,7 +205,7 @@ def test_a_fault_prints_where_it_happened(tmp_path: Path) -> None:
     thread; the frames cease and the drive's own command-zero timeout stops it."""
     proc, _ = _headless(tmp_path)
     proc.send_signal(signal.SIGSEGV)
-    _, err = proc.communicate(timeout=30)
+    _, err = _finish(proc)
     assert proc.returncode == -signal.SIGSEGV, err
     assert "Fatal Python error: Segmentation fault" in err and "Thread 0x" in err
 
@@ -255,7 +278,7 @@ def _commission_ended(
     proc: subprocess.Popen[str], record: Path, tmp_path: Path, first: int
 ) -> None:
     """Ended by ``first``, whatever came after: report, summary, stop frames, no traceback."""
-    out, err = proc.communicate(timeout=30)
+    out, err = _finish(proc)
     assert proc.returncode == 128 + first, out + err
     assert "Traceback" not in err + out
     assert "unit front: stop confirmed" in out and "summary:" in out
