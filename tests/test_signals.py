@@ -109,10 +109,12 @@ def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
     """The rest of stdout and stderr once it has ended: read through the text streams,
     whose buffers may hold lines already read ahead (``communicate`` reads the pipes)."""
     assert proc.stdout is not None and proc.stderr is not None
-    out = proc.stdout.read()  # a few lines: stderr's pipe cannot fill meanwhile
-    err = proc.stderr.read()
-    proc.wait(timeout=30)
-    return out, err
+    try:
+        proc.wait(timeout=30)  # a few KB of output: the pipes cannot fill meanwhile
+    except subprocess.TimeoutExpired:
+        proc.kill()  # stopped (SIGSTOP-like) or hung: fail, never hang the suite
+        raise
+    return proc.stdout.read(), proc.stderr.read()
 
 
 def _commands(log: Path, abh3: int, layout: flags.Layout) -> list[frames.Dp0Command]:
@@ -187,15 +189,16 @@ def test_a_second_signal_during_the_stop_changes_nothing(tmp_path: Path) -> None
 
 
 @pytest.mark.wallclock
-def test_sigpipe_and_sigxfsz_change_nothing(tmp_path: Path) -> None:
-    """Ignored: were either fatal, the run would end by it (not by SIGTERM, exit 0)."""
+def test_sigpipe_sigxfsz_and_job_control_change_nothing(tmp_path: Path) -> None:
+    """Ignored: were either fatal, the run would end by it (not by SIGUSR2, exit 0); had
+    job control stopped it, SIGUSR2 would wait for a SIGCONT that never comes."""
     proc, record = _headless(tmp_path)
-    proc.send_signal(signal.SIGPIPE)
-    proc.send_signal(signal.SIGXFSZ)
+    for sig in (signal.SIGPIPE, signal.SIGXFSZ, *signals.JOB_CONTROL):
+        proc.send_signal(sig)
     proc.send_signal(signal.SIGUSR2)  # a stop signal after them: the run was still there
     _, err = _finish(proc)
     assert proc.returncode == 0, err
-    assert "SIGUSR2: stop" in err and "SIGPIPE" not in err and "SIGXFSZ" not in err
+    assert "SIGUSR2: stop" in err and "SIGPIPE" not in err and "SIGTSTP" not in err
     _stopped_on_the_wire(record)
 
 

@@ -6,7 +6,8 @@ way out: the drives get the safe word, their stops are confirmed, the recordings
 SIGPIPE and SIGXFSZ are ignored: the write that raised them fails instead (EPIPE, EFBIG),
 which the code writing already handles. Synchronous faults and SIGKILL/SIGSTOP cannot be
 handled by the process: the drive's own command-zero timeout (``drive_timeout_ms``,
-parameter 0x4117) stops it.
+parameter 0x4117) stops it. Job control's stops (SIGTSTP, SIGTTIN, SIGTTOU) are ignored
+while a bus is held: a suspended supervisor commands its drives no more than a dead one.
 
 Only the standard library is imported: the CLI catches these before anything else loads.
 """
@@ -33,6 +34,7 @@ class Action(enum.Enum):
     IGNORE = "ignored: the write that raised it fails instead"
     FAULT = "cannot be handled: the drive's command-zero timeout stops it"
     UNCATCHABLE = "cannot be caught: the drive's command-zero timeout stops it"
+    JOB_CONTROL = "ignored while a bus is held: the drives stay supervised"
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,11 @@ class Entry:
 
 _T, _C = "terminate", "core dump"
 _S, _I, _F, _U = Action.STOP, Action.IGNORE, Action.FAULT, Action.UNCATCHABLE
+_J = Action.JOB_CONTROL
+_JOB_WHY = (
+    "job control (Ctrl-Z, a background job at its terminal) would suspend the process "
+    "and leave the drives commanded by nobody until their own timeout"
+)
 _FAULT_WHY = (
     "raised by the faulting instruction itself: a handler that returns re-runs it, and "
     "the interpreter's state cannot be trusted; faulthandler prints every thread's "
@@ -101,6 +108,10 @@ TABLE: tuple[Entry, ...] = (
     Entry("SIGILL", _C, _F, _FAULT_WHY),
     Entry("SIGKILL", _T, _U, _KILL_WHY),
     Entry("SIGSTOP", "stop", _U, _KILL_WHY + " (the process stops, not ends)"),
+    # not terminating, but suspending a process that holds a bus is as bad
+    Entry("SIGTSTP", "stop", _J, _JOB_WHY),
+    Entry("SIGTTIN", "stop", _J, _JOB_WHY),
+    Entry("SIGTTOU", "stop", _J, _JOB_WHY),
 )
 
 
@@ -121,6 +132,7 @@ STOP_SIGNALS: tuple[int, ...] = _of(Action.STOP) + tuple(
 )
 IGNORED: tuple[int, ...] = _of(Action.IGNORE)
 FAULTS: tuple[int, ...] = _of(Action.FAULT)
+JOB_CONTROL: tuple[int, ...] = _of(Action.JOB_CONTROL)
 
 
 def name(signum: int) -> str:
@@ -171,14 +183,17 @@ def on_loop(
     loop: asyncio.AbstractEventLoop, caught: Callable[[int], None]
 ) -> Iterator[tuple[int, ...]]:
     """``caught(signum)`` on ``loop`` for every stop signal while the block runs (every
-    time one comes: a second one must change nothing); the handlers before it come back
-    after. Yields the signals handled (none off the main thread: signals reach only it)."""
+    time one comes: a second one must change nothing), and job control ignored; the
+    handlers before it come back after. Yields the signals handled (none off the main
+    thread: signals reach only it)."""
     if threading.current_thread() is not threading.main_thread():
         yield ()
         return
     ignore_harmless()
     report_faults()
-    saved = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    saved = {sig: signal.getsignal(sig) for sig in (*STOP_SIGNALS, *JOB_CONTROL)}
+    for sig in JOB_CONTROL:
+        signal.signal(sig, signal.SIG_IGN)
     for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, caught, sig)
     try:
