@@ -203,6 +203,34 @@ def test_sigpipe_sigxfsz_and_job_control_change_nothing(tmp_path: Path) -> None:
 
 
 @pytest.mark.wallclock
+def test_a_recording_over_the_file_size_limit_ends_and_the_run_goes_on(tmp_path: Path) -> None:
+    """A real SIGXFSZ (RLIMIT_FSIZE, from the write itself): the write fails with EFBIG,
+    that recording ends with one line, and the drives are stopped as ever (exit 5)."""
+    import resource
+
+    cfg = tmp_path / "moving.yaml"
+    cfg.write_text(MOVING)
+    record = tmp_path / "run.log"
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless", "--no-socket",
+         "--status-interval", "0", "--record", str(record)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
+        cwd=tmp_path, preexec_fn=small_files,
+    )  # fmt: skip
+    assert proc.stderr is not None
+    _until(proc.stderr, "the recording ends here")
+    proc.send_signal(signal.SIGTERM)
+    _, err = _finish(proc)
+    assert proc.returncode == 5, err  # not killed by SIGXFSZ: the recording stopped early
+    assert "stop frame confirmed by the drive" in err and "Traceback" not in err
+    assert record.stat().st_size <= 20_000
+
+
+@pytest.mark.wallclock
 def test_a_fault_prints_where_it_happened(tmp_path: Path) -> None:
     """SIGSEGV cannot be survived (docs/signals.md): faulthandler says where, every
     thread; the frames cease and the drive's own command-zero timeout stops it."""
