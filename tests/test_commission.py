@@ -179,6 +179,41 @@ def test_a_wrong_encoder_stops_the_unit_before_the_jog_ends() -> None:
     assert bench.drive("u1").inputs & bench.drive("u1").layout.servo.both == 0
 
 
+def _jog_a_starts() -> float:
+    """When jog A's first frame goes out (the fake clock runs the same up to a fault)."""
+    bench = robot()
+    session(bench, units=["u1"])
+    return next(t for t, a, _, _ in commands(bench, "u1") if a)
+
+
+@pytest.mark.parametrize(
+    "into", [0.2, FAST.jog_s + 0.02], ids=["mid-jog", "in the pause before the reversal"]
+)
+def test_a_drive_gone_silent_is_stopped_within_a_quarter_second_and_named(into: float) -> None:
+    """Silence is a fault: no jog or reversal is commanded later than 0.25 s after the
+    drive's last answer (judged from the frames), and the report names the link, not the
+    power stage."""
+    silent_at = _jog_a_starts() + into
+    bench = robot(f"{{kind: silent, unit: u1, at_s: {silent_at}, for_s: 60}}")
+    results, _, operator = session(bench, units=["u1"])
+    cfg = bench.config.units["u1"]
+    reply = ids.dp0_reply_id(cfg.abh3_id, cfg.host_id)
+    answers = [f.start for f in bench.timeline.frames if f.node != 0 and f.arbitration_id == reply]
+    last_answer = max(answers)
+    assert silent_at - 0.03 < last_answer <= silent_at  # the fault, not something else
+    moving = [t for t, a, b, _ in commands(bench, "u1") if a or b]
+    assert moving and moving[-1] <= last_answer + 0.25, moving[-1] - last_answer
+    assert not [t for t, a, _, _ in commands(bench, "u1") if a < 0]  # no reversal
+    assert_stopped(bench, "u1")
+    jog = [c for c in results["u1"].checks if c.step == "jog A"]
+    assert [c.name for c in jog] == ["communication lost"], jog
+    assert "no answer from the drive" in jog[0].measured
+    assert "termination" in jog[0].fix and "CAN settings" in jog[0].fix
+    assert not any("power stage" in c.fix for c in results["u1"].checks)
+    assert results["u1"].verdict is Verdict.FAIL
+    assert any(line.startswith("  STOPPED unit u1: no answer") for line in operator.lines)
+
+
 def test_the_e_stop_figure_is_within_one_command_period() -> None:
     bench = robot()
     results, _, _ = session(bench, units=["u1"])

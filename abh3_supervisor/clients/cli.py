@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -25,6 +24,7 @@ from typing import TYPE_CHECKING
 from abh3_supervisor import __version__
 from abh3_supervisor.clients.argtypes import positive
 from abh3_supervisor.errors import Abh3Error, ConfigError, Interrupted, PartialWrite, RunError
+from abh3_supervisor.runtime import signals  # the standard library only: nothing loads early
 
 if TYPE_CHECKING:
     import argparse
@@ -37,8 +37,6 @@ if TYPE_CHECKING:
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
 EXIT_PARTIAL = 4  # abh3 param restore: some values written, then stopped (journal saved)
 MAX_SHOWN = 20  # problems printed; the rest are counted (one mistake can repeat 10 000 times)
-# the same as runtime.STOP_SIGNALS, without importing python-can before they are caught
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 log = logging.getLogger("abh3")
 CONNECT_HELP = "its control socket, or ssh://[user@]host[:port]/path/to.sock on another host"
 
@@ -235,7 +233,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             return _command(args, release)
     except Interrupted as exc:
-        name = signal.Signals(exc.signum).name
+        name = signals.name(exc.signum)
         starting = " while starting; no drive was started" if command == "run" else ""
         print(f"abh3: stopped by {name}{starting}", file=sys.stderr)
         return 128 + exc.signum
@@ -348,11 +346,11 @@ def _interruptible() -> Iterator[Callable[[], None]]:
     if threading.current_thread() is not threading.main_thread():
         yield lambda: None  # signals are only ever delivered to the main thread
         return
-    saved = {sig: signal.signal(sig, _interrupt) for sig in STOP_SIGNALS}
+    signals.ignore_harmless()
+    saved = signals.catch(_interrupt)
 
     def release() -> None:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
+        signals.restore(saved)
 
     try:
         yield release

@@ -24,7 +24,6 @@ import dataclasses
 import datetime
 import logging
 import os
-import signal
 import sys
 import termios
 import tty
@@ -44,7 +43,8 @@ from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.runtime.bus_runtime import STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime import signals
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.priority import Priority, bus_priority
 from abh3_supervisor.runtime.recording import recorded, recording
 from abh3_supervisor.runtime.stopping import EXIT_STOP_UNCONFIRMED
@@ -339,6 +339,19 @@ def _keys(operator: TerminalOperator) -> Iterator[None]:
 async def _session(
     config: Config, units: list[str], settings: Settings, args: argparse.Namespace
 ) -> int:
+    # the signal handlers outlive the runtime's block: a signal during the stop, the
+    # report or the recording's close changes nothing (the first one stopped the sequence)
+    with contextlib.ExitStack() as handled:
+        return await _commissioning(config, units, settings, args, handled)
+
+
+async def _commissioning(
+    config: Config,
+    units: list[str],
+    settings: Settings,
+    args: argparse.Namespace,
+    handled: contextlib.ExitStack,
+) -> int:
     loop = asyncio.get_running_loop()
     began = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     used = for_commissioning(config, units)
@@ -348,53 +361,45 @@ async def _session(
     rt = Runtime(used, record=args.record, plugins=plugins)
     results: dict[str, UnitResult] = {}
     ended: str | None = None
-    signalled: list[str] = []
+    stopped_by: list[int] = []  # the signal that ended the sequence
     async with rt:
         bench = LiveBench(rt, plugins, units)
         operator = TerminalOperator(bench, args, keys=sys.stdin.isatty() and sys.stdout.isatty())
-        task = asyncio.current_task()
-        assert task is not None
+        sequence: list[asyncio.Future[str | None]] = []  # once it has begun
 
-        def on_signal(sig: signal.Signals) -> None:
-            signalled.append(sig.name)
-            task.cancel()
+        def on_signal(signum: int) -> None:
+            # the first ends the sequence, and the way out follows as after any end; no
+            # signal cancels anything else, so the stop, the report and the recording's
+            # close run to their end whatever comes after (docs/signals.md)
+            if not stopped_by and sequence and not sequence[0].done():
+                stopped_by.append(signum)
+                sequence[0].cancel()
 
-        for sig in STOP_SIGNALS:
-            loop.add_signal_handler(sig, on_signal, signal.Signals(sig))
-        try:
-            with _keys(operator):
-                operator.say(
-                    f"commissioning {', '.join(units)} from {config.file}"
-                    + (
-                        "; e = E-STOP at any moment, Ctrl-C stops everything"
-                        if operator.keys
-                        else ""
-                    )
-                )
-                fatal = asyncio.ensure_future(rt.fatal) if rt.fatal is not None else None
-                startups = {u: config.units[u].startup for u in units}
-                run = asyncio.ensure_future(
-                    commission(bench, operator, units, settings, results, startups)
-                )
-                waiting = {run} | ({fatal} if fatal is not None else set())
-                try:
-                    await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
-                finally:
-                    if not run.done():
-                        run.cancel()
-                        ended = ended or "internal error: the run stopped"
-                        with contextlib.suppress(asyncio.CancelledError, Exception):
-                            await run
-                if run.done() and not run.cancelled() and run.exception() is None:
-                    ended = run.result()
-        except asyncio.CancelledError:
-            ended = f"stopped by {signalled[0] if signalled else 'cancellation'}"
-            if not signalled:
-                raise
-            task.uncancel()
-        finally:
-            for sig in STOP_SIGNALS:
-                loop.remove_signal_handler(sig)
+        handled.enter_context(signals.on_loop(loop, on_signal))
+        with _keys(operator):
+            operator.say(
+                f"commissioning {', '.join(units)} from {config.file}"
+                + ("; e = E-STOP at any moment, Ctrl-C stops everything" if operator.keys else "")
+            )
+            fatal = asyncio.ensure_future(rt.fatal) if rt.fatal is not None else None
+            startups = {u: config.units[u].startup for u in units}
+            run = asyncio.ensure_future(
+                commission(bench, operator, units, settings, results, startups)
+            )
+            sequence.append(run)
+            waiting = {run} | ({fatal} if fatal is not None else set())
+            try:
+                await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                if not run.done():
+                    run.cancel()
+                    ended = ended or "internal error: the run stopped"
+                    with contextlib.suppress(asyncio.CancelledError, Exception):
+                        await run
+            if run.done() and not run.cancelled() and run.exception() is None:
+                ended = run.result()
+        if stopped_by:
+            ended = f"stopped by {signals.name(stopped_by[0])}"
     stops = rt.stop_report
     if args.record is not None:
         print(recorded(rt, args.record))
@@ -416,8 +421,8 @@ async def _session(
         _write(args.report, html_text(session))
         _write(args.report.with_suffix(".json"), json_text(session))
         print(f"report: {args.report} and {args.report.with_suffix('.json')}")
-    if signalled:
-        return 128 + signal.Signals[signalled[0]].value
+    if stopped_by:
+        return 128 + stopped_by[0]
     if not rt.stops_confirmed:
         return EXIT_STOP_UNCONFIRMED
     failed = ended is not None or any(r.verdict is Verdict.FAIL for r in results.values())

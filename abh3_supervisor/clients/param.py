@@ -19,7 +19,6 @@ import argparse
 import asyncio
 import contextlib
 import logging
-import signal
 import sys
 import threading
 import time
@@ -32,6 +31,7 @@ from abh3_supervisor.clients.ssh import endpoint
 from abh3_supervisor.errors import CommandError, Interrupted, PartialWrite
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
+from abh3_supervisor.runtime import signals
 
 if TYPE_CHECKING:
     from abh3_supervisor.clients.control import ControlClient
@@ -39,7 +39,6 @@ if TYPE_CHECKING:
     from abh3_supervisor.params.files import ParamValue
 
 log = logging.getLogger("abh3")
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 IDENTITY_ADDRESSES = (0x0, 0x2, 0x4, 0x5, 0x8, 0xC)
 
 
@@ -173,18 +172,16 @@ class _Stop:
         self.loop = asyncio.get_running_loop()
         self.signum: int | None = None
         self.task: asyncio.Task[int] | None = None
-        # signals reach only the main thread (a test may run the CLI on another: none)
-        main = threading.current_thread() is threading.main_thread()
-        self.signals = STOP_SIGNALS if main else ()
+        self._handled = contextlib.ExitStack()
 
     def __enter__(self) -> _Stop:
-        for sig in self.signals:
-            self.loop.add_signal_handler(sig, self._caught, sig)
+        # every signal that would end the process (docs/signals.md); none off the main
+        # thread (a test may run the CLI on another): signals reach only that one
+        self._handled.enter_context(signals.on_loop(self.loop, self._caught))
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for sig in self.signals:
-            self.loop.remove_signal_handler(sig)
+        self._handled.close()
 
     def _caught(self, signum: int) -> None:
         if self.signum is None:
@@ -195,7 +192,7 @@ class _Stop:
         # again until the work ends: library code that catches a cancellation (3.11's
         # wait_for, as an answer arrives) must not be able to lose a stop
         if self.task is not None and not self.task.done() and self.signum is not None:
-            self.task.cancel(f"stopped by {signal.Signals(self.signum).name}")
+            self.task.cancel(f"stopped by {signals.name(self.signum)}")
             self.loop.call_later(0.1, self._cancel)
 
     async def run(self, work: Coroutine[Any, Any, int]) -> int:
@@ -398,7 +395,7 @@ def _say(text: str) -> None:
 
 def _cause(exc: BaseException) -> str:
     if isinstance(exc, Interrupted):
-        return f"stopped by {signal.Signals(exc.signum).name}"
+        return f"stopped by {signals.name(exc.signum)}"
     if isinstance(exc, asyncio.CancelledError):
         return str(exc.args[0]) if exc.args else "cancelled"
     return str(exc) or type(exc).__name__

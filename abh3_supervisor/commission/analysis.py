@@ -17,6 +17,9 @@ Samples = Sequence[tuple[float, float, float]]  # (t, A, B)
 FOLLOWS = 0.2  # below this the motor is taken as not moving
 OTHER_MOVES = 0.3  # the motor not asked moving this much: a wiring fault
 OVERSPEED = 2.0  # beyond 2× the asked speed: stop at once
+# no DP0 answer for this long while a unit is jogged: communication lost, stop it (the
+# bound held on the wire is 0.25 s after the last answer; the rest is the loop's margin)
+SILENCE_S = 0.2
 SIZE_TOLERANCE = 0.15  # a settled feedback within ±15 % of the command is the right size
 STALL_CURRENT = 30.0  # % above the idle current: the drive is pushing a motor that does not turn
 SETTLE_BAND = 0.05  # settling: within ±5 % of the step
@@ -36,6 +39,12 @@ SWAP_FIX = (
     "(A is the left wheel, B the right, as the velocity model and odometry assume)"
 )
 MODEL_FIX = "velocity_model in the YAML must be the drive's model (`abh3 scan` reads it)"
+COMMUNICATION_FIX = (
+    "the drive stopped answering on CAN: check the CAN cable and its connectors, the "
+    "termination (120 Ω at both ends of the bus), the drive's control power, and its CAN "
+    "settings against the file (node address, bit rate, host id: `abh3 verify`, "
+    "`abh3 scan`); `abh3 status` shows the bus's errors"
+)
 
 
 def encoder_fix(axis: int) -> str:
@@ -138,6 +147,19 @@ def judge_direction(trace: Trace, phases: Sequence[Phase]) -> list[Check]:
         if checks[-1].verdict is not Verdict.PASS:
             break  # the first wrong answer names the fault; the rest only repeats it
     return checks
+
+
+def communication_lost(step: str, measured: str) -> Check:
+    """The drive fell silent while moving: the guard stopped it; nothing of the motor can
+    be judged from answers that did not come."""
+    return Check(
+        step,
+        "communication lost",
+        Verdict.FAIL,
+        measured,
+        f"an answer to every command (within {SILENCE_S:g} s)",
+        COMMUNICATION_FIX,
+    )
 
 
 def no_motion(trace: Trace, phase: Phase, measured: str, limit: str) -> Check:

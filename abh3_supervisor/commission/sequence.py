@@ -27,6 +27,7 @@ from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import frames, ids
 
 REFRESH_S = 0.05  # the sequence repeats its command this often (the source lapses at 0.3 s)
+MIN_WAIT_S = 0.001
 SOURCE_TIMEOUT_S = 0.3
 
 
@@ -137,7 +138,10 @@ class UnitSequence(IdentitySteps):
             start = self.bench.now()
             guard.expect(axis, speed, start, grace)
             end = start + seconds
-            while self.bench.now() < end and guard.tripped is None:
+            while (now := self.bench.now()) < end:
+                guard.tick(now)  # a drive gone silent: stopped, and nothing more commanded
+                if guard.tripped is not None:
+                    break
                 if speed:
                     a, b = (speed, 0.0) if axis == 0 else (0.0, speed)
                     self.bench.move(self.unit, a, b)
@@ -145,7 +149,9 @@ class UnitSequence(IdentitySteps):
                     self.bench.release(self.unit)
                 for packet in (3, 4):  # current and pulses beside every exchange
                     self.sup.request_status(self.unit, packet)
-                await self._wait(min(REFRESH_S, end - self.bench.now()))
+                # awake by the guard's deadline: a silence is noticed when it begins to count
+                wake = min(REFRESH_S, end - now, guard.deadline() - now)
+                await self._wait(max(wake, MIN_WAIT_S))
             if speed:
                 now = self.bench.now()
                 done = guard.tripped is None
@@ -196,7 +202,11 @@ class UnitSequence(IdentitySteps):
         trace = Trace(step, "jog", axis, self.bench.now())
         plan = [(self.speed, s.jog_s), (0.0, max(0.3, s.jog_s / 2)), (-self.speed, s.jog_s)]
         phases, guard = await self._motion_trace(trace, plan, max(0.3, 0.6 * s.jog_s))
-        checks = analysis.judge_direction(trace, phases)
+        checks = (
+            [analysis.communication_lost(step, guard.tripped or "")]
+            if guard.silence is not None  # no answers to judge: the link, not the motor
+            else analysis.judge_direction(trace, phases)
+        )
         if guard.tripped is not None and all(c.verdict is Verdict.PASS for c in checks):
             checks.append(
                 Check(
@@ -241,14 +251,19 @@ class UnitSequence(IdentitySteps):
             trace, [(0.0, lead), (self.speed, s.step_s)], max(0.3, 0.6 * s.step_s)
         )
         if guard.tripped is not None or not phases:
-            self._check(
-                step,
-                "unexpected response",
-                Verdict.FAIL,
-                guard.tripped or "no step",
-                "",
-                "see the plot; the unit was stopped",
+            c = (
+                analysis.communication_lost(step, guard.tripped or "")
+                if guard.silence is not None
+                else Check(
+                    step,
+                    "unexpected response",
+                    Verdict.FAIL,
+                    guard.tripped or "no step",
+                    "",
+                    "see the plot; the unit was stopped",
+                )
             )
+            self._check(c.step, c.name, c.verdict, c.measured, c.limit, c.fix)
             self._skip(["motion"], "the remaining steps: unit stopped")
             self.result.ended = f"{step}: {guard.tripped}"
             return False

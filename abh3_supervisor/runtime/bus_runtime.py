@@ -16,7 +16,6 @@ import errno
 import functools
 import logging
 import math
-import signal
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
@@ -39,8 +38,6 @@ from abh3_supervisor.scheduler.timer import DeadlineTimer
 from abh3_supervisor.simulator.bus import SimBus
 
 log = logging.getLogger(__name__)
-# every signal that ends the program normally: Ctrl-C, kill, and the terminal going away
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def open_bus(cfg: BusConfig, *, from_file: bool = True) -> can.BusABC:

@@ -7,7 +7,6 @@ import contextlib
 import gc
 import logging
 import os
-import signal
 import socket
 import sys
 from pathlib import Path
@@ -17,7 +16,8 @@ from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.errors import PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.runtime.bus_runtime import STOP_SIGNALS, Runtime
+from abh3_supervisor.runtime import signals
+from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.recording import recorded, write_failures
 from abh3_supervisor.runtime.stopping import final_report
 from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight, release
@@ -73,18 +73,21 @@ async def run_headless(
     # a socket that cannot be served fails the run before the first frame: bound now
     bound = preflight(service) if service is not None else {}
     rt = Runtime(config, record=record, plugins=plugins)
+    # the signal handlers outlive the runtime's stop and the last lines: a signal then
+    # changes nothing (the CLI's own handlers, once back, would say no drive started)
+    handled = contextlib.ExitStack()
     try:
         async with rt:
             sup = rt.supervisor
 
-            def on_signal(sig: signal.Signals) -> None:
-                sup.audit("signal", None, f"{sig.name}: stop")
+            def on_signal(signum: int) -> None:
+                sup.audit("signal", None, f"{signals.name(signum)}: stop")
                 stop.set()
 
             # only now: a signal while buses or the recording open must interrupt the open
-            # (the caller's handlers do), which a loop handler cannot
-            for sig in STOP_SIGNALS:
-                loop.add_signal_handler(sig, on_signal, signal.Signals(sig))
+            # (the caller's handlers do), which a loop handler cannot. Every signal that
+            # would end the process (docs/signals.md).
+            handled.enter_context(signals.on_loop(loop, on_signal))
             if exit_with_stdin:
                 _stop_at_end_of_stdin(sup, stop)
             events = EventLog(sup)
@@ -125,13 +128,15 @@ async def run_headless(
                 for line in status_lines(sup):
                     log.info("final %s", line)
                 log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
+    except BaseException:
+        handled.close()
+        raise
     finally:
         release(bound)  # what was bound and never served (the buses did not open)
-        for sig in STOP_SIGNALS:
-            loop.remove_signal_handler(sig)
-    if record is not None:
-        log.info("%s", recorded(rt, record))
-    ending = final_report(rt.stop_report, write_failures(rt, plugins))
+    with handled:
+        if record is not None:
+            log.info("%s", recorded(rt, record))
+        ending = final_report(rt.stop_report, write_failures(rt, plugins))
     return code or ending  # a run that failed (1) before a stop not confirmed (3), then 5
 
 

@@ -37,11 +37,10 @@ from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.ssh import Endpoint
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp, styled
 from abh3_supervisor.errors import RunError
-from abh3_supervisor.runtime import priority
+from abh3_supervisor.runtime import priority, signals
 from abh3_supervisor.service import paths
 
 log = logging.getLogger("abh3")
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 START_TIMEOUT_S = 60.0  # buses, plugins and the simulator up, the socket served
 STOP_TIMEOUT_S = 15.0  # the child's stop path is bounded well below this
 DETACH_S = 0.6  # `abh3 tui` is gone within this of a signal or its terminal going away
@@ -93,16 +92,14 @@ class Departure:
         self._modes = {fd: _modes(fd) for fd in self._ttys}
 
     def __enter__(self) -> Departure:
-        for sig in STOP_SIGNALS:
-            self._saved[sig] = signal.signal(sig, self._signalled)
+        self._saved = signals.catch(self._signalled)  # all that would end us: docs/signals.md
         threading.Thread(target=self._watch, name="abh3-departure", daemon=True).start()
         return self
 
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        for sig, handler in self._saved.items():
-            signal.signal(sig, handler)  # type: ignore[arg-type]
+        signals.restore(self._saved)
         if self.why is None:
             self.why = ""  # done: the watcher ends (a deadline, once leaving, stays armed)
             os.write(self._wake_w, b"x")
@@ -121,7 +118,7 @@ class Departure:
             action()
 
     def _signalled(self, signum: int, frame: FrameType | None) -> None:
-        self.leave(signal.Signals(signum).name)
+        self.leave(signals.name(signum))
 
     def _watch(self) -> None:
         terminal = select.poll()
@@ -330,7 +327,7 @@ def outcome(child: ServiceChild, child_code: int, code: int) -> int:
     """The exit code of `abh3 run` on a terminal, and a line saying how the child ended
     when that is not the ordinary way."""
     if child_code < 0 and not child.killed:
-        name = signal.Signals(-child_code).name
+        name = signals.name(-child_code)
         tell(
             f"abh3: the supervisor was killed by {name} (exit code {EXIT_SUPERVISOR_GONE}): "
             "it sent no stop frames — the drives stop on their own command-zero timeout "
