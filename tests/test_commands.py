@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.commands import (
+    KEYWORDS,
     CurrentCommand,
     InputChange,
     SelectCommand,
@@ -15,6 +17,7 @@ from abh3_supervisor.core.commands import (
 )
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol.flags import LAYOUT_2021, LAYOUT_2023
+from tests.conftest import TWO_UNITS, Rig
 
 # text, 2021 (data, mask) — the seed's layout, protocol doc §5 — and 2023 (data, mask)
 CASES = [
@@ -115,3 +118,41 @@ def test_strict_parsing(text: str, why: str) -> None:
 
 def test_one_bit_commands_keep_one_value() -> None:
     assert parse_command("brake on 1") == SwitchCommand("BRAKE", True, True)
+
+
+# one valid command per keyword, in capitals as the seed documents it
+EVERY_KEYWORD = {
+    **{k: f"{k} ON OFF" for k in ("SERVO", "START", "DIR", "CADD", "CDIR", "PCLR", "TORQUE")},
+    **{k: f"{k} ON ON" for k in ("M/S", "BRAKE", "RESET")},
+    "SELECT": "SELECT 3 5",
+    "VEL": "VEL 50 -1E1",
+    "CUR": "CUR 12.5 0",
+}
+
+
+@pytest.mark.parametrize("text", EVERY_KEYWORD.values())
+def test_every_keyword_and_switch_value_in_any_case(text: str) -> None:
+    """Case-insensitive: what a person types (`vel 50 0`, `Servo on on`) is the command
+    the capitals are; only numbers and 0/1 have no case (an exponent takes either)."""
+    assert set(EVERY_KEYWORD) == set(KEYWORDS)
+    want = parse_command(text)
+    for typed in (text.lower(), text.title(), text.swapcase()):
+        assert parse_command(typed) == want, typed
+
+
+def test_the_seeds_answers_do_not_depend_on_case() -> None:
+    """The same answers and the same state from the Supervisor (where the TUI's command
+    line, `abh3 send` and the ROS 2 service end) for the capitals and the typed forms."""
+    cfg = parse_config(TWO_UNITS, "two.yaml")
+    typed = ["Servo on on", "start ON off", "vel 50 0", "select 7 7", "servo maybe on", "vel"]
+    capitals = [t.upper() for t in typed]
+    results = []
+    for texts in (capitals, typed):
+        rig = Rig(cfg)
+        rig.run(0.2)
+        answers = [rig.sup.apply_text("left", t) for t in texts]
+        unit = rig.sup.units["left"]
+        results.append((answers, unit.inputs, unit.setpoint.ay, unit.setpoint.bx))
+    assert results[0] == results[1]
+    assert results[1][0] == ["", "", "", "", "Invalid Command.", "Invalid Command."]
+    assert results[1][2:] == (50, 0)

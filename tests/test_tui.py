@@ -169,14 +169,14 @@ def test_risky_toggles_ask_first_and_arrows_drive_the_selected_unit() -> None:
             return real(name, command)
 
         sup.arbiter.apply = spy
-        await press("n", "up")  # select right, drive forward
-        assert response(app).startswith("drive right")
+        await press("n", "up")  # select right, drive forward: sent, and said to move nothing
+        assert response(app).startswith("right: SERVO off, START off — nothing moves")
         for _ in range(100):  # the feed hands the twist over through the loop
             if driven:
                 break
             await pilot.pause()
-        # (the setpoint itself may already be back at zero on a slow machine: the TUI's
-        # source goes stale 0.6 s after the key, which is the point of it)
+        # (the setpoint itself may already be back at zero on a slow machine: a tap drives
+        # 0.8 s, then the TUI sends zero, which is the point of it)
         name, linear_x, angular_z = driven[0]
         assert (name, angular_z) == ("right", 0.0) and linear_x == pytest.approx(0.2)
 

@@ -5,23 +5,27 @@ service's clamp notes are shown."""
 from __future__ import annotations
 
 import asyncio
+import itertools
 import re
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 import pytest
+from textual import events
+from textual.keys import _character_to_key
 from textual.screen import ModalScreen
 from textual.widgets import Input, Static, TabbedContent
 
-from abh3_supervisor.clients.tui import overview
+from abh3_supervisor.clients.tui import operator, overview
 from abh3_supervisor.clients.tui.app import ESTOP_CONFIRM_S, SupervisorApp
+from abh3_supervisor.clients.tui.hold import REPEAT_GAP_S, RESEND_S, TICK_S
 from abh3_supervisor.clients.tui.model import detail_fields, overview_row, series_label
 from abh3_supervisor.clients.tui.params import ParameterFiles, ParamScreen
 from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.params import table
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from abh3_supervisor.service.server import ControlServer
+from abh3_supervisor.service.server import CLIENT_TIMEOUT_S, ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
 from tests.test_tui import (
     KEYBOARD,
@@ -121,7 +125,20 @@ PLACES: dict[str, tuple[Step, ...]] = {
 }
 
 
-def test_e_and_ctrl_e_latch_the_estop_on_every_screen_and_in_every_input() -> None:
+# the input lines: there `e` is text, and only ctrl+e is the e-stop
+TYPING = ("command line, typing", "parameter value input")
+
+
+async def types_e(app: SupervisorApp, pilot: Any, place: str) -> None:
+    """`e` goes into the focused input line as text (and is taken out again)."""
+    line = app.focused
+    assert isinstance(line, Input), place
+    before = line.value
+    await press_until(app, pilot, "e", lambda: line.value == before + "e", f"{place}: e typed")
+    await press_until(app, pilot, "backspace", lambda: line.value == before, place)
+
+
+def test_ctrl_e_latches_the_estop_everywhere_and_e_everywhere_but_in_an_input() -> None:
     async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
         sup = rt.supervisor
         stops: list[Notice] = []
@@ -132,10 +149,13 @@ def test_e_and_ctrl_e_latch_the_estop_on_every_screen_and_in_every_input() -> No
         )
         app.query_one("#cmdline", Input).value = "SER"
         for place, steps in PLACES.items():
-            for key in ("e", "ctrl+e"):
+            for key in ("ctrl+e",) if place in TYPING else ("e", "ctrl+e"):
                 for what in steps:
                     await step(app, pilot, what)
                 seen = len(stops)
+                if place in TYPING:
+                    await types_e(app, pilot, place)
+                    assert not sup.estop and len(stops) == seen, place
                 await press_until(app, pilot, key, lambda s=seen: len(stops) > s, place)
                 assert sup.estop, (place, key)  # every unit zero, START off, latched
                 confirmed = lambda: response(app).startswith("EMERGENCY STOP latched")  # noqa: E731
@@ -145,9 +165,176 @@ def test_e_and_ctrl_e_latch_the_estop_on_every_screen_and_in_every_input() -> No
                 assert not isinstance(app.screen, ModalScreen) and app.focused is None, place
                 sup.clear_emergency_stop()
                 await until(pilot, lambda: not app.sup.estop, "cleared")
-        assert app.query_one("#cmdline", Input).value == "SER"  # `e` was never typed
+        assert app.query_one("#cmdline", Input).value == "SER"  # nothing else was typed
 
     run_app(check, size=(140, 45))
+
+
+async def type_text(app: SupervisorApp, pilot: Any, text: str) -> None:
+    """Each character as the terminal delivers it, into the focused input line."""
+    line = app.focused
+    assert isinstance(line, Input)
+    start = line.value
+    for n, ch in enumerate(text, 1):
+        app.post_message(events.Key(_character_to_key(ch), ch))
+        await until(pilot, lambda n=n: line.value == start + text[:n], f"{ch!r} typed")
+
+
+def recording(app: SupervisorApp) -> list[tuple[float, str, dict[str, Any]]]:
+    """Every request the app makes from now on: (its clock, method, params)."""
+    made: list[tuple[float, str, dict[str, Any]]] = []
+    real = app.request
+
+    async def request(method: str, **params: Any) -> Any:
+        made.append((app.clock(), method, params))
+        return await real(method, **params)
+
+    app.request = request  # type: ignore[method-assign]
+    return made
+
+
+def test_every_printable_key_is_text_in_every_input_line() -> None:
+    """Every binding of every screen: none takes a printable key from an input line, and
+    the up/down arrows do not drive from there."""
+    every = "".join(chr(c) for c in range(0x20, 0x7F))
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        cmdline = app.query_one("#cmdline", Input)
+        await press_until(app, pilot, "colon", lambda: app.focused is cmdline, ":")
+        made = recording(app)
+        await type_text(app, pilot, every)
+        for key in ("up", "down"):
+            app.post_message(events.Key(key, None))
+        await type_text(app, pilot, "E")  # handled after the arrows: they did nothing
+        assert made == [] and app.hold.drive is None and not rt.supervisor.estop
+        assert not isinstance(app.screen, ModalScreen) and app.focused is cmdline
+        await press_until(app, pilot, "escape", lambda: app.focused is None, "Esc")
+        cmdline.value = ""
+        for what in PLACES["parameter value input"]:
+            await step(app, pilot, what)
+        await type_text(app, pilot, every)
+        assert isinstance(app.screen, ParamScreen) and app.screen.mode == "edit"
+        assert not rt.supervisor.estop
+        for _ in range(2):  # the input line, then the page (its reads end with it)
+            app.post_message(events.Key("escape", None))
+        await until(pilot, lambda: not isinstance(app.screen, ParamScreen), "page closed")
+
+    run_app(check, KEYBOARD, own_terminal=True)
+
+
+def test_commands_are_case_insensitive_from_the_command_line() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        left = rt.supervisor.units["left"]
+        cmdline = app.query_one("#cmdline", Input)
+        for text in ("Servo on on", "start ON on", "vel 50 0"):
+            await press_until(app, pilot, "colon", lambda: app.focused is cmdline, ":")
+            await type_text(app, pilot, text)
+            answer = f"left ← {text!r} → ''"
+            await press_until(app, pilot, "enter", lambda a=answer: response(app) == a, text)
+        assert left.inputs & left.layout.start.both == left.layout.start.both
+        assert (left.setpoint.ay, left.setpoint.bx) == (50, 0)
+        await press_until(app, pilot, "colon", lambda: app.focused is cmdline, ":")
+        await type_text(app, pilot, "vel 0 0")
+        await press_until(app, pilot, "ctrl+e", lambda: rt.supervisor.estop, "ctrl+e")
+        assert (left.setpoint.ay, left.setpoint.bx) == (0, 0) and app.focused is None
+
+    run_app(check)
+
+
+def test_arrows_with_servo_or_start_off_say_why_nothing_moves() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        said = {
+            "": "left: SERVO off, START off — nothing moves "
+            "(v to switch SERVO on, s to switch START on)",
+            "SERVO ON ON": "left: START off — nothing moves (s to switch START on)",
+            "START ON ON": "drive left: +0.20 m/s +0.00 rad/s (hold the key; release = stop)",
+        }
+        app.clock = lambda: now[0]
+        mirror = app.sup.units["left"]  # its words are replaced with every state
+        await until(pilot, lambda: "control" in mirror.words, "the control word reported")
+        for command, text in said.items():
+            if command:
+                assert await sup.command("left", command) == ""
+                pair = mirror.layout.servo if "SERVO" in command else mirror.layout.start
+                on = lambda p=pair: mirror.words["control"] & p.both == p.both  # noqa: E731
+                await until(pilot, on, f"{command} reported")
+            app.say("")
+            await press_until(app, pilot, "up", lambda: bool(response(app)), command)
+            assert response(app) == text
+            now[0] += 1.0  # no repeat: the key is up
+            app.drive_tick()
+            assert app.hold.drive is None
+            released = "drive left: key released, stop sent"
+            assert response(app) == (released if command == "START ON ON" else text)
+
+    now = [0.0]
+    run_app(check)
+
+
+def test_why_nothing_moves_is_judged_from_what_the_drive_reports() -> None:
+    """left runs (SERVO, START on as reported); right is commanded SERVO on but held off
+    by an error, START off; a unit not heard from yet is judged by its command, and says so."""
+    mirror = mirror_of(snapshot_rig())
+    assert operator.stillness(mirror, ("left",)) is None
+    assert operator.stillness(mirror, ("left", "right")) == (
+        "right: SERVO off (commanded on), START off — nothing moves "
+        "(v to switch SERVO on, s to switch START on)"
+    )
+    del mirror.units["left"].words["control"]
+    mirror.units["left"].inputs &= ~mirror.units["left"].layout.start.both
+    assert operator.stillness(mirror, ("left",)) == (
+        "left: START off (as commanded: the drive has not reported yet) — nothing moves "
+        "(s to switch START on)"
+    )
+
+
+def test_a_held_arrow_is_kept_fresh_across_the_repeat_delay_and_stops_on_release() -> None:
+    """On the app's clock (fake): the press, the terminal's first repeat 0.6 s later, then
+    one every 0.033 s: the twist is re-sent well inside the service's freshness, never
+    zero in between; once the repeats end, zero within the bound."""
+    now, ticks = [0.0], [0]
+
+    async def at(app: SupervisorApp, t: float) -> None:
+        while (ticks[0] + 1) * TICK_S <= t:  # the app's interval timer, on the fake clock
+            ticks[0] += 1
+            now[0] = ticks[0] * TICK_S
+            app.drive_tick()
+        now[0] = t
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        for text in ("SERVO ON ON", "START ON ON"):
+            assert await sup.command("left", text) == ""
+        unit = app.sup.units["left"]
+        both = unit.layout.servo.both | unit.layout.start.both
+        await until(pilot, lambda: unit.words.get("control", 0) & both == both, "reported on")
+        app.clock = lambda: now[0]
+        sent: list[tuple[float, float]] = []  # when the app sent a twist (its clock), what
+        real = app.send
+
+        def send(method: str, **params: Any) -> None:
+            if method == "twist":
+                sent.append((now[0], params["linear_x"]))
+            real(method, **params)
+
+        app.send = send  # type: ignore[method-assign]
+        keys = [0.0] + [round(0.6 + i * 0.033, 3) for i in range(20)]
+        for t in keys:
+            await at(app, t)
+            await press_until(app, pilot, "up", lambda t=t: app.hold.key_at == t, f"up at {t}")
+            if t == 0.0:
+                await until(pilot, lambda: sup.units["left"].setpoint.ay != 0, "driving")
+        held = list(sent)
+        assert held[0] == (0.0, 0.2) and all(v == 0.2 for _, v in held)  # never zero
+        gaps = [b - a for (a, _), (b, _) in itertools.pairwise(held)]
+        assert max(gaps) <= RESEND_S + TICK_S < CLIENT_TIMEOUT_S  # always fresh
+        await at(app, keys[-1] + REPEAT_GAP_S + TICK_S)  # no more repeats: released
+        assert sent[-1][1] == 0.0 and app.hold.drive is None
+        assert "key released, stop sent" in response(app)
+        await until(pilot, lambda: sup.units["left"].setpoint.ay == 0, "stopped")
+
+    run_app(check)
 
 
 def test_without_the_service_nothing_is_claimed_and_values_are_stale() -> None:

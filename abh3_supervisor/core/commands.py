@@ -4,9 +4,10 @@
 ``BRAKE``, ``RESET`` take ``ON``/``OFF``/``1``/``0`` per axis (the last three are one bit,
 so A and B must agree); ``SELECT a b`` takes the written data-select value 0–7 per axis.
 Extensions of ours (not in the seed): ``VEL ay bx`` [min⁻¹] and ``CUR ay bx`` [%].
-Keywords are case-insensitive; the text is printable ASCII; the token count and every value
-are checked. Parsing knows no bit positions: :func:`input_change` places a command in the
-unit's generation's layout (protocol doc §5), so one command means the same on both.
+Keywords and ``ON``/``OFF`` are case-insensitive (``vel 50 0`` is ``VEL 50 0``, with the
+same answer); the text is printable ASCII; the token count and every value are checked.
+Parsing knows no bit positions: :func:`input_change` places a command in the unit's
+generation's layout (protocol doc §5), so one command means the same on both.
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ service that read keys get theirs from it (``keys``/``key``), after its own — 
 tabs and quit always win. Every operator action goes to the supervisor's audit trail.
 Who starts the service and what quitting does is :mod:`abh3_supervisor.clients.tui.run`'s.
 
-It claims nothing it has not seen: ``e``/``ctrl+e`` are the e-stop on every screen and in
-every input line, and the e-stop is shown latched only once the service confirms it;
+It claims nothing it has not seen: ``ctrl+e`` is the e-stop on every screen and in every
+input line, ``e`` everywhere but in an input line (there every printable key is text), and
+the e-stop is shown latched only once the service confirms it;
 without a connection every key that would send says it could NOT be sent; a state that
 is no longer live is dimmed and says how old it is.
 """
@@ -38,6 +39,7 @@ from abh3_supervisor.clients.link import Link, LinkError, LinkLost
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import operator, overview, plots
 from abh3_supervisor.clients.tui.help import help_lines
+from abh3_supervisor.clients.tui.hold import REPEAT_GAP_S, TICK_S, Drive, HeldKey
 from abh3_supervisor.clients.tui.model import (
     SERIES,
     BusSample,
@@ -63,7 +65,7 @@ TABS = {"1": "overview", "2": "unit", "3": "bus", "4": "log", "5": "plots"}
 FLAG_BOXES = ("inputs", "control", "io")
 SET_STYLE = {"inputs": "bold cyan", "control": "bold green", "io": "bold green"}
 WIDE_FLAGS = 130  # below this the flag boxes go two by two: no name is ever cut
-DRIVE = "(hold; release = stop within 0.5 s)"
+DRIVE = f"(hold; release = stop within {REPEAT_GAP_S + TICK_S:.2g} s)"  # clients/tui/hold.py
 STALE_S = 0.5  # five state pushes missed: what is shown is no longer live
 ESTOP_CONFIRM_S = 0.5  # an e-stop the service has not confirmed by then is said to be so
 HARDWARE = (
@@ -116,7 +118,8 @@ class SupervisorApp(App[None]):
 
     ESTOP = "EMERGENCY STOP: every unit zero, START off, latched"
     BINDINGS: ClassVar[list[BindingType]] = [
-        # priority: before any screen, question or input line (OperatorInput leaves `e`)
+        # priority: before any screen, question or input line; in an input line `e` is text
+        # (OperatorInput consumes it, which takes this binding out of the chain), ctrl+e never
         Binding("ctrl+e", "estop", "E-STOP", priority=True, tooltip=ESTOP),
         Binding("e", "estop", "E-STOP", priority=True, tooltip=ESTOP, show=False),
         _b("E", "clear_estop", "clear e-stop", "clear the e-stop (asks; START again to move)"),
@@ -141,7 +144,7 @@ class SupervisorApp(App[None]):
             "colon",
             "command",
             "command",
-            "command line, in capitals (VEL/CUR held while attached)",
+            "command line, any case (VEL/CUR held while attached)",
             True,
         ),
         _b("P", "params", "parameters", "the unit's parameters: r read, w write one, f diff"),
@@ -180,6 +183,9 @@ class SupervisorApp(App[None]):
         self.names = list(self.sup.units)
         self.selected = 0
         self.drive_all = False
+        self.clock = time.monotonic  # the held arrow key's (a fake one in tests)
+        self.hold = HeldKey()
+        self.still: str | None = None  # why the held arrow moves nothing, as said
         self.speed, self.turn = 0.2, 0.5
         self.sampler = Sampler(self.sup)
         self.bus_samples: dict[str, BusSample] = {}
@@ -237,8 +243,8 @@ class SupervisorApp(App[None]):
                 yield Static(id="plots-view")
         yield Static(id="response")
         yield OperatorInput(
-            placeholder="command for the selected unit in capitals, e.g. SERVO ON ON "
-            "(e is the e-stop; Esc closes)",
+            placeholder="command for the selected unit, any case, e.g. servo on on, vel 50 0 "
+            "(ctrl+e is the e-stop; Esc closes)",
             id="cmdline",
         )
         yield Footer()
@@ -248,6 +254,7 @@ class SupervisorApp(App[None]):
         self._saved_handlers = root.handlers[:]
         root.handlers = [self._log_handler]  # stderr is the screen now
         self.set_interval(REFRESH_S, self.refresh_view)
+        self.set_interval(TICK_S, self.drive_tick)
         if self.link is not None:
             self.link.closed.add_done_callback(self._service_gone)
         self.refresh_view()
@@ -450,6 +457,7 @@ class SupervisorApp(App[None]):
         """Sent before anything else; then every question, page and input line closes
         (a question is answered no) so the outcome is in sight. Shown latched only once
         the service confirms it."""
+        self.hold.stop()
         why = self._not_connected()
         if why is None:
             self.confirm_estop(asyncio.ensure_future(self.request("estop")))
@@ -492,18 +500,43 @@ class SupervisorApp(App[None]):
         self.push_screen(ConfirmScreen("Clear the emergency stop?"), answer)
 
     def action_drive(self, linear: int, angular: int) -> None:
+        """An arrow's press or auto-repeat holds its twist (re-sent by :meth:`drive_tick`
+        until the key is taken as released); space stops at once."""
         if not self.connected():
+            self.hold.stop()
             return
         targets = self.targets()
-        why = operator.drive_refusal(self.sup, targets, bool(linear or angular))
+        moving = bool(linear or angular)
+        why = operator.drive_refusal(self.sup, targets, moving)
+        if why is not None or not moving:
+            self.hold.stop()
         if why is not None:
             self.say(why)
             return
         lin, ang = linear * self.speed, angular * self.turn
-        self.send("twist", units=list(targets), linear_x=lin, angular_z=ang)
+        if not moving or self.hold.press(Drive(targets, lin, ang), self.clock()):
+            self.send("twist", units=list(targets), linear_x=lin, angular_z=ang)
         what = f"drive {', '.join(targets)}: {lin:+.2f} m/s {ang:+.2f} rad/s"
         self.audit(what, repeat_after=2.0)
-        self.say(f"{what} (hold the key; release = stop)")
+        self.still = operator.stillness(self.sup, targets) if moving else None
+        self.say(self.still or f"{what} (hold the key; release = stop)")
+
+    def drive_tick(self) -> None:
+        """The held twist again while its key is held, zero once it is taken as released."""
+        due = self.hold.tick(self.clock())
+        if due is None:
+            return
+        drive, held = due
+        if held and operator.drive_refusal(self.sup, drive.units, True) is not None:
+            self.hold.stop()  # e.g. latched by another client: its own notice says so
+            return
+        if self._not_connected() is not None:  # the banner says so; no line per tick
+            self.hold.stop()
+            return
+        lin, ang = (drive.linear, drive.angular) if held else (0.0, 0.0)
+        self.send("twist", units=list(drive.units), linear_x=lin, angular_z=ang)
+        if not held and self.still is None:  # why nothing moved stays in sight
+            self.say(f"drive {', '.join(drive.units)}: key released, stop sent")
 
     def action_speed(self, factor: float) -> None:
         speed_cap, turn_cap = operator.speed_caps(self.sup, self.targets())
@@ -687,6 +720,7 @@ class SupervisorApp(App[None]):
         def answer(yes: bool | None) -> None:
             self.audit(f"{'quit' if self.owner else 'detach'}? {'yes' if yes else 'no'}")
             if yes:
+                self.hold.stop()
                 if not self.owner:  # the motion goes now, not when the UI has wound down
                     self.send("release")
                 self.exit()

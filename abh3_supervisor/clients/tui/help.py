@@ -7,7 +7,10 @@ from collections.abc import Iterable, Mapping
 from textual.binding import Binding
 from textual.keys import format_key
 
+from abh3_supervisor.clients.tui.hold import FIRST_REPEAT_S, TICK_S
+
 WIDTH = 10
+TAP_S = FIRST_REPEAT_S + TICK_S  # an arrow pressed once drives this long
 
 
 def key_name(key: str) -> str:
@@ -26,10 +29,13 @@ def help_lines(
     lines = [
         "Keys, on every screen. Esc closes this help, a question (= no)",
         "or the command line. The selected unit is marked ▶ (n, p).",
-        "e and ctrl+e are the E-STOP everywhere: on every tab, page and",
-        "question, and in every input line, where text is typed in",
-        "capitals (the command language does not mind). The e-stop closes",
-        "every question and page, so its outcome is in sight.",
+        "ctrl+e is the E-STOP everywhere: on every tab, page and question",
+        "and in every input line; e is the E-STOP everywhere but in an",
+        "input line, where every printable key is text (commands are",
+        "case-insensitive: vel 50 0). The e-stop closes every question",
+        "and page, so its outcome is in sight. A held arrow drives while",
+        f"the terminal repeats it (a tap: {TAP_S:.2g} s); with SERVO or START",
+        "off it says why nothing moves.",
         "",
     ]
     for keys, text in by_action.values():

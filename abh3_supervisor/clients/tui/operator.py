@@ -147,6 +147,32 @@ def drive_refusal(sup: Mirror, names: tuple[str, ...], moving: bool) -> str | No
     return None
 
 
+SWITCH_KEYS = {"SERVO": "v", "START": "s"}
+
+
+def stillness(sup: Mirror, names: tuple[str, ...]) -> str | None:
+    """Why a twist to these units moves nothing: SERVO or START off, judged from the control
+    word the drive reports (from the commanded one until it has reported); or None."""
+    parts: list[str] = []
+    off_anywhere: set[str] = set()
+    for name in names:
+        unit = sup.units[name]
+        control = reported(unit)
+        word = unit.inputs if control is None else control
+        off = [w for w in SWITCH_KEYS if word & mask(unit, w) != mask(unit, w)]
+        if not off:
+            continue
+        off_anywhere.update(off)
+        held = 0 if control is None else unit.inputs & ~control  # commanded, reported off
+        said = [f"{w} off" + (" (commanded on)" if held & mask(unit, w) else "") for w in off]
+        unheard = " (as commanded: the drive has not reported yet)" if control is None else ""
+        parts.append(f"{name}: {', '.join(said)}{unheard}")
+    if not parts:
+        return None
+    how = ", ".join(f"{k} to switch {w} on" for w, k in SWITCH_KEYS.items() if w in off_anywhere)
+    return f"{'; '.join(parts)} — nothing moves ({how})"
+
+
 def speed_caps(sup: Mirror, names: tuple[str, ...]) -> tuple[float, float]:
     """The fastest twist the arrow keys may ask of these units within their velocity
     limits: (linear m/s, angular rad/s); the arrows give one or the other, never both."""

@@ -4,9 +4,10 @@ Every request goes over the control socket to the service's :class:`ParamOps` (t
 code as ``abh3 param``): a write asks the drive whether its servo is off, now, before the
 operator's question; the service asks again at the write and logs the old and the new
 value. The page reads in a worker, so the screen — and the e-stop — stay live while a slow
-drive answers. ``e`` is the e-stop here as everywhere (the app's priority binding), so
-writing is ``w`` or Enter, a value is typed without ``e`` (``1E3``), and the file to diff
-against is picked, not typed.
+drive answers. ``e`` is the e-stop here as everywhere but in the value's input line
+(the app's priority binding; ``ctrl+e`` there, where every printable key is text, so
+``1e3`` is typed as it is), writing is ``w`` or Enter, and the file to diff against is
+picked, not typed.
 """
 
 from __future__ import annotations
@@ -179,7 +180,7 @@ class ParamScreen(ModalScreen[None]):
             return
         self.editing = address
         now = shown(address, self.words[address])
-        self._ask(f"new value of 0x{address:04X} {table.label(address)} (now {now}; no e)")
+        self._ask(f"new value of 0x{address:04X} {table.label(address)} (now {now})")
 
     def _confirm_edit(self, text: str) -> None:
         address = self.editing

@@ -10,16 +10,21 @@ from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.screen import ModalScreen
 from textual.widgets import Button, Input, Static
 
-ESTOP_KEY = "e"  # the e-stop on every screen, in every input line too
+ESTOP_KEY = "ctrl+e"  # the e-stop in every input line (and everywhere); `e` is text here
+NOT_TEXT = ("up", "down")  # the arrows drive the robot everywhere else: never while typing
 
 
 class OperatorInput(Input):
-    """An input line that never takes ``e``: it is the e-stop everywhere, so the app's
-    priority binding must see it (an input otherwise claims every printable key). Text
-    is typed in capitals: the command language is case-insensitive, numbers take ``E``."""
+    """An input line for typing: every printable key is text (``e`` too, so the app's
+    priority ``e`` binding leaves the chain while it has the focus — Textual drops the
+    bindings of keys the focused widget consumes), the up/down arrows do nothing rather
+    than drive, and ``ctrl+e`` is never consumed (Input's own "end" key): the app's
+    priority e-stop always sees it."""
 
     def check_consume_key(self, key: str, character: str | None) -> bool:
-        return character != ESTOP_KEY and super().check_consume_key(key, character)
+        if key == ESTOP_KEY:
+            return False
+        return key in NOT_TEXT or super().check_consume_key(key, character)
 
 
 class ConfirmScreen(ModalScreen[bool]):
