@@ -11,7 +11,8 @@ from abh3_supervisor.commission.unit import Bench
 from abh3_supervisor.config import Config
 from abh3_supervisor.core.inputs import InputArbiter, InputSource, VelocityYX
 from abh3_supervisor.core.kinematics import ab_to_yx
-from abh3_supervisor.core.verify import Verification, verify_units
+from abh3_supervisor.core.verify import Verification
+from abh3_supervisor.core.verifying import verify_units
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.service.param_ops import ParamOps

@@ -24,7 +24,7 @@ from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.control import ControlClient
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Fault, FaultKind, VerifyMode
-from abh3_supervisor.core import diagnostics
+from abh3_supervisor.core import diagnostics, verifying
 from abh3_supervisor.core.commands import RESPONSE_INVALID
 from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
 from abh3_supervisor.core.verify import VERIFY_DEADLINE, DriveCheck, State, Verification
@@ -357,7 +357,7 @@ def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
             assert not drive.alarm_word() & flags.CAN_COMM_ERROR  # its keepalive flows
             # the drive is set as the file says, and the unit is told to verify again
             drive.tel.params[0x4117] = pack_float(500)
-            again = await sup.verify_again("left")
+            again = (await verifying.verify_units(sup, ["left"]))["left"]
             assert again.state is State.OK and again.holds() is None
             await sup.command("left", "VEL 0 0")  # a frame after the start-up commands
             assert drive.inputs & sup.units["left"].layout.servo.both  # start-up ran now

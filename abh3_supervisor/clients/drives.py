@@ -55,7 +55,7 @@ def _report(results: dict[str, dict[str, Any]], where: dict[str, str], as_json: 
 
 
 async def _read(config: Config) -> dict[str, Verification]:
-    from abh3_supervisor.core.verify import verify_units
+    from abh3_supervisor.core.verifying import verify_units
     from abh3_supervisor.runtime.bus_runtime import Runtime
 
     async with Runtime(config) as rt:

@@ -39,7 +39,6 @@ from abh3_supervisor.core.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.core.throttle import Throttle, held_note
-from abh3_supervisor.core.verify import Verification
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
@@ -496,15 +495,6 @@ class Supervisor:
         wake = self.wakers.get(unit.cfg.bus)
         if wake is not None:
             wake()
-
-    async def verify_again(self, name: str) -> Verification:
-        """Read the drive's CAN settings again and compare them with the file (≤ 2 s): a
-        unit held by ``verify: refuse`` is released, and its start-up commands run, when
-        they agree (core/verify.py). Read-only; allowed in every state."""
-        from abh3_supervisor.core.verify import verify_units
-
-        self.unit(name)
-        return (await verify_units(self, [name]))[name]
 
     # ------------------------------------------------------------ command language
 

@@ -20,28 +20,24 @@ unit with ``verify: refuse`` is *held* — the motion gate (core/gate.py) sends 
 word, SERVO, START, brake release and motion are refused, its start-up commands wait —
 until a verification finds its drive agreeing: it fails closed, so a drive that differs,
 does not answer, or has not been checked yet keeps it held (:meth:`Verification.holds`)
-until ``abh3 verify`` (``Supervisor.verify_again``) succeeds. A unit already verified
+until ``abh3 verify`` (``verifying.verify_units``) succeeds. A unit already verified
 runs on while it is checked again; if the new check does not agree it is held. With
 ``verify: warn`` a drive that differs or does not answer is reported, never held.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass
 from enum import StrEnum
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from abh3_supervisor.config.model import Config, Role, UnitConfig, VerifyMode
 from abh3_supervisor.params import table
-from abh3_supervisor.params.session import FormFound, ParamChannel, Result
+from abh3_supervisor.params.session import ParamChannel, Result
 from abh3_supervisor.params.telabh3 import Command, Request, form_name, pin
-
-if TYPE_CHECKING:
-    from abh3_supervisor.core.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 VERIFY_DEADLINE = 2.0  # s: the whole check of a bus (its units' channels run side by side)
@@ -336,157 +332,4 @@ class DriveCheck:
         )
 
 
-# ------------------------------------------------------------ on a live supervisor
-
-
-Checks = dict[str, tuple[DriveCheck, "asyncio.Future[Verification]"]]
-
-
-def begin(sup: Supervisor) -> tuple[set[str], asyncio.Task[dict[str, Verification]] | None]:
-    """At start (on the loop): check every commanded unit whose ``verify`` is not off, in
-    the background; they are pending from now. Returns the units whose start-up commands
-    must wait for it (``refuse``) and the task (the runtime cancels it when it stops)."""
-    names = [
-        u.name
-        for u in sup.units.values()
-        if u.cfg.role is Role.COMMAND and u.cfg.verify is not VerifyMode.OFF
-    ]
-    waiting = {n for n in names if sup.units[n].cfg.verify is VerifyMode.REFUSE}
-    for name in waiting:
-        unit = sup.units[name]
-        unit.verify = replace(unit.verify, startup_due=True)
-    if not names:
-        return waiting, None
-    checks = start_checks(sup, names)
-    return waiting, asyncio.ensure_future(end_checks(sup, checks, VERIFY_DEADLINE, act=True))
-
-
-def announce_forms(sup: Supervisor) -> None:
-    """The form each unit's probe finds, or that none is read, as a notice."""
-    for scheduler in sup.schedulers.values():
-        for name, channel in scheduler.params.items():
-
-            def told(found: FormFound, name: str = name) -> None:
-                level = logging.INFO if found.fmt is not None else logging.WARNING
-                sup.notice(name, level, found.text())
-
-            channel.on_form = told
-
-
-async def verify_units(
-    sup: Supervisor,
-    names: Iterable[str],
-    *,
-    deadline: float = VERIFY_DEADLINE,
-    act: bool = True,
-) -> dict[str, Verification]:
-    """Check these units' drives at once, within ``deadline``; each unit's
-    :class:`Verification` is set and returned. ``act``: log it and act on it per the
-    unit's ``verify`` (hold or release it, run its waiting start-up commands)."""
-    return await end_checks(sup, start_checks(sup, names), deadline, act=act)
-
-
-def start_checks(sup: Supervisor, names: Iterable[str]) -> Checks:
-    """Each unit pending, its first request on its channel (on the running loop)."""
-    loop = asyncio.get_running_loop()
-    checks: Checks = {}
-    for name in dict.fromkeys(names):
-        unit = sup.unit(name)
-        future: asyncio.Future[Verification] = loop.create_future()
-
-        def done(v: Verification, f: asyncio.Future[Verification] = future) -> None:
-            if not f.done():
-                f.set_result(v)
-
-        channel = sup.schedulers[unit.cfg.bus].params[name]
-        checks[name] = (DriveCheck(sup.config, unit.cfg, channel, done), future)
-        ok = unit.verify.state is State.OK
-        unit.verify = replace(unit.verify, state=State.PENDING, rows=(), t=sup.clock(), prior_ok=ok)
-        if unit.verify.holds():
-            sup.restrict(name)  # held from now: nothing it had comes back on its own
-    for name, (check, _) in checks.items():
-        check.start()
-        _wake(sup, name)
-    return checks
-
-
-async def end_checks(
-    sup: Supervisor, checks: Checks, deadline: float, *, act: bool
-) -> dict[str, Verification]:
-    try:
-        if checks:
-            await asyncio.wait([f for _, f in checks.values()], timeout=deadline)
-    finally:  # the deadline, or the run ending: nothing of ours stays queued
-        for name, (check, _) in checks.items():
-            check.abandon(sup.clock(), f"no complete answer within {deadline:g} s")
-            _wake(sup, name)
-    out = {}
-    for name, (_, future) in checks.items():
-        unit = sup.unit(name)
-        out[name] = unit.verify = replace(future.result(), startup_due=unit.verify.startup_due)
-        if unit.verify.holds():
-            sup.restrict(name)  # fails closed: held, whatever it had is forgotten
-        if act:
-            _act(sup, name)
-    return out
-
-
-def _wake(sup: Supervisor, name: str) -> None:
-    wake = sup.wakers.get(sup.unit(name).cfg.bus)
-    if wake is not None:
-        wake()
-
-
-def _act(sup: Supervisor, name: str) -> None:
-    unit = sup.unit(name)
-    v = unit.verify
-    refuse = v.mode is VerifyMode.REFUSE
-    if v.state is State.MISMATCH:
-        for row in v.mismatches:
-            sup.notice(name, logging.WARNING, row.line())
-        what = (
-            "held at its idle word (SERVO, START, brake, torque refused) until they agree and "
-            "the unit is verified again"
-            if refuse
-            else "running as the file says (verify: warn)"
-        )
-        count = f"{len(v.mismatches)} of {len(v.rows)}"
-        sup.notice(
-            name,
-            logging.WARNING,
-            f"the drive's CAN settings differ from the file ({count}): {what}",
-        )
-    elif v.state is State.OK:
-        form = f"; TelABH3 {v.form}" if v.form else ""
-        sup.notice(
-            name,
-            logging.INFO,
-            f"the drive's CAN settings agree with the file ({len(v.rows)} read{form})",
-        )
-    elif v.state is State.NOT_VERIFIED:
-        if refuse:
-            sup.notice(
-                name,
-                logging.WARNING,
-                f"the drive's CAN settings are not verified: {v.reason}; held at its idle "
-                "word (verify: refuse) until `abh3 verify` finds them agreeing",
-            )
-        else:
-            sup.notice(
-                name,
-                logging.INFO,
-                f"the drive's CAN settings are not verified: {v.reason}; the unit runs",
-            )
-    if v.startup_due and v.holds() is None:
-        unit.verify = replace(v, startup_due=False)
-        run_startup(sup, name)
-
-
-def run_startup(sup: Supervisor, name: str) -> None:
-    """The unit's ``startup:`` commands, now (validated when the file loaded); its
-    motion is owned by the supervisor for the run (``Supervisor.run_startup``)."""
-    for text, response in sup.run_startup(name):
-        log.info("unit %s: startup %r → %r", name, text, response)
-
-
-__all__ = ["CHECKS", "DriveCheck", "State", "Verification", "begin", "verify_units"]
+__all__ = ["CHECKS", "DriveCheck", "Row", "State", "Verification", "compare", "form_of"]

@@ -25,7 +25,7 @@ import can
 
 from abh3_supervisor.config.interfaces import unknown_interface
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
-from abh3_supervisor.core import verify
+from abh3_supervisor.core import verify, verifying
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
@@ -214,11 +214,11 @@ class Runtime:
             pump.start()
         # the drives' CAN settings against the file, in the background (core/verify.py):
         # a `verify: refuse` unit's start-up commands wait for it
-        verify.announce_forms(self.supervisor)
-        waiting, self.verifying = verify.begin(self.supervisor)
+        verifying.announce_forms(self.supervisor)
+        waiting, self.verifying = verifying.begin(self.supervisor)
         for name in self.config.units:
             if name not in waiting:
-                verify.run_startup(self.supervisor, name)
+                verifying.run_startup(self.supervisor, name)
 
     def _arbitrate(self, loop: asyncio.AbstractEventLoop) -> None:
         """The arbitration's deadline timer: a silent source's units get zero the moment

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor import __version__
 from abh3_supervisor.config.model import Role
+from abh3_supervisor.core import verifying
 from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.inputs import InputFeed, InputSource, Motion, execute
@@ -561,7 +562,7 @@ class ControlServer:
         holds is released when they agree, and its start-up commands run)."""
         unit = rpc.units(params, tuple(self.rt.supervisor.units))[0]
         self.rt.supervisor.audit(client.name, unit, "verify the drive's settings again")
-        return (await self.rt.supervisor.verify_again(unit)).to_json()
+        return (await verifying.verify_units(self.rt.supervisor, [unit]))[unit].to_json()
 
     async def _param_servo(self, client: _Client, params: dict[str, Any]) -> Any:
         unit = rpc.text(params, "unit")
