@@ -29,6 +29,7 @@ class Feed:
     def __init__(self, want: int) -> None:
         self.sent: list[tuple[float, float] | None] = []
         self.want = want
+        self.stops = 0
         self.done = threading.Event()
 
     def twist(self, linear_x: float, angular_z: float) -> None:
@@ -43,6 +44,12 @@ class Feed:
 
     def release(self) -> None:
         self.sent.append(None)
+
+    def emergency_stop(self) -> None:
+        self.sent.append(None)
+        self.stops += 1
+        if len(self.sent) >= self.want:
+            self.done.set()
 
 
 def test_keys_typed_in_a_terminal_drive_and_the_terminal_is_restored() -> None:
@@ -60,6 +67,22 @@ def test_keys_typed_in_a_terminal_drive_and_the_terminal_is_restored() -> None:
         source.stop()
     assert feed.sent == [(0.2, 0.0), (0.0, 0.5), (0.0, 0.0)]
     assert termios.tcgetattr(slave) == before
+    stream.close()
+    os.close(master)
+
+
+def test_ctrl_e_typed_in_its_terminal_is_the_estop_and_sends_no_twist() -> None:
+    master, slave = pty.openpty()
+    stream = os.fdopen(slave, "r")
+    source = KeyboardSource(("left",), 0, 0.6, Teleop(0.2, 0.5), stream=stream)
+    feed = Feed(want=3)
+    source.start(feed)  # type: ignore[arg-type]
+    try:
+        os.write(master, b"i\x05i")
+        assert feed.done.wait(5)
+    finally:
+        source.stop()
+    assert feed.sent == [(0.2, 0.0), None, (0.2, 0.0)] and feed.stops == 1
     stream.close()
     os.close(master)
 

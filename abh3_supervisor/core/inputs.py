@@ -125,6 +125,13 @@ class InputFeed:
         """The source lets go (deadman released, device lost): its units stop now."""
         self._submit(None)
 
+    def emergency_stop(self) -> None:
+        """Latch the e-stop on every unit (not only this source's), from any thread: each
+        commanded unit's stop frame goes out at once (docs/safety.md). Always honoured,
+        even once the inputs have stopped."""
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._sup.emergency_stop, f"input {self._name}")
+
     def retarget(self, units: tuple[str, ...]) -> None:
         """Drive other units from now on; units left behind stop if this source drove them."""
         self._on_loop(self._arbiter.retarget_now, self._name, units)

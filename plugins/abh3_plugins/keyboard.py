@@ -3,6 +3,7 @@
     u i o      i/,: forward/back   j/l: turn left/right   u o m .: arcs
     j k l      k or space: stop    q/z: all speeds ×1.1/×0.9
     m , .      w/x: linear ×1.1/×0.9   e/c: angular ×1.1/×0.9
+    ctrl+e: EMERGENCY STOP (every unit; latched until cleared from a client)
 
 Each key press sends a robot twist to the configured units; hold a key (the terminal
 repeats it) to keep moving: silence longer than ``timeout`` means zero. The terminal is
@@ -53,6 +54,8 @@ SPEEDS = {
     "e": (1.0, 1.1),
     "c": (1.0, 0.9),
 }
+# ctrl+e in cbreak mode, as the TUI's e-stop (inside the TUI, the TUI's own binding has it)
+ESTOP_KEY = "\x05"
 # where a teleop key goes when the terminal's owner uses the key itself
 ALTERNATIVES = {"q": "Q", "e": "C"}
 MEANING = {
@@ -135,6 +138,9 @@ class KeyboardSource(InputSource):
             if not ready:
                 continue
             ch = os.read(fd, 1).decode(errors="ignore")
+            if ch == ESTOP_KEY:
+                feed.emergency_stop()
+                continue
             twist = self.teleop.key(ch)
             if twist is not None:
                 feed.twist(*twist)
