@@ -223,3 +223,19 @@ def test_an_interface_in_trouble_is_the_bus_status() -> None:
     health.on_error_frame(bh.ERR_CRTL, passive, w.rig.timeline.now)
     w.run(1.1)
     assert w.latest("bus b").level == Level.WARN
+
+
+def test_a_unit_held_by_verify_refuse_is_a_warning_that_says_why() -> None:
+    """verify: refuse fails closed, and /diagnostics says so (not "online")."""
+    from abh3_supervisor.config.model import VerifyMode
+    from abh3_supervisor.core.verify import State, Verification
+
+    w = Watch()
+    w.run(1.0)
+    left = w.rig.sup.units["left"]
+    left.verify = Verification(State.NOT_VERIFIED, VerifyMode.REFUSE, reason="no answer")
+    w.diag.changed(w.rig.timeline.now)
+    w.run(1.5)
+    status = w.latest("unit left")
+    assert status.level == Level.WARN
+    assert status.message.startswith("held at its idle word: its drive's CAN settings could not")

@@ -88,6 +88,8 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         level, message = Level.WARN, "alarm: " + ", ".join(alarms)
     elif mismatches:
         level, message = Level.WARN, f"drive settings differ from the file: {mismatches}"
+    elif held := verification.holds():  # verify: refuse fails closed: say why it is held
+        level, message = Level.WARN, f"held at its idle word: {held}"
     elif commanding and achieved < RATE_WARN * requested and stats.replies >= RATE_SAMPLES:
         level, message = Level.WARN, f"command rate {achieved:.1f} of {requested:g} Hz"
     else:
