@@ -691,6 +691,10 @@ class Supervisor:
             return
         with self.gate.writing(unit):
             self.restrict(name)
+            # the safe word on the wire before any write frame, not at the next period
+            send = self._send_now.get(unit.cfg.bus)
+            if send is not None:
+                send(name)
             try:
                 yield
             finally:
