@@ -23,7 +23,10 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import TWO_UNITS, assert_demo_stopped, headless_demo, in_a_terminal
+from tests.support.headless import headless_demo
+from tests.support.rig import TWO_UNITS
+from tests.support.safe_word import assert_demo_stopped
+from tests.support.terminal import in_a_terminal
 from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -21,7 +21,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler import bus_health as bh
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.service import snapshot
-from tests.conftest import BusNotices, drives_on
+from tests.support.buses import BusNotices, drives_on
 
 
 def error_frame(cls: int, crtl: int = 0, tx: int = 0, rx: int = 0) -> tuple[int, bytes]:

@@ -22,7 +22,7 @@ from abh3_supervisor.core.commands import (
     parse_command,
 )
 from abh3_supervisor.errors import CommandError, ConfigError
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 ANSWERS = {"", "Invalid Command.", "Packet Error: 1", "Packet Error: 2", "Packet Error: 3"}
 # any Unicode (no lone surrogates: they cannot be text in a YAML file or a DDS string)

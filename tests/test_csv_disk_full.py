@@ -16,7 +16,8 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.headless import run_headless
-from tests.conftest import TWO_UNITS, FillsUp
+from tests.support.disk import FillsUp
+from tests.support.rig import TWO_UNITS
 
 
 def row(i: int) -> dict[str, Any]:

@@ -17,7 +17,7 @@ from abh3_supervisor.clients.decode import SHOWN, decode_file, read_messages
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import ids
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 FORMATS = (".log", ".asc", ".blf", ".csv")
 # DP0 command and reply of drive 1 (host 2), as `abh3 run --record` writes them

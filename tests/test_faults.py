@@ -17,7 +17,7 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler, GapEvent, HealthEvent, MalformedEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 SCHEDULER = 0  # the Rig adds the scheduler first, the simulated drives second
 

@@ -14,7 +14,7 @@ from abh3_supervisor.core.supervisor import SupervisorEvent
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import FeedbackEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")  # left: 2021 travel model; right: 2023 motor model
 TOLD = ("SERVO ON ON", "START ON ON", "BRAKE ON ON", "VEL 100 100")

@@ -18,7 +18,7 @@ from abh3_supervisor.core.inputs import (
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import StatusEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 
 class Source(InputSource):

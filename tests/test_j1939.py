@@ -16,7 +16,7 @@ from abh3_supervisor.params.telabh3 import Command, Request, decode_reply
 from abh3_supervisor.params.transport import Receiver, Sender, State
 from abh3_supervisor.protocol import ids
 from abh3_supervisor.simulator.timeline import WireFrame
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 
 def check_j1939(frames: list[WireFrame]) -> list[bytes]:

@@ -16,7 +16,7 @@ from abh3_supervisor.core.inputs import InputArbiter, Twist
 from abh3_supervisor.plugin_host.host import _apply
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
-from tests.conftest import Rig
+from tests.support.rig import Rig
 
 
 class FakeDevice:

@@ -29,7 +29,7 @@ pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from tests.conftest import FillsUp
+from tests.support.disk import FillsUp
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = """

@@ -18,7 +18,8 @@ from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.plugin_host.host import _apply
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
-from tests.conftest import Rig, headless_demo
+from tests.support.headless import headless_demo
+from tests.support.rig import Rig
 
 PERIOD = 0.02  # 50 Hz: TWO_UNITS' command rate
 

@@ -13,7 +13,7 @@ import pytest
 
 from abh3_supervisor.params import files, table
 from abh3_supervisor.params.files import ParamValue
-from tests.conftest import headless_demo
+from tests.support.headless import headless_demo
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM = """

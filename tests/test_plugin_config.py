@@ -14,7 +14,7 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host import host as plugin_host
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
-from tests.conftest import TWO_UNITS
+from tests.support.rig import TWO_UNITS
 
 
 def problems(plugins: str) -> list[str]:

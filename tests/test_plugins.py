@@ -23,7 +23,7 @@ from abh3_supervisor.plugin_host import hookspecs
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import MAX_FAILURES, PluginHost, installed
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.conftest import TWO_UNITS
+from tests.support.rig import TWO_UNITS
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -21,7 +21,7 @@ from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.runtime.recorder import WholeLines, open_recorder
 from abh3_supervisor.runtime.stopping import EXIT_RECORDING_FAILED
 from abh3_supervisor.simulator.bus import SimBus
-from tests.conftest import FillsUp
+from tests.support.disk import FillsUp
 
 MOVING = """
 buses:

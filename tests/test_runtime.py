@@ -16,7 +16,7 @@ from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler
-from tests.conftest import TWO_UNITS
+from tests.support.rig import TWO_UNITS
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
 

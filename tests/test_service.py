@@ -24,7 +24,8 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.server import CLIENT_PRIORITY, CLIENT_TIMEOUT_S, ControlServer
-from tests.conftest import TWO_UNITS, headless_demo
+from tests.support.headless import headless_demo
+from tests.support.rig import TWO_UNITS
 
 
 class Served:

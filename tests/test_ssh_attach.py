@@ -30,7 +30,7 @@ import pytest
 
 from abh3_supervisor.protocol import flags, frames, ids
 from benchmarks.bursts import recorded_run
-from tests.conftest import in_a_terminal
+from tests.support.terminal import in_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 SBIN = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])

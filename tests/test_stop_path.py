@@ -14,7 +14,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED, SENT
 from abh3_supervisor.simulator.drive import SimDrive
-from tests.conftest import TWO_UNITS
+from tests.support.rig import TWO_UNITS
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
 

@@ -13,7 +13,7 @@ from abh3_supervisor.core.supervisor import FlagChange, Notice
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.scheduler.core import HealthEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 
 def last_command(rig: Rig, unit: str) -> frames.Dp0Command:

@@ -22,7 +22,8 @@ import pytest
 from abh3_supervisor.clients.tui.run import EXIT_SUPERVISOR_GONE, rotate
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import assert_demo_stopped, in_a_terminal
+from tests.support.safe_word import assert_demo_stopped
+from tests.support.terminal import in_a_terminal
 from tests.test_attach import _wait_for, served
 from tests.test_link import no_clients
 
