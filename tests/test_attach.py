@@ -27,6 +27,7 @@ from tests.support.headless import headless_demo
 from tests.support.rig import TWO_UNITS
 from tests.support.safe_word import assert_demo_stopped
 from tests.support.terminal import in_a_terminal
+from tests.support.wire_monitor import WireMonitor
 from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,7 +54,9 @@ def served(check: Callable[[Runtime, ControlServer, Path], Any]) -> None:
         asyncio.run(scenario(Path(tmp) / "s" / "t.sock"))
 
 
-def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> None:
+def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate(
+    wire: WireMonitor,
+) -> None:
     async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
         sup = rt.supervisor
         for text in ("SERVO ON ON", "START ON ON"):
@@ -66,6 +69,7 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> N
                 assert reply["response"] == "" and reply["held"] is True
                 await until(pilot, lambda: app.sup.units["left"].setpoint.ay == 100, "VEL shown")
                 assert await other.call("estop") == {"ok": True}
+                wire.estop()
                 await until(pilot, lambda: app.sup.estop, "the other client's e-stop shown")
                 assert sup.units["left"].setpoint.ay == 0  # zero on the next command frame
                 app.refresh_view()

@@ -143,6 +143,9 @@ def test_set_needs_a_confirmation_off_a_terminal(
     assert "already set: nothing written" in capsys.readouterr().out
 
 
+@pytest.mark.wire_allow(
+    "servo_write", reason="`param set --force` writes with the servo on, as the user asked"
+)
 def test_set_is_refused_while_the_running_service_has_the_servo_on(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -190,6 +193,9 @@ def test_a_transport_fault_is_a_clear_error_not_a_hang(
     )
 
 
+@pytest.mark.wire_allow(
+    "servo_write", reason="`param set --force` writes with the servo on, as the user asked"
+)
 def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`abh3 param --connect` asks the running supervisor: it refuses a write while the
     servo is on, writes with --force, and logs the write in *its* event log."""

@@ -25,7 +25,7 @@ from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.errors import RunError
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.server import MAX_CLIENTS
-from tests.test_service import Served
+from tests.support.served import Served
 
 ROOT = Path(__file__).resolve().parent.parent
 

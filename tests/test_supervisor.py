@@ -14,6 +14,7 @@ from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.scheduler.core import HealthEvent
 from tests.support.rig import TWO_UNITS, Rig
+from tests.support.wire_monitor import WireMonitor
 
 
 def last_command(rig: Rig, unit: str) -> frames.Dp0Command:
@@ -100,12 +101,13 @@ def test_current_needs_torque_mode_and_mode_change_zeroes_the_command(rig: Rig) 
     assert rig.sup.apply_text("left", "VEL 10 10") == "Invalid Command."
 
 
-def test_emergency_stop_latches_until_cleared(rig: Rig) -> None:
+def test_emergency_stop_latches_until_cleared(rig: Rig, wire: WireMonitor) -> None:
     start(rig, "left", "right")
     rig.sup.set_velocity("left", 300, 0)
     rig.sup.set_velocity("right", 300, 300)
     rig.run(0.5)
     rig.sup.emergency_stop()
+    wire.estop()
     rig.run(0.1)
     for unit in ("left", "right"):
         cmd = last_command(rig, unit)
@@ -116,6 +118,8 @@ def test_emergency_stop_latches_until_cleared(rig: Rig) -> None:
         rig.sup.set_velocity("left", 10, 0)
     assert rig.sup.apply_text("left", "START ON ON") == "Packet Error: 3"
     rig.sup.set_velocity("left", 0, 0)  # zero is always allowed
+    rig.run(0.1)
+    wire.clear()
     rig.sup.clear_emergency_stop()
     assert rig.sup.apply_text("left", "START ON ON") == ""
     rig.sup.set_velocity("left", 10, 0)

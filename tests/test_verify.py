@@ -34,8 +34,8 @@ from abh3_supervisor.protocol import flags, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from tests.support.rig import Rig
+from tests.support.served import Served
 from tests.test_j1939 import check_j1939, dp0_sends
-from tests.test_service import Served
 
 CONFIG = """
 buses:

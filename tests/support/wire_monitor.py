@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -159,6 +160,7 @@ class BusWatch:
         self.by_sender: dict[object, dict[int, _Last]] = {}
         self.transports: dict[tuple[int, int], _Message] = {}
         self.estop_from: float | None = None
+        self.powered_late: set[int] = set()
         self.closed = False
 
     # ---------------------------------------------------------------- who is who
@@ -219,6 +221,7 @@ class BusWatch:
             )
         self.last[unit] = _Last(cmd, t)
         self.by_sender.setdefault(sender, {})[unit] = _Last(cmd, t)
+        self.monitor.counted()
 
     def _judge_estop(
         self, unit: int, cmd: Dp0, before: _Last | None, bits: Bits, t: float, shown: str
@@ -228,7 +231,8 @@ class BusWatch:
             self._report("estop", t, unit, shown, "setpoint or START while e-stopped")
         power = bits.servo | bits.brake
         late = t - self.estop_from > ESTOP_POWER_OFF_S + ESTOP_SLACK_S
-        if late and cmd.inputs & power:
+        if late and cmd.inputs & power and unit not in self.powered_late:
+            self.powered_late.add(unit)  # once per unit and e-stop: the first frame says it
             why = f"SERVO/brake release still on {t - self.estop_from:.3f} s after the e-stop"
             self._report("estop", t, unit, shown, why)
         rising = cmd.inputs & ~(before.cmd.inputs if before else 0) & (power | bits.start)
@@ -297,6 +301,8 @@ class WireMonitor:
         self.allowed: set[str] = set()
         self.holds: dict[int, str] = {}
         self.estopped = False
+        self.commands = 0  # DP0 commands to drives seen so far (tests wait on it)
+        self._counted = threading.Condition()
 
     # ---------------------------------------------------------------- wiring
 
@@ -323,10 +329,26 @@ class WireMonitor:
     ) -> None:
         self.buses[key].frame(sender, arbitration_id, bytes(data), t)
 
-    def closed(self, key: object, sender: object) -> None:
+    def closed(self, key: object, sender: object, last: bool = False) -> None:
+        """``sender`` left bus ``key``; ``last``: nobody is left on it (a new bus by the
+        same name later is another bus)."""
         watch = self.buses.get(key)
         if watch is not None:
             watch.sender_closed(sender)
+            watch.closed = last
+
+    def counted(self) -> None:
+        with self._counted:
+            self.commands += 1
+            self._counted.notify_all()
+
+    def wait_commands(self, count: int, timeout: float) -> bool:
+        """Until ``count`` more DP0 commands crossed the wire (real-time buses: the gate
+        has decided that many frames since), or ``timeout`` passed (a drive that does not
+        answer is commanded more slowly): whether they did."""
+        with self._counted:
+            goal = self.commands + count
+            return self._counted.wait_for(lambda: self.commands >= goal, timeout)
 
     # ---------------------------------------------------------------- the operator
 
@@ -343,6 +365,7 @@ class WireMonitor:
         self.estopped = False
         for watch in self.buses.values():
             watch.estop_from = None
+            watch.powered_late.clear()
 
     @contextlib.contextmanager
     def held(self, address: int, why: str = "held") -> Iterator[None]:
@@ -369,5 +392,5 @@ class WireMonitor:
             raise AssertionError(f"wire monitor: {len(found)} violation(s):\n  {shown}{more}")
 
     def commanded(self) -> int:
-        """How many DP0 commands reached drives so far (for tests of the tap itself)."""
+        """How many drives were commanded so far (for tests of the tap itself)."""
         return sum(len(w.last) for w in self.buses.values())

@@ -15,6 +15,7 @@ from typing import Any
 
 import can
 import pytest
+from can.interfaces import virtual
 from can.interfaces.virtual import VirtualBus
 
 from abh3_supervisor.scheduler.pump import BusPump
@@ -52,9 +53,11 @@ def tap(monitor: WireMonitor, monkeypatch: pytest.MonkeyPatch) -> None:
             )  # asyncio's loop.time()
 
     def tapped_shutdown(self: VirtualBus) -> None:
-        if getattr(self, "_open", False):
-            guarded(monitor.closed, virtual_key(self), self)
+        was_open = getattr(self, "_open", False)
         shutdown(self)
+        if was_open:
+            last = self.channel_id not in virtual.channels
+            guarded(monitor.closed, virtual_key(self), self, last)
 
     def tapped_pump_init(self: BusPump, bus: can.BusABC, machine: Any, **kwargs: Any) -> None:
         pump_init(self, bus, machine, **kwargs)
