@@ -35,6 +35,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from tests.support.rig import Rig
 from tests.support.served import Served
+from tests.support.wire_monitor import WireMonitor
 from tests.test_j1939 import check_j1939, dp0_sends
 
 CONFIG = """
@@ -319,7 +320,7 @@ def test_check_drives_usage_errors_exit_2(
     assert "typo.yaml:5: units[0].verify:" in capsys.readouterr().err
 
 
-def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
+def test_refuse_keeps_the_unit_idle_until_it_is_verified_again(wire: WireMonitor) -> None:
     config = parse_config(text(MISMATCHES, left=", verify: refuse", channel="v-refuse"), "v.yaml")
     notices: list[str] = []
 
@@ -348,11 +349,13 @@ def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
             await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
             verify = sup.units["left"].verify
             assert verify.state is State.MISMATCH and verify.holds() is not None
-            assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
-            assert sup.apply_text("left", "START ON ON") == RESPONSE_INVALID
-            assert sup.apply_text("right", "SERVO ON ON") == ""  # warn: the other runs
-            for _ in range(5):  # the held unit keeps being sent its idle word
-                assert await sup.wait_exchange("left", sup.clock(), 1.0)
+            with wire.held(1, "verify: refuse, a mismatch"):  # judged on the wire too
+                assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
+                assert sup.apply_text("left", "START ON ON") == RESPONSE_INVALID
+                assert sup.apply_text("right", "SERVO ON ON") == ""  # warn: the other runs
+                sup.apply_text("left", "VEL 100 50")  # whatever it answers: no setpoint out
+                for _ in range(5):  # the held unit keeps being sent its idle word
+                    assert await sup.wait_exchange("left", sup.clock(), 1.0)
             assert seen and not any(word & servo for word in seen)
             assert not drive.alarm_word() & flags.CAN_COMM_ERROR  # its keepalive flows
             # the drive is set as the file says, and the unit is told to verify again

@@ -215,10 +215,10 @@ class BusWatch:
         before = self.last.get(unit)
         if self.estop_from is not None:
             self._judge_estop(unit, cmd, before, bits, t, shown)
-        if unit in self.monitor.holds and not cmd.safe(bits):
-            self._report(
-                "hold", t, unit, shown, f"held ({self.monitor.holds[unit]}) yet not the safe word"
-            )
+        held = self.monitor.holds.get(unit)
+        if held is not None and not cmd.safe(bits) and unit not in self.monitor.held_moving:
+            self.monitor.held_moving.add(unit)  # once per hold: the first frame says it
+            self._report("hold", t, unit, shown, f"held ({held}) yet not the safe word")
         self.last[unit] = _Last(cmd, t)
         self.by_sender.setdefault(sender, {})[unit] = _Last(cmd, t)
         self.monitor.counted()
@@ -300,6 +300,7 @@ class WireMonitor:
         self.violations: list[Violation] = []
         self.allowed: set[str] = set()
         self.holds: dict[int, str] = {}
+        self.held_moving: set[int] = set()
         self.estopped = False
         self.commands = 0  # DP0 commands to drives seen so far (tests wait on it)
         self._counted = threading.Condition()
@@ -376,6 +377,7 @@ class WireMonitor:
             yield
         finally:
             self.holds.pop(address, None)
+            self.held_moving.discard(address)
 
     # ---------------------------------------------------------------- verdicts
 
