@@ -36,6 +36,23 @@ def wire(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Ite
     monitor.check()  # what the fixtures' teardown sent (a runtime left at the end)
 
 
+# Modules other helpers edit at the moment: their tests are marked here, until the mark
+# can move into them (the rest carry ``@pytest.mark.wallclock`` themselves).
+WALLCLOCK_MODULES = {
+    "test_commission.py",
+    "test_commission_cli.py",
+    "test_tui.py",
+    "test_tui_claims.py",
+    "test_tui_leaving.py",
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in WALLCLOCK_MODULES:
+            item.add_marker(pytest.mark.wallclock)
+
+
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
     """A broken invariant fails the test itself, whatever it was testing."""

@@ -16,6 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from abh3_supervisor.clients.link import Link
 from abh3_supervisor.clients.tui.app import SupervisorApp
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
@@ -54,6 +56,7 @@ def served(check: Callable[[Runtime, ControlServer, Path], Any]) -> None:
         asyncio.run(scenario(Path(tmp) / "s" / "t.sock"))
 
 
+@pytest.mark.wallclock
 def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate(
     wire: WireMonitor,
 ) -> None:
@@ -101,6 +104,7 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate(
     served(check)
 
 
+@pytest.mark.wallclock
 def test_the_service_gone_is_shown_at_once_and_keys_say_so() -> None:
     async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
         app, link = await attached(path, owner=True)
@@ -139,6 +143,7 @@ def _status(sock: Path) -> dict[str, Any]:
     return state
 
 
+@pytest.mark.wallclock
 def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) -> None:
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
     with headless_demo(sock):
@@ -157,6 +162,7 @@ def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) ->
         assert not after["estop"] and not after["stopping"]
 
 
+@pytest.mark.wallclock
 def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
     tmp_path: Path,
 ) -> None:

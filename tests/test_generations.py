@@ -32,6 +32,7 @@ EXPECTED = {  # every bit the four commands set, and the data select already the
 }  # fmt: skip
 
 
+@pytest.mark.wallclock
 def test_each_generation_gets_its_own_bits_and_the_2023_drive_turns_both_wheels(
     tmp_path: Path,
 ) -> None:
@@ -92,6 +93,7 @@ def test_the_whole_wire_range_is_reachable(rig: Rig) -> None:
     assert result.clamped and result.ay == pytest.approx(-327.68)
 
 
+@pytest.mark.wallclock
 def test_decode_keeps_buses_apart(tmp_path: Path) -> None:
     """The same address on two buses, with different generations and hosts."""
     config = parse_config(

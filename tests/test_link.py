@@ -9,11 +9,15 @@ import json
 import tempfile
 from pathlib import Path
 
+import pytest
+
 from abh3_supervisor.clients import link as link_module
 from abh3_supervisor.clients.link import ALIVE_S, Link
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
 from tests.test_attach import served
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 
 def test_alive_is_a_bare_notification_every_0_2_s_while_connected() -> None:

@@ -15,6 +15,8 @@ from abh3_supervisor.params import files, table
 from abh3_supervisor.params.files import ParamValue
 from tests.support.headless import headless_demo
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 SIM = """
 buses:

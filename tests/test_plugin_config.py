@@ -67,6 +67,7 @@ def careless(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(plugin_host, "installed", lambda: {**installed, "careless": entry})
 
 
+@pytest.mark.wallclock
 @pytest.mark.usefixtures("careless")
 @pytest.mark.parametrize("command", ["check", "run"])
 def test_a_plugin_failing_to_read_its_settings_is_a_config_error(

@@ -25,6 +25,8 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED
 from tests.support.rig import TWO_UNITS
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 CONFIG = parse_config(TWO_UNITS, "t.yaml")
 
 

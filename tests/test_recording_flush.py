@@ -139,6 +139,7 @@ def test_a_full_disk_under_the_mcap_index_ends_the_recording_keeping_its_chunks(
     assert len(on_disk(path)) >= 100
 
 
+@pytest.mark.wallclock
 def test_a_full_disk_ends_the_recording_and_the_run_says_so_with_the_drives_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -30,6 +30,8 @@ from abh3_plugins.ros2.dds import LOOPBACK_URI, SERVICE_QOS, qos
 from abh3_plugins.ros2.settings import QosSettings
 from abh3_supervisor.core.kinematics import Geometry, twist_to_ab, twist_to_yx
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 ROS_DEFAULT = qos(QosSettings())
 UNIT = """

@@ -58,6 +58,7 @@ def _guid(data: Any) -> uuid.UUID:
     return uuid.UUID(bytes=bytes(data[:16]))
 
 
+@pytest.mark.wallclock
 def test_the_node_and_its_entities_are_in_ros_discovery_info_with_their_dds_guids(
     supervisor: Any,  # noqa: F811
 ) -> None:

@@ -18,6 +18,8 @@ from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler
 from tests.support.rig import TWO_UNITS
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
 
 

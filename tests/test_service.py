@@ -24,6 +24,8 @@ from tests.support.headless import headless_demo
 from tests.support.served import Served
 from tests.support.wire_monitor import WireMonitor
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 
 @pytest.fixture
 def served(tmp_path: Path) -> Iterator[Served]:

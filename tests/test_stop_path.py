@@ -16,6 +16,8 @@ from abh3_supervisor.runtime.stopping import CONFIRMED, SENT
 from abh3_supervisor.simulator.drive import SimDrive
 from tests.support.rig import TWO_UNITS
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
 
 

@@ -170,6 +170,7 @@ def test_monitor_units_refuse_commands() -> None:
         rig.sup.set_velocity("right", 1, 1)
 
 
+@pytest.mark.wallclock
 def test_exchange_waiters_resolve_on_the_reply_to_a_later_request(rig: Rig) -> None:
     async def scenario() -> None:
         rig.run(0.1)

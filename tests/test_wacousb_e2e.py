@@ -18,6 +18,8 @@ from abh3_supervisor.simulator import SimBus
 from tests.support.buses import BusNotices, drives_on
 from tests.wacousb_emulator import AdapterEmulator, check_host_frame
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 
 def reached(feedback: Feedback | None, vel_y: float, vel_a: float) -> bool:
     return (
