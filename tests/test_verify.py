@@ -33,10 +33,10 @@ from abh3_supervisor.params.telabh3 import pack_float
 from abh3_supervisor.protocol import flags, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
+from tests.support.j1939 import check_j1939, dp0_sends
 from tests.support.rig import Rig
 from tests.support.served import Served
 from tests.support.wire_monitor import WireMonitor
-from tests.test_j1939 import check_j1939, dp0_sends
 
 CONFIG = """
 buses:

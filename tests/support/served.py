@@ -1,9 +1,14 @@
-"""A supervisor served in-process: a runtime on simulated drives with its control sockets."""
+"""Supervisors served in-process: a runtime on simulated drives with its control sockets,
+on a thread of its own (:class:`Served`) or on the test's loop (:func:`served`)."""
 
 from __future__ import annotations
 
 import asyncio
+import select
+import tempfile
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -62,3 +67,40 @@ class Served:
         assert self.loop is not None and self.stop is not None
         self.loop.call_soon_threadsafe(self.stop.set)
         self.thread.join(10)
+
+
+def served(check: Callable[[Runtime, ControlServer, Path], Any]) -> None:
+    """A runtime on simulated drives serving a socket; ``check`` attaches what it likes."""
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    host = PluginHost(cfg)
+
+    async def scenario(path: Path) -> None:
+        async with Runtime(cfg, plugins=host) as rt:
+            sup = rt.supervisor
+            since = sup.clock()
+            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
+            server = ControlServer(rt, host, path)
+            await server.start()
+            try:
+                await check(rt, server, path)
+            finally:
+                await server.close()
+
+    with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
+        asyncio.run(scenario(Path(tmp) / "s" / "t.sock"))
+
+
+def wait_for(condition: Callable[[], bool], what: str, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"never happened: {what}"
+        select.select([], [], [], 0.05)  # polling another process: nothing to wait on
+
+
+async def no_clients(server: ControlServer) -> None:
+    """Until the server has let every client go (its side runs on this loop), bounded."""
+    for _ in range(400):
+        if not server.clients:
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError(f"clients still connected: {[c.name for c in server.clients]}")
