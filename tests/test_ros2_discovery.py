@@ -26,7 +26,7 @@ from cyclonedds.util import duration
 from rosbags.typesys import Stores, get_typestore
 
 from abh3_plugins.ros2 import discovery, types
-from tests.test_ros2_bridge import ROS_DEFAULT, supervisor  # noqa: F401  (the fixture)
+from tests.support.ros2 import ROS_DEFAULT, supervisor  # noqa: F401  (the fixture)
 
 
 @pytest.mark.parametrize(
