@@ -231,3 +231,15 @@ def test_the_tap_judges_a_virtual_bus_when_it_closes(wire: WireMonitor) -> None:
     host.shutdown()
     found, wire.violations = wire.violations, []
     assert [v.invariant for v in found] == ["safe_exit"]
+
+
+def test_a_resend_the_drive_asks_for_is_well_formed_and_still_a_write() -> None:
+    bus = Bus()
+    frames = param_frames(DRIVE23, b"CP5000004000080F")
+    for frame in frames[:3]:
+        bus.send(frame)
+    bus.monitor.check()
+    bus.send(dp0(DRIVE23, 0, 0, SEL23 | SERVO23))
+    for frame in frames[2:]:  # the CTS asked again from DT 2
+        bus.send(frame)
+    assert bus.invariants() == ["servo_write"]

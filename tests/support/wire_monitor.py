@@ -258,13 +258,15 @@ class BusWatch:
         message = self.transports.get((host, unit))
         if message is None:
             return  # DT frames of a message whose RTS this monitor did not see
-        if len(data) != 8 or data[0] != message.next_seq:
-            why = f"DT frame {data[:1].hex()} of {len(data)} bytes, expected sequence {message.next_seq}"
+        seq = data[0] if data else 0
+        if len(data) != 8 or not 1 <= seq <= min(message.next_seq, message.packets):
+            why = f"DT frame of {len(data)} bytes, sequence {seq} (next {message.next_seq})"
             self._report("well_formed", t, unit, shown, why)
             self.transports.pop((host, unit), None)
             return
-        message.next_seq += 1
-        message.data += data[1:]
+        # in order, or again from an earlier packet when the drive's CTS asks for it
+        message.data[(seq - 1) * 7 :] = data[1:]
+        message.next_seq = seq + 1
         if self._servo_on(unit) and message.servo_frame is None:
             last = self.last[unit]
             message.servo_frame = (
@@ -303,6 +305,7 @@ class WireMonitor:
         self.held_moving: set[int] = set()
         self.estopped = False
         self.commands = 0  # DP0 commands to drives seen so far (tests wait on it)
+        self._lock = threading.Lock()  # the loop's thread reports, the test's checks
         self._counted = threading.Condition()
 
     # ---------------------------------------------------------------- wiring
@@ -383,11 +386,13 @@ class WireMonitor:
 
     def report(self, violation: Violation) -> None:
         if violation.invariant not in self.allowed:
-            self.violations.append(violation)
+            with self._lock:
+                self.violations.append(violation)
 
     def check(self) -> None:
         """Fail with every violation seen so far (each once)."""
-        found, self.violations = self.violations, []
+        with self._lock:
+            found, self.violations = self.violations, []
         if found:
             shown = "\n  ".join(str(v) for v in found[:20])
             more = f"\n  … and {len(found) - 20} more" if len(found) > 20 else ""
