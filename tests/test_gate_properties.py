@@ -142,7 +142,7 @@ class Gate(RuleBasedStateMachine):
             client.call("alive")
         self.step()
 
-    @rule(periods=st.integers(1, 40))
+    @rule(periods=st.integers(1, 30))
     def quiet(self, periods: int) -> None:
         """Every client goes quiet for a while (past the 0.5 s freshness at the most)."""
         self.step(2 * periods)
@@ -199,7 +199,7 @@ class Gate(RuleBasedStateMachine):
         self.served.on_loop(self.drive(unit).inject_error, bits)
         self.step()
 
-    @rule(unit=units, delay_ms=st.sampled_from([50.0, 150.0]))
+    @rule(unit=units, delay_ms=st.sampled_from([40.0, 120.0]))
     def slow_transport(self, unit: str, delay_ms: float) -> None:
         drive = self.drive(unit)
         slow = Fault(FaultKind.TP_SLOW_DT, at_s=0.0, for_s=1e6, delay_ms=delay_ms)
