@@ -23,7 +23,7 @@ def rig() -> Rig:
 
 
 @pytest.fixture(autouse=True)
-def wire(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterator[WireMonitor]:
+def wire(request: pytest.FixtureRequest) -> Iterator[WireMonitor]:
     """The wire monitor (tests/support/wire_monitor.py) on every bus of every test; a test
     opts out of one invariant with ``@pytest.mark.wire_allow(NAME, reason=...)``."""
     monitor = WireMonitor()
@@ -31,8 +31,9 @@ def wire(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Ite
         unknown = set(mark.args) - set(INVARIANTS)
         assert not unknown and mark.kwargs.get("reason"), f"wire_allow: {mark}"
         monitor.allowed.update(mark.args)
-    tap(monitor, monkeypatch)
-    yield monitor
+    with pytest.MonkeyPatch.context() as patches:  # its own: a test's undo() keeps it
+        tap(monitor, patches)
+        yield monitor
     monitor.check()  # what the fixtures' teardown sent (a runtime left at the end)
 
 
