@@ -189,7 +189,8 @@ def test_malformed_frames_are_caught_and_replies_are_not_commands() -> None:
     bus.send(frames[0])
     bus.send(frames[2])  # DT 2 before DT 1
     bus.send((0xEF << 16 | HOST << 8 | DRIVE21, b"\x01" * 3), sender=DRIVE_SIDE)
-    assert bus.invariants() == ["well_formed"] * 3
+    bus.send((0xEA << 16 | DRIVE23 << 8 | HOST, b"\x00\xef"))  # a request of 2 bytes
+    assert bus.invariants() == ["well_formed"] * 4
 
 
 def test_an_allowed_invariant_is_not_reported() -> None:

@@ -11,8 +11,8 @@ the *operator* did, which a test states (:meth:`estop`, :meth:`clear`, :meth:`he
 Invariants (names used by ``@pytest.mark.wire_allow(NAME, reason=…)`` opt-outs):
 
 * ``well_formed``: a DP0 command is 8 bytes and sets no bit its generation leaves
-  undefined; transport control frames are 8 bytes and data frames 8 bytes with sequence
-  numbers 1, 2, … in order.
+  undefined; a request is 3 bytes (a PGN); transport control frames are 8 bytes and data
+  frames 8 bytes with sequence numbers 1, 2, … in order (or again where a CTS asks).
 * ``servo_write``: no data frame of a parameter *write* (TelABH3 ``CP`` with a value) goes
   to a drive while the last DP0 command to that drive had SERVO on.
 * ``safe_exit``: when the host's bus closes, the last DP0 command it sent to each drive
@@ -192,7 +192,9 @@ class BusWatch:
         if from_drive or not self.is_drive(ps):
             return  # a drive's reply, or a frame to no drive: nothing the gate decides
         shown = f"{arbitration_id:08x} [{data.hex(' ')}]"
-        if pf == PF_DP0:
+        if pf == PF_REQUEST and len(data) != 3:
+            self._report("well_formed", t, ps, shown, f"request of {len(data)} bytes, not 3")
+        elif pf == PF_DP0:
             self._command(sender, ps, data, t, shown)
         elif pf == PF_TP_CM:
             self._transport_control(sa, ps, data, t, shown)
