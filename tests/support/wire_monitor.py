@@ -223,7 +223,7 @@ class BusWatch:
             self._report("hold", t, unit, shown, f"held ({held}) yet not the safe word")
         self.last[unit] = _Last(cmd, t)
         self.by_sender.setdefault(sender, {})[unit] = _Last(cmd, t)
-        self.monitor.counted()
+        self.monitor.counted("dp0")
 
     def _judge_estop(
         self, unit: int, cmd: Dp0, before: _Last | None, bits: Bits, t: float, shown: str
@@ -253,6 +253,7 @@ class BusWatch:
             return
         if data[0] == TP_RTS:
             self.transports[(host, unit)] = _Message(data[1] | data[2] << 8, data[3])
+            self.monitor.counted("rts")
         elif data[0] == TP_ABORT:
             self.transports.pop((host, unit), None)
 
@@ -306,7 +307,7 @@ class WireMonitor:
         self.holds: dict[int, str] = {}
         self.held_moving: set[int] = set()
         self.estopped = False
-        self.commands = 0  # DP0 commands to drives seen so far (tests wait on it)
+        self.seen = {"dp0": 0, "rts": 0}  # DP0 commands, transport RTSs to drives so far
         self._lock = threading.Lock()  # the loop's thread reports, the test's checks
         self._counted = threading.Condition()
 
@@ -343,18 +344,23 @@ class WireMonitor:
             watch.sender_closed(sender)
             watch.closed = last
 
-    def counted(self) -> None:
+    def counted(self, kind: str) -> None:
         with self._counted:
-            self.commands += 1
+            self.seen[kind] += 1
             self._counted.notify_all()
 
     def wait_commands(self, count: int, timeout: float) -> bool:
         """Until ``count`` more DP0 commands crossed the wire (real-time buses: the gate
         has decided that many frames since), or ``timeout`` passed (a drive that does not
         answer is commanded more slowly): whether they did."""
+        return self.wait_seen("dp0", count, timeout)
+
+    def wait_seen(self, kind: str, count: int, timeout: float) -> bool:
+        """Until ``count`` more frames of ``kind`` (``dp0``: commands, ``rts``: the start
+        of a transport to a drive) crossed the wire, or ``timeout`` passed."""
         with self._counted:
-            goal = self.commands + count
-            return self._counted.wait_for(lambda: self.commands >= goal, timeout)
+            goal = self.seen[kind] + count
+            return self._counted.wait_for(lambda: self.seen[kind] >= goal, timeout)
 
     # ---------------------------------------------------------------- the operator
 
