@@ -73,7 +73,7 @@ BUDGET = settings(
 
 units = st.sampled_from(sorted(UNITS))
 switches = st.sampled_from(
-    ["SERVO ON ON", "SERVO OFF OFF", "START ON ON", "START OFF OFF", "BRAKE ON", "BRAKE OFF"]
+    ["SERVO ON ON", "SERVO OFF OFF", "START ON ON", "START OFF OFF", "BRAKE ON ON", "BRAKE OFF OFF"]
 )
 speeds = st.integers(-400, 400).map(float)
 

@@ -1,4 +1,4 @@
-"""Races the issue found, judged on the wire by the monitor (tests/support/wire_monitor.py):
+"""Edges the issue found, judged on the wire by the monitor (tests/support/wire_monitor.py):
 what the answers say is beside the point here; what reaches the drives is."""
 
 from __future__ import annotations
@@ -18,6 +18,19 @@ from tests.support.wire_monitor import WireMonitor
 pytestmark = pytest.mark.wallclock
 
 ROUNDS = 40  # the issue saw 4 writes in 40 go out after SERVO on
+SLOW_CHECK = """
+buses:
+  b:
+    interface: virtual
+    channel: slow-check
+    simulate:
+      faults: [{kind: tp_slow_dt, at_s: 0, for_s: 60, unit: right, delay_ms: 3000}]
+units:
+  - {name: left, abh3_id: 1, command_rate_hz: 50}
+  - {name: right, abh3_id: 3, protocol: "2023", command_rate_hz: 50, verify: refuse,
+     startup: ["SERVO ON ON", "BRAKE ON ON", "START ON ON", "VEL 100 0"]}
+"""
+CHECK_FRAMES = 2 * 50 * 3  # both units at 50 Hz for 3 s: past the check's 2 s bound
 
 
 def test_servo_on_racing_a_parameter_write_never_puts_the_write_after_servo_on(
@@ -49,3 +62,21 @@ def test_servo_on_racing_a_parameter_write_never_puts_the_write_after_servo_on(
         finally:
             a.close()
             b.close()
+
+
+def test_a_refuse_unit_whose_check_cannot_complete_stays_held(
+    tmp_path: Path, wire: WireMonitor
+) -> None:
+    """``verify: refuse`` fails closed: the drive's parameter transport is too slow for the
+    check to finish, so the unit is never verified, and its start-up (SERVO, brake, START,
+    a VEL) must not reach it."""
+    with wire.held(3, "verify: refuse, never verified"), Served(tmp_path, SLOW_CHECK) as served:
+        client = ControlClient(served.path)
+        try:
+            assert wire.wait_commands(CHECK_FRAMES, timeout=10.0)
+            with contextlib.suppress(Abh3Error):  # a client's VEL to it: refused, or held
+                client.call("command", unit="right", text="VEL 100 50")
+            assert wire.wait_commands(20, timeout=2.0)
+            wire.check()
+        finally:
+            client.close()
