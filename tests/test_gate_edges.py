@@ -13,7 +13,7 @@ from abh3_supervisor.clients.control import ControlClient
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.params.telabh3 import pack_float
 from tests.support.served import Served
-from tests.support.wire_monitor import WireMonitor
+from tests.support.wire_monitor import ESTOP_POWER_OFF_S, ESTOP_SLACK_S, WireMonitor
 
 pytestmark = pytest.mark.wallclock
 
@@ -78,5 +78,31 @@ def test_a_refuse_unit_whose_check_cannot_complete_stays_held(
                 client.call("command", unit="right", text="VEL 100 50")
             assert wire.wait_commands(20, timeout=2.0)
             wire.check()
+        finally:
+            client.close()
+
+
+def test_an_estop_switches_nothing_on_and_powers_off_within_the_bound(
+    tmp_path: Path, wire: WireMonitor
+) -> None:
+    """Stop category 1: zero and START off at once, SERVO and brake off within
+    ``ESTOP_POWER_OFF_S``; SERVO, START or brake asked for while latched do not go out."""
+    with Served(tmp_path) as served:
+        client = ControlClient(served.path)
+        try:
+            for text in ("SERVO ON ON", "START ON ON", "VEL 100 0"):
+                client.call("command", unit="left", text=text)
+            client.call("command", unit="right", text="SERVO OFF OFF")
+            assert wire.wait_commands(4, timeout=2.0)
+            client.call("estop")
+            wire.estop()
+            for text in ("SERVO ON ON", "BRAKE ON ON", "START ON ON"):
+                with contextlib.suppress(Abh3Error):
+                    client.call("command", unit="right", text=text)
+            # both units for the bound and two periods more (50 Hz)
+            assert wire.wait_commands(2 * int((ESTOP_POWER_OFF_S + ESTOP_SLACK_S) * 50) + 4, 5.0)
+            wire.check()
+            wire.clear()
+            client.call("clear_estop")
         finally:
             client.close()
