@@ -16,7 +16,7 @@ from abh3_supervisor.core.verifying import verify_units
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.service.param_ops import ParamOps
-from tests.conftest import Rig
+from tests.support.rig import Rig
 
 T = TypeVar("T")
 

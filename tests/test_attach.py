@@ -3,54 +3,36 @@ service gone, and the TUI's own process dying (`abh3 tui` and `abh3 run` on a te
 
 from __future__ import annotations
 
-import asyncio
 import json
 import os
-import select
 import signal
 import subprocess
 import sys
 import tempfile
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 from abh3_supervisor.clients.link import Link
 from abh3_supervisor.clients.tui.app import SupervisorApp
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
-from abh3_supervisor.config import parse_config
-from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import TWO_UNITS, assert_demo_stopped, headless_demo, in_a_terminal
+from tests.support.headless import headless_demo
+from tests.support.safe_word import assert_demo_stopped
+from tests.support.served import served, wait_for
+from tests.support.terminal import in_a_terminal
+from tests.support.wire_monitor import WireMonitor
 from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def served(check: Callable[[Runtime, ControlServer, Path], Any]) -> None:
-    """A runtime on simulated drives serving a socket; ``check`` attaches what it likes."""
-    cfg = parse_config(TWO_UNITS, "t.yaml")
-    host = PluginHost(cfg)
-
-    async def scenario(path: Path) -> None:
-        async with Runtime(cfg, plugins=host) as rt:
-            sup = rt.supervisor
-            since = sup.clock()
-            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
-            server = ControlServer(rt, host, path)
-            await server.start()
-            try:
-                await check(rt, server, path)
-            finally:
-                await server.close()
-
-    with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
-        asyncio.run(scenario(Path(tmp) / "s" / "t.sock"))
-
-
-def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> None:
+@pytest.mark.wallclock
+def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate(
+    wire: WireMonitor,
+) -> None:
     async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
         sup = rt.supervisor
         for text in ("SERVO ON ON", "START ON ON"):
@@ -63,6 +45,7 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> N
                 assert reply["response"] == "" and reply["held"] is True
                 await until(pilot, lambda: app.sup.units["left"].setpoint.ay == 100, "VEL shown")
                 assert await other.call("estop") == {"ok": True}
+                wire.estop()
                 await until(pilot, lambda: app.sup.estop, "the other client's e-stop shown")
                 assert sup.units["left"].setpoint.ay == 0  # zero on the next command frame
                 app.refresh_view()
@@ -95,6 +78,7 @@ def test_two_clients_detach_and_reattach_while_the_drives_keep_their_rate() -> N
     served(check)
 
 
+@pytest.mark.wallclock
 def test_the_service_gone_is_shown_at_once_and_keys_say_so() -> None:
     async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
         app, link = await attached(path, owner=True)
@@ -114,13 +98,6 @@ def test_the_service_gone_is_shown_at_once_and_keys_say_so() -> None:
     served(check)
 
 
-def _wait_for(condition: Callable[[], bool], what: str, timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"never happened: {what}"
-        select.select([], [], [], 0.05)  # polling another process: nothing to wait on
-
-
 def _status(sock: Path) -> dict[str, Any]:
     out = subprocess.run(
         [sys.executable, "-m", "abh3_supervisor", "status", "--json", "--connect", str(sock)],
@@ -133,6 +110,7 @@ def _status(sock: Path) -> dict[str, Any]:
     return state
 
 
+@pytest.mark.wallclock
 def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) -> None:
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
     with headless_demo(sock):
@@ -151,6 +129,7 @@ def test_kill_9_of_an_attached_tui_changes_nothing_on_the_bus(tmp_path: Path) ->
         assert not after["estop"] and not after["stopping"]
 
 
+@pytest.mark.wallclock
 def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
     tmp_path: Path,
 ) -> None:
@@ -165,10 +144,10 @@ def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
     os.kill(pid, signal.SIGKILL)
     os.waitpid(pid, 0)
     os.close(fd)
-    _wait_for(lambda: not sock.exists(), "the child stops serving")
+    wait_for(lambda: not sock.exists(), "the child stops serving")
     log = sock.with_suffix(".log")
-    _wait_for(lambda: log.read_text().count("stop frame confirmed") == 2, "both stops confirmed")
-    _wait_for(lambda: "recorded" in log.read_text(), "the recording closed")
+    wait_for(lambda: log.read_text().count("stop frame confirmed") == 2, "both stops confirmed")
+    wait_for(lambda: "recorded" in log.read_text(), "the recording closed")
     assert_demo_stopped(record)
 
 

@@ -51,6 +51,7 @@ def test_every_file_has_its_expectation() -> None:
     assert {p.name for p in DATA.glob("*.yaml")} == set(EXPECT)
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("name", sorted(EXPECT))
 def test_check(
     name: str, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
@@ -67,6 +68,7 @@ def test_check(
         assert "OK" not in text
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("name", sorted(EXPECT))
 def test_run(
     name: str, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
@@ -112,6 +114,7 @@ def unit_list(path: Path, size: int) -> Path:
     return path
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("command", ["check", "run"])
 def test_a_5_mb_unit_list_is_refused_at_once(
     command: str,
@@ -127,6 +130,7 @@ def test_a_5_mb_unit_list_is_refused_at_once(
     ]
 
 
+@pytest.mark.wallclock
 def test_the_largest_file_allowed_answers_in_seconds_and_prints_20_problems(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -144,6 +148,7 @@ def test_the_largest_file_allowed_answers_in_seconds_and_prints_20_problems(
 # ---------------------------------------------------------------- named causes (issue 21)
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("command", ["check", "run"])
 def test_an_interface_python_can_does_not_know_is_a_mistake_in_the_file(
     command: str, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture

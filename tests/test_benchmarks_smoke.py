@@ -19,6 +19,7 @@ def test_planner_matches_the_wire_model() -> None:
     assert planned == pytest.approx(measured, rel=0.05)
 
 
+@pytest.mark.wallclock
 def test_host_cpu_and_timing_and_scale_run() -> None:
     assert host_cpu.bare(50) > 0 and host_cpu.ours(50) > 0
     for tuis in (0, 1):
@@ -28,6 +29,7 @@ def test_host_cpu_and_timing_and_scale_run() -> None:
     assert measured["units"] == 2 and measured["rss_mb"] > 0
 
 
+@pytest.mark.wallclock
 def test_ros2_bridge_figures_run(monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("cyclonedds")
     from abh3_plugins.ros2.dds import LOOPBACK_URI
@@ -39,6 +41,7 @@ def test_ros2_bridge_figures_run(monkeypatch: pytest.MonkeyPatch) -> None:
     assert ros2_bridge.cpu_percent(1, 50, 0.5, bridge=True) > 0
 
 
+@pytest.mark.wallclock
 def test_everything_on_jitter_and_memory_run() -> None:
     """The real-process rows: a headless run, TUIs attached, figures from its recording."""
     pytest.importorskip("cyclonedds")

@@ -21,7 +21,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler import bus_health as bh
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.service import snapshot
-from tests.conftest import BusNotices, drives_on
+from tests.support.buses import BusNotices, drives_on
 
 
 def error_frame(cls: int, crtl: int = 0, tx: int = 0, rx: int = 0) -> tuple[int, bytes]:
@@ -158,6 +158,7 @@ def flaky(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     FlakyBus.instances.clear()
 
 
+@pytest.mark.wallclock
 def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> None:
     config = parse_config(
         "buses:\n  robot: {interface: flaky, channel: errs}\nunits:\n  - {name: base}\n", "e.yaml"
@@ -219,6 +220,7 @@ def mirrored(rt: Runtime) -> Mirror:
     return mirror
 
 
+@pytest.mark.wallclock
 def test_a_receive_that_fails_on_a_bus_read_from_the_loop_is_a_state_not_a_traceback(
     flaky: None,
 ) -> None:

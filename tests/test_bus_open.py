@@ -75,6 +75,7 @@ def test_a_configuration_built_in_code_is_refused_when_the_bus_opens() -> None:
             opening(typo)
 
 
+@pytest.mark.wallclock
 def test_scan_refuses_an_unknown_interface_as_a_command_line_mistake(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -117,6 +118,7 @@ def test_errno_97_is_found_inside_what_python_can_wraps(monkeypatch: pytest.Monk
         open_bus(socketcan())
 
 
+@pytest.mark.wallclock
 def test_run_says_it_with_exit_1_before_any_drive(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -128,6 +130,7 @@ def test_run_says_it_with_exit_1_before_any_drive(
     assert f"error: {KERNEL_WITHOUT_SOCKETCAN}\n" in err and "Traceback" not in err
 
 
+@pytest.mark.wallclock
 def test_scan_says_it_without_naming_keys_of_a_file(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -139,6 +142,7 @@ def test_scan_says_it_without_naming_keys_of_a_file(
     assert "simulate" not in err and "interface:" not in err and "interface up" not in err
 
 
+@pytest.mark.wallclock
 def test_a_missing_device_keeps_its_hint_and_scan_names_no_yaml(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -165,6 +169,7 @@ def _kernel_lacks_af_can() -> bool:
     return False
 
 
+@pytest.mark.wallclock
 @pytest.mark.skipif(not _kernel_lacks_af_can(), reason="this kernel has SocketCAN")
 def test_on_a_kernel_without_socketcan_python_can_itself_gives_errno_97() -> None:
     """Not injected: what python-can really raises here, so a change in it is noticed."""

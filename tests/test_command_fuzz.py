@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -22,7 +23,7 @@ from abh3_supervisor.core.commands import (
     parse_command,
 )
 from abh3_supervisor.errors import CommandError, ConfigError
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 ANSWERS = {"", "Invalid Command.", "Packet Error: 1", "Packet Error: 2", "Packet Error: 3"}
 # any Unicode (no lone surrogates: they cannot be text in a YAML file or a DDS string)
@@ -77,6 +78,7 @@ def test_startup_commands_are_checked_when_the_file_loads(text: str) -> None:
         assert any("startup" in p for p in exc.problems)
 
 
+@pytest.mark.wallclock
 def test_the_async_command_answers_too() -> None:
     """``Supervisor.command`` is what the TUI command line and the ROS 2 service call."""
     rig = Rig(parse_config(TWO_UNITS, "two.yaml"))

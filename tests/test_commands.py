@@ -17,7 +17,7 @@ from abh3_supervisor.core.commands import (
 )
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol.flags import LAYOUT_2021, LAYOUT_2023
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 # text, 2021 (data, mask) — the seed's layout, protocol doc §5 — and 2023 (data, mask)
 CASES = [

@@ -22,7 +22,7 @@ from abh3_supervisor.core.kinematics import yx_to_ab
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.frames import Generation
 from tests.commission_bench import FakeBench, Headless
-from tests.conftest import present
+from tests.support.rig import present
 
 ROBOT = """
 buses:

@@ -15,7 +15,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.protocol import frames
-from tests.conftest import Rig, present
+from tests.support.rig import Rig, present
 
 BASE = """
 buses:

@@ -172,6 +172,7 @@ def test_all_problems_are_reported_at_once() -> None:
     assert len(found) == 2
 
 
+@pytest.mark.wallclock
 def test_cli_reports_config_errors_with_exit_2_and_no_traceback(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -183,6 +184,7 @@ def test_cli_reports_config_errors_with_exit_2_and_no_traceback(
     assert "Traceback" not in err
 
 
+@pytest.mark.wallclock
 def test_cli_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", str(tmp_path / "nope.yaml"), "--headless"]) == 2
     assert "cannot read configuration" in capsys.readouterr().err
@@ -390,6 +392,7 @@ def test_startup_commands_that_would_be_refused_are_config_errors(unit: str, why
     assert info.value.problems[0].startswith("s.yaml:3: units[0].startup")
 
 
+@pytest.mark.wallclock
 def test_the_teleop_example_writes_its_csv_under_a_git_ignored_logs_folder_it_creates(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -16,7 +16,8 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.headless import run_headless
-from tests.conftest import TWO_UNITS, FillsUp
+from tests.support.disk import FillsUp
+from tests.support.rig import TWO_UNITS
 
 
 def row(i: int) -> dict[str, Any]:
@@ -40,6 +41,7 @@ def test_a_full_disk_leaves_whole_rows_and_names_the_file(tmp_path: Path) -> Non
     assert [r["unit"] for r in rows] == [str(i) for i in range(10)]
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize(("policy", "code"), [("stop", 1), ("continue", 5)])
 def test_on_error_decides_whether_the_run_goes_on(
     tmp_path: Path,

@@ -17,7 +17,7 @@ from abh3_supervisor.clients.decode import SHOWN, decode_file, read_messages
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import ids
-from tests.conftest import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present
 
 FORMATS = (".log", ".asc", ".blf", ".csv")
 # DP0 command and reply of drive 1 (host 2), as `abh3 run --record` writes them
@@ -60,6 +60,7 @@ def decode(path: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, list[st
     return code, out.out.splitlines(), out.err.splitlines()
 
 
+@pytest.mark.wallclock
 def test_bad_lines_are_reported_by_number_and_the_rest_is_decoded(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -76,6 +77,7 @@ def test_bad_lines_are_reported_by_number_and_the_rest_is_decoded(
     assert len(err) == 3  # the first pass that guessed reported nothing
 
 
+@pytest.mark.wallclock
 def test_an_asc_file_goes_on_with_its_header_settings_after_a_bad_frame(
     tmp_path: Path, recordings: dict[str, bytes], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -91,6 +93,7 @@ def test_an_asc_file_goes_on_with_its_header_settings_after_a_bad_frame(
     assert err[-1] == f"{broken}: 1 unreadable line(s) skipped, 39 frame(s) read"
 
 
+@pytest.mark.wallclock
 def test_only_the_first_lines_are_shown_then_the_count(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -106,6 +109,7 @@ def test_only_the_first_lines_are_shown_then_the_count(
     )
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("suffix", FORMATS)
 def test_a_file_with_nothing_readable_is_an_error(
     suffix: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -117,6 +121,7 @@ def test_a_file_with_nothing_readable_is_an_error(
     assert err[-1] == f"error: {junk}: no frame could be read: is it a {suffix} recording?"
 
 
+@pytest.mark.wallclock
 def test_an_empty_recording_decodes_to_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -168,6 +173,7 @@ def test_garbage_anywhere_never_raises_anything_but_a_clear_error(
         assert "no frame could be read" in str(exc)
 
 
+@pytest.mark.wallclock
 def test_frames_named_by_bus_as_in_an_mcap_recording_get_their_units_generation() -> None:
     """MCAP topics carry the bus's name, not its channel: a 2023 unit's reply read back
     from one is still named and decoded in 2023, beside a 2021 unit at the same address."""
@@ -214,6 +220,7 @@ def decoded(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[list[A
     return [json.loads(line) for line in out.out.splitlines()], out.err.splitlines()
 
 
+@pytest.mark.wallclock
 def test_decode_without_config_guesses_each_addresses_generation_and_says_so(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -250,6 +257,7 @@ def test_decode_without_config_guesses_each_addresses_generation_and_says_so(
     assert any(" dp0_command  axes=Y/X cmd_ay=50.0 cmd_bx=0.0 " in t for t in text)
 
 
+@pytest.mark.wallclock
 def test_decode_says_when_a_guess_is_uncertain_or_impossible(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

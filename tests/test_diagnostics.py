@@ -22,7 +22,7 @@ from abh3_supervisor.core.supervisor import FlagChange
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.scheduler import bus_health as bh
 from abh3_supervisor.scheduler.core import HealthEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 STEP = 0.01  # fake seconds between ticks
 

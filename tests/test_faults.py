@@ -17,7 +17,7 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler, GapEvent, HealthEvent, MalformedEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 SCHEDULER = 0  # the Rig adds the scheduler first, the simulated drives second
 
@@ -165,6 +165,7 @@ def test_scripted_slow_replies_count_as_timeouts() -> None:
     assert (stats.rtt_ms(99) or 0) > 55 and stats.timeouts == 0  # slow, within reply_timeout_ms
 
 
+@pytest.mark.wallclock
 def test_a_scripted_send_outage_on_the_virtual_bus_stops_and_does_not_restart() -> None:
     config = parse_config(TWO_UNITS, "two.yaml")
     bus = config.buses["b"]
@@ -261,6 +262,7 @@ def test_bad_faults_are_config_errors(faults: str, message: str) -> None:
     assert any(p.startswith("f.yaml:") and message in p for p in info.value.problems), info.value
 
 
+@pytest.mark.wallclock
 def test_headless_shows_each_fault_and_recovers_with_exit_0(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -284,6 +286,7 @@ def test_headless_shows_each_fault_and_recovers_with_exit_0(
     assert text.count("stop frame confirmed by the drive") == 2
 
 
+@pytest.mark.wallclock
 def test_a_fault_that_prevents_a_stop_ends_with_exit_3(caplog: pytest.LogCaptureFixture) -> None:
     config = parse_config(faulty("[{kind: silent, at_s: 0.5, for_s: 100, unit: right}]", "x"))
     with caplog.at_level(logging.INFO):

@@ -17,7 +17,7 @@ from abh3_supervisor.core.verify import Row, State, Verification
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 
 class Source(InputSource):

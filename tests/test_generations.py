@@ -14,7 +14,7 @@ from abh3_supervisor.core.supervisor import SupervisorEvent
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import FeedbackEvent
-from tests.conftest import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")  # left: 2021 travel model; right: 2023 motor model
 TOLD = ("SERVO ON ON", "START ON ON", "BRAKE ON ON", "VEL 100 100")
@@ -32,6 +32,7 @@ EXPECTED = {  # every bit the four commands set, and the data select already the
 }  # fmt: skip
 
 
+@pytest.mark.wallclock
 def test_each_generation_gets_its_own_bits_and_the_2023_drive_turns_both_wheels(
     tmp_path: Path,
 ) -> None:
@@ -100,6 +101,7 @@ def test_the_whole_wire_range_is_reachable(rig: Rig) -> None:
     assert result.clamped and result.ay == pytest.approx(-327.68)
 
 
+@pytest.mark.wallclock
 def test_decode_keeps_buses_apart(tmp_path: Path) -> None:
     """The same address on two buses, with different generations and hosts."""
     config = parse_config(

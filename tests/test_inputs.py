@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from abh3_supervisor.config import ControlMode, parse_config
 from abh3_supervisor.core.commands import CurrentCommand
 from abh3_supervisor.core.inputs import (
@@ -18,7 +20,7 @@ from abh3_supervisor.core.inputs import (
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import StatusEvent
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 
 class Source(InputSource):
@@ -108,6 +110,7 @@ class Holder(InputSource):
         pass
 
 
+@pytest.mark.wallclock
 def test_feed_runs_commands_inputs_and_status_requests_from_another_thread() -> None:
     cfg = parse_config(TWO_UNITS, "t.yaml")
     host = PluginHost(cfg)
@@ -149,6 +152,7 @@ def test_feed_runs_commands_inputs_and_status_requests_from_another_thread() -> 
     asyncio.run(scenario())
 
 
+@pytest.mark.wallclock
 def test_a_vel_through_a_plugins_feed_is_that_sources_motion_and_lapses_with_it() -> None:
     """inp_service's VEL is the bridge source's motion like vel_cmd: fresh for the
     source's timeout, then zero — never a static setpoint nobody owns."""

@@ -19,8 +19,8 @@ from abh3_supervisor.params.session import ABORT_GUARD, Result
 from abh3_supervisor.params.telabh3 import Command, Request, pack_float
 from abh3_supervisor.params.transport import Sender, State, cts
 from abh3_supervisor.simulator.timeline import WireFrame
-from tests.conftest import TWO_UNITS, Rig
-from tests.test_j1939 import check_j1939
+from tests.support.j1939 import check_j1939
+from tests.support.rig import TWO_UNITS, Rig
 
 HOST, LEFT = 0, 1  # timeline nodes: the scheduler, the simulated drives
 HOST_CM, HOST_DT, DRIVE_CM = 0x00EC0102, 0x00EB0102, 0x00EC0201  # host 2, left 1

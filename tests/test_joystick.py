@@ -15,7 +15,7 @@ from abh3_plugins.joystick import (
 from abh3_supervisor.core.inputs import Twist
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
-from tests.conftest import Rig
+from tests.support.rig import Rig
 
 
 class FakeDevice:

@@ -52,6 +52,7 @@ class Feed:
             self.done.set()
 
 
+@pytest.mark.wallclock
 def test_keys_typed_in_a_terminal_drive_and_the_terminal_is_restored() -> None:
     master, slave = pty.openpty()
     stream = os.fdopen(slave, "r")

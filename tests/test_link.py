@@ -9,11 +9,15 @@ import json
 import tempfile
 from pathlib import Path
 
+import pytest
+
 from abh3_supervisor.clients import link as link_module
 from abh3_supervisor.clients.link import ALIVE_S, Link
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.test_attach import served
+from tests.support.served import no_clients, served
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 
 def test_alive_is_a_bare_notification_every_0_2_s_while_connected() -> None:
@@ -67,12 +71,3 @@ def test_the_service_answers_nothing_to_alive_and_sees_a_detach_at_once() -> Non
         await link.close()
 
     served(check)
-
-
-async def no_clients(server: ControlServer) -> None:
-    """Until the server has let every client go (its side runs on this loop), bounded."""
-    for _ in range(400):
-        if not server.clients:
-            return
-        await asyncio.sleep(0.005)
-    raise AssertionError(f"clients still connected: {[c.name for c in server.clients]}")

@@ -29,7 +29,7 @@ pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from tests.conftest import FillsUp
+from tests.support.disk import FillsUp
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = """
@@ -85,6 +85,7 @@ def counts(path: Path) -> dict[str, int]:
     return {c.topic: by_id.get(i, 0) for i, c in summary.channels.items()}
 
 
+@pytest.mark.wallclock
 def test_raw_frames_are_every_frame_the_pumps_sent_and_received(
     recording: tuple[Path, Config, int, int],
 ) -> None:
@@ -94,6 +95,7 @@ def test_raw_frames_are_every_frame_the_pumps_sent_and_received(
     assert topics["/can/demo/rx"] == received > 150
 
 
+@pytest.mark.wallclock
 def test_decoded_values_match_the_frames_they_came_from(
     recording: tuple[Path, Config, int, int],
 ) -> None:
@@ -119,6 +121,7 @@ def test_decoded_values_match_the_frames_they_came_from(
     assert 2 <= topics["/diagnostics"] <= 6  # once a second and on changes
 
 
+@pytest.mark.wallclock
 def test_rosbags_reads_every_message_with_the_files_own_schemas(
     recording: tuple[Path, Config, int, int],
 ) -> None:
@@ -154,6 +157,7 @@ def test_rosbags_reads_every_message_with_the_files_own_schemas(
     assert frame.is_extended and frame.dlc in (3, 8) and frame.header.frame_id == "demo"
 
 
+@pytest.mark.wallclock
 def test_the_mcap_library_decodes_it_as_ros2_and_the_file_is_indexed(
     recording: tuple[Path, Config, int, int],
 ) -> None:
@@ -179,6 +183,7 @@ def test_the_vendor_schemas_are_the_shipped_interface_files() -> None:
         assert [line for line in shipped if line] == text.splitlines(), name
 
 
+@pytest.mark.wallclock
 def test_abh3_decode_reads_it_as_it_reads_a_can_log(
     recording: tuple[Path, Config, int, int], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -244,6 +249,7 @@ def test_a_full_disk_ends_the_recording_once_and_keeps_what_was_written(
     assert [m.arbitration_id for m in kept] == list(range(len(kept)))
 
 
+@pytest.mark.wallclock
 def test_without_the_mcap_extra_the_run_says_how_to_get_it_before_any_drive_moves(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
@@ -265,6 +271,7 @@ def test_without_the_mcap_extra_the_run_says_how_to_get_it_before_any_drive_move
     assert "startup" not in caplog.text  # nothing was commanded
 
 
+@pytest.mark.wallclock
 def test_the_core_loads_mcap_only_for_an_mcap_recording() -> None:
     code = (
         "import sys, abh3_supervisor.runtime.bus_runtime, abh3_supervisor.runtime.headless, "
@@ -282,6 +289,7 @@ EIGHT = (
 )
 
 
+@pytest.mark.wallclock
 def test_kill_9_keeps_every_chunk_written_before_it(tmp_path: Path) -> None:
     """A real crash: `abh3 run` killed with SIGKILL mid-run. The file has no index; the
     frames of every chunk written before the kill read back."""

@@ -12,7 +12,7 @@ from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.scheduler.core import StatusEvent
 from abh3_supervisor.simulator.drive import PULSES_PER_REV
-from tests.conftest import Rig, present
+from tests.support.rig import Rig, present
 
 G = Geometry(pulses_per_rev=1000)  # 1 pulse = 0.1 / 10 · 0.1 · π / 1000 m
 

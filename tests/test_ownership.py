@@ -17,7 +17,8 @@ from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputF
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
-from tests.conftest import Rig, headless_demo, present
+from tests.support.headless import headless_demo
+from tests.support.rig import Rig, present
 
 PERIOD = 0.02  # 50 Hz: TWO_UNITS' command rate
 
@@ -197,6 +198,7 @@ def test_clamp_note_names_the_limit_and_reaches_the_event_log(rig: Rig) -> None:
     assert notes[-1] == "clamped: VEL 99999 0 → 6553.4 0 (wire range -6553.6 … 6553.4)"
 
 
+@pytest.mark.wallclock
 def test_abh3_send_names_its_target_holds_motion_and_reports_clamping(tmp_path: Path) -> None:
     root = Path(__file__).parent.parent
     sock = tmp_path / "run" / "demo.sock"

@@ -38,6 +38,7 @@ def config(tmp_path: Path, channel: str, simulate: str = "true", extra: str = ""
     return path
 
 
+@pytest.mark.wallclock
 def test_get_identity_and_a_refused_address(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -56,6 +57,7 @@ def test_get_identity_and_a_refused_address(
     assert main(["param", "-c", cfg, "get", "nobody", "0x5000"]) == 2
 
 
+@pytest.mark.wallclock
 def test_monitor_reads_the_simulated_state(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -84,6 +86,7 @@ def test_monitor_reads_the_simulated_state(
     assert lines == [f"VELOCITY_AY=0 MAIN_VOLTAGE=23.7 ALARMS={1 << 22}"] * 2
 
 
+@pytest.mark.wallclock
 def test_dump_formats(tmp_path: Path) -> None:
     # a drive taking any host (−1), unlike the file's host_id: simulate.params
     cfg = str(config(tmp_path, "p-dump", "{params: {left: {CAN_HOST_ADDRESS: -1}}}"))
@@ -103,6 +106,7 @@ def test_dump_formats(tmp_path: Path) -> None:
     assert len(rows) == len(doc["parameters"]) == 121
 
 
+@pytest.mark.wallclock
 def test_diff_and_restore_write_only_what_differs_and_log_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -133,6 +137,7 @@ def test_diff_and_restore_write_only_what_differs_and_log_it(
     ]
 
 
+@pytest.mark.wallclock
 def test_set_needs_a_confirmation_off_a_terminal(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -143,6 +148,10 @@ def test_set_needs_a_confirmation_off_a_terminal(
     assert "already set: nothing written" in capsys.readouterr().out
 
 
+@pytest.mark.wallclock
+@pytest.mark.wire_allow(
+    "servo_write", reason="`param set --force` writes with the servo on, as the user asked"
+)
 def test_set_is_refused_while_the_running_service_has_the_servo_on(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -172,6 +181,7 @@ def test_set_is_refused_while_the_running_service_has_the_servo_on(
     assert captured.out.splitlines()[-1].split()[2] == "900"
 
 
+@pytest.mark.wallclock
 def test_a_transport_fault_is_a_clear_error_not_a_hang(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -190,6 +200,10 @@ def test_a_transport_fault_is_a_clear_error_not_a_hang(
     )
 
 
+@pytest.mark.wallclock
+@pytest.mark.wire_allow(
+    "servo_write", reason="`param set --force` writes with the servo on, as the user asked"
+)
 def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`abh3 param --connect` asks the running supervisor: it refuses a write while the
     servo is on, writes with --force, and logs the write in *its* event log."""
@@ -274,6 +288,7 @@ def test_parameter_files_read_back_and_refuse_with_file_and_row(tmp_path: Path) 
         files.read(tmp_path / "missing.csv")
 
 
+@pytest.mark.wallclock
 def test_mistakes_in_files_and_values_are_named_not_dropped_or_a_traceback(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

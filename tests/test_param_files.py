@@ -287,6 +287,7 @@ units:
 """
 
 
+@pytest.mark.wallclock
 def test_a_refused_file_or_value_writes_nothing_to_the_drive(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -340,6 +341,7 @@ def test_a_refused_file_or_value_writes_nothing_to_the_drive(
     assert "is not a 32-bit integer" in err[-1]
 
 
+@pytest.mark.wallclock
 def test_restore_with_allow_unknown_writes_exactly_the_files_values(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -18,6 +18,8 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROUNDS = 25  # per generation and mask; 100 of each were run once for the closing note
 SPEED_AY_0 = 0x5000
 

@@ -13,7 +13,9 @@ import pytest
 
 from abh3_supervisor.params import files, table
 from abh3_supervisor.params.files import ParamValue
-from tests.conftest import headless_demo
+from tests.support.headless import headless_demo
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM = """

@@ -16,6 +16,8 @@ from abh3_supervisor.core.supervisor import OperatorAction
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from tests.test_tui import run_app, until
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 
 def test_read_all_write_one_with_confirmation_and_diff(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch

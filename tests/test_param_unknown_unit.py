@@ -37,6 +37,7 @@ def test_the_form_is_the_supervisors() -> None:
     assert supervisors_words() == "error: no unit named 'nobody' (units: left, right)\n"
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("argv", OPS, ids=[a[0] for a in OPS])
 def test_on_its_own_buses_before_any_opens(
     argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -47,6 +48,7 @@ def test_on_its_own_buses_before_any_opens(
     assert capsys.readouterr().err == supervisors_words()
 
 
+@pytest.mark.wallclock
 def test_through_a_running_supervisor(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from abh3_supervisor.service.server import ControlServer
 

@@ -14,7 +14,7 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host import host as plugin_host
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
-from tests.conftest import TWO_UNITS
+from tests.support.rig import TWO_UNITS
 
 
 def problems(plugins: str) -> list[str]:
@@ -67,6 +67,7 @@ def careless(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(plugin_host, "installed", lambda: {**installed, "careless": entry})
 
 
+@pytest.mark.wallclock
 @pytest.mark.usefixtures("careless")
 @pytest.mark.parametrize("command", ["check", "run"])
 def test_a_plugin_failing_to_read_its_settings_is_a_config_error(

@@ -23,7 +23,9 @@ from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED
-from tests.conftest import TWO_UNITS
+from tests.support.rig import TWO_UNITS
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 CONFIG = parse_config(TWO_UNITS, "t.yaml")
 

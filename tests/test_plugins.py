@@ -23,7 +23,7 @@ from abh3_supervisor.plugin_host import hookspecs
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import MAX_FAILURES, PluginHost, installed
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.conftest import TWO_UNITS, present
+from tests.support.rig import TWO_UNITS, present
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -61,6 +61,7 @@ def test_plugin_sections_are_validated_with_file_line_and_key() -> None:
     assert "plugins.joystick.gainX: expected a number" in problems
 
 
+@pytest.mark.wallclock
 def test_check_reports_plugin_errors_with_exit_2(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text(with_plugins("  keyboard: {speed: 3}\n"))
@@ -122,6 +123,7 @@ class Recorder:
         self.stopped = True
 
 
+@pytest.mark.wallclock
 def test_a_plugin_raising_in_every_hook_does_not_stop_the_others() -> None:
     cfg = parse_config(TWO_UNITS, "t.yaml")
     host = PluginHost(cfg)
@@ -145,6 +147,7 @@ class Slow:
         time.sleep(0.2)  # a slow output: must not hold up the bus
 
 
+@pytest.mark.wallclock
 def test_a_slow_plugin_never_delays_the_scheduler() -> None:
     cfg = parse_config(TWO_UNITS, "t.yaml")
     host = PluginHost(cfg)
@@ -190,6 +193,7 @@ def run_csv(tmp_path: Path, plugin_yaml: str, seconds: float = 1.0) -> Any:
     return asyncio.run(scenario())
 
 
+@pytest.mark.wallclock
 def test_csv_rows_match_what_the_drives_report(tmp_path: Path) -> None:
     path = tmp_path / "run.csv"
     sim = run_csv(tmp_path, f"  csv: {{path: '{path}'}}\n")
@@ -218,6 +222,7 @@ def test_csv_rows_match_what_the_drives_report(tmp_path: Path) -> None:
     assert int(steady[-1]["pulse_a"]) <= drive.pulses[0]
 
 
+@pytest.mark.wallclock
 def test_csv_per_unit_files_and_rotation(tmp_path: Path) -> None:
     run_csv(tmp_path, f"  csv: {{path: '{tmp_path}/{{unit}}.csv', rotate_bytes: 4000}}\n", 0.5)
     left = sorted(tmp_path.glob("left-*.csv"))
@@ -227,6 +232,7 @@ def test_csv_per_unit_files_and_rotation(tmp_path: Path) -> None:
         assert rows and all(r["unit"] == "left" for r in rows)
 
 
+@pytest.mark.wallclock
 def test_csv_file_is_complete_after_sigterm(tmp_path: Path) -> None:
     path = tmp_path / "sig.csv"
     cfg = tmp_path / "c.yaml"
@@ -253,6 +259,7 @@ def test_csv_file_is_complete_after_sigterm(tmp_path: Path) -> None:
         assert last["note"] == "after the stop"
 
 
+@pytest.mark.wallclock
 def test_example_third_party_plugin_installs_and_is_picked_up(tmp_path: Path) -> None:
     target = tmp_path / "site"
     pip = subprocess.run(

@@ -21,6 +21,7 @@ def tool(name: str, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([exe, *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
 
 
+@pytest.mark.wallclock
 def test_ruff_lint_and_format() -> None:
     lint = tool("ruff", "check", ".")
     assert lint.returncode == 0, lint.stdout
@@ -28,6 +29,7 @@ def test_ruff_lint_and_format() -> None:
     assert fmt.returncode == 0, fmt.stdout
 
 
+@pytest.mark.wallclock
 def test_mypy_strict() -> None:
     out = tool("mypy")
     assert out.returncode == 0, out.stdout

@@ -8,6 +8,8 @@ import asyncio
 import re
 from pathlib import Path
 
+import pytest
+
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.runtime.bus_runtime import Runtime
 
@@ -27,6 +29,7 @@ def test_the_readme_example_validates_as_written() -> None:
     assert (bus.interface, bus.channel, bus.simulate) == ("socketcan", "can0", None)
 
 
+@pytest.mark.wallclock
 def test_the_readme_example_runs_on_the_simulator_with_simulate_uncommented() -> None:
     text = readme_yaml().replace("# simulate: true", "simulate: true")
     assert "    simulate: true" in text

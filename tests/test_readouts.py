@@ -34,7 +34,7 @@ from abh3_supervisor.core.eventlog import EventLog, describe
 from abh3_supervisor.core.supervisor import FlagChange, SupervisorEvent
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.conftest import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present
 
 # a commanding 2021 travel unit beside a 2023 motor unit that only watches
 WATCHED = """

@@ -21,7 +21,8 @@ from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.runtime.recorder import WholeLines, open_recorder
 from abh3_supervisor.runtime.stopping import EXIT_RECORDING_FAILED
 from abh3_supervisor.simulator.bus import SimBus
-from tests.conftest import FillsUp
+from tests.support.disk import FillsUp
+from tests.support.safe_word import assert_drive_stopped
 
 MOVING = """
 buses:
@@ -139,6 +140,7 @@ def test_a_full_disk_under_the_mcap_index_ends_the_recording_keeping_its_chunks(
     assert len(on_disk(path)) >= 100
 
 
+@pytest.mark.wallclock
 def test_a_full_disk_ends_the_recording_and_the_run_says_so_with_the_drives_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -164,8 +166,7 @@ def test_a_full_disk_ends_the_recording_and_the_run_says_so_with_the_drives_stop
     drives = list(sims[0].drives.values())
     assert all(d.pulses != [0.0, 0.0] for d in drives)  # they turned before the stop
     for drive in drives:
-        assert drive.cmd_raw == (0, 0)
-        assert drive.inputs & ~drive.layout.select_mask == 0, hex(drive.inputs)
+        assert_drive_stopped(drive)
         assert not drive.control_word() & (drive.layout.servo.both | drive.layout.start.both)
     assert caplog.text.count("stop frame confirmed by the drive") == 2
     # what is on disk: whole lines, every one a frame

@@ -16,6 +16,8 @@ from pathlib import Path
 import can
 import pytest
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "configs" / "demo.yaml"
 RATE_HZ = 50  # the demo's command_rate_hz: DP0 commands of unit left per second

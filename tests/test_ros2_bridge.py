@@ -7,84 +7,23 @@ node on rmw_cyclonedds would. Each test uses a domain of its own.
 
 from __future__ import annotations
 
-import itertools
 import math
-import subprocess
-import sys
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 pytest.importorskip("cyclonedds")
-from cyclonedds.domain import DomainParticipant
-from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
-from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from abh3_plugins.ros2 import types
 from abh3_plugins.ros2.bridge import twist
-from abh3_plugins.ros2.dds import LOOPBACK_URI, SERVICE_QOS, qos
-from abh3_plugins.ros2.settings import QosSettings
 from abh3_supervisor.core.kinematics import Geometry, twist_to_ab, twist_to_yx
+from tests.support import ros2
 
-ROOT = Path(__file__).resolve().parent.parent
-ROS_DEFAULT = qos(QosSettings())
-UNIT = """
-buses:
-  demo: {{interface: virtual, channel: ros2-{domain}, simulate: true}}
-units:
-  - name: left
-    abh3_id: 1
-    broadcast: {{mask: 0x13, rate_hz: 20}}
-    geometry: {{pulses_per_rev: 4096}}
-    startup: {startup}
-plugins:
-  ros2: {{domain_id: {domain}{extra}}}
-"""
-_client = itertools.count(1)
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
-
-class Peer:
-    """The other ROS 2 participant: topics under /left, and an inp_service client."""
-
-    def __init__(self, domain: int) -> None:
-        self.dp = DomainParticipant(domain)
-        self.topics: dict[str, Topic[Any]] = {}
-        self.guid, self.sequence = next(_client) << 32, 0
-        self.request = DataWriter(
-            self.dp,
-            Topic(self.dp, "rq/left/inp_serviceRequest", types.Abh3InputRequest),
-            qos=SERVICE_QOS,
-        )
-        self.reply = DataReader(
-            self.dp,
-            Topic(self.dp, "rr/left/inp_serviceReply", types.Abh3InputResponse),
-            qos=SERVICE_QOS,
-        )
-
-    def _topic(self, name: str, typ: type) -> Topic[Any]:
-        if name not in self.topics:
-            self.topics[name] = Topic(self.dp, f"rt/left/{name}", typ)
-        return self.topics[name]
-
-    def reader(self, name: str, typ: type) -> DataReader[Any]:
-        return DataReader(self.dp, self._topic(name, typ), qos=ROS_DEFAULT)
-
-    def writer(self, name: str, typ: type) -> DataWriter[Any]:
-        return DataWriter(self.dp, self._topic(name, typ), qos=ROS_DEFAULT)
-
-    def call(self, command: str, seconds: float = 20) -> str | None:
-        """inp_service as a ROS client does: resend until the service is matched."""
-        self.sequence += 1
-        for _ in range(int(seconds / 0.5)):
-            self.request.write(types.Abh3InputRequest(self.guid, self.sequence, command))
-            for reply in self.reply.take_iter(timeout=duration(milliseconds=500)):
-                if (reply.client_guid, reply.sequence) == (self.guid, self.sequence):
-                    return str(reply.responce)
-        return None
+supervisor = ros2.supervisor  # the fixture: `abh3 run` and a peer
 
 
 def until(reader: DataReader[Any], want: Any, seconds: float = 20) -> Any:
@@ -97,32 +36,6 @@ def until(reader: DataReader[Any], want: Any, seconds: float = 20) -> Any:
 
 def close(a: types.Abh3Velocity, ay: float, bx: float, tol: float = 0.3) -> bool:
     return abs(a.vel_ay - ay) <= tol and abs(a.vel_bx - bx) <= tol
-
-
-@pytest.fixture
-def supervisor(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
-    """Start ``abh3 run`` with a config; yields a starter; checks the clean stop after."""
-    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK_URI)
-    procs: list[subprocess.Popen[str]] = []
-
-    def start(domain: int, startup: str = "[]", extra: str = "") -> Peer:
-        cfg = tmp_path / "ros2.yaml"
-        cfg.write_text(UNIT.format(domain=domain, startup=startup, extra=extra))
-        command = [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless"]
-        procs.append(
-            subprocess.Popen(
-                [*command, "--duration", "60"], stderr=subprocess.PIPE, text=True, cwd=ROOT
-            )
-        )
-        return Peer(domain)
-
-    yield start
-    for proc in procs:
-        proc.terminate()
-        _, err = proc.communicate(timeout=30)
-        assert proc.returncode == 0, err
-        assert "stop frame confirmed" in err
-        assert "Traceback" not in err
 
 
 def test_feedback_status_odometry_and_conversions_reach_another_process(

@@ -26,7 +26,7 @@ from cyclonedds.util import duration
 from rosbags.typesys import Stores, get_typestore
 
 from abh3_plugins.ros2 import discovery, types
-from tests.test_ros2_bridge import ROS_DEFAULT, supervisor  # noqa: F401  (the fixture)
+from tests.support.ros2 import ROS_DEFAULT, supervisor  # noqa: F401  (the fixture)
 
 
 @pytest.mark.parametrize(
@@ -58,6 +58,7 @@ def _guid(data: Any) -> uuid.UUID:
     return uuid.UUID(bytes=bytes(data[:16]))
 
 
+@pytest.mark.wallclock
 def test_the_node_and_its_entities_are_in_ros_discovery_info_with_their_dds_guids(
     supervisor: Any,  # noqa: F811
 ) -> None:

@@ -33,6 +33,8 @@ import pytest
 from abh3_supervisor.clients import ros2_interface as ri
 from abh3_supervisor.core.kinematics import Geometry, twist_to_yx
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 DECODE = [sys.executable, "-m", "abh3_supervisor", "decode"]
 PROBE = ROOT / "tests" / "ros2_probe.py"

@@ -16,18 +16,16 @@ from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler
-from tests.conftest import TWO_UNITS, present
+from tests.support.rig import TWO_UNITS, present
+from tests.support.safe_word import is_safe_word
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")
 
 
 def protocol_of(abh3_id: int) -> Generation:
     return next(u.protocol for u in CONFIG.units.values() if u.abh3_id == abh3_id)
-
-
-def is_safe_word(abh3_id: int, cmd: frames.Dp0Command) -> bool:
-    """Nothing set but data select, in the unit's generation."""
-    return cmd.inputs & ~flags.layout(protocol_of(abh3_id)).select_mask == 0
 
 
 def commands_in(path: Path, abh3_id: int) -> list[frames.Dp0Command]:
@@ -67,7 +65,7 @@ def test_runs_records_and_stops_the_drives_on_the_way_out(tmp_path: Path) -> Non
     for abh3_id in (1, 3):
         last = commands_in(record, abh3_id)[-1]  # the recording is complete: the stop frame
         assert (last.cmd_ay, last.cmd_bx) == (0.0, 0.0)
-        assert is_safe_word(abh3_id, last)
+        assert is_safe_word(last.inputs, flags.layout(protocol_of(abh3_id)))
 
 
 def test_an_exception_in_the_block_still_stops_the_drives(tmp_path: Path) -> None:
@@ -81,7 +79,7 @@ def test_an_exception_in_the_block_still_stops_the_drives(tmp_path: Path) -> Non
 
     with pytest.raises(RuntimeError, match="boom"):
         asyncio.run(scenario())
-    assert is_safe_word(1, commands_in(record, 1)[-1])
+    assert is_safe_word(commands_in(record, 1)[-1].inputs, flags.LAYOUT_2021)
 
 
 def test_a_fatal_internal_error_ends_the_run_with_exit_1_after_stopping(
@@ -102,7 +100,7 @@ def test_a_fatal_internal_error_ends_the_run_with_exit_1_after_stopping(
         code = asyncio.run(run_headless(CONFIG, duration=30, record=record, status_interval=0))
     assert code == 1
     assert "stopping after an internal error" in caplog.text
-    assert is_safe_word(3, commands_in(record, 3)[-1])
+    assert is_safe_word(commands_in(record, 3)[-1].inputs, flags.LAYOUT_2023)
 
 
 def test_a_missing_device_is_a_clear_error() -> None:

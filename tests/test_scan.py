@@ -87,6 +87,7 @@ def test_guess_generation_from_dp0_replies() -> None:
     )
 
 
+@pytest.mark.wallclock
 def test_scan_finds_exactly_the_simulated_drives_and_sends_only_requests(five: SimNode) -> None:
     with can.Bus(interface="virtual", channel="scan-five") as bus:
         scanner = Scanner(bus, host=2)
@@ -109,6 +110,7 @@ def test_scan_finds_exactly_the_simulated_drives_and_sends_only_requests(five: S
     print(f"scan: {len(found.drives)} drives, {scanner.sent} requests, {took:.2f} s")
 
 
+@pytest.mark.wallclock
 def test_the_cli_writes_a_starting_configuration(
     five: SimNode, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -138,6 +140,7 @@ def test_the_cli_writes_a_starting_configuration(
         assert any(line.split()[0] == str(address) for line in err.splitlines() if line.strip())
 
 
+@pytest.mark.wallclock
 def test_listen_only_sends_nothing_and_learns_from_traffic(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -167,6 +170,7 @@ def test_listen_only_sends_nothing_and_learns_from_traffic(
     assert rows["7"][1:4] == ["2023", "0", "motor"] and rows["42"][1:4] == ["2021", "31", "motor"]
 
 
+@pytest.mark.wallclock
 def test_listen_only_on_a_silent_bus_finds_nothing(capsys: pytest.CaptureFixture[str]) -> None:
     node = SimNode("scan-quiet", SimConfig(), {1: FIVE[1]})
     try:
@@ -200,12 +204,14 @@ def test_traffic_of_another_host_is_told_apart() -> None:
     assert f.drives[9].protocol == "2023"
 
 
+@pytest.mark.wallclock
 def test_a_bus_that_cannot_open_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["scan", "--interface", "wacousb", "--channel", "/nonexistent/ttyACM0"]) == 1
     err = capsys.readouterr().err
     assert "cannot open" in err and "Traceback" not in err
 
 
+@pytest.mark.wallclock
 def test_scan_through_the_makers_adapter(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

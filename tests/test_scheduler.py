@@ -19,7 +19,7 @@ from abh3_supervisor.scheduler.core import (
     StatusEvent,
 )
 from abh3_supervisor.scheduler.stats import RTT_WINDOW, UnitStats, percentile
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 
 def sent(rig: Rig, arbitration_id: int, since: float = 0.0) -> list[float]:

@@ -197,6 +197,7 @@ class Own:
         return {"type": "object"}
 
 
+@pytest.mark.wallclock
 def test_abh3_schema_prints_it_and_writes_it(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

@@ -7,7 +7,6 @@ import json
 import os
 import socket
 import stat
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -17,64 +16,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from abh3_supervisor.clients.control import ControlClient, status_lines
-from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error, RunError
-from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service import paths
 from abh3_supervisor.service import protocol as rpc
-from abh3_supervisor.service.server import CLIENT_PRIORITY, CLIENT_TIMEOUT_S, ControlServer
-from tests.conftest import TWO_UNITS, headless_demo
+from abh3_supervisor.service.server import CLIENT_PRIORITY, CLIENT_TIMEOUT_S
+from tests.support.headless import headless_demo
+from tests.support.served import Served
+from tests.support.wire_monitor import WireMonitor
 
-
-class Served:
-    """A runtime on simulated drives with a control socket (and a read-only one), on a
-    thread of its own, so tests talk to it with blocking clients as a script would."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.path, self.ro_path = tmp / "ctl" / "t.sock", tmp / "ctl" / "t-ro.sock"
-        self.config = parse_config(TWO_UNITS, "t.yaml")
-        self.ready = threading.Event()
-        self.loop: asyncio.AbstractEventLoop | None = None
-        self.stop: asyncio.Event | None = None
-        self.rt: Runtime | None = None
-        self.thread = threading.Thread(target=lambda: asyncio.run(self._main()), daemon=True)
-
-    async def _main(self) -> None:
-        self.loop, self.stop = asyncio.get_running_loop(), asyncio.Event()
-        host = PluginHost(self.config)
-        async with Runtime(self.config, plugins=host) as rt:
-            self.rt = rt
-            servers = [
-                ControlServer(rt, host, self.path),
-                ControlServer(rt, host, self.ro_path, read_only=True),
-            ]
-            for server in servers:
-                await server.start()
-            self.servers = servers
-            self.ready.set()
-            await self.stop.wait()
-            for server in servers:
-                await server.close()
-
-    def on_loop(self, fn: Any, *args: Any) -> Any:
-        """Run fn on the runtime's loop and return its result (state is the loop's)."""
-        assert self.loop is not None
-
-        async def run() -> Any:
-            return fn(*args)
-
-        return asyncio.run_coroutine_threadsafe(run(), self.loop).result(5)
-
-    def __enter__(self) -> Served:
-        self.thread.start()
-        assert self.ready.wait(10)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        assert self.loop is not None and self.stop is not None
-        self.loop.call_soon_threadsafe(self.stop.set)
-        self.thread.join(10)
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 
 @pytest.fixture
@@ -175,13 +125,14 @@ def test_read_only_clients_see_but_cannot_command(served: Served) -> None:
     assert served.rt is not None and not served.rt.supervisor.estop
 
 
-def test_estop_from_a_client_reaches_every_unit(served: Served) -> None:
+def test_estop_from_a_client_reaches_every_unit(served: Served, wire: WireMonitor) -> None:
     assert served.rt is not None
     rt, sup = served.rt, served.rt.supervisor
     client = ControlClient(served.path)
     for text in ("SERVO ON ON", "START ON ON", "VEL 100 100"):
         client.call("command", units=["left", "right"], text=text)
     client.call("estop")
+    wire.estop()
 
     async def next_exchanges() -> bool:
         since = sup.clock()
@@ -196,6 +147,7 @@ def test_estop_from_a_client_reaches_every_unit(served: Served) -> None:
     assert client.call("command", unit="left", text="START ON ON")["response"] == (
         "Packet Error: 3"
     )
+    wire.clear()
     client.call("clear_estop")
     client.close()
 

@@ -21,7 +21,7 @@ import pytest
 
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime import signals
-from tests.conftest import in_a_terminal
+from tests.support.terminal import in_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs" / "signals.md"

@@ -10,7 +10,7 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.params import table
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.simulator import SimBus
-from tests.conftest import Rig
+from tests.support.rig import Rig
 
 UNITS = """
 buses:

@@ -8,12 +8,15 @@ import tempfile
 import time
 from pathlib import Path
 
+import pytest
+
 from abh3_supervisor.service.server import MAX_CLIENTS
 from benchmarks import bursts
 
 MAX_GAP_PERIODS = 1.5
 
 
+@pytest.mark.wallclock
 def test_a_crowd_and_a_churn_of_clients_leave_the_command_rate_alone() -> None:
     with tempfile.TemporaryDirectory(dir="/tmp") as tmp:  # short: AF_UNIX paths
         with bursts.recorded_run(Path(tmp)) as (sock, record):

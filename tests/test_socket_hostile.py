@@ -25,7 +25,7 @@ from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.errors import RunError
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.server import MAX_CLIENTS
-from tests.test_service import Served
+from tests.support.served import Served
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -105,6 +105,7 @@ HOSTILE = [
 ]
 
 
+@pytest.mark.wallclock
 def test_hostile_lines_each_get_an_error_and_the_connection_goes_on(served: Served) -> None:
     assert served.rt is not None
     sup = served.rt.supervisor
@@ -140,6 +141,7 @@ def test_hostile_lines_each_get_an_error_and_the_connection_goes_on(served: Serv
     assert drive.inputs & drive.layout.select_mask  # what the drive was told
 
 
+@pytest.mark.wallclock
 def test_a_flood_of_pipelined_requests_is_answered_in_order(served: Served) -> None:
     """2000 requests in one write: each answered, none lost, the order kept (they are
     spread over loop turns, a few at a time, and the reading pauses while they wait);
@@ -155,6 +157,7 @@ def test_a_flood_of_pipelined_requests_is_answered_in_order(served: Served) -> N
         assert json.loads(reader.readline())["id"] == 2000
 
 
+@pytest.mark.wallclock
 def test_a_fault_of_ours_is_an_internal_error_and_the_connection_goes_on(
     served: Served, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -173,6 +176,7 @@ def test_a_fault_of_ours_is_an_internal_error_and_the_connection_goes_on(
         client.close()
 
 
+@pytest.mark.wallclock
 def test_past_the_client_limit_a_client_is_told_why(served: Served) -> None:
     held = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(MAX_CLIENTS)]
     try:
@@ -240,12 +244,14 @@ def refused_before_any_frame(out: subprocess.CompletedProcess[str], record: Path
     return errors[0]
 
 
+@pytest.mark.wallclock
 def test_a_path_over_the_unix_limit_is_exit_2_before_the_first_frame(tmp_path: Path) -> None:
     long = Path(tempfile.mkdtemp(dir="/tmp")) / ("x" * 120 + ".sock")
     error = refused_before_any_frame(run(long, tmp_path / "r.log"), tmp_path / "r.log")
     assert "bytes; a Unix socket's may have at most 107" in error
 
 
+@pytest.mark.wallclock
 def test_a_missing_or_unwritable_directory_is_exit_2(tmp_path: Path) -> None:
     missing = tmp_path / "no" / "such" / "dir" / "s.sock"
     error = refused_before_any_frame(run(missing, tmp_path / "a.log"), tmp_path / "a.log")
@@ -255,6 +261,7 @@ def test_a_missing_or_unwritable_directory_is_exit_2(tmp_path: Path) -> None:
     assert error.startswith(f"error: control socket {sysfs}: ")
 
 
+@pytest.mark.wallclock
 def test_a_shared_directory_is_refused_and_never_chmodded(tmp_path: Path) -> None:
     shared = Path(tempfile.mkdtemp(dir="/tmp"))
     os.chmod(shared, 0o1777)  # as /tmp itself
@@ -264,6 +271,7 @@ def test_a_shared_directory_is_refused_and_never_chmodded(tmp_path: Path) -> Non
     assert not (shared / "x.sock").exists()
 
 
+@pytest.mark.wallclock
 @pytest.mark.skipif(os.geteuid() != 0, reason="only root can give a directory to another user")
 def test_a_directory_of_another_user_is_refused_and_left_as_it_is(tmp_path: Path) -> None:
     theirs = Path(tempfile.mkdtemp(dir="/tmp"))
@@ -275,6 +283,7 @@ def test_a_directory_of_another_user_is_refused_and_left_as_it_is(tmp_path: Path
     assert (info.st_uid, stat.S_IMODE(info.st_mode)) == (65534, 0o755)
 
 
+@pytest.mark.wallclock
 def test_a_private_directory_of_ours_is_used_as_it_is(tmp_path: Path) -> None:
     """One the supervisor did not make keeps its mode (0755: others may look, not write);
     the socket in it is owner-only from the moment it is bound."""

@@ -30,7 +30,9 @@ import pytest
 
 from abh3_supervisor.protocol import flags, frames, ids
 from benchmarks.bursts import recorded_run
-from tests.conftest import in_a_terminal
+from tests.support.terminal import in_a_terminal
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 ROOT = Path(__file__).resolve().parent.parent
 SBIN = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])

@@ -16,6 +16,8 @@ from abh3_supervisor.service import state_push
 from abh3_supervisor.service.snapshot import supervisor_state, unit_state
 from abh3_supervisor.service.state_push import SharedState
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 if TYPE_CHECKING:
     from abh3_supervisor.runtime.bus_runtime import Runtime
 

@@ -13,7 +13,8 @@ from abh3_supervisor.core.supervisor import FlagChange, Notice
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.scheduler.core import HealthEvent
-from tests.conftest import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.wire_monitor import WireMonitor
 
 
 def last_command(rig: Rig, unit: str) -> frames.Dp0Command:
@@ -104,12 +105,13 @@ def test_current_needs_torque_mode_and_mode_change_zeroes_the_command(rig: Rig) 
     assert rig.sup.apply_text("left", "VEL 10 10") == "Invalid Command."
 
 
-def test_emergency_stop_latches_until_cleared(rig: Rig) -> None:
+def test_emergency_stop_latches_until_cleared(rig: Rig, wire: WireMonitor) -> None:
     start(rig, "left", "right")
     rig.sup.set_velocity("left", 300, 0, source=present(rig.sup, "left"))
     rig.sup.set_velocity("right", 300, 300, source=present(rig.sup, "right"))
     rig.run(0.5)
     rig.sup.emergency_stop()
+    wire.estop()
     rig.run(0.1)
     for unit in ("left", "right"):
         cmd = last_command(rig, unit)
@@ -120,6 +122,8 @@ def test_emergency_stop_latches_until_cleared(rig: Rig) -> None:
         rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
     assert rig.sup.apply_text("left", "START ON ON") == "Packet Error: 3"
     rig.sup.set_velocity("left", 0, 0, source=present(rig.sup, "left"))  # zero is always allowed
+    rig.run(0.1)
+    wire.clear()
     rig.sup.clear_emergency_stop()
     assert rig.sup.apply_text("left", "START ON ON") == ""
     rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
@@ -170,6 +174,7 @@ def test_monitor_units_refuse_commands() -> None:
         rig.sup.set_velocity("right", 1, 1, source=present(rig.sup, "right"))
 
 
+@pytest.mark.wallclock
 def test_exchange_waiters_resolve_on_the_reply_to_a_later_request(rig: Rig) -> None:
     async def scenario() -> None:
         rig.run(0.1)

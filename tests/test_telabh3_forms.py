@@ -13,8 +13,8 @@ from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.params.session import PROBE_REPLY_WAIT, FormFound, Result
 from abh3_supervisor.params.telabh3 import FORMS, Checksum, Command, Request, TelFormat, pin
-from tests.conftest import Rig
-from tests.test_j1939 import check_j1939
+from tests.support.j1939 import check_j1939
+from tests.support.rig import Rig
 
 UNITS = """
 buses:

@@ -9,6 +9,8 @@ import pytest
 from abh3_supervisor.scheduler import timer as timer_module
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 
 @pytest.mark.parametrize("precise", [True, False], ids=["timerfd", "call_at"])
 def test_fires_at_the_deadline_and_not_after_cancel(

@@ -44,7 +44,9 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service.server import ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.conftest import TWO_UNITS, Rig, assert_demo_stopped, in_a_terminal, present
+from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.safe_word import assert_demo_stopped
+from tests.support.terminal import in_a_terminal
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 

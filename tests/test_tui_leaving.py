@@ -22,9 +22,10 @@ import pytest
 from abh3_supervisor.clients.tui.run import EXIT_SUPERVISOR_GONE, rotate
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
-from tests.conftest import assert_demo_stopped, in_a_terminal
-from tests.test_attach import _wait_for, served
-from tests.test_link import no_clients
+from tests.support.safe_word import assert_demo_stopped
+from tests.support.served import no_clients, served
+from tests.support.served import wait_for as _wait_for
+from tests.support.terminal import in_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 # the pty becomes the process's controlling terminal, as a shell's would be: closing it

@@ -33,9 +33,10 @@ from abh3_supervisor.params.telabh3 import pack_float
 from abh3_supervisor.protocol import flags, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
-from tests.conftest import Rig
-from tests.test_j1939 import check_j1939, dp0_sends
-from tests.test_service import Served
+from tests.support.j1939 import check_j1939, dp0_sends
+from tests.support.rig import Rig
+from tests.support.served import Served
+from tests.support.wire_monitor import WireMonitor
 
 CONFIG = """
 buses:
@@ -159,6 +160,7 @@ def test_a_refused_address_leaves_that_setting_not_read() -> None:
     assert v.reason == "not read: 0x4105 (the drive refused it (NAK))"
 
 
+@pytest.mark.wallclock
 def test_dp0_rates_hold_within_one_percent_while_drives_are_read() -> None:
     """Two units read over and over for 2 s, a third not at all: every unit's commands keep
     their 50 Hz and no keepalive is late; every transport frame obeys J1939."""
@@ -229,6 +231,7 @@ def test_a_wrong_verify_is_a_file_line_error(value: str) -> None:
 # ---------------------------------------------------------------- end to end
 
 
+@pytest.mark.wallclock
 def test_mismatches_are_logged_at_start(caplog: pytest.LogCaptureFixture) -> None:
     config = parse_config(text(MISMATCHES, channel="v-log"), "v.yaml")
     with caplog.at_level(logging.INFO):
@@ -244,6 +247,7 @@ def test_mismatches_are_logged_at_start(caplog: pytest.LogCaptureFixture) -> Non
     assert "pin it with `telabh3: {header: false, checksum: with_header}`" in log
 
 
+@pytest.mark.wallclock
 def test_abh3_status_shows_the_mismatch(tmp_path: Path) -> None:
     served = Served(tmp_path)
     served.config = parse_config(text(MISMATCHES, channel="v-status"), "v.yaml")
@@ -275,6 +279,7 @@ def test_abh3_status_shows_the_mismatch(tmp_path: Path) -> None:
     assert len(verify["rows"]) == 7 and verify["form"].startswith("CP000095")
 
 
+@pytest.mark.wallclock
 def test_check_drives_prints_the_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text(text(MISMATCHES, channel="v-check"))
@@ -297,6 +302,7 @@ def test_check_drives_prints_the_table(tmp_path: Path, capsys: pytest.CaptureFix
     assert {name: v["state"] for name, v in doc.items()} == {"left": "ok", "right": "ok"}
 
 
+@pytest.mark.wallclock
 def test_check_drives_names_a_drive_that_reads_no_form(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -310,6 +316,7 @@ def test_check_drives_names_a_drive_that_reads_no_form(
     assert "left (bus b, drive 1): agrees with the file" in out
 
 
+@pytest.mark.wallclock
 def test_check_drives_usage_errors_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -319,7 +326,8 @@ def test_check_drives_usage_errors_exit_2(
     assert "typo.yaml:5: units[0].verify:" in capsys.readouterr().err
 
 
-def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
+@pytest.mark.wallclock
+def test_refuse_keeps_the_unit_idle_until_it_is_verified_again(wire: WireMonitor) -> None:
     config = parse_config(text(MISMATCHES, left=", verify: refuse", channel="v-refuse"), "v.yaml")
     notices: list[str] = []
 
@@ -348,11 +356,13 @@ def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
             await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
             verify = sup.units["left"].verify
             assert verify.state is State.MISMATCH and verify.holds() is not None
-            assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
-            assert sup.apply_text("left", "START ON ON") == RESPONSE_INVALID
-            assert sup.apply_text("right", "SERVO ON ON") == ""  # warn: the other runs
-            for _ in range(5):  # the held unit keeps being sent its idle word
-                assert await sup.wait_exchange("left", sup.clock(), 1.0)
+            with wire.held(1, "verify: refuse, a mismatch"):  # judged on the wire too
+                assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
+                assert sup.apply_text("left", "START ON ON") == RESPONSE_INVALID
+                assert sup.apply_text("right", "SERVO ON ON") == ""  # warn: the other runs
+                sup.apply_text("left", "VEL 100 50")  # whatever it answers: no setpoint out
+                for _ in range(5):  # the held unit keeps being sent its idle word
+                    assert await sup.wait_exchange("left", sup.clock(), 1.0)
             assert seen and not any(word & servo for word in seen)
             assert not drive.alarm_word() & flags.CAN_COMM_ERROR  # its keepalive flows
             # the drive is set as the file says, and the unit is told to verify again
@@ -377,6 +387,7 @@ def test_refuse_keeps_the_unit_idle_until_it_is_verified_again() -> None:
     assert "the drive's CAN settings agree with the file (7 read; TelABH3 CP000095" in notices[-1]
 
 
+@pytest.mark.wallclock
 def test_refuse_fails_closed_on_a_drive_that_cannot_be_read() -> None:
     """Not verified under verify: refuse is held: its start-up commands never run, the
     drive sees only the safe word, a VEL is refused in its answer, and the hold says why."""
@@ -402,6 +413,7 @@ def test_refuse_fails_closed_on_a_drive_that_cannot_be_read() -> None:
     assert cmd == 0
 
 
+@pytest.mark.wallclock
 def test_the_shipped_faults_config_rehearses_both_mismatches(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -416,6 +428,7 @@ def test_the_shipped_faults_config_rehearses_both_mismatches(
     assert "not verified" not in caplog.text  # its transport faults start after the check
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize(
     ("form", "shown"),
     [
@@ -450,6 +463,7 @@ def test_a_held_unit_switches_nothing_on_but_data_select_and_error_reset(rig: Ri
         assert rig.sup.apply_text("left", text) == "", text
 
 
+@pytest.mark.wallclock
 def test_abh3_verify_asks_a_running_supervisor_and_releases_a_held_unit(tmp_path: Path) -> None:
     """`abh3 verify UNIT`: the running supervisor reads the drive again; fixed, the unit a
     `verify: refuse` held runs its start-up commands."""

@@ -121,6 +121,7 @@ def test_bad_crc_and_bad_framing_are_counted_and_dropped(
         assert bus.recv(0.05) is None  # nothing else came through
 
 
+@pytest.mark.wallclock
 def test_a_stalled_adapter_times_out_and_the_stream_stays_well_formed(
     adapter: AdapterEmulator, peer: can.BusABC
 ) -> None:
@@ -176,6 +177,7 @@ def test_unplug_and_replug(adapter: AdapterEmulator, peer: can.BusABC) -> None:
     assert [m.arbitration_id for m in (first, second) if m] == [1, 3]
 
 
+@pytest.mark.wallclock
 def test_the_adapter_ring_holds_64_frames(adapter: AdapterEmulator, peer: can.BusABC) -> None:
     with open_bus(adapter) as bus:
         adapter.hold_output()
@@ -190,6 +192,7 @@ def test_the_adapter_ring_holds_64_frames(adapter: AdapterEmulator, peer: can.Bu
         assert bus.crc_errors == bus.framing_errors == 0
 
 
+@pytest.mark.wallclock
 def test_throughput_through_the_emulated_adapter(
     adapter: AdapterEmulator, peer: can.BusABC, capsys: pytest.CaptureFixture[str]
 ) -> None:

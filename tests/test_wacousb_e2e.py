@@ -15,8 +15,11 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.simulator import SimBus
-from tests.conftest import BusNotices, drives_on, present
+from tests.support.buses import BusNotices, drives_on
+from tests.support.rig import present
 from tests.wacousb_emulator import AdapterEmulator, check_host_frame
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 
 def reached(feedback: Feedback | None, vel_y: float, vel_a: float) -> bool:
