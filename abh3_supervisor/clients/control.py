@@ -1,11 +1,13 @@
 """A small blocking client of the control socket, and the one-shot commands built on it:
-``abh3 status`` (health checks: exit 0 when every unit is online) and ``abh3 send``.
+``abh3 status`` (health checks: exit 0 when every unit is online), ``abh3 send`` and
+``abh3 estop``.
 The socket is local, or on another host through SSH (``ssh://…``, :mod:`.ssh`)."""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import socket
 import sys
@@ -13,13 +15,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.clients import peer
 from abh3_supervisor.clients.ssh import Endpoint, SshTarget, Tunnel
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
 from abh3_supervisor.core import readouts
 from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
 from abh3_supervisor.errors import Abh3Error, CommandError, Interrupted, RunError
 from abh3_supervisor.service import protocol as rpc
-from abh3_supervisor.service.paths import default_socket
+from abh3_supervisor.service.paths import default_socket, foreign, served
 
 
 class ControlClient:
@@ -40,6 +43,11 @@ class ControlClient:
         except OSError as exc:
             self._close_all()
             raise RunError(f"cannot connect to {path}: {exc.strerror or exc}") from None
+        try:
+            peer.check(self.sock, path)  # who listens there, before a word is sent
+        except RunError:
+            self._close_all()
+            raise
         if self.tunnel is not None:
             self.tunnel.forget_path()
         self.reader = self.sock.makefile("rb")
@@ -115,6 +123,27 @@ def status(path: Endpoint, as_json: bool) -> int:
             print(line)
     units = snapshot["units"].values()
     return 0 if all(u["online"] for u in units) and not snapshot["estop"] else 1
+
+
+def estop(path: Endpoint, *, clear: bool) -> int:
+    """``abh3 estop``: latch (or clear) the emergency stop; 0 once the supervisor confirms
+    it. Anything short of its answer is a :class:`RunError` (exit 1) saying why."""
+    client = ControlClient(path)
+    try:
+        result = client.call("clear_estop" if clear else "estop")
+        latched = client.call("state")["estop"]
+    finally:
+        client.close()
+    if not isinstance(result, dict) or result.get("ok") is not True or latched == clear:
+        raise RunError(f"{path}: the supervisor did not confirm it: {result!r}")
+    if clear:
+        print(f"{path}: emergency stop cleared (nothing moves until START and motion are given)")
+    else:
+        print(
+            f"{path}: EMERGENCY STOP latched: every commanded unit zero, START off "
+            "(clear it with `abh3 estop --clear`)"
+        )
+    return 0
 
 
 def _num(value: float, digits: int = 1) -> str:
@@ -277,21 +306,12 @@ def find_socket(connect: Endpoint | None) -> Endpoint:
     if connect is not None:
         return connect
     here = default_socket("x").parent
-    found = [p for p in sorted(here.glob("*.sock")) if _served(p)] if here.is_dir() else []
+    if os.path.lexists(here) and (problem := foreign(here)) is not None:
+        raise RunError(f"{problem}: no supervisor of yours serves there; give --connect PATH")
+    found = [p for p in sorted(here.glob("*.sock")) if served(p, 1.0)] if here.is_dir() else []
     if len(found) == 1:
         return found[0]
     if not found:
         raise RunError(f"no supervisor is serving in {here}; give its socket with --connect PATH")
     names = ", ".join(str(p) for p in found)
     raise RunError(f"several supervisors serve ({names}): pick one with --connect PATH")
-
-
-def _served(path: Path) -> bool:
-    """Someone answers there (a supervisor killed with SIGKILL leaves its socket file)."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-        probe.settimeout(1.0)
-        try:
-            probe.connect(str(path))
-        except OSError:
-            return False
-    return True

@@ -352,6 +352,7 @@ class ControlServer:
             "protocol": rpc.PROTOCOL,
             "version": __version__,
             "config": config.file,
+            "config_path": str(Path(config.file).resolve()),  # the file, wherever we run
             "read_only": client.read_only,
             "units": list(config.units),
             "buses": list(config.buses),
