@@ -8,10 +8,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import signal
 import socket
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +85,10 @@ class ControlClient:
         if "error" in reply:
             raise RunError(f"{method}: {reply['error'].get('message')}")
         return reply.get("result")
+
+    def wait(self, timeout: float) -> None:
+        """Until the service sends something (a notification) or ``timeout`` passed."""
+        select.select([self.sock], [], [], timeout)
 
     def _lost(self, why: str) -> str:
         """Why the connection ended: through SSH, ssh itself may know better."""
@@ -274,25 +278,29 @@ def _moves(text: str) -> bool:
 
 def _hold(client: ControlClient, text: str, units: list[str]) -> int:
     """Stay present (proof of life every ALIVE_EVERY_S) until a stop signal; leaving then
-    takes the motion with it. Ends with 1, saying so, when the motion is gone without us
-    leaving: the supervisor dropped it (this process was stopped or starved for longer
-    than the service waits) or the supervisor itself went away."""
+    takes the motion with it. Ends with 1, saying why, once the motion is gone without us
+    leaving — taken over by another client, the e-stop, dropped (this process was stopped
+    or starved for longer than the service waits, the drive stopped on its own) — or the
+    supervisor itself went away. The service pushes a ``lost`` notice the moment it
+    happens: it wakes the wait at once."""
     print(f"holding {text!r} on {', '.join(units)}: Ctrl-C stops it", file=sys.stderr)
     try:
         while True:
-            time.sleep(ALIVE_EVERY_S)
+            client.wait(ALIVE_EVERY_S)
             try:
-                holds = client.call("alive").get("holds", units)
+                answer = client.call("alive")
             except RunError:
                 print("the supervisor went away: the motion stopped with it", file=sys.stderr)
                 return 1
-            if set(holds) != set(units):
-                lost = ", ".join(u for u in units if u not in holds)
+            holds, lost = answer.get("holds", units), answer.get("lost", {})
+            gone = [u for u in units if u not in holds]
+            for unit in gone:
+                why = lost.get(unit) or "dropped by the supervisor"
                 print(
-                    f"the supervisor dropped the motion on {lost}: this command was silent "
-                    "too long (stopped or starved); it is not resumed",
+                    f"{unit}: the motion held by this command ended: {why}; it is not resumed",
                     file=sys.stderr,
                 )
+            if gone:
                 return 1
     except Interrupted as exc:
         name = signal.Signals(exc.signum).name

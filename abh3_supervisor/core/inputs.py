@@ -300,6 +300,8 @@ class InputArbiter:
     # per unit: a standing command heard before this time was replaced (its owner lost the
     # unit to another source, which has since left): it must not come back
     superseded: dict[str, float] = field(default_factory=dict)
+    # told each unit whose owner changed (taken over, let go, held): a client says so at once
+    watchers: list[Callable[[str], None]] = field(default_factory=list)
 
     def add(self, source: InputSource) -> None:
         self.sources[source.name] = _SourceState(
@@ -343,6 +345,16 @@ class InputArbiter:
         may move it again; a value that was fresh before is never resumed."""
         self.held[unit] = since
         self.current[unit] = None
+        self._changed(unit)
+
+    def owner(self, unit: str) -> str | None:
+        """The source whose command the unit has now (None: nobody drives it)."""
+        chosen = self.current.get(unit)
+        return chosen[0] if chosen is not None else None
+
+    def _changed(self, unit: str) -> None:
+        for watch in self.watchers:
+            watch(unit)
 
     def poll(self, now: float) -> None:
         """Expire silent sources (call at :meth:`next_deadline`)."""
@@ -386,6 +398,7 @@ class InputArbiter:
                     if taker is not None and taker.standing and taker.heard < now:
                         chosen = None
             self.current[unit] = chosen
+            self._changed(unit)
             if chosen is not None:
                 self.apply(unit, chosen[1])
             elif previous is not None:

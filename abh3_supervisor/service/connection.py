@@ -15,7 +15,9 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import select
 import socket
+from collections.abc import Callable
 
 from abh3_supervisor.service.protocol import LineSplitter
 
@@ -32,6 +34,7 @@ class Connection:
         self._out = bytearray()
         self._waiter: asyncio.Future[None] | None = None
         self._reading = self._ended = self._closed = False
+        self.on_hangup: Callable[[], None] | None = None  # the client's end read: it left
         self._resume()
 
     async def read_line(self) -> bytes | None:
@@ -73,6 +76,15 @@ class Connection:
     def is_closing(self) -> bool:
         return self._closed
 
+    def hung_up(self) -> bool:
+        """The client has gone, or can send nothing more (it shut its sending side): its
+        end was read, or the kernel says so while lines it sent before still wait here."""
+        if self._ended or self._closed:
+            return True
+        poller = select.poll()
+        poller.register(self.fd, select.POLLRDHUP)  # POLLHUP and POLLERR come unasked
+        return bool(poller.poll(0))
+
     def close(self) -> None:
         """At once: one more try to send what is queued, what the client sent is read and
         dropped (closing with input unread would reset the connection and could lose our
@@ -80,6 +92,7 @@ class Connection:
         if self._closed:
             return
         self._closed = True
+        self.on_hangup = None  # it refers to the client: no cycle left to collect
         self._pause()
         if self._out:
             self.loop.remove_writer(self.fd)
@@ -108,6 +121,8 @@ class Connection:
         else:
             self._ended = True
             self._pause()
+            if self.on_hangup is not None:
+                self.on_hangup()  # at once, even while one of its requests is under way
         self._wake()
 
     def _writable(self) -> None:
