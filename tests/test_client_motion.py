@@ -192,6 +192,24 @@ def test_a_drive_that_stops_answering_drops_the_held_motion_and_says_so(served: 
         setup.close()
 
 
+def test_a_lapse_is_said_at_once(served: Served) -> None:
+    """The client went quiet past the timeout (as the arbiter's timer sees it later)."""
+    assert served.rt is not None and served.rt.plugins is not None
+    arbiter = served.rt.plugins.arbiter
+    assert arbiter is not None
+    setup = running(served, "left")
+    holder = Raw(served.path)
+    try:
+        holder.call("command", unit="left", text="VEL 100 0")
+        served.on_loop(lambda: arbiter.poll(arbiter.clock() + 1.0))
+        why = "lapsed: no line from this client for 0.5 s (stopped or starved)"
+        assert holder.notice()["params"] == {"unit": "left", "reason": why}
+        assert holder.call("alive") == {"ok": True, "holds": [], "lost": {"left": why}}
+    finally:
+        holder.close()
+        setup.close()
+
+
 def test_send_hold_ends_with_1_and_says_why_when_taken_over(served: Served) -> None:
     setup = running(served, "left")
     cmd = [sys.executable, "-m", "abh3_supervisor", "send", "VEL 100 0", "--unit", "left"]

@@ -35,10 +35,10 @@ def trust(uids: Iterable[int]) -> None:
     TRUSTED.update(uids)
 
 
-def credentials(sock: _Socket) -> tuple[int, int, int] | None:
+def credentials(sock: _Socket | None) -> tuple[int, int, int] | None:
     """The server's (pid, uid, gid), or None where the OS does not say."""
     option = getattr(socket, "SO_PEERCRED", None)
-    if option is None:
+    if option is None or sock is None:
         return None
     try:
         data = sock.getsockopt(socket.SOL_SOCKET, option, _CREDENTIALS.size)
@@ -48,7 +48,7 @@ def credentials(sock: _Socket) -> tuple[int, int, int] | None:
     return pid, uid, gid
 
 
-def check(sock: _Socket, shown: object) -> None:
+def check(sock: _Socket | None, shown: object) -> None:
     """:class:`RunError` unless ``sock``'s server is this user, root or trusted."""
     found = credentials(sock)
     if found is None:
