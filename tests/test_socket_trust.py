@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -118,6 +119,7 @@ def foreign_server(tmp_path: Path) -> Iterator[Path]:
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
         peer.TRUSTED.clear()
+        shutil.rmtree(path.parent, ignore_errors=True)
 
 
 @as_root

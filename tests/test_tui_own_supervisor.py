@@ -7,12 +7,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import os
 import pty
 import select
 import shutil
+import struct
 import subprocess
 import sys
+import tempfile
+import termios
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -115,3 +120,28 @@ def test_the_title_names_the_configuration_and_the_socket() -> None:
     shows = "/robots/b/robot.yaml · /run/user/0/abh3/robot.sock"
     app = SupervisorApp(Mirror.of(config, tuple(config.buses)), None, shows=shows)
     assert app.title == f"abh3-supervisor · {shows}"
+
+
+def test_the_title_on_screen_names_the_file_and_the_socket() -> None:
+    sock = Path(tempfile.mkdtemp(dir="/tmp")) / "s" / "demo.sock"  # short: a title fits
+    pid, fd = pty.fork()
+    if pid == 0:  # drawn at this size from the first frame (Textual reads COLUMNS first)
+        fcntl.ioctl(0, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 200, 0, 0))
+        os.environ.update(COLUMNS="200", LINES="40")
+        os.chdir(ROOT)
+        args = ["run", "configs/demo.yaml", "--socket", str(sock)]
+        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
+    title = f"abh3-supervisor · {ROOT / 'configs' / 'demo.yaml'} · {sock}".encode()
+    screen = b""
+    deadline = time.monotonic() + 60
+    try:
+        while title not in screen:
+            at = screen.find(b"abh3-supervisor")
+            assert time.monotonic() < deadline, f"no title: {screen[at : at + 200]!r}"
+            ready, _, _ = select.select([fd], [], [], 30)
+            assert ready, f"no title: {screen[-800:]!r}"
+            screen += os.read(fd, 65536)
+    finally:
+        os.close(fd)  # the terminal goes away: the TUI stops its supervisor
+        os.waitpid(pid, 0)
+        shutil.rmtree(sock.parent.parent, ignore_errors=True)
