@@ -317,7 +317,13 @@ def test_switches_from_a_client_that_has_gone_are_dropped_its_estop_is_not(
     gone_client(served, request("command", unit="left", text="SERVO ON ON"))
     exchanges(served)
     assert served.on_loop(lambda: sup.units["left"].inputs & servo) == 0
-    gone_client(served, request("estop", None))
+    # its e-stop is carried out, even after lines refused (whose answers cannot reach it)
+    gone_client(
+        served,
+        request("command", 1, unit="left", text="START ON ON"),
+        request("state", 2),
+        request("estop", 3),
+    )
     assert served.on_loop(lambda: sup.estop) is True
     served.on_loop(sup.clear_emergency_stop)
 

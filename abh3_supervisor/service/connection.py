@@ -34,6 +34,7 @@ class Connection:
         self._out = bytearray()
         self._waiter: asyncio.Future[None] | None = None
         self._reading = self._ended = self._closed = False
+        self._unwritable = False  # its end is gone: what it sent is still read and done
         self.on_hangup: Callable[[], None] | None = None  # the client's end read: it left
         self._resume()
 
@@ -52,7 +53,7 @@ class Connection:
         return self._pending.popleft()
 
     def write(self, data: bytes) -> None:
-        if self._closed:
+        if self._closed or self._unwritable:
             return
         if not self._out:
             try:
@@ -60,7 +61,7 @@ class Connection:
             except (BlockingIOError, InterruptedError):
                 sent = 0
             except OSError:
-                self.close()  # it is gone: nothing more can reach it
+                self._cannot_write()
                 return
             if sent == len(data):
                 return
@@ -74,7 +75,7 @@ class Connection:
         return len(self._out)
 
     def is_closing(self) -> bool:
-        return self._closed
+        return self._closed or self._unwritable
 
     def hung_up(self) -> bool:
         """The client has gone, or can send nothing more (it shut its sending side): its
@@ -131,11 +132,19 @@ class Connection:
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
-            self.close()
+            self._cannot_write()
             return
         del self._out[:sent]
         if not self._out:
             self.loop.remove_writer(self.fd)
+
+    def _cannot_write(self) -> None:
+        """It is gone: nothing more can reach it. The lines it sent before are still read
+        and handled in order — an e-stop among them too — until its end."""
+        self._unwritable = True
+        if self._out:
+            self.loop.remove_writer(self.fd)
+            self._out.clear()
 
     def _resume(self) -> None:
         if not self._reading and not self._ended and not self._closed:
