@@ -64,7 +64,7 @@ def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None
             u: "clamped: VEL 7000 -10 → 6553.4 -9.362 (wire range -6553.6 … 6553.4)"
             for u in ("left", "right")
         }
-        assert client.call("alive") == {"ok": True, "holds": ["left", "right"]}
+        assert client.call("alive") == {"ok": True, "holds": ["left", "right"], "lost": {}}
         state = client.call("state")
         left = state["units"]["left"]
         assert "AY_SERVO_ON" in left["inputs"]["names"] and left["protocol"] == "2021"

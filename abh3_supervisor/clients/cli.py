@@ -1,5 +1,5 @@
-"""The ``abh3`` command: ``run``, ``tui``, ``check``, ``status``, ``send``, ``scan``,
-``param``, ``decode``, ``schema``.
+"""The ``abh3`` command: ``run``, ``tui``, ``check``, ``status``, ``send``, ``estop``,
+``verify``, ``scan``, ``param``, ``commission``, ``decode``, ``schema``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 3 a stop the drives did
@@ -44,8 +44,6 @@ CONNECT_HELP = "its control socket, or ssh://[user@]host[:port]/path/to.sock on 
 def _parser() -> argparse.ArgumentParser:
     import argparse
     from pathlib import Path
-
-    from abh3_supervisor.clients.ssh import endpoint
 
     p = argparse.ArgumentParser(prog="abh3", description="Supervise ABH3 drives on CAN buses.")
     p.add_argument("--version", action="version", version=f"abh3-supervisor {__version__}")
@@ -108,11 +106,26 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--exit-with-stdin", action="store_true", help=argparse.SUPPRESS)
 
     tui = sub.add_parser("tui", help="attach the terminal UI to a running supervisor")
-    tui.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
+    _connecting(tui)
 
     status = sub.add_parser("status", help="the state of a running supervisor (exit 0: all online)")
-    status.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
+    _connecting(status)
     status.add_argument("--json", action="store_true", help="the whole state as JSON")
+
+    estop = sub.add_parser(
+        "estop",
+        help="latch a running supervisor's emergency stop (scripts, another terminal)",
+        description="Latch the emergency stop of a running supervisor: every commanded unit "
+        "gets zero and START off at once, and motion is refused until it is cleared. Exit 0 "
+        "once the supervisor confirms; 1 when it cannot be reached or refuses (use the "
+        "hardware e-stop then).",
+    )
+    estop.add_argument(
+        "--clear",
+        action="store_true",
+        help="clear the latch instead (nothing moves until START and motion are given again)",
+    )
+    _connecting(estop)
 
     send = sub.add_parser(
         "send",
@@ -130,7 +143,7 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="keep the session: motion holds until Ctrl-C, SIGTERM or SIGHUP, then stops",
     )
-    send.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
+    _connecting(send)
 
     verify = sub.add_parser(
         "verify",
@@ -140,7 +153,7 @@ def _parser() -> argparse.ArgumentParser:
         "now agree (its startup: commands run then). Exit 0 when every one agrees.",
     )
     verify.add_argument("units", nargs="+", metavar="UNIT")
-    verify.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
+    _connecting(verify)
     verify.add_argument("--json", action="store_true", help="the results as JSON")
 
     check = sub.add_parser("check", help="validate a configuration and print the bus-load plan")
@@ -211,6 +224,15 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _connecting(parser: argparse.ArgumentParser) -> None:
+    """A client of a running supervisor: where it serves, and whom to trust as its server."""
+    from abh3_supervisor.clients import peer
+    from abh3_supervisor.clients.ssh import endpoint
+
+    parser.add_argument("--connect", type=endpoint, metavar="PATH", help=CONNECT_HELP)
+    peer.add_option(parser)
+
+
 def _address(text: str) -> int:
     import argparse
 
@@ -257,6 +279,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
     from abh3_supervisor.config import load_config
 
+    if getattr(args, "trust_server_uid", None):
+        from abh3_supervisor.clients import peer
+
+        peer.trust(args.trust_server_uid)
+
     if args.cmd == "tui":
         return _tui_attached(args, release)
     if args.cmd == "verify":
@@ -264,12 +291,14 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         from abh3_supervisor.clients.drives import verify_running
 
         return verify_running(control.find_socket(args.connect), args.units, args.json)
-    if args.cmd in ("status", "send"):
+    if args.cmd in ("status", "send", "estop"):
         from abh3_supervisor.clients import control as client
 
         path = client.find_socket(args.connect)
         if args.cmd == "status":
             return client.status(path, args.json)
+        if args.cmd == "estop":
+            return client.estop(path, clear=args.clear)
         return client.send(path, args.text, args.unit, every=args.all, hold=args.hold)
     if args.cmd == "check":
         config = load_config(args.config)
@@ -393,6 +422,10 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
     from abh3_supervisor.config import load_config
     from abh3_supervisor.core.planner import overloads, plan
 
+    if args.record is not None:  # a typo in the name: exit 2, before anything opens
+        from abh3_supervisor.runtime.recorder import check_format
+
+        check_format(args.record)
     config = load_config(args.config)
     plugins = _plugins(config)
     plans = plan(config)

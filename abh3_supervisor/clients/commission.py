@@ -46,6 +46,7 @@ from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import signals
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.priority import Priority, bus_priority
+from abh3_supervisor.runtime.recorder import check_format
 from abh3_supervisor.runtime.recording import recorded, recording
 from abh3_supervisor.runtime.stopping import EXIT_STOP_UNCONFIRMED
 from abh3_supervisor.service.param_ops import ParamOps
@@ -142,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
         _writable("--report", args.report)
         _writable("--report", args.report.with_suffix(".json"))
     if args.record is not None:
+        check_format(args.record)  # as `abh3 run` does: exit 2 before anything opens
         _writable("--record", args.record)
     # the jogs and the e-stop figure are timed on the bus loop: as `abh3 run` runs it
     with bus_priority(Priority.AUTO) as priority:

@@ -1,25 +1,28 @@
 """A small blocking client of the control socket, and the one-shot commands built on it:
-``abh3 status`` (health checks: exit 0 when every unit is online) and ``abh3 send``.
+``abh3 status`` (health checks: exit 0 when every unit is online), ``abh3 send`` and
+``abh3 estop``.
 The socket is local, or on another host through SSH (``ssh://…``, :mod:`.ssh`)."""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
+import select
 import signal
 import socket
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.clients import peer
 from abh3_supervisor.clients.ssh import Endpoint, SshTarget, Tunnel
 from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
 from abh3_supervisor.core import readouts
 from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
 from abh3_supervisor.errors import Abh3Error, CommandError, Interrupted, RunError
 from abh3_supervisor.service import protocol as rpc
-from abh3_supervisor.service.paths import default_socket
+from abh3_supervisor.service.paths import default_socket, foreign, served
 
 
 class ControlClient:
@@ -40,6 +43,11 @@ class ControlClient:
         except OSError as exc:
             self._close_all()
             raise RunError(f"cannot connect to {path}: {exc.strerror or exc}") from None
+        try:
+            peer.check(self.sock, path)  # who listens there, before a word is sent
+        except RunError:
+            self._close_all()
+            raise
         if self.tunnel is not None:
             self.tunnel.forget_path()
         self.reader = self.sock.makefile("rb")
@@ -78,6 +86,10 @@ class ControlClient:
             raise RunError(f"{method}: {reply['error'].get('message')}")
         return reply.get("result")
 
+    def wait(self, timeout: float) -> None:
+        """Until the service sends something (a notification) or ``timeout`` passed."""
+        select.select([self.sock], [], [], timeout)
+
     def _lost(self, why: str) -> str:
         """Why the connection ended: through SSH, ssh itself may know better."""
         said = self.tunnel.explain() if self.tunnel is not None else None
@@ -115,6 +127,27 @@ def status(path: Endpoint, as_json: bool) -> int:
             print(line)
     units = snapshot["units"].values()
     return 0 if all(u["online"] for u in units) and not snapshot["estop"] else 1
+
+
+def estop(path: Endpoint, *, clear: bool) -> int:
+    """``abh3 estop``: latch (or clear) the emergency stop; 0 once the supervisor confirms
+    it. Anything short of its answer is a :class:`RunError` (exit 1) saying why."""
+    client = ControlClient(path)
+    try:
+        result = client.call("clear_estop" if clear else "estop")
+        latched = client.call("state")["estop"]
+    finally:
+        client.close()
+    if not isinstance(result, dict) or result.get("ok") is not True or latched == clear:
+        raise RunError(f"{path}: the supervisor did not confirm it: {result!r}")
+    if clear:
+        print(f"{path}: emergency stop cleared (nothing moves until START and motion are given)")
+    else:
+        print(
+            f"{path}: EMERGENCY STOP latched: every commanded unit zero, START off "
+            "(clear it with `abh3 estop --clear`)"
+        )
+    return 0
 
 
 def _num(value: float, digits: int = 1) -> str:
@@ -245,25 +278,29 @@ def _moves(text: str) -> bool:
 
 def _hold(client: ControlClient, text: str, units: list[str]) -> int:
     """Stay present (proof of life every ALIVE_EVERY_S) until a stop signal; leaving then
-    takes the motion with it. Ends with 1, saying so, when the motion is gone without us
-    leaving: the supervisor dropped it (this process was stopped or starved for longer
-    than the service waits) or the supervisor itself went away."""
+    takes the motion with it. Ends with 1, saying why, once the motion is gone without us
+    leaving — taken over by another client, the e-stop, dropped (this process was stopped
+    or starved for longer than the service waits, the drive stopped on its own) — or the
+    supervisor itself went away. The service pushes a ``lost`` notice the moment it
+    happens: it wakes the wait at once."""
     print(f"holding {text!r} on {', '.join(units)}: Ctrl-C stops it", file=sys.stderr)
     try:
         while True:
-            time.sleep(ALIVE_EVERY_S)
+            client.wait(ALIVE_EVERY_S)
             try:
-                holds = client.call("alive").get("holds", units)
+                answer = client.call("alive")
             except RunError:
                 print("the supervisor went away: the motion stopped with it", file=sys.stderr)
                 return 1
-            if set(holds) != set(units):
-                lost = ", ".join(u for u in units if u not in holds)
+            holds, lost = answer.get("holds", units), answer.get("lost", {})
+            gone = [u for u in units if u not in holds]
+            for unit in gone:
+                why = lost.get(unit) or "dropped by the supervisor"
                 print(
-                    f"the supervisor dropped the motion on {lost}: this command was silent "
-                    "too long (stopped or starved); it is not resumed",
+                    f"{unit}: the motion held by this command ended: {why}; it is not resumed",
                     file=sys.stderr,
                 )
+            if gone:
                 return 1
     except Interrupted as exc:
         name = signal.Signals(exc.signum).name
@@ -277,21 +314,12 @@ def find_socket(connect: Endpoint | None) -> Endpoint:
     if connect is not None:
         return connect
     here = default_socket("x").parent
-    found = [p for p in sorted(here.glob("*.sock")) if _served(p)] if here.is_dir() else []
+    if os.path.lexists(here) and (problem := foreign(here)) is not None:
+        raise RunError(f"{problem}: no supervisor of yours serves there; give --connect PATH")
+    found = [p for p in sorted(here.glob("*.sock")) if served(p, 1.0)] if here.is_dir() else []
     if len(found) == 1:
         return found[0]
     if not found:
         raise RunError(f"no supervisor is serving in {here}; give its socket with --connect PATH")
     names = ", ".join(str(p) for p in found)
     raise RunError(f"several supervisors serve ({names}): pick one with --connect PATH")
-
-
-def _served(path: Path) -> bool:
-    """Someone answers there (a supervisor killed with SIGKILL leaves its socket file)."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-        probe.settimeout(1.0)
-        try:
-            probe.connect(str(path))
-        except OSError:
-            return False
-    return True

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.clients import peer
 from abh3_supervisor.clients.ssh import Endpoint, Tunnel
 from abh3_supervisor.errors import RunError
 from abh3_supervisor.service import protocol as rpc
@@ -80,6 +81,13 @@ class Link:
             if tunnel is not None:
                 tunnel.close()
             raise LinkError(f"cannot connect to {path}: {exc}") from None
+        try:
+            peer.check(writer.get_extra_info("socket"), path)  # who listens, before a word
+        except RunError as exc:
+            writer.close()
+            if tunnel is not None:
+                tunnel.close()
+            raise LinkError(str(exc)) from None
         if tunnel is not None:
             tunnel.forget_path()
         return cls(path, reader, writer, tunnel)

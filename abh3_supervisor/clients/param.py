@@ -26,6 +26,7 @@ from collections.abc import Callable, Coroutine, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from abh3_supervisor.clients import peer
 from abh3_supervisor.clients.argtypes import count, finite_positive
 from abh3_supervisor.clients.ssh import endpoint
 from abh3_supervisor.errors import CommandError, Interrupted, PartialWrite
@@ -53,6 +54,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="a running supervisor's control socket (ssh://[user@]host[:port]/path: on "
         "another host)",
     )
+    peer.add_option(p)
     ops = p.add_subparsers(dest="op", required=True, metavar="OP")
     get = ops.add_parser("get", help="read parameters")
     get.add_argument("unit")

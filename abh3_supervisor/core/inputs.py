@@ -311,6 +311,8 @@ class InputArbiter:
     # per unit: a standing command heard before this time was replaced (its owner lost the
     # unit to another source, which has since left): it must not come back
     superseded: dict[str, float] = field(default_factory=dict)
+    # told each unit whose owner changed (taken over, let go, held): a client says so at once
+    watchers: list[Callable[[str], None]] = field(default_factory=list)
 
     def add(self, source: InputSource) -> None:
         self.sources[source.name] = _SourceState(
@@ -361,6 +363,11 @@ class InputArbiter:
         is never resumed. The caller zeroes the unit."""
         self.held[unit] = self.submissions
         self.current[unit] = None
+        self._changed(unit)
+
+    def _changed(self, unit: str) -> None:
+        for watch in self.watchers:
+            watch(unit)
 
     def poll(self, now: float) -> None:
         """Expire silent sources (call at :meth:`next_deadline`)."""
@@ -409,6 +416,7 @@ class InputArbiter:
                     self.current[unit] = None  # refused: not the unit's command
             elif previous is not None:
                 self.apply(unit, ZERO)  # silence or release means zero (velocity or current)
+            self._changed(unit)  # once the unit has it (a refusal leaves it with nobody)
         for state in self.sources.values():
             if state.command is not None and not state.fresh(now):
                 state.command = None  # expired: forget it, so a late deadline is not kept

@@ -23,7 +23,7 @@ from typing import Any
 import can
 
 from abh3_supervisor.config.model import Config
-from abh3_supervisor.errors import BusOpenError
+from abh3_supervisor.errors import Abh3Error, BusOpenError
 
 log = logging.getLogger(__name__)
 FLUSH_S = 0.5  # what a kill -9 may lose at most (docs/recording.md promises ≤ 1 s)
@@ -112,6 +112,28 @@ class FlushedBLFWriter(can.BLFWriter):
         self._write_header(end)
         self.file.seek(end)
         self.file.flush()
+
+
+OURS = (".log", ".asc", ".blf", ".csv", ".mcap")  # flushed for a kill -9 (above)
+GZIPPED = (".log", ".asc", ".csv", ".trc", ".txt")  # python-can compresses these as .gz
+
+
+def known_formats() -> str:
+    others = sorted(set(can.io.logger.MESSAGE_WRITERS) - set(OURS))
+    return f"{' '.join(OURS)}, or python-can's {' '.join(others)} (text ones also .gz)"
+
+
+def check_format(path: Path) -> None:
+    """``--record``'s extension names a format we can write: asked before anything opens
+    (a bus, a file), so a typo is exit 2 with nothing started (:class:`Abh3Error`)."""
+    suffixes = [s.lower() for s in path.suffixes[-2:]]
+    suffix = suffixes[-1] if suffixes else ""
+    if suffix in OURS or suffix in can.io.logger.MESSAGE_WRITERS:
+        return
+    if suffix == ".gz" and len(suffixes) == 2 and suffixes[0] in GZIPPED:
+        return
+    said = f"'{suffix}'" if suffix else "no extension"
+    raise Abh3Error(f"--record {path}: {said} is not a recording format; use {known_formats()}")
 
 
 def _writer(path: Path) -> can.Listener:
@@ -220,9 +242,7 @@ def open_recorder(path: Path, config: Config | None = None) -> GuardedRecorder:
     try:
         writer = _writer(path)
     except ValueError as exc:
-        raise BusOpenError(
-            f"--record {path}: {exc} (use .log, .asc, .blf or .csv, or .mcap)"
-        ) from exc
+        raise BusOpenError(f"--record {path}: {exc} (use {known_formats()})") from exc
     except OSError as exc:
         raise BusOpenError(f"--record {path}: cannot write: {exc.strerror}") from exc
     return GuardedRecorder(path, writer)

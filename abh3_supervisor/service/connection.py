@@ -15,7 +15,9 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import select
 import socket
+from collections.abc import Callable
 
 from abh3_supervisor.service.protocol import LineSplitter
 
@@ -32,6 +34,8 @@ class Connection:
         self._out = bytearray()
         self._waiter: asyncio.Future[None] | None = None
         self._reading = self._ended = self._closed = False
+        self._unwritable = False  # its end is gone: what it sent is still read and done
+        self.on_hangup: Callable[[], None] | None = None  # the client's end read: it left
         self._resume()
 
     async def read_line(self) -> bytes | None:
@@ -49,7 +53,7 @@ class Connection:
         return self._pending.popleft()
 
     def write(self, data: bytes) -> None:
-        if self._closed:
+        if self._closed or self._unwritable:
             return
         if not self._out:
             try:
@@ -57,7 +61,7 @@ class Connection:
             except (BlockingIOError, InterruptedError):
                 sent = 0
             except OSError:
-                self.close()  # it is gone: nothing more can reach it
+                self._cannot_write()
                 return
             if sent == len(data):
                 return
@@ -71,7 +75,16 @@ class Connection:
         return len(self._out)
 
     def is_closing(self) -> bool:
-        return self._closed
+        return self._closed or self._unwritable
+
+    def hung_up(self) -> bool:
+        """The client has gone, or can send nothing more (it shut its sending side): its
+        end was read, or the kernel says so while lines it sent before still wait here."""
+        if self._ended or self._closed:
+            return True
+        poller = select.poll()
+        poller.register(self.fd, select.POLLRDHUP)  # POLLHUP and POLLERR come unasked
+        return bool(poller.poll(0))
 
     def close(self) -> None:
         """At once: one more try to send what is queued, what the client sent is read and
@@ -80,6 +93,7 @@ class Connection:
         if self._closed:
             return
         self._closed = True
+        self.on_hangup = None  # it refers to the client: no cycle left to collect
         self._pause()
         if self._out:
             self.loop.remove_writer(self.fd)
@@ -108,6 +122,8 @@ class Connection:
         else:
             self._ended = True
             self._pause()
+            if self.on_hangup is not None:
+                self.on_hangup()  # at once, even while one of its requests is under way
         self._wake()
 
     def _writable(self) -> None:
@@ -116,11 +132,19 @@ class Connection:
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
-            self.close()
+            self._cannot_write()
             return
         del self._out[:sent]
         if not self._out:
             self.loop.remove_writer(self.fd)
+
+    def _cannot_write(self) -> None:
+        """It is gone: nothing more can reach it. The lines it sent before are still read
+        and handled in order — an e-stop among them too — until its end."""
+        self._unwritable = True
+        if self._out:
+            self.loop.remove_writer(self.fd)
+            self._out.clear()
 
     def _resume(self) -> None:
         if not self._reading and not self._ended and not self._closed:

@@ -17,6 +17,7 @@ already serving it is exit 1 (:class:`RunError`).
 from __future__ import annotations
 
 import contextlib
+import errno
 import grp
 import os
 import pwd
@@ -104,30 +105,47 @@ def prepare_directory(path: Path, gid: int | None) -> None:
 
 def _check_existing(path: Path, gid: int | None) -> None:
     directory = path.parent
-    try:
-        info = directory.stat()
-    except OSError as exc:
-        raise Abh3Error(f"control socket {path}: {directory}: {exc.strerror}") from None
-    if not stat.S_ISDIR(info.st_mode):
-        raise Abh3Error(f"control socket {path}: {directory} is not a directory")
-    where = "put it in a directory of your own, or leave out --socket for the default"
-    if info.st_uid != os.geteuid():
-        raise Abh3Error(
-            f"control socket {path}: {directory} belongs to {_user(info.st_uid)}, not to this "
-            f"user: {where}"
-        )
+    problem = foreign(directory)
+    if problem is not None:
+        where = "put it in a directory of your own, or leave out --socket for the default"
+        raise Abh3Error(f"control socket {path}: {problem}: {where}")
+    info = directory.stat()
     mode = stat.S_IMODE(info.st_mode)
-    if mode & 0o022:
-        raise Abh3Error(
-            f"control socket {path}: {directory} (mode {mode:04o}) is writable by other users, "
-            f"who could replace the socket: {where} (it is never chmodded)"
-        )
     if gid is not None and (info.st_gid != gid or not mode & 0o010):
         raise Abh3Error(
             f"control socket {path}: --socket-group members cannot reach it in {directory} "
             f"(group {_group(info.st_gid)}, mode {mode:04o}): give that directory the group and "
             "mode 0750, or a --socket in a directory that does not exist yet"
         )
+
+
+def foreign(directory: Path) -> str | None:
+    """Why ``directory`` cannot be trusted to hold a socket, or None: a symbolic link (the
+    link itself is judged, never what it points to — another user's link in /tmp could
+    point at a directory of ours now and at one of theirs later), not a directory, another
+    user's, or writable by others. Opened with ``O_NOFOLLOW`` and judged by ``fstat`` of
+    what was opened, so no link can slip in between looking and judging."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.ENOTDIR) and directory.is_symlink():
+            return f"{directory} is a symbolic link (to {os.readlink(directory)}), not a directory"
+        if exc.errno == errno.ENOTDIR:
+            return f"{directory} is not a directory"
+        return f"{directory}: {exc.strerror}"
+    try:
+        info = os.fstat(fd)
+    finally:
+        os.close(fd)
+    if info.st_uid != os.geteuid():
+        return f"{directory} belongs to {_user(info.st_uid)}, not to this user"
+    mode = stat.S_IMODE(info.st_mode)
+    if mode & 0o022:
+        return (
+            f"{directory} (mode {mode:04o}) is writable by other users, who could replace the "
+            "socket (it is never chmodded)"
+        )
+    return None
 
 
 def _user(uid: int) -> str:
@@ -142,21 +160,26 @@ def _group(gid: int) -> str:
     return str(gid)
 
 
+def served(path: Path, timeout: float = 0.5) -> bool:
+    """Someone answers there (a supervisor killed with SIGKILL leaves its socket file)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(timeout)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            return False
+    return True
+
+
 def remove_stale(path: Path) -> None:
     """A socket file left by a supervisor that died is removed; a live one is an error."""
     if not path.exists() and not path.is_symlink():
         return
     if not stat.S_ISSOCK(path.lstat().st_mode):
         raise Abh3Error(f"control socket {path}: exists and is not a socket")
-    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        probe.settimeout(0.5)
-        probe.connect(str(path))
-    except OSError:
+    if not served(path):
         path.unlink(missing_ok=True)  # nobody answers: left behind
         return
-    finally:
-        probe.close()
     raise RunError(
         f"control socket {path}: another supervisor is serving it "
         "(stop it first, or give this one --socket PATH)"

@@ -35,9 +35,15 @@ from typing import TYPE_CHECKING, Any
 from abh3_supervisor import __version__
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core import verifying
-from abh3_supervisor.core.commands import RESPONSE_OK
+from abh3_supervisor.core.commands import (
+    RESPONSE_OK,
+    CurrentCommand,
+    VelocityCommand,
+    parse_command,
+)
 from abh3_supervisor.core.eventlog import EventLog
-from abh3_supervisor.core.inputs import InputFeed, InputSource, Motion, execute
+from abh3_supervisor.core.inputs import CommandOutcome, InputFeed, InputSource, Motion, execute
+from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.params.telabh3 import Command
@@ -65,6 +71,8 @@ CLIENT_TIMEOUT_S = 0.5  # streamed motion is fresh this long (as the seed's topi
 # client holding a VEL proves it is alive at least this often
 CLIENT_PRIORITY = 50  # above plugins' default 0: an operator's client wins over them
 READ_ONLY_METHODS = {"hello", "state", "subscribe", "keys", "alive"}
+# what a client that has gone may still have carried out: it only ever stops motion
+WHEN_GONE = READ_ONLY_METHODS | {"estop", "release"}
 LABEL = re.compile(r"[a-z][a-z0-9_-]{0,15}")
 
 
@@ -108,7 +116,14 @@ class ClientSource(InputSource):
     def __init__(self, client: str, unit: str) -> None:
         name = f"{client}:{unit}"
         super().__init__(name, (unit,), priority=CLIENT_PRIORITY, timeout=CLIENT_TIMEOUT_S)
+        self.unit = unit
         self.feed: InputFeed | None = None
+        self.moving = False  # its motion was taken and has not ended yet (as far as said)
+        self.standing = False  # that motion is a held VEL/CUR, not a stream
+        self.lost: str | None = None  # why its motion ended without the client letting go
+
+    def took(self, *, standing: bool) -> None:
+        self.moving, self.standing, self.lost = True, standing, None
 
     def start(self, feed: InputFeed) -> None:
         self.feed = feed
@@ -131,6 +146,7 @@ class _Client:
         self.state_task: asyncio.Task[None] | None = None
         self.sources: dict[str, ClientSource] = {}  # unit → this client's motion on it
         self.label = "client"  # what it calls itself in `hello` (e.g. "tui")
+        writer.on_hangup = self.let_go  # at once: not after a request under way ends
 
     @property
     def name(self) -> str:
@@ -185,14 +201,19 @@ class _Client:
                 rpc.error(rid, rpc.INTERNAL_ERROR, "internal error (logged by the supervisor)")
             )
 
+    def let_go(self) -> None:
+        """Leaving takes the motion with it: its units stop now, and what it sent that is
+        still waiting here can move nothing (``ControlServer.call``)."""
+        if self.server.host is not None:
+            for source in self.sources.values():
+                self.server.host.detach(source.name)
+        self.sources.clear()
+
     def close(self) -> None:
         if self.state_task is not None:
             self.state_task.cancel()
             self.state_task = None  # it refers to this client: no cycle left to collect
-        if self.server.host is not None:
-            for source in self.sources.values():
-                self.server.host.detach(source.name)  # leaving takes the motion with it
-        self.sources.clear()
+        self.let_go()
         self.writer.close()
 
 
@@ -242,6 +263,8 @@ class ControlServer:
         }
         self._log_handler = _Forward(self)
         self._pushed = SharedState(rt, SHARE_S)  # one build per tick for every client
+        self._check_queued = False
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._params = ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())
 
     async def start(self) -> None:
@@ -258,7 +281,10 @@ class ControlServer:
         )
         self._acceptor = Acceptor(self._sock, self._admit, self._full, refusal, refused)
         self._acceptor.start()
+        self._loop = asyncio.get_running_loop()
         self.rt.supervisor.subscribe(self._on_event)
+        if not self.read_only:  # who owns each unit's motion: told at once (core/inputs.py)
+            self.rt.supervisor.arbiter.watchers.append(self._owner_changed)
         self._log_handler.loop = asyncio.get_running_loop()
         logging.getLogger().addHandler(self._log_handler)
         kind = "read-only " if self.read_only else ""
@@ -267,6 +293,9 @@ class ControlServer:
     async def close(self, reason: str = "the supervisor is stopping") -> None:
         """Also for a server never started: its bound socket is let go all the same."""
         logging.getLogger().removeHandler(self._log_handler)
+        watchers = self.rt.supervisor.arbiter.watchers
+        if self._owner_changed in watchers:
+            watchers.remove(self._owner_changed)
         if self._acceptor is not None:
             self._acceptor.close()
         elif self._sock is not None:
@@ -305,6 +334,8 @@ class ControlServer:
             raise rpc.RpcError(rpc.METHOD_NOT_FOUND, f"no method {rpc.shown(request.method)!r}")
         if client.read_only and request.method not in READ_ONLY_METHODS:
             raise rpc.RpcError(rpc.READ_ONLY, "this connection is read-only")
+        if request.method not in WHEN_GONE:
+            self._present(client, request.method)
         try:
             return await method(client, request.params)
         except (CommandError, ParamFailed) as exc:
@@ -314,10 +345,75 @@ class ControlServer:
                 # the shared encoded state may predate what this call changed (an e-stop):
                 # the next push builds a fresh one
                 self._pushed.forget()
+                self._check_soon()
+
+    def _present(self, client: _Client, what: str) -> None:
+        """A client that has gone (closed, or shut its sending side) commands nothing any
+        more: what it sent and we had not done yet is dropped (its e-stop aside)."""
+        if client.writer.hung_up():
+            client.let_go()
+            log.info("control %s: has gone; its %s is not carried out", client.name, what)
+            raise rpc.RpcError(rpc.REFUSED, "this client has gone: its request is dropped")
+
+    # ------------------------------------------------------------ who holds motion
+
+    def _owner_changed(self, unit: str) -> None:
+        """The arbitration gave ``unit`` to another source, or to none (in its decision)."""
+        self._check_soon()
+
+    def _check_soon(self) -> None:
+        if not self._check_queued and self._loop is not None and not self._loop.is_closed():
+            self._check_queued = True
+            self._loop.call_soon(self._check_motion)
+
+    def _check_motion(self) -> None:
+        """Each client whose motion ended without it letting go is told at once, and why
+        (a ``lost`` notification, and a warning in the log): taken over, e-stopped, lapsed,
+        the drive stopped itself. It is not resumed: only a new command moves it again."""
+        self._check_queued = False
+        for client in self.clients:
+            for source in client.sources.values():
+                if not source.moving:
+                    continue
+                why = self._why_lost(source)
+                if why is None:
+                    continue
+                source.moving = False
+                if not why:  # a stream that stopped: the client's own doing
+                    continue
+                source.lost = why
+                log.warning("control %s: its motion on %s ended: %s", client.name, source.unit, why)
+                client.send(rpc.notification("lost", {"unit": source.unit, "reason": why}))
+
+    def _why_lost(self, source: ClientSource) -> str | None:
+        """None while ``source`` still owns its unit's motion; else why not (``""``: its
+        stream stopped, as the client meant)."""
+        feed = source.feed
+        arbiter = self.rt.supervisor.arbiter
+        if feed is None or arbiter.closed:
+            return "the supervisor is stopping"
+        if self.rt.supervisor.estop:
+            return "the emergency stop is latched"
+        owner = arbiter.owner(source.unit)
+        if owner is not None and owner != source.name:
+            return f"taken over by {owner}"
+        if not source.standing:
+            return None if owner == source.name else ""
+        if not feed.holds():
+            return (
+                f"lapsed: no line from this client for {CLIENT_TIMEOUT_S:g} s (stopped or starved)"
+            )
+        if owner == source.name:
+            return None
+        if not self.rt.supervisor.units[source.unit].online:
+            return "the unit went offline"
+        return "the drive stopped on its own (a gap in its answers), or the unit is held"
 
     # ------------------------------------------------------------ events
 
     def _on_event(self, event: SupervisorEvent) -> None:
+        if isinstance(event, Notice):  # an e-stop (from a key, a plugin) is one
+            self._check_soon()
         listeners = [c for c in self.clients if c.events]
         if not listeners:
             return
@@ -353,6 +449,7 @@ class ControlServer:
             "protocol": rpc.PROTOCOL,
             "version": __version__,
             "config": config.file,
+            "config_path": str(Path(config.file).resolve()),  # the file, wherever we run
             "read_only": client.read_only,
             "units": list(config.units),
             "buses": list(config.buses),
@@ -409,9 +506,13 @@ class ControlServer:
 
     async def _alive(self, client: _Client, params: dict[str, Any]) -> Any:
         """Proof of life (as any line is): a client holding a ``VEL`` sends it ≥ 2 Hz.
-        ``holds``: the units whose standing motion this client still owns."""
-        holds = [u for u, s in client.sources.items() if s.feed is not None and s.feed.holds()]
-        return {"ok": True, "holds": holds}
+        ``holds``: the units whose standing motion this client still owns; ``lost``: why
+        the motion it held on a unit ended (taken over, e-stop, lapsed, the drive)."""
+        self._check_motion()  # as things are now, not as they were at the last check
+        sources = client.sources.values()
+        holds = [s.unit for s in sources if s.moving and s.standing]
+        lost = {s.unit: s.lost for s in sources if s.lost is not None}
+        return {"ok": True, "holds": holds, "lost": lost}
 
     async def _command(self, client: _Client, params: dict[str, Any]) -> Any:
         """The command language; a ``VEL``/``CUR`` is this client's motion, held while it is
@@ -422,8 +523,20 @@ class ControlServer:
         def submit(command: Motion) -> None:
             for feed in self._feeds(client, units):
                 feed.hold(command)
+            for unit in units:
+                client.sources[unit].took(standing=True)
 
-        outcome = await execute(self.rt.supervisor, units, text, submit)
+        if _moves(text) or len(units) == 1:  # motion: on every unit or on none
+            outcome = await execute(self.rt.supervisor, units, text, submit)
+        else:  # switches, unit after unit: none after the client has gone
+            parts = []
+            for unit in units:
+                self._present(client, "command")
+                parts.append(await execute(self.rt.supervisor, (unit,), text, submit))
+            outcome = CommandOutcome(
+                {u: r for part in parts for u, r in part.responses.items()},
+                {u: n for part in parts for u, n in part.clamped.items()},
+            )
         response = outcome.response
         log.info(
             "control %s: %r on %s → %r%s",
@@ -468,12 +581,16 @@ class ControlServer:
                     raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
         for feed in self._feeds(client, units):
             getattr(feed, method)(*values)
+        if not self.rt.supervisor.estop:  # zero under the e-stop: nothing to lose, nor say
+            for unit in units:
+                client.sources[unit].took(standing=False)
         return {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
 
     async def _release(self, client: _Client, params: dict[str, Any]) -> Any:
         for source in client.sources.values():
             if source.feed is not None:
                 source.feed.release()
+            source.moving, source.lost = False, None  # let go on purpose: nothing lost
         return {"ok": True}
 
     async def _estop(self, client: _Client, params: dict[str, Any]) -> Any:
@@ -596,6 +713,14 @@ class _Forward(logging.Handler):
             return
         with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
             loop.call_soon_threadsafe(self.server.forward, record)
+
+
+def _moves(text: str) -> bool:
+    """A ``VEL``/``CUR``: motion, taken on every unit or on none."""
+    try:
+        return isinstance(parse_command(text), VelocityCommand | CurrentCommand)
+    except CommandError:
+        return False
 
 
 _FIELDS = {

@@ -172,10 +172,13 @@ class SupervisorApp(App[None]):
         owner: bool = True,
         duration: float | None = None,
         plugin_keys: Mapping[str, dict[str, str]] | None = None,
+        shows: str = "",
     ) -> None:
         """``owner``: this TUI started the service, and quitting stops it (and the drives);
-        otherwise quitting only detaches. ``link`` None: no service (layout tests)."""
+        otherwise quitting only detaches. ``link`` None: no service (layout tests).
+        ``shows``: the configuration file and socket, in the title."""
         super().__init__()
+        self.title = f"{self.TITLE} · {shows}" if shows else self.TITLE
         self.duration = duration
         self.link = link
         self.owner = owner

@@ -32,11 +32,12 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import Any
 
+from abh3_supervisor.clients import peer
 from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.ssh import Endpoint
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp, styled
-from abh3_supervisor.errors import RunError
+from abh3_supervisor.errors import Abh3Error, RunError
 from abh3_supervisor.runtime import priority, signals
 from abh3_supervisor.service import paths
 
@@ -159,9 +160,11 @@ async def attach(
     duration: float | None = None,
     early: Sequence[tuple[int, str]] = (),
     leaving: Departure | None = None,
+    server_pid: int | None = None,
 ) -> int:
     """The app on a supervisor's socket until it quits, a signal or the terminal going
-    away ends it (detaching at once), or the supervisor goes."""
+    away ends it (detaching at once), or the supervisor goes. ``server_pid``: the
+    supervisor this process started; a socket served by any other process is refused."""
     yield_to_the_buses()
     with contextlib.ExitStack() as stack:
         if leaving is None:
@@ -169,11 +172,16 @@ async def attach(
         link = await Link.open(path)
         loop = asyncio.get_running_loop()
         try:
+            if server_pid is not None:
+                not_ours(link, server_pid)
             hello = await link.call("hello", name="tui")
             mirror = Mirror.from_hello(hello)
             mirror.apply(await link.call("state"))
             keys = await link.call("keys", taken=SupervisorApp.taken_keys())
-            app = SupervisorApp(mirror, link, owner=owner, duration=duration, plugin_keys=keys)
+            shows = f"{hello.get('config_path') or hello.get('config')} · {path}"
+            app = SupervisorApp(
+                mirror, link, owner=owner, duration=duration, plugin_keys=keys, shows=shows
+            )
             for level, line in early:
                 app.pending_log.append(styled(level, line))
             await link.call("subscribe", events=True, state_hz=STATE_HZ)
@@ -186,6 +194,22 @@ async def attach(
     if leaving.why:  # detached on purpose (its own detach ends the link, not the service)
         return 0
     return EXIT_SUPERVISOR_GONE if app.gone is not None else app.return_code or 0
+
+
+def not_ours(link: Link, pid: int) -> None:
+    """:class:`Abh3Error` unless the process serving ``link`` is ``pid`` (as far as the
+    OS says): `abh3 run` shows, and commands through, only the supervisor it started."""
+    found = peer.credentials(link.writer.get_extra_info("socket"))
+    if found is not None and found[0] != pid:
+        raise Abh3Error(refusal(link.path, f"process {found[0]}"))
+
+
+def refusal(socket: Endpoint, who: str) -> str:
+    return (
+        f"control socket {socket}: {who} serves it already, not the supervisor this "
+        "`abh3 run` starts; this TUI shows and commands only its own: stop that one, attach "
+        f"to it with `abh3 tui --connect {socket}`, or give this run --socket PATH"
+    )
 
 
 class ServiceChild:
@@ -233,7 +257,10 @@ class ServiceChild:
         while self.proc.returncode is None and not stopping.is_set():
             with contextlib.suppress(LinkError):
                 link = await Link.open(self.socket, timeout=1.0)
-                await link.close()
+                try:
+                    not_ours(link, self.proc.pid)  # another one took the path meanwhile
+                finally:
+                    await link.close()
                 return True
             if time.monotonic() > deadline:
                 raise RunError(f"the supervisor did not serve {self.socket} within 60 s")
@@ -298,6 +325,8 @@ async def run_tui(
 ) -> int:
     """`abh3 run CONFIG` on a terminal: the supervisor as a child, the TUI attached. A
     signal or the terminal going away stops the child as quitting does."""
+    if paths.served(socket):  # refused before the TUI opens, nothing started
+        raise Abh3Error(refusal(socket, "another supervisor"))
     child = ServiceChild(config, socket, args)
     loop = asyncio.get_running_loop()
     stopping = asyncio.Event()
@@ -311,8 +340,14 @@ async def run_tui(
             await child.start()
             if await child.connected(stopping):
                 early = warnings(child.log_lines())  # e.g. plugins' start-up warnings
+                assert child.proc is not None
                 code = await attach(
-                    socket, owner=True, duration=duration, early=early, leaving=leaving
+                    socket,
+                    owner=True,
+                    duration=duration,
+                    early=early,
+                    leaving=leaving,
+                    server_pid=child.proc.pid,
                 )
         finally:
             child_code = await child.stop()

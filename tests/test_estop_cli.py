@@ -1,0 +1,97 @@
+"""`abh3 estop` from a script or another terminal, end to end: a served supervisor on the
+simulator, a client holding motion, the e-stop — judged from the CAN recording: each unit's
+frames go from moving (START on) straight to zero with START off, and stay so."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import can
+
+from abh3_supervisor.protocol import flags, frames, ids
+
+ROOT = Path(__file__).resolve().parent.parent
+LAYOUTS = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # configs/demo.yaml, host 2
+
+
+def abh3(*args: str) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "-m", "abh3_supervisor", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=60)
+
+
+def commands(record: Path) -> dict[int, list[frames.Dp0Command]]:
+    sent: dict[int, list[frames.Dp0Command]] = {abh3: [] for abh3 in LAYOUTS}
+    for msg in can.LogReader(str(record)):
+        for abh3, layout in LAYOUTS.items():
+            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
+                cmd = frames.decode_dp0_command(bytes(msg.data), layout.generation)
+                assert isinstance(cmd, frames.Dp0Command)
+                sent[abh3].append(cmd)
+    return sent
+
+
+def test_estop_from_the_command_line_stops_every_unit_and_a_holder_is_told(
+    tmp_path: Path,
+) -> None:
+    sock, ro, record = tmp_path / "run" / "demo.sock", tmp_path / "ro.sock", tmp_path / "r.log"
+    serve = ["--headless", "--socket", str(sock), "--read-only-socket", str(ro)]
+    run = subprocess.Popen(
+        [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", *serve,
+         "--status-interval", "0", "--record", str(record)],
+        stderr=subprocess.PIPE, text=True, cwd=ROOT,
+    )  # fmt: skip
+    assert run.stderr is not None
+    holder: subprocess.Popen[str] | None = None
+    try:
+        for line in run.stderr:
+            if "unit right: online" in line:
+                break
+        holder = subprocess.Popen(
+            [sys.executable, "-m", "abh3_supervisor", "send", "VEL 100 0", "--unit", "left",
+             "--hold", "--connect", str(sock)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+        )  # fmt: skip
+        assert holder.stderr is not None
+        assert "holding 'VEL 100 0' on left" in holder.stderr.readline()
+        refused = abh3("estop", "--connect", str(ro))
+        assert refused.returncode == 1
+        assert refused.stderr == "error: estop: this connection is read-only\n"
+
+        stopped = abh3("estop", "--connect", str(sock))
+        assert stopped.returncode == 0, stopped.stderr
+        assert stopped.stdout == (
+            f"{sock}: EMERGENCY STOP latched: every commanded unit zero, START off (clear "
+            "it with `abh3 estop --clear`)\n"
+        )
+        assert holder.wait(10) == 1
+        told = holder.stderr.read()
+        assert "left: the motion held by this command ended: the emergency stop is latched" in told
+        status = abh3("status", "--connect", str(sock))
+        assert status.returncode == 1 and status.stdout.startswith("EMERGENCY STOP latched")
+        cleared = abh3("estop", "--clear", "--connect", str(sock))
+        assert cleared.returncode == 0 and "emergency stop cleared" in cleared.stdout
+        assert abh3("status", "--connect", str(sock)).returncode == 0
+    finally:
+        if holder is not None and holder.poll() is None:
+            holder.kill()
+            holder.wait()
+        run.terminate()
+        rest = run.stderr.read()
+        assert run.wait(30) == 0, rest
+    for abh3_id, sent in commands(record).items():
+        start = LAYOUTS[abh3_id].start.both
+        moving = [i for i, c in enumerate(sent) if c.inputs & start and (c.cmd_ay or c.cmd_bx)]
+        assert moving, f"drive {abh3_id} never moved"
+        after = sent[moving[-1] + 1 :]
+        assert after, f"drive {abh3_id}: nothing after it moved"
+        # the frame after the last moving one is the e-stop's (a lapse would keep START on)
+        assert after[0].inputs & start == 0 and (after[0].cmd_ay, after[0].cmd_bx) == (0.0, 0.0)
+        assert all(c.inputs & start == 0 and not (c.cmd_ay or c.cmd_bx) for c in after)
+
+
+def test_estop_without_a_supervisor_says_so(tmp_path: Path) -> None:
+    out = abh3("estop", "--connect", str(tmp_path / "none.sock"))
+    assert out.returncode == 1 and out.stdout == ""
+    assert f"error: no supervisor serves {tmp_path / 'none.sock'}" in out.stderr
