@@ -145,7 +145,7 @@ def test_kill_9_of_the_tui_that_started_the_supervisor_stops_the_drives(
     os.waitpid(pid, 0)
     os.close(fd)
     wait_for(lambda: not sock.exists(), "the child stops serving")
-    log = sock.with_suffix(".log")
+    log = sock.with_name(sock.name + ".log")
     wait_for(lambda: log.read_text().count("stop frame confirmed") == 2, "both stops confirmed")
     wait_for(lambda: "recorded" in log.read_text(), "the recording closed")
     assert_demo_stopped(record)

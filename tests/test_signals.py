@@ -252,8 +252,10 @@ def test_abh3_run_on_a_terminal_stops_its_child_on_any_terminating_signal(
         MOVING + '  - {name: v, abh3_id: 3, host_id: 2, protocol: "2023", command_rate_hz: 50,\n'
         '     broadcast: {mask: 0x03, rate_hz: 4}, startup: ["SERVO ON ON", "START ON ON"]}\n'
     )
-    record = tmp_path / "run.log"
-    sock = tmp_path / "tui.sock"  # the child's log goes beside it, as tui.log
+    # the child's log goes beside the socket as tui.sock.log: a recording named tui.log
+    # (its name with .sock replaced, as the log once was) stays a recording
+    record = tmp_path / "tui.log"
+    sock = tmp_path / "tui.sock"
     pid, fd = in_a_terminal(["run", str(cfg), "--socket", str(sock), "--record", str(record)])
     os.kill(pid, sig)
     while True:  # drain the terminal until the program has gone

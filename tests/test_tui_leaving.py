@@ -170,10 +170,10 @@ def test_abh3_run_exits_4_when_its_supervisor_is_killed_and_keeps_the_last_log()
     """The supervisor child killed (-9): NOT CONNECTED, no e-stop claimed, q leaves with
     4 and says what happened (it was 247: -9 as a byte). The previous run's log is kept."""
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "demo.sock"
-    sock.with_suffix(".log").write_text("the run before\n")
+    sock.with_name(sock.name + ".log").write_text("the run before\n")
     pid, fd = in_a_terminal(["run", "configs/demo.yaml", "--socket", str(sock)])
     try:
-        assert sock.with_suffix(".log.1").read_text() == "the run before\n"
+        assert sock.with_name(sock.name + ".log.1").read_text() == "the run before\n"
         os.kill(_child_of(pid), signal.SIGKILL)
         screen = b""
         while b"NOT CONNECTED" not in screen:
@@ -207,7 +207,7 @@ def test_abh3_run_stops_its_supervisor_when_its_terminal_goes(tmp_path: Path) ->
     os.close(fd)
     os.waitpid(pid, 0)
     assert time.monotonic() - t0 < 2.0
-    log = sock.with_suffix(".log")
+    log = sock.with_name(sock.name + ".log")
     _wait_for(lambda: log.read_text().count("stop frame confirmed") == 2, "both stops confirmed")
     _wait_for(lambda: "recorded" in log.read_text(), "the recording closed")
     assert "SIGTERM: stop" in log.read_text()  # told, as quitting tells it

@@ -9,7 +9,6 @@ import contextlib
 import json
 import os
 import select
-import signal
 import socket
 import sys
 from pathlib import Path
@@ -21,6 +20,7 @@ from abh3_supervisor.config.model import ControlMode, Role, VelocityModel
 from abh3_supervisor.core import readouts
 from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
 from abh3_supervisor.errors import Abh3Error, CommandError, Interrupted, RunError
+from abh3_supervisor.runtime import signals
 from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.paths import default_socket, foreign, served
 
@@ -221,15 +221,17 @@ def _verify(v: dict[str, Any] | None) -> str | None:
     """The drive's CAN settings against the file (core/verify.py), when it was checked:
     ``drive settings ok``, ``drive settings MISMATCH: drive 0x4117 … (SERVO/START held)``,
     ``drive settings not verified (why)``, ``drive settings being read``."""
-    if v is None or v["state"] == "off" or (v["state"] == "not verified" and not v["reason"]):
+    unread = v is not None and v["state"] == "not verified" and not v["reason"]
+    if v is None or v["state"] == "off" or (unread and not v.get("held")):
         return None
     if v["state"] == "mismatch":
         text = "drive settings MISMATCH: " + "; ".join(m["text"] for m in v["mismatches"])
         return text + (" (held at its idle word: verify: refuse)" if v.get("held") else "")
+    held = f" — HELD: {v['held']}" if v.get("held") else ""  # verify: refuse fails closed
     if v["state"] == "not verified":
-        return f"drive settings not verified ({v['reason']})"
+        return f"drive settings not verified ({v['reason'] or 'not read yet'}){held}"
     if v["state"] == "pending":
-        return "drive settings being read"
+        return f"drive settings being read{held}"
     return f"drive settings {v['state']}"
 
 
@@ -303,7 +305,7 @@ def _hold(client: ControlClient, text: str, units: list[str]) -> int:
             if gone:
                 return 1
     except Interrupted as exc:
-        name = signal.Signals(exc.signum).name
+        name = signals.name(exc.signum)  # real-time signals too
         print(f"{name}: released; the motion held by this command stops now", file=sys.stderr)
     return 0
 

@@ -219,7 +219,8 @@ class ServiceChild:
 
     def __init__(self, config: Path, socket: Path, args: Sequence[str]) -> None:
         self.config, self.socket, self.args = config, socket, list(args)
-        self.log_path = socket.with_suffix(".log")
+        # demo.sock → demo.sock.log: never the name a recording is given (`--record demo.log`)
+        self.log_path = socket.with_name(socket.name + ".log")
         self.proc: asyncio.subprocess.Process | None = None
         self.terminated = self.killed = False
 
