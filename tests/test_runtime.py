@@ -119,7 +119,9 @@ def test_an_unknown_recording_format_is_a_clear_error(tmp_path: Path) -> None:
         async with Runtime(CONFIG, record=tmp_path / "x.unknown"):
             pass
 
-    with pytest.raises(BusOpenError, match=r"--record .*x.unknown.*use .log, .asc, .blf or .csv"):
+    with pytest.raises(
+        BusOpenError, match=r"--record .*x.unknown.*use \.log .*\.asc .*\.blf .*\.csv"
+    ):
         asyncio.run(scenario())
 
 
