@@ -10,8 +10,6 @@ import os
 import shutil
 import signal
 import socket
-import subprocess
-import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,15 +21,10 @@ from abh3_supervisor.clients.control import ControlClient
 from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.errors import Abh3Error, RunError
 from abh3_supervisor.service import paths
+from tests.support.cli import abh3
 
-ROOT = Path(__file__).resolve().parent.parent
 NOBODY = 65534
 as_root = pytest.mark.skipif(os.geteuid() != 0, reason="only root can act as another user")
-
-
-def abh3(*args: str) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "-m", "abh3_supervisor", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=60)
 
 
 # ---------------------------------------------------------------- the directory

@@ -31,6 +31,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.service.paths import default_socket
 from tests.support.rig import TWO_UNITS
+from tests.support.terminal import on_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 ALTERNATE_SCREEN = b"\x1b[?1049h"  # what a full-screen UI switches to first
@@ -60,28 +61,6 @@ def serving_headless(config: Path) -> Iterator[subprocess.Popen[str]]:
     finally:
         run.terminate()
         run.wait(30)
-
-
-def on_a_terminal(args: list[str]) -> tuple[int, bytes]:
-    """``abh3 ARGS`` on a pseudo-terminal until it ends: its exit code and its screen."""
-    pid, fd = pty.fork()
-    if pid == 0:
-        os.chdir(ROOT)
-        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
-    screen = b""
-    while True:
-        ready, _, _ = select.select([fd], [], [], 60)
-        assert ready, f"no end: {screen[-500:]!r}"
-        try:
-            data = os.read(fd, 65536)
-        except OSError:  # EIO: the child's side closed
-            break
-        if not data:
-            break
-        screen += data
-    _, status = os.waitpid(pid, 0)
-    os.close(fd)
-    return os.waitstatus_to_exitcode(status), screen
 
 
 def test_another_supervisors_socket_is_refused_before_the_tui_opens(tmp_path: Path) -> None:
