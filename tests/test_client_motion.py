@@ -12,7 +12,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,12 +26,6 @@ from tests.support.served import Served
 
 ROOT = Path(__file__).resolve().parent.parent
 LEFT = 1  # TWO_UNITS: left is a 2021 drive at address 1, commanded from host 2
-
-
-@pytest.fixture
-def served(tmp_path: Path) -> Iterator[Served]:
-    with Served(tmp_path) as s:
-        yield s
 
 
 class Tap(can.Listener):
