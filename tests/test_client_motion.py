@@ -24,6 +24,8 @@ from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.service import protocol as rpc
 from tests.support.served import Served
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 LEFT = 1  # TWO_UNITS: left is a 2021 drive at address 1, commanded from host 2
 

@@ -8,9 +8,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from abh3_supervisor.protocol import flags, frames
 from tests.support.cli import abh3
 from tests.support.safe_word import commands_to
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 ROOT = Path(__file__).resolve().parent.parent
 LAYOUTS = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # configs/demo.yaml, host 2

@@ -25,6 +25,7 @@ def refused(out: str, record: Path) -> None:
     assert not record.exists()
 
 
+@pytest.mark.wallclock
 def test_headless_run_refuses_it_before_anything_opens(tmp_path: Path) -> None:
     record = tmp_path / "x.unknownext"
     cmd = [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", "--headless"]
@@ -39,6 +40,7 @@ def test_headless_run_refuses_it_before_anything_opens(tmp_path: Path) -> None:
     refused(out.stderr, record)
 
 
+@pytest.mark.wallclock
 def test_run_on_a_terminal_refuses_it_before_the_supervisor_starts(tmp_path: Path) -> None:
     record = tmp_path / "x.unknownext"
     code, screen = on_a_terminal(["run", "configs/demo.yaml", "--record", str(record)])
@@ -48,6 +50,7 @@ def test_run_on_a_terminal_refuses_it_before_the_supervisor_starts(tmp_path: Pat
     refused(text, record)
 
 
+@pytest.mark.wallclock
 def test_commission_refuses_it_before_anything_opens(tmp_path: Path) -> None:
     record = tmp_path / "x.unknownext"
     cmd = [sys.executable, "-m", "abh3_supervisor", "commission", "configs/demo.yaml"]

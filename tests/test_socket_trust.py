@@ -30,6 +30,7 @@ as_root = pytest.mark.skipif(os.geteuid() != 0, reason="only root can act as ano
 # ---------------------------------------------------------------- the directory
 
 
+@pytest.mark.wallclock
 def test_a_symlinked_socket_directory_is_refused_even_when_it_points_at_our_own(
     tmp_path: Path,
 ) -> None:
@@ -115,6 +116,7 @@ def foreign_server(tmp_path: Path) -> Iterator[Path]:
         shutil.rmtree(path.parent, ignore_errors=True)
 
 
+@pytest.mark.wallclock
 @as_root
 def test_a_server_of_another_user_is_refused_before_a_word_is_sent(foreign_server: Path) -> None:
     with pytest.raises(RunError, match="is served by user nobody \\(uid 65534\\)") as refused:
@@ -131,6 +133,7 @@ def test_a_server_of_another_user_is_refused_before_a_word_is_sent(foreign_serve
     assert "is served by user nobody (uid 65534), not by this user or root: refused" in out.stderr
 
 
+@pytest.mark.wallclock
 @as_root
 def test_a_server_of_a_trusted_user_is_talked_to(foreign_server: Path) -> None:
     peer.trust([NOBODY])

@@ -63,6 +63,7 @@ def serving_headless(config: Path) -> Iterator[subprocess.Popen[str]]:
         run.wait(30)
 
 
+@pytest.mark.wallclock
 def test_another_supervisors_socket_is_refused_before_the_tui_opens(tmp_path: Path) -> None:
     a, b = robot(tmp_path / "a"), robot(tmp_path / "b")
     assert default_socket(str(a)) == default_socket(str(b))  # same name, other folder
@@ -101,6 +102,7 @@ def test_the_title_names_the_configuration_and_the_socket() -> None:
     assert app.title == f"abh3-supervisor · {shows}"
 
 
+@pytest.mark.wallclock
 def test_the_title_on_screen_names_the_file_and_the_socket() -> None:
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "s" / "demo.sock"  # short: a title fits
     pid, fd = pty.fork()
