@@ -13,7 +13,7 @@ def imported_test_modules(path: Path) -> set[str]:
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
         names = (
-            [node.module or ""]
+            [node.module or "", *(f"{node.module}.{a.name}" for a in node.names)]
             if isinstance(node, ast.ImportFrom)
             else [a.name for a in node.names]
             if isinstance(node, ast.Import)
