@@ -18,7 +18,6 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -29,6 +28,7 @@ import pytest
 
 from abh3_supervisor.protocol import flags
 from benchmarks.bursts import recorded_run
+from tests.support import cli
 from tests.support.safe_word import commands_to
 from tests.support.terminal import in_a_terminal
 
@@ -109,14 +109,7 @@ def sshd() -> Iterator[Sshd]:
 
 def abh3(sshd: Sshd, *args: str, config: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "ABH3_SSH": f"ssh -F {config or sshd.ssh_config}"}
-    return subprocess.run(
-        [sys.executable, "-m", "abh3_supervisor", *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env=env,
-        timeout=60,
-    )
+    return cli.abh3(*args, env=env)
 
 
 def url(sshd: Sshd, path: Path | str, port: int | None = None) -> str:

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 
 
-def abh3(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+def abh3(
+    *args: str, timeout: float = 60, env: Mapping[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
     """``abh3 ARGS``: its exit code, stdout and stderr (bounded)."""
     return subprocess.run(
         [sys.executable, "-m", "abh3_supervisor", *args],
@@ -17,4 +20,5 @@ def abh3(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
         text=True,
         timeout=timeout,
         cwd=ROOT,
+        env=env,
     )
