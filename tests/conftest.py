@@ -13,6 +13,7 @@ from can.interfaces import virtual
 
 from abh3_supervisor.config import parse_config
 from tests.support.rig import TWO_UNITS, Rig
+from tests.support.served import served_thread  # noqa: F401  (the `served` fixture)
 from tests.support.wire_monitor import INVARIANTS, WireMonitor
 from tests.support.wire_tap import tap
 
@@ -35,23 +36,6 @@ def wire(request: pytest.FixtureRequest) -> Iterator[WireMonitor]:
         tap(monitor, patches)
         yield monitor
     monitor.check()  # what the fixtures' teardown sent (a runtime left at the end)
-
-
-# Modules other helpers edit at the moment: their tests are marked here, until the mark
-# can move into them (the rest carry ``@pytest.mark.wallclock`` themselves).
-WALLCLOCK_MODULES = {
-    "test_commission.py",
-    "test_commission_cli.py",
-    "test_tui.py",
-    "test_tui_claims.py",
-    "test_tui_leaving.py",
-}
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        if item.path.name in WALLCLOCK_MODULES:
-            item.add_marker(pytest.mark.wallclock)
 
 
 @pytest.hookimpl(wrapper=True)

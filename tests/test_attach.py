@@ -23,8 +23,8 @@ from tests.support.headless import headless_demo
 from tests.support.safe_word import assert_demo_stopped
 from tests.support.served import served, wait_for
 from tests.support.terminal import in_a_terminal
+from tests.support.tui import attached, response, until
 from tests.support.wire_monitor import WireMonitor
-from tests.test_tui import attached, response, until
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -14,20 +14,12 @@ from typing import Any
 
 import pytest
 
+from tests.support.cli import abh3
+
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "configs" / "demo.yaml"
-
-
-def abh3(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "abh3_supervisor", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=ROOT,
-    )
 
 
 def decoded(path: Path) -> list[dict[str, Any]]:

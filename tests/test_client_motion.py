@@ -12,7 +12,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,14 +24,10 @@ from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.service import protocol as rpc
 from tests.support.served import Served
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 LEFT = 1  # TWO_UNITS: left is a 2021 drive at address 1, commanded from host 2
-
-
-@pytest.fixture
-def served(tmp_path: Path) -> Iterator[Served]:
-    with Served(tmp_path) as s:
-        yield s
 
 
 class Tap(can.Listener):

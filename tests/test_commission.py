@@ -23,6 +23,7 @@ from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.frames import Generation
 from tests.commission_bench import FakeBench, Headless
 from tests.support.rig import present
+from tests.support.safe_word import is_safe_word
 
 ROBOT = """
 buses:
@@ -87,7 +88,7 @@ def assert_stopped(bench: FakeBench, unit: str) -> None:
     assert not drive.inputs & (drive.layout.servo.both | drive.layout.start.both)
     _, a, b, inputs = commands(bench, unit)[-1]
     layout = flags.layout(bench.config.units[unit].protocol)
-    assert (a, b) == (0.0, 0.0) and inputs & ~layout.select_mask == 0
+    assert (a, b) == (0.0, 0.0) and is_safe_word(inputs, layout)
 
 
 # ---------------------------------------------------------------- the demo
@@ -339,7 +340,7 @@ def test_a_unit_whose_startup_sets_it_moving_is_refused() -> None:
     assert {c.verdict for c in u1.checks if c.step == "e-stop"} == {Verdict.SKIPPED}
     layout = flags.layout(Generation.G2021)
     sent = commands(bench, "u1")
-    assert sent and all(a == b == 0 and not i & ~layout.select_mask for _, a, b, i in sent)
+    assert sent and all(a == b == 0 and is_safe_word(i, layout) for _, a, b, i in sent)
     assert results["u2"].verdict is Verdict.PASS  # SERVO ON alone moves nothing
 
 

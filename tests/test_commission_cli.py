@@ -25,6 +25,9 @@ from abh3_supervisor.config import load_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
+from tests.support.safe_word import DEMO_DRIVES, is_stop, last_commands
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "configs" / "commission-demo.yaml"
@@ -159,23 +162,6 @@ def test_the_e_stop_key_puts_every_commanded_units_stop_frame_on_the_wire_at_onc
     assert not [s for s in sent if s[1] & 0x03FFFFFF == rear]  # a monitor here: not commanded
 
 
-def _last_commands(log: Path) -> dict[int, frames.Dp0Command]:
-    """The last DP0 command to each of the demo's drives (a 2021 at 1, a 2023 at 3)."""
-    gens = {1: flags.LAYOUT_2021.generation, 3: flags.LAYOUT_2023.generation}
-    last: dict[int, frames.Dp0Command] = {}
-    for msg in can.LogReader(str(log)):
-        for abh3, gen in gens.items():
-            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
-                cmd = frames.decode_dp0_command(bytes(msg.data), gen)
-                assert isinstance(cmd, frames.Dp0Command)
-                last[abh3] = cmd
-    return last
-
-
-def _safe(cmd: frames.Dp0Command, layout: flags.Layout) -> bool:
-    return (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0) and cmd.inputs & ~layout.select_mask == 0
-
-
 def test_sigint_mid_jog_stops_every_drive(tmp_path: Path) -> None:
     record = tmp_path / "run.log"
     proc = subprocess.Popen(
@@ -211,8 +197,8 @@ def test_sigint_mid_jog_stops_every_drive(tmp_path: Path) -> None:
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 128 + signal.SIGINT, err
     assert "unit front: stop confirmed" in out
-    last = _last_commands(record)
-    assert _safe(last[1], flags.LAYOUT_2021)
+    last = last_commands(record, DEMO_DRIVES)
+    assert is_stop(last[1], flags.LAYOUT_2021)
     assert 3 not in last  # rear was not named: never commanded
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["ended"] == "stopped by SIGINT"
@@ -250,7 +236,7 @@ def test_the_demo_report_names_the_fault_and_matches_the_recording(tmp_path: Pat
     assert rear["stop"] == "confirmed" and rear["firmware"]
     fails = [c for c in rear["checks"] if c["verdict"] == "fail"]
     assert fails[0]["name"].startswith("reversed axis B") and "polarity" in fails[0]["fix"]
-    assert _safe(_last_commands(record)[3], flags.LAYOUT_2023)
+    assert is_stop(last_commands(record, DEMO_DRIVES)[3], flags.LAYOUT_2023)
     # every feedback sample of the report is a DP0 reply in the recording, in order
     replies = []
     for msg in can.LogReader(str(record)):
@@ -288,7 +274,6 @@ units:
 """
 
 
-@pytest.mark.wallclock
 def test_a_drive_gone_silent_mid_jog_gets_no_jog_a_quarter_second_after_its_last_answer(
     tmp_path: Path,
 ) -> None:
@@ -323,7 +308,7 @@ def test_a_drive_gone_silent_mid_jog_gets_no_jog_a_quarter_second_after_its_last
                 jogs.append(msg.timestamp)
     assert jogs and jogs[0] < replies[-1], "the silence did not come mid-jog"
     assert jogs[-1] - replies[-1] <= 0.25, jogs[-1] - replies[-1]
-    assert last is not None and _safe(last, flags.LAYOUT_2021)
+    assert last is not None and is_stop(last, flags.LAYOUT_2021)
     assert "communication lost" in run.stdout and "termination" in run.stdout
     assert "power stage" not in run.stdout
     doc = json.loads((tmp_path / "r.json").read_text())

@@ -8,28 +8,20 @@ import subprocess
 import sys
 from pathlib import Path
 
-import can
+import pytest
 
-from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.protocol import flags, frames
+from tests.support.cli import abh3
+from tests.support.safe_word import commands_to
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 ROOT = Path(__file__).resolve().parent.parent
 LAYOUTS = {1: flags.LAYOUT_2021, 3: flags.LAYOUT_2023}  # configs/demo.yaml, host 2
 
 
-def abh3(*args: str) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "-m", "abh3_supervisor", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=60)
-
-
 def commands(record: Path) -> dict[int, list[frames.Dp0Command]]:
-    sent: dict[int, list[frames.Dp0Command]] = {abh3: [] for abh3 in LAYOUTS}
-    for msg in can.LogReader(str(record)):
-        for abh3, layout in LAYOUTS.items():
-            if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
-                cmd = frames.decode_dp0_command(bytes(msg.data), layout.generation)
-                assert isinstance(cmd, frames.Dp0Command)
-                sent[abh3].append(cmd)
-    return sent
+    return {abh3: commands_to(record, abh3, lay.generation) for abh3, lay in LAYOUTS.items()}
 
 
 def test_estop_from_the_command_line_stops_every_unit_and_a_holder_is_told(

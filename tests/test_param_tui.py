@@ -14,7 +14,7 @@ from abh3_supervisor.clients.tui.params import ParameterFiles, ParamScreen
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.core.supervisor import OperatorAction
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.test_tui import run_app, until
+from tests.support.tui import run_app, until
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 

@@ -4,9 +4,6 @@ on a terminal) and `abh3 commission`, by one check (runtime/recorder.py)."""
 
 from __future__ import annotations
 
-import os
-import pty
-import select
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +12,7 @@ import pytest
 
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.runtime.recorder import check_format
+from tests.support.terminal import on_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 KNOWN = ".log .asc .blf .csv .mcap, or python-can's .db .mf4 .trc .txt (text ones also .gz)"
@@ -27,6 +25,7 @@ def refused(out: str, record: Path) -> None:
     assert not record.exists()
 
 
+@pytest.mark.wallclock
 def test_headless_run_refuses_it_before_anything_opens(tmp_path: Path) -> None:
     record = tmp_path / "x.unknownext"
     cmd = [sys.executable, "-m", "abh3_supervisor", "run", "configs/demo.yaml", "--headless"]
@@ -41,32 +40,17 @@ def test_headless_run_refuses_it_before_anything_opens(tmp_path: Path) -> None:
     refused(out.stderr, record)
 
 
+@pytest.mark.wallclock
 def test_run_on_a_terminal_refuses_it_before_the_supervisor_starts(tmp_path: Path) -> None:
     record = tmp_path / "x.unknownext"
-    pid, fd = pty.fork()
-    if pid == 0:
-        os.chdir(ROOT)
-        args = ["run", "configs/demo.yaml", "--record", str(record)]
-        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
-    screen = b""
-    while True:
-        ready, _, _ = select.select([fd], [], [], 60)
-        assert ready, screen
-        try:
-            data = os.read(fd, 65536)
-        except OSError:
-            break
-        if not data:
-            break
-        screen += data
-    _, status = os.waitpid(pid, 0)
-    os.close(fd)
+    code, screen = on_a_terminal(["run", "configs/demo.yaml", "--record", str(record)])
     text = screen.decode(errors="replace").replace("\r\n", "\n")
-    assert os.waitstatus_to_exitcode(status) == 2, text
+    assert code == 2, text
     assert "starting the supervisor" not in text
     refused(text, record)
 
 
+@pytest.mark.wallclock
 def test_commission_refuses_it_before_anything_opens(tmp_path: Path) -> None:
     record = tmp_path / "x.unknownext"
     cmd = [sys.executable, "-m", "abh3_supervisor", "commission", "configs/demo.yaml"]

@@ -11,13 +11,13 @@ import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import BusOpenError
-from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.protocol import flags
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler
 from tests.support.rig import TWO_UNITS, present
-from tests.support.safe_word import is_safe_word
+from tests.support.safe_word import commands_to, is_safe_word
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
@@ -26,16 +26,6 @@ CONFIG = parse_config(TWO_UNITS, "two.yaml")
 
 def protocol_of(abh3_id: int) -> Generation:
     return next(u.protocol for u in CONFIG.units.values() if u.abh3_id == abh3_id)
-
-
-def commands_in(path: Path, abh3_id: int) -> list[frames.Dp0Command]:
-    out = []
-    for msg in can.LogReader(str(path)):
-        if msg.arbitration_id == ids.dp0_command_id(abh3_id, 2):
-            cmd = frames.decode_dp0_command(bytes(msg.data), protocol_of(abh3_id))
-            assert isinstance(cmd, frames.Dp0Command)
-            out.append(cmd)
-    return out
 
 
 async def until_online(rt: Runtime) -> None:
@@ -60,10 +50,11 @@ def test_runs_records_and_stops_the_drives_on_the_way_out(tmp_path: Path) -> Non
             await sup.wait_exchange("left", sup.clock(), 1.0)
 
     asyncio.run(scenario())
-    left = commands_in(record, 1)
+    left = commands_to(record, 1, protocol_of(1))
     assert any(c.cmd_ay == 200.0 and c.cmd_bx == 10.0 for c in left)
     for abh3_id in (1, 3):
-        last = commands_in(record, abh3_id)[-1]  # the recording is complete: the stop frame
+        # the recording is complete: the stop frame
+        last = commands_to(record, abh3_id, protocol_of(abh3_id))[-1]
         assert (last.cmd_ay, last.cmd_bx) == (0.0, 0.0)
         assert is_safe_word(last.inputs, flags.layout(protocol_of(abh3_id)))
 
@@ -79,7 +70,7 @@ def test_an_exception_in_the_block_still_stops_the_drives(tmp_path: Path) -> Non
 
     with pytest.raises(RuntimeError, match="boom"):
         asyncio.run(scenario())
-    assert is_safe_word(commands_in(record, 1)[-1].inputs, flags.LAYOUT_2021)
+    assert is_safe_word(commands_to(record, 1, protocol_of(1))[-1].inputs, flags.LAYOUT_2021)
 
 
 def test_a_fatal_internal_error_ends_the_run_with_exit_1_after_stopping(
@@ -100,7 +91,7 @@ def test_a_fatal_internal_error_ends_the_run_with_exit_1_after_stopping(
         code = asyncio.run(run_headless(CONFIG, duration=30, record=record, status_interval=0))
     assert code == 1
     assert "stopping after an internal error" in caplog.text
-    assert is_safe_word(commands_in(record, 3)[-1].inputs, flags.LAYOUT_2023)
+    assert is_safe_word(commands_to(record, 3, protocol_of(3))[-1].inputs, flags.LAYOUT_2023)
 
 
 def test_a_missing_device_is_a_clear_error() -> None:
@@ -134,7 +125,7 @@ def test_every_recording_format_is_readable_again(tmp_path: Path, suffix: str) -
             await until_online(rt)
 
     asyncio.run(scenario())
-    assert len(commands_in(record, 1)) >= 2
+    assert len(commands_to(record, 1, protocol_of(1))) >= 2
 
 
 def test_packet_errors_for_no_reply_and_refused_frames(monkeypatch: pytest.MonkeyPatch) -> None:

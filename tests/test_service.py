@@ -7,7 +7,6 @@ import json
 import os
 import socket
 import stat
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,12 +24,6 @@ from tests.support.served import Served
 from tests.support.wire_monitor import WireMonitor
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
-
-
-@pytest.fixture
-def served(tmp_path: Path) -> Iterator[Served]:
-    with Served(tmp_path) as s:
-        yield s
 
 
 def raw(path: Path, *lines: bytes) -> list[dict[str, Any]]:

@@ -9,19 +9,18 @@ from __future__ import annotations
 import json
 import os
 import re
-import select
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import can
 import pytest
 
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime import signals
-from tests.support.terminal import in_a_terminal
+from tests.support.safe_word import commands_to, is_stop
+from tests.support.terminal import ended, in_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs" / "signals.md"
@@ -117,22 +116,6 @@ def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
     return proc.stdout.read(), proc.stderr.read()
 
 
-def _commands(log: Path, abh3: int, layout: flags.Layout) -> list[frames.Dp0Command]:
-    out = []
-    for msg in can.LogReader(str(log)):
-        if msg.arbitration_id == ids.dp0_command_id(abh3, 2):
-            cmd = frames.decode_dp0_command(bytes(msg.data), layout.generation)
-            assert isinstance(cmd, frames.Dp0Command)
-            out.append(cmd)
-    return out
-
-
-def _safe(cmd: frames.Dp0Command, layout: flags.Layout) -> bool:
-    """Zero setpoints and the safe word: SERVO, START, brake release… all off."""
-    zero = (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0)
-    return zero and cmd.inputs == layout.safe(cmd.inputs)
-
-
 def _moving(cmd: frames.Dp0Command, layout: flags.Layout) -> bool:
     on = layout.servo.both | layout.start.both
     return (cmd.cmd_ay, cmd.cmd_bx) == (300.0, 20.0) and cmd.inputs & on == on
@@ -152,9 +135,9 @@ def _headless(tmp_path: Path) -> tuple[subprocess.Popen[str], Path]:
 
 
 def _stopped_on_the_wire(record: Path) -> None:
-    cmds = _commands(record, 1, LAYOUT)
+    cmds = commands_to(record, 1, LAYOUT.generation)
     assert any(_moving(c, LAYOUT) for c in cmds), "the unit never moved"
-    assert _safe(cmds[-1], LAYOUT), cmds[-1]
+    assert is_stop(cmds[-1], LAYOUT), cmds[-1]
 
 
 # ---------------------------------------------------------------- abh3 run --headless
@@ -258,18 +241,10 @@ def test_abh3_run_on_a_terminal_stops_its_child_on_any_terminating_signal(
     sock = tmp_path / "tui.sock"
     pid, fd = in_a_terminal(["run", str(cfg), "--socket", str(sock), "--record", str(record)])
     os.kill(pid, sig)
-    while True:  # drain the terminal until the program has gone
-        ready, _, _ = select.select([fd], [], [], 20)
-        try:
-            if not ready or not os.read(fd, 65536):
-                break
-        except OSError:
-            break
-    _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0
+    assert ended(pid, fd).code == 0
     _stopped_on_the_wire(record)
-    v = _commands(record, 3, LAYOUT)
-    assert v and _safe(v[-1], LAYOUT)
+    v = commands_to(record, 3, LAYOUT.generation)
+    assert v and is_stop(v[-1], LAYOUT)
 
 
 # ---------------------------------------------------------------- abh3 commission
@@ -321,9 +296,9 @@ def _commission_ended(
     assert report["units"]["front"]["stop"] == "confirmed"
     assert (tmp_path / "r.html").exists()
     layout = flags.LAYOUT_2021
-    cmds = _commands(record, 1, layout)
+    cmds = commands_to(record, 1, layout.generation)
     assert any(c.cmd_ay != 0 for c in cmds), "the jog never went out"
-    assert _safe(cmds[-1], layout), cmds[-1]
+    assert is_stop(cmds[-1], layout), cmds[-1]
 
 
 @pytest.mark.wallclock

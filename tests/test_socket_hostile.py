@@ -13,7 +13,6 @@ import stat
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +27,6 @@ from abh3_supervisor.service.server import MAX_CLIENTS
 from tests.support.served import Served
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-@pytest.fixture
-def served(tmp_path: Path) -> Iterator[Served]:
-    with Served(tmp_path) as s:
-        yield s
 
 
 def request(method: str, rid: int, **params: Any) -> bytes:

@@ -10,8 +10,6 @@ import os
 import shutil
 import signal
 import socket
-import subprocess
-import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,20 +21,16 @@ from abh3_supervisor.clients.control import ControlClient
 from abh3_supervisor.clients.link import Link, LinkError
 from abh3_supervisor.errors import Abh3Error, RunError
 from abh3_supervisor.service import paths
+from tests.support.cli import abh3
 
-ROOT = Path(__file__).resolve().parent.parent
 NOBODY = 65534
 as_root = pytest.mark.skipif(os.geteuid() != 0, reason="only root can act as another user")
-
-
-def abh3(*args: str) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "-m", "abh3_supervisor", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=60)
 
 
 # ---------------------------------------------------------------- the directory
 
 
+@pytest.mark.wallclock
 def test_a_symlinked_socket_directory_is_refused_even_when_it_points_at_our_own(
     tmp_path: Path,
 ) -> None:
@@ -122,6 +116,7 @@ def foreign_server(tmp_path: Path) -> Iterator[Path]:
         shutil.rmtree(path.parent, ignore_errors=True)
 
 
+@pytest.mark.wallclock
 @as_root
 def test_a_server_of_another_user_is_refused_before_a_word_is_sent(foreign_server: Path) -> None:
     with pytest.raises(RunError, match="is served by user nobody \\(uid 65534\\)") as refused:
@@ -138,6 +133,7 @@ def test_a_server_of_another_user_is_refused_before_a_word_is_sent(foreign_serve
     assert "is served by user nobody (uid 65534), not by this user or root: refused" in out.stderr
 
 
+@pytest.mark.wallclock
 @as_root
 def test_a_server_of_a_trusted_user_is_talked_to(foreign_server: Path) -> None:
     peer.trust([NOBODY])

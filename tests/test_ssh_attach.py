@@ -18,18 +18,18 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import can
 import pytest
 
-from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.protocol import flags
 from benchmarks.bursts import recorded_run
+from tests.support import cli
+from tests.support.safe_word import commands_to
 from tests.support.terminal import in_a_terminal
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
@@ -109,14 +109,7 @@ def sshd() -> Iterator[Sshd]:
 
 def abh3(sshd: Sshd, *args: str, config: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "ABH3_SSH": f"ssh -F {config or sshd.ssh_config}"}
-    return subprocess.run(
-        [sys.executable, "-m", "abh3_supervisor", *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env=env,
-        timeout=60,
-    )
+    return cli.abh3(*args, env=env)
 
 
 def url(sshd: Sshd, path: Path | str, port: int | None = None) -> str:
@@ -144,12 +137,8 @@ def test_status_send_and_param_through_ssh(sshd: Sshd) -> None:
             assert "FIRMWARE_VERSION   2.3.0.1" in identity.stdout
             assert not list(Path(os.environ["XDG_RUNTIME_DIR"]).glob("abh3-ssh-*"))
         # what the drive was told: SELECT 3 3 on its DP0 commands, sent through SSH
-        layout, dp0, selects = flags.LAYOUT_2021, ids.dp0_command_id(1, 2), []
-        for msg in can.LogReader(str(record)):
-            if msg.arbitration_id == dp0:
-                cmd = frames.decode_dp0_command(bytes(msg.data), layout.generation)
-                assert isinstance(cmd, frames.Dp0Command)
-                selects.append(layout.data_select(cmd.inputs))
+        layout = flags.LAYOUT_2021
+        selects = [layout.data_select(c.inputs) for c in commands_to(record, 1, layout.generation)]
         assert selects[0] != (3, 3) and selects[-1] == (3, 3)  # the stop keeps data select
 
 

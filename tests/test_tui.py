@@ -13,11 +13,9 @@ import logging
 import os
 import pty
 import re
-import select
 import signal
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +23,8 @@ import pytest
 from textual import events
 from textual.widgets import RichLog, Static
 
-from abh3_supervisor.clients.link import Link
-from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui import operator, overview, plots
-from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp
+from abh3_supervisor.clients.tui.app import SupervisorApp
 from abh3_supervisor.clients.tui.model import Trace, bus_fields, overview_row
 from abh3_supervisor.clients.tui.run import warnings
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
@@ -36,72 +32,26 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.inputs import InputCommand, Twist
 from abh3_supervisor.core.kinematics import twist_to_yx
 from abh3_supervisor.core.planner import plan
-from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
-from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
-from abh3_supervisor.service.server import ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
 from tests.support.rig import TWO_UNITS, Rig, present
 from tests.support.safe_word import assert_demo_stopped
-from tests.support.terminal import in_a_terminal
+from tests.support.terminal import ended, in_a_terminal
+from tests.support.tui import (
+    KEYBOARD,
+    mirror_of,
+    press_until,
+    response,
+    run_app,
+    snapshot_rig,
+    until,
+)
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
-
-
-async def attached(path: Path, owner: bool = True) -> tuple[SupervisorApp, Link]:
-    """The app on the socket, set up as `abh3 tui`/`abh3 run` set it up."""
-    link = await Link.open(path)
-    hello = await link.call("hello", name="tui")
-    mirror = Mirror.from_hello(hello)
-    mirror.apply(await link.call("state"))
-    keys = await link.call("keys", taken=SupervisorApp.taken_keys())
-    app = SupervisorApp(mirror, link, owner=owner, plugin_keys=keys)
-    await link.call("subscribe", events=True, state_hz=STATE_HZ)
-    return app, link
-
-
-def run_app(
-    check: Any,
-    config: str = TWO_UNITS,
-    size: tuple[int, int] = (160, 45),
-    own_terminal: bool = False,
-) -> None:
-    """Run the app on the real runtime (virtual bus, simulated drives) over its control
-    socket, with a pilot; the check sees the runtime too."""
-    cfg = parse_config(config, "t.yaml")
-    host = PluginHost(cfg)
-    if own_terminal:  # the service of a TUI: keyboard plugins take their keys from it
-        terminal.claim("the TUI")
-
-    async def scenario(path: Path) -> None:
-        async with Runtime(cfg, plugins=host) as rt:
-            sup = rt.supervisor
-            since = sup.clock()
-            assert all(await asyncio.gather(*(sup.wait_exchange(n, since, 2) for n in sup.units)))
-            server = ControlServer(rt, host, path)
-            await server.start()
-            try:
-                app, link = await attached(path)
-                try:
-                    async with app.run_test(size=size) as pilot:
-                        await check(app, pilot, rt)
-                finally:
-                    await link.close()
-            finally:
-                await server.close()
-
-    with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
-        try:
-            asyncio.run(scenario(Path(tmp) / "s" / "t.sock"))
-        finally:
-            terminal.release()
-
-
-def response(app: SupervisorApp) -> str:
-    return str(app.query_one("#response").render())
 
 
 def test_estop_from_every_screen_stops_both_units() -> None:
@@ -221,28 +171,6 @@ def snapshot(name: str, svg: str) -> None:
     assert svg == path.read_text(encoding="utf-8"), f"{name} layout changed (see {path})"
 
 
-def mirror_of(rig: Rig) -> Mirror:
-    """What a client of this rig's supervisor would know now."""
-    mirror = Mirror.of(rig.config, tuple(rig.config.buses))
-    mirror.apply(supervisor_state(rig.sup, {}))
-    return mirror
-
-
-def snapshot_rig() -> Rig:
-    """Two units after 30 s of fake time: left driven (forward, then back), right servo
-    on but held off by an error, with an alarm too; the plots have their whole window."""
-    rig = Rig(parse_config(TWO_UNITS, "t.yaml"))
-    for unit in ("left", "right"):
-        rig.sup.apply_text(unit, "SERVO ON ON")
-    rig.sup.apply_text("left", "START ON ON")
-    rig.sup.set_velocity("left", 300, 20, source=present(rig.sup, "left"))
-    rig.run(1.0)
-    rig.drive("right").errors = flags.FAULT.mask("A_OVERCURRENT")
-    rig.drive("right").alarms = flags.FAULT.mask("CONTROL_UNDERVOLTAGE")
-    rig.run(1.0)
-    return rig
-
-
 @pytest.mark.parametrize("size", [(100, 30), (160, 45)], ids=["100x30", "160x45"])
 @pytest.mark.parametrize(
     "keys", [[], ["2"], ["5"], ["question_mark"]], ids=["overview", "unit", "plots", "help"]
@@ -301,15 +229,7 @@ def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig:
     record = tmp_path / "tui.log"
     pid, fd = in_a_terminal(["run", "configs/demo.yaml", "--record", str(record)])
     os.kill(pid, sig)
-    while True:  # drain the terminal until the program has gone
-        ready, _, _ = select.select([fd], [], [], 20)
-        try:
-            if not ready or not os.read(fd, 65536):
-                break
-        except OSError:
-            break
-    _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0
+    assert ended(pid, fd).code == 0
     assert_demo_stopped(record)
 
 
@@ -343,29 +263,6 @@ def test_what_the_service_logs_reaches_the_log_pane() -> None:
         assert str(line.style) == "yellow"
 
     run_app(check)
-
-
-KEYBOARD = TWO_UNITS + "plugins:\n  keyboard: {units: [left]}\n"
-
-
-async def until(pilot: Any, condition: Any, what: str) -> None:
-    """Let the app and the buses run until ``condition()`` holds (bounded)."""
-    for _ in range(500):
-        if condition():
-            return
-        await pilot.pause(0.01)
-    raise AssertionError(f"never happened: {what}")
-
-
-async def press_until(app: SupervisorApp, pilot: Any, key: str, done: Any, what: str) -> None:
-    """A key as the terminal driver delivers it, then ``until(pilot, done)``.
-
-    ``pilot.press`` waits after each key for the *process* to look idle (Textual's
-    ``wait_for_idle``: under 1 ms of CPU in 20 ms, else up to 1 s); the buses and simulated
-    drives in this process rarely allow that, so 300 keys would take minutes.
-    """
-    app.post_message(events.Key(key, key if len(key) == 1 else None))
-    await until(pilot, done, what)
 
 
 def test_every_e_stop_wins_with_the_keyboard_plugin_configured() -> None:

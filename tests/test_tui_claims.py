@@ -27,7 +27,7 @@ from abh3_supervisor.params import table
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import CLIENT_TIMEOUT_S, ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.test_tui import (
+from tests.support.tui import (
     KEYBOARD,
     mirror_of,
     press_until,
@@ -36,6 +36,8 @@ from tests.test_tui import (
     snapshot_rig,
     until,
 )
+
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
 Check = Callable[[SupervisorApp], bool]
 Step = tuple[str, Check] | Callable[[SupervisorApp, Any], Awaitable[None]]

@@ -27,6 +27,8 @@ from tests.support.served import no_clients, served
 from tests.support.served import wait_for as _wait_for
 from tests.support.terminal import in_a_terminal
 
+pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
+
 ROOT = Path(__file__).resolve().parent.parent
 # the pty becomes the process's controlling terminal, as a shell's would be: closing it
 # then sends SIGHUP (without this, only reads and writes fail, as under some multiplexers)

@@ -31,6 +31,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.service.paths import default_socket
 from tests.support.rig import TWO_UNITS
+from tests.support.terminal import on_a_terminal
 
 ROOT = Path(__file__).resolve().parent.parent
 ALTERNATE_SCREEN = b"\x1b[?1049h"  # what a full-screen UI switches to first
@@ -62,28 +63,7 @@ def serving_headless(config: Path) -> Iterator[subprocess.Popen[str]]:
         run.wait(30)
 
 
-def on_a_terminal(args: list[str]) -> tuple[int, bytes]:
-    """``abh3 ARGS`` on a pseudo-terminal until it ends: its exit code and its screen."""
-    pid, fd = pty.fork()
-    if pid == 0:
-        os.chdir(ROOT)
-        os.execv(sys.executable, [sys.executable, "-m", "abh3_supervisor", *args])
-    screen = b""
-    while True:
-        ready, _, _ = select.select([fd], [], [], 60)
-        assert ready, f"no end: {screen[-500:]!r}"
-        try:
-            data = os.read(fd, 65536)
-        except OSError:  # EIO: the child's side closed
-            break
-        if not data:
-            break
-        screen += data
-    _, status = os.waitpid(pid, 0)
-    os.close(fd)
-    return os.waitstatus_to_exitcode(status), screen
-
-
+@pytest.mark.wallclock
 def test_another_supervisors_socket_is_refused_before_the_tui_opens(tmp_path: Path) -> None:
     a, b = robot(tmp_path / "a"), robot(tmp_path / "b")
     assert default_socket(str(a)) == default_socket(str(b))  # same name, other folder
@@ -122,6 +102,7 @@ def test_the_title_names_the_configuration_and_the_socket() -> None:
     assert app.title == f"abh3-supervisor · {shows}"
 
 
+@pytest.mark.wallclock
 def test_the_title_on_screen_names_the_file_and_the_socket() -> None:
     sock = Path(tempfile.mkdtemp(dir="/tmp")) / "s" / "demo.sock"  # short: a title fits
     pid, fd = pty.fork()

@@ -31,18 +31,30 @@ def assert_drive_stopped(drive: SimDrive) -> None:
     assert is_safe_word(drive.inputs, drive.layout), hex(drive.inputs)
 
 
+def is_stop(cmd: frames.Dp0Command, layout: Layout) -> bool:
+    """A stop command: zero setpoints and the safe word."""
+    return (cmd.cmd_ay, cmd.cmd_bx) == (0.0, 0.0) and is_safe_word(cmd.inputs, layout)
+
+
+def commands_to(
+    record: Path, abh3: int, generation: Generation, host: int = 2
+) -> list[frames.Dp0Command]:
+    """Every DP0 command to drive ``abh3`` in a recording, in order."""
+    out = []
+    for msg in can.LogReader(str(record)):
+        if msg.arbitration_id == ids.dp0_command_id(abh3, host):
+            cmd = frames.decode_dp0_command(bytes(msg.data), generation)
+            assert isinstance(cmd, frames.Dp0Command)
+            out.append(cmd)
+    return out
+
+
 def last_commands(
     record: Path, drives: Mapping[int, Generation], host: int = 2
 ) -> dict[int, frames.Dp0Command]:
     """The last DP0 command to each drive (address → generation) in a recording."""
-    last: dict[int, frames.Dp0Command] = {}
-    for msg in can.LogReader(str(record)):
-        for abh3, generation in drives.items():
-            if msg.arbitration_id == ids.dp0_command_id(abh3, host):
-                cmd = frames.decode_dp0_command(bytes(msg.data), generation)
-                assert isinstance(cmd, frames.Dp0Command)
-                last[abh3] = cmd
-    return last
+    sent = {abh3: commands_to(record, abh3, gen, host) for abh3, gen in drives.items()}
+    return {abh3: cmds[-1] for abh3, cmds in sent.items() if cmds}
 
 
 def assert_stopped_in(record: Path, drives: Mapping[int, Generation], host: int = 2) -> None:

@@ -1,5 +1,6 @@
 """Supervisors served in-process: a runtime on simulated drives with its control sockets,
-on a thread of its own (:class:`Served`) or on the test's loop (:func:`served`)."""
+on a thread of its own (:class:`Served`, and the ``served`` fixture conftest.py offers) or
+on the test's loop (:func:`served`)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,11 @@ import select
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
@@ -69,9 +72,16 @@ class Served:
         self.thread.join(10)
 
 
-def served(check: Callable[[Runtime, ControlServer, Path], Any]) -> None:
+@pytest.fixture(name="served")
+def served_thread(tmp_path: Path) -> Iterator[Served]:
+    """The ``served`` fixture: :class:`Served` on TWO_UNITS for the test's length."""
+    with Served(tmp_path) as s:
+        yield s
+
+
+def served(check: Callable[[Runtime, ControlServer, Path], Any], config: str = TWO_UNITS) -> None:
     """A runtime on simulated drives serving a socket; ``check`` attaches what it likes."""
-    cfg = parse_config(TWO_UNITS, "t.yaml")
+    cfg = parse_config(config, "t.yaml")
     host = PluginHost(cfg)
 
     async def scenario(path: Path) -> None:
