@@ -29,7 +29,6 @@ from abh3_supervisor.clients.tui.model import Trace, bus_fields, overview_row
 from abh3_supervisor.clients.tui.run import warnings
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.core.inputs import InputCommand, Twist
 from abh3_supervisor.core.kinematics import twist_to_yx
 from abh3_supervisor.core.planner import plan
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
@@ -46,6 +45,7 @@ from tests.support.tui import (
     response,
     run_app,
     snapshot_rig,
+    twists_applied,
     until,
 )
 
@@ -112,15 +112,7 @@ def test_risky_toggles_ask_first_and_arrows_drive_the_selected_unit() -> None:
         assert not isinstance(app.screen, ConfirmScreen)
         await press("d", "y")  # data select: written 7 → 6 (set #1) on both axes
         assert left.data_select(sup.units["left"].inputs) == (6, 6)
-        driven: list[tuple[str, float, float]] = []
-        real = sup.arbiter.apply
-
-        def spy(name: str, command: InputCommand) -> bool | None:
-            if isinstance(command, Twist):  # what the arbitration applies to the unit
-                driven.append((name, command.linear_x, command.angular_z))
-            return real(name, command)
-
-        sup.arbiter.apply = spy
+        driven = twists_applied(sup)
         await press("n", "up")  # select right, drive forward: sent, and said to move nothing
         assert response(app).startswith("right: SERVO off, START off — nothing moves")
         for _ in range(100):  # the feed hands the twist over through the loop
@@ -300,15 +292,7 @@ def test_every_e_stop_wins_with_the_keyboard_plugin_configured() -> None:
             sup.clear_emergency_stop()
         assert honoured == 100 and len(stops) == 100
         assert handed == ["i", "l"] * 100  # every teleop key reached the plugin, none else
-        driven: list[tuple[str, float, float]] = []
-        real = sup.arbiter.apply
-
-        def spy(name: str, command: InputCommand) -> bool | None:
-            if isinstance(command, Twist):  # what the arbitration applies to the unit
-                driven.append((name, command.linear_x, command.angular_z))
-            return real(name, command)
-
-        sup.arbiter.apply = spy
+        driven = twists_applied(sup)
         # a teleop key, handed to the plugin
         await press_until(app, pilot, "i", lambda: driven, "the keyboard plugin drives")
         assert driven[0][0] == "left" and driven[0][1] == pytest.approx(0.2)

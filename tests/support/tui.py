@@ -12,6 +12,8 @@ from abh3_supervisor.clients.link import Link
 from abh3_supervisor.clients.mirror import Mirror
 from abh3_supervisor.clients.tui.app import STATE_HZ, SupervisorApp
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.inputs import InputCommand, Twist
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime.bus_runtime import Runtime
@@ -64,9 +66,24 @@ def response(app: SupervisorApp) -> str:
     return str(app.query_one("#response").render())
 
 
+def twists_applied(sup: Supervisor) -> list[tuple[str, float, float]]:
+    """Every twist the arbitration applies to a unit from now on, as (unit, x, z)."""
+    driven: list[tuple[str, float, float]] = []
+    real = sup.arbiter.apply
+
+    def spy(name: str, command: InputCommand) -> bool | None:
+        if isinstance(command, Twist):
+            driven.append((name, command.linear_x, command.angular_z))
+        return real(name, command)
+
+    sup.arbiter.apply = spy
+    return driven
+
+
 async def until(pilot: Any, condition: Any, what: str) -> None:
-    """Let the app and the buses run until ``condition()`` holds (bounded)."""
-    for _ in range(500):
+    """Let the app and the buses run until ``condition()`` holds (bounded: 15 s, for a
+    loaded machine; a condition that holds returns at once)."""
+    for _ in range(1500):
         if condition():
             return
         await pilot.pause(0.01)
