@@ -1,6 +1,7 @@
-"""The motion gate's mutants that tests/test_gate.py let survive (docs/mutation.md): each
-test here fails under the mutation named in its docstring. Judged by what the simulated
-drive was told where the wire shows it, on a fake clock."""
+"""The mutants of the motion gate and of the arbitration that feeds it which the other
+tests let survive (docs/mutation.md): each test here fails under the mutation named in its
+docstring. Judged by what the simulated drive was told where the wire shows it, on a fake
+clock; the arbitration (core/inputs.py's InputArbiter) on a clock the test sets."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import asyncio
 import pytest
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.core.commands import RESPONSE_INVALID
+from abh3_supervisor.core.commands import RESPONSE_INVALID, VelocityCommand
 from abh3_supervisor.core.gate import MotionGate
+from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
@@ -188,3 +190,135 @@ def test_servo_on_given_once_a_write_has_begun_is_refused_until_it_ends() -> Non
 
     during, back, after = asyncio.run(scenario())
     assert (during, back, after) == (RESPONSE_INVALID, 0x00400009, "")
+
+
+class Quiet(InputSource):
+    def start(self, feed: InputFeed) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+
+class Arbitration:
+    """An InputArbiter on a clock the test sets; what it applied to each unit, in order."""
+
+    def __init__(self, *, refuse: bool = False) -> None:
+        self.now = 0.0
+        self.applied: list[tuple[str, InputCommand]] = []
+        self.rearmed = 0
+
+        def apply(unit: str, command: InputCommand) -> bool | None:
+            self.applied.append((unit, command))
+            return False if refuse else None
+
+        self.arb = InputArbiter(apply, lambda: self.now, on_change=self._rearm)
+
+    def _rearm(self) -> None:
+        self.rearmed += 1
+
+    def add(
+        self, name: str, units: tuple[str, ...], priority: int = 0, timeout: float = 0.5
+    ) -> None:
+        self.arb.add(Quiet(name, units, priority, timeout))
+
+    def at(self, t: float) -> Arbitration:
+        self.now = t
+        return self
+
+
+def test_a_standing_command_behind_an_owner_that_fell_silent_does_not_come_back() -> None:
+    """_decide, ``not owner.fresh`` → ``owner.fresh``, and ``taker = …`` → ``None``: the
+    client's value, given while the stick drove the unit, would move it once the stick
+    fell silent — a value that never drove the unit, from before the stop."""
+    a = Arbitration()
+    a.add("stick", ("u",), priority=1)
+    a.add("client", ("u",))
+    a.arb.submit("stick", VelocityCommand(300, 0), 0.0)  # streamed: silent from now on
+    a.arb.submit("client", VelocityCommand(100, 0), 0.1, standing=True)  # behind the stick
+    assert a.arb.owner("u") == "stick"
+    a.arb.touch("client", 0.4)
+    a.arb.poll(a.at(0.55).now)  # the stick lapsed at 0.5; the client is still alive
+    assert a.applied[-1] == ("u", ZERO) and a.arb.owner("u") is None
+
+
+def test_a_standing_command_given_after_the_owner_fell_silent_takes_the_unit_and_keeps_it() -> None:
+    """_decide, ``taker.heard < now`` → ``<=``: the command given at the very moment would be
+    dropped; ``s.heard < replaced`` → ``<=``: it would be dropped at the next decision."""
+    a = Arbitration()
+    a.add("stick", ("u",), priority=1)
+    a.add("client", ("u",))
+    a.arb.submit("stick", VelocityCommand(300, 0), 0.0)
+    a.arb.submit("client", VelocityCommand(100, 0), 1.0, standing=True)  # no poll between
+    assert a.arb.owner("u") == "client"
+    a.arb.touch("client", 1.2)
+    a.arb.poll(1.2)
+    assert a.arb.owner("u") == "client"
+    assert a.applied[-1] == ("u", VelocityCommand(100, 0))
+
+
+def test_one_decision_covers_every_unit_after_one_that_did_not_change() -> None:
+    """_decide, ``continue`` → ``break``: the units after an unchanged one would not be
+    decided, and a lapsed stream on them would go on moving them. (``submit_now`` too.)"""
+    a = Arbitration()
+    a.add("left-stick", ("a",), timeout=10.0)
+    a.add("right-stick", ("b",))
+    a.arb.submit_now("left-stick", VelocityCommand(50, 0))
+    a.arb.submit_now("right-stick", VelocityCommand(60, 0))
+    assert a.arb.owner("b") == "right-stick"
+    a.arb.poll(a.at(1.0).now)  # "a" unchanged, then "b" lapsed
+    assert a.applied[-1] == ("b", ZERO) and a.arb.owner("b") is None
+
+
+def test_a_command_the_unit_refused_is_not_its_command_and_nobody_owns_it() -> None:
+    """_decide, ``current[unit] = None`` → ``""`` after a refusal, and owner's
+    ``None if current is None`` → always ``current[0]``: owner() would raise."""
+    a = Arbitration(refuse=True)
+    a.add("client", ("u",))
+    assert a.arb.owner("u") is None  # nobody ever drove it
+    a.arb.submit("client", VelocityCommand(100, 0), 0.0)
+    assert a.arb.owner("u") is None
+    a.arb.submit("client", VelocityCommand(100, 0), 0.1)  # the same again: applied anew
+    assert a.applied == [("u", VelocityCommand(100, 0))] * 2
+
+
+def test_proof_of_life_moves_the_deadline_of_a_standing_command() -> None:
+    """touch, ``command is not None`` → ``is None``: the expiry moved but the deadline timer
+    would not be re-armed for it."""
+    a = Arbitration()
+    a.add("client", ("u",))
+    a.arb.submit("client", VelocityCommand(100, 0), 0.0, standing=True)
+    before = a.rearmed
+    a.arb.touch("client", 0.3)
+    assert a.rearmed == before + 1 and a.arb.next_deadline() == 0.8
+
+
+def test_units_left_behind_by_a_retarget_stop_and_the_new_ones_are_driven() -> None:
+    """retarget_now's mutants (no test in the fast selection called it): the unit left
+    behind must get zero, the new one the source's command."""
+    a = Arbitration()
+    a.add("keys", ("a",))
+    a.arb.submit("keys", VelocityCommand(70, 0), 0.0)
+    a.arb.retarget_now("keys", ("b",))
+    assert a.applied[-2:] == [("a", ZERO), ("b", VelocityCommand(70, 0))]
+    assert (a.arb.owner("a"), a.arb.owner("b")) == (None, "keys")
+
+
+def test_a_source_that_names_no_priority_has_the_documented_default() -> None:
+    """InputSource, ``priority: int = 0`` → ``1``: every source that names none (the public
+    API's ``api:<unit>``, a third party's) would outrank the plugins that say 0."""
+    assert Quiet("x", ("u",)).priority == 0  # docs/plugins.md: InputSource(…, priority=0, …)
+
+
+def test_a_held_unit_takes_only_a_command_given_after_the_hold() -> None:
+    """Mutation (a) of docs/mutation.md, ``InputArbiter.hold`` a no-op: the stream heard
+    before the e-stop, hold or write would still own the unit and come back."""
+    a = Arbitration()
+    a.add("stick", ("u",), timeout=10.0)
+    a.arb.submit("stick", VelocityCommand(250, 0), 0.0)
+    a.arb.hold("u")
+    assert a.arb.owner("u") is None
+    a.arb.poll(a.at(1.0).now)  # the stream is still fresh: it does not count any more
+    assert a.arb.owner("u") is None and a.applied == [("u", VelocityCommand(250, 0))]
+    a.arb.submit("stick", VelocityCommand(250, 0), 1.0)  # the same value, given after
+    assert a.arb.owner("u") == "stick" and len(a.applied) == 2
