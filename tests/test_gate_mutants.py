@@ -10,9 +10,11 @@ import asyncio
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.config.model import Fault, FaultKind, VerifyMode
 from abh3_supervisor.core.commands import RESPONSE_INVALID, VelocityCommand
 from abh3_supervisor.core.gate import MotionGate
 from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
+from abh3_supervisor.core.verify import State, Verification, verify_units
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
@@ -322,3 +324,24 @@ def test_a_held_unit_takes_only_a_command_given_after_the_hold() -> None:
     assert a.arb.owner("u") is None and a.applied == [("u", VelocityCommand(250, 0))]
     a.arb.submit("stick", VelocityCommand(250, 0), 1.0)  # the same value, given after
     assert a.arb.owner("u") == "stick" and len(a.applied) == 2
+
+
+def test_a_check_cut_off_by_its_deadline_is_not_verified_and_holds_the_unit() -> None:
+    """``DriveCheck.abandon``, ``if not self.finished`` → ``if self.finished`` (found by a
+    partial run over verify.py, docs/mutation.md): a check still reading a slow drive at
+    the deadline would never finish — the caller would fail instead of holding the unit."""
+    text = ONE_DRIVE.format(channel="gate-mutants-slow")
+    cfg = parse_config(text.replace("rate_hz: 2}}", "rate_hz: 2}, verify: refuse}"), "s.yaml")
+    assert cfg.units["left"].verify is VerifyMode.REFUSE
+
+    async def scenario() -> tuple[Verification, str | None]:
+        async with Runtime(cfg) as rt:
+            await verified(rt)
+            drive = rt.sims["b"].drives[1]
+            drive.faults = (Fault(FaultKind.TP_SLOW_DT, 0.0, 1e6, delay_ms=200.0),)
+            got = await verify_units(rt.supervisor, ["left"], deadline=0.3)
+            return got["left"], rt.supervisor.units["left"].verify.holds()
+
+    v, held = asyncio.run(scenario())
+    assert v.state is State.NOT_VERIFIED and v.reason == "no complete answer within 0.3 s"
+    assert held is not None and "could not be verified" in held
