@@ -18,6 +18,7 @@ from abh3_supervisor.core.verify import State, Verification, verify_units
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.stopping import CONFIRMED
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
 from tests.conftest import TWO_UNITS, Rig
 
@@ -345,3 +346,22 @@ def test_a_check_cut_off_by_its_deadline_is_not_verified_and_holds_the_unit() ->
     v, held = asyncio.run(scenario())
     assert v.state is State.NOT_VERIFIED and v.reason == "no complete answer within 0.3 s"
     assert held is not None and "could not be verified" in held
+
+
+def test_a_2021_drive_polling_no_broadcast_1_confirms_its_stop_when_asked() -> None:
+    """``_send_stop`` (found by a partial run over stopping.py, docs/mutation.md),
+    ``brd1_inputs is None`` → ``is not None`` and ``poll_frames[1]`` → ``[2]``: a 2021
+    drive whose mask polls no broadcast 1 would never be asked for the control word that
+    confirms its stop, and the way out would report it unconfirmed (exit 3)."""
+    text = ONE_DRIVE.format(channel="gate-mutants-stop").replace("mask: 0x7f", "mask: 0x01")
+    rt = Runtime(parse_config(text, "b.yaml"))
+
+    async def scenario() -> None:
+        async with rt:
+            await verified(rt)
+            sup = rt.supervisor
+            assert await sup.wait_exchange("left", sup.clock(), 2.0)
+            assert await sup.command("left", "SERVO ON ON") == ""
+
+    asyncio.run(scenario())
+    assert rt.stop_report == {"left": CONFIRMED}
