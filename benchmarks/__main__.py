@@ -11,7 +11,16 @@ import importlib.util
 import logging
 import statistics
 
-from benchmarks import attached, bursts, bus_model, cycle_timing, host_cpu, ros2_bridge, scale
+from benchmarks import (
+    attached,
+    bursts,
+    bus_model,
+    cycle_timing,
+    estop,
+    host_cpu,
+    ros2_bridge,
+    scale,
+)
 from benchmarks.report import Row, machine, print_rows
 
 COUNTS = [1, 4, 8, 16, 32]
@@ -378,6 +387,9 @@ def main(argv: list[str] | None = None) -> int:
             worst <= 1.5,
         )
     )
+
+    # 8. the e-stop does not wait for the schedule (issue 29 item 4)
+    rows += estop.rows(10 if a.quick else 50, runs)
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]
