@@ -231,3 +231,14 @@ def test_the_runtime_sends_the_estop_frame_at_once_without_plugins() -> None:
     extra, took = asyncio.run(scenario())
     assert extra == 2  # both commanded units' stop frames, at once
     assert took < 0.01
+
+
+def test_an_error_reset_admitted_on_a_held_unit_is_sent(rig: Rig) -> None:
+    """What a restricted unit is answered OK for goes out: an error reset moves nothing."""
+    lay = rig.sup.units["left"].layout
+    row = Row(0x4117, "750 ms", "drive_timeout_ms: 500", False)
+    rig.sup.units["left"].verify = Verification(State.MISMATCH, VerifyMode.REFUSE, rows=(row,))
+    rig.sup.restrict("left")
+    assert rig.sup.apply_text("left", "RESET ON ON") == ""
+    rig.run(0.1)
+    assert rig.drive("left").inputs & lay.error_reset and switches(rig) == 0

@@ -14,13 +14,14 @@ from abh3_supervisor.config.model import Fault, FaultKind, VerifyMode
 from abh3_supervisor.core.commands import RESPONSE_INVALID, VelocityCommand
 from abh3_supervisor.core.gate import MotionGate
 from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
-from abh3_supervisor.core.verify import State, Verification, verify_units
+from abh3_supervisor.core.verify import State, Verification
+from abh3_supervisor.core.verifying import verify_units
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
-from tests.conftest import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig
 
 SPEED_AY_0 = 0x5000
 ONE_DRIVE = """
@@ -74,22 +75,22 @@ def test_a_parameter_write_sends_the_safe_word_not_only_the_moving_switches_off(
     rig: Rig,
 ) -> None:
     """``stopping or written or …`` → ``stopping and written or …`` (restricted): a write
-    would leave switches that do not move the motor (here ERROR RESET) on the wire,
-    where the safe word has everything off but data select."""
+    would leave switches that do not move the motor (here the command polarity) on the
+    wire, where the safe word has everything off but data select (and an error reset)."""
     lay = rig.sup.units["left"].layout
-    rig.sup.set_inputs("left", lay.error_reset, lay.error_reset)
+    rig.sup.set_inputs("left", lay.reverse.both, lay.reverse.both)
     rig.run(0.1)
-    assert rig.drive("left").inputs & lay.error_reset
+    assert rig.drive("left").inputs & lay.reverse.both
     with rig.sup.param_write("left"):
         rig.run(0.1)
         told = rig.drive("left").inputs
-        assert told == lay.safe(told) and not told & lay.error_reset
+        assert told == lay.safe(told) and not told & lay.reverse.both
 
 
 def test_during_an_estop_harmless_bits_may_still_rise(rig: Rig) -> None:
     """``rising & moving`` → ``rising | moving`` (refuse_inputs): every rising bit would be
-    refused while latched, data select and ERROR RESET too. (On the wire the powered-off
-    e-stop sends the safe word, so the bit goes out once the e-stop is cleared.)"""
+    refused while latched, data select and ERROR RESET too. (An admitted error reset goes
+    out even once the e-stop has powered the unit off: the answer is the truth.)"""
     unit = rig.sup.units["left"]
     lay = unit.layout
     rig.sup.emergency_stop("test")

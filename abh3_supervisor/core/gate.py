@@ -173,8 +173,11 @@ class MotionGate:
         """The unit's command frame now. ``owned``: the source that set the unit's
         setpoint still owns the unit in the arbitration (core/inputs.py)."""
         layout, inputs, setpoint = unit.layout, unit.inputs, unit.setpoint
-        if self.restricted(unit):
+        if self.stopping:
             return Word(layout.safe(inputs), 0.0, 0.0, ControlMode.VELOCITY)
+        if self.restricted(unit):  # an error reset still goes: admitted, so it is sent
+            kept = layout.safe(inputs) | inputs & layout.error_reset
+            return Word(kept, 0.0, 0.0, ControlMode.VELOCITY)
         if self.estop is not None:  # stop category 1, first step: the drive's ramp to zero
             return Word(inputs & ~layout.start.both, 0.0, 0.0, setpoint.kind)
         if not owned:
