@@ -14,16 +14,13 @@ one is already off).
 
 from __future__ import annotations
 
-import queue
-import struct
-import threading
 import time
 from pathlib import Path
 
-import can
 import pytest
 
 from abh3_supervisor.clients.control import ControlClient
+from tests.support.can_observer import Observer
 from tests.support.served import Served
 from tests.support.wire_monitor import ESTOP_POWER_OFF_S, ESTOP_SLACK_S, WireMonitor
 
@@ -36,45 +33,14 @@ buses:
 units:
   - {{name: left, abh3_id: 1, command_rate_hz: 50}}
 """
-DP0_TO_LEFT = 0xEF << 16 | 1 << 8 | 2  # protocol doc §3.1: host 2 → drive 1
 SERVO, BRAKE = (1 << 0) | (1 << 12), 1 << 28  # 2021 input word (§5)
 QUIET_FRAMES = 20  # 0.4 s of 50 Hz frames unanswered before the e-stop
-
-
-class Observer:
-    """Every DP0 command to drive 1 on the channel, with the time it was seen."""
-
-    def __init__(self) -> None:
-        self.bus = can.Bus(interface="virtual", channel=CHANNEL)
-        self.frames: queue.Queue[tuple[float, int]] = queue.Queue()
-        self.done = threading.Event()
-        self.thread = threading.Thread(target=self._read, daemon=True)
-        self.thread.start()
-
-    def _read(self) -> None:
-        while not self.done.is_set():
-            msg = self.bus.recv(0.05)
-            if msg is not None and msg.arbitration_id & 0x3FFFFFF == DP0_TO_LEFT:
-                (word,) = struct.unpack_from("<I", bytes(msg.data), 4)
-                self.frames.put((time.time(), word))
-
-    def next_word(self, timeout: float) -> tuple[float, int]:
-        return self.frames.get(timeout=timeout)
-
-    def drain(self) -> None:
-        while not self.frames.empty():
-            self.frames.get_nowait()
-
-    def close(self) -> None:
-        self.done.set()
-        self.thread.join(2)
-        self.bus.shutdown()
 
 
 def test_estop_powers_off_a_drive_that_went_quiet_within_the_bound(
     tmp_path: Path, wire: WireMonitor
 ) -> None:
-    observer = Observer()
+    observer = Observer(CHANNEL)
     try:
         with Served(tmp_path, CONFIG) as served:
             client = ControlClient(served.path)
