@@ -428,6 +428,8 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
         check_format(args.record)
     config = load_config(args.config)
     plugins = _plugins(config)
+    if args.record is not None:  # onto a plugin's own file: exit 2, before anything opens
+        plugins.refuse_recording_onto_an_output(args.record, config.units)
     plans = plan(config)
     refused = overloads(config, plans)
     if refused:  # the same lines `abh3 check` prints

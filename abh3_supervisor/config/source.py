@@ -59,6 +59,9 @@ class Source:
     problems: list[str] = field(default_factory=list)
     # the units the document declares, once known: plugin sections may name only these
     unit_names: tuple[str, ...] = ()
+    # the files plugins will write ({unit} unexpanded), each with where it is set
+    # (file:line: key), so a --record onto one of them is refused before anything opens
+    outputs: list[tuple[str, str]] = field(default_factory=list)
 
     def line(self, path: Path) -> int:
         while path not in self.lines and path:
@@ -346,6 +349,8 @@ class Section:
         problem = _unwritable(path)
         if problem:
             self.error(key, f"{text!r}: {problem}")
+        where = (*self.path, key)
+        self.src.outputs.append((text, f"{self.src.file}:{self.src.line(where)}: {dotted(where)}"))
         return text
 
     def choice(self, key: str, default: str, choices: list[str]) -> str:

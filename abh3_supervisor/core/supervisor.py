@@ -133,6 +133,9 @@ class Supervisor:
         # per bus: step the scheduler now (set by the runtime; absent on a fake clock)
         self.wakers: dict[str, Callable[[], None]] = {}
         self._send_now: dict[str, Callable[[str], None]] = {}  # see senders()
+        # set by the runtime: call a function at a loop time (the e-stop's power-off
+        # deadline, kept whatever the buses do); absent on a fake clock (dispatch checks)
+        self.call_at: Callable[[float, Callable[[], None]], object] | None = None
         self._throttle = Throttle(1.0)
         self._last_clamped = False
         for unit in self.units.values():
@@ -628,7 +631,10 @@ class Supervisor:
         off now (each unit's stop frame is sent at once), SERVO and brake release off once
         the drive reports it stopped (:mod:`.gate`). Whoever drove a unit loses it."""
         now = self.clock()
+        first = self.gate.estop is None
         self.gate.latch(now)  # a second e-stop keeps the first one's time
+        if first and self.call_at is not None:
+            self.call_at(now + ESTOP_POWER_OFF_S, self._estop_deadline)
         for unit in self._commanded():
             self.arbiter.hold(unit.name)
             unit.inputs &= ~unit.layout.start.both
@@ -648,6 +654,8 @@ class Supervisor:
         voided again); START, SERVO and motion must be given anew."""
         if self.gate.estop is None:
             return
+        for unit in self._commanded():  # not powered off yet: SERVO and brake go now too
+            self._power_off(unit)
         self.gate.clear()
         for unit in self._commanded():
             self.arbiter.hold(unit.name)
@@ -655,10 +663,21 @@ class Supervisor:
         self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
 
     def _power_off(self, unit: UnitState) -> None:
-        """The e-stop's second step: SERVO and brake release off (forgotten, not masked)."""
+        """The e-stop's second step: SERVO and brake release off (forgotten, not masked),
+        the frame sent at once (an offline unit's next one may be a timeout away)."""
         if self.gate.power_off(unit.name):
             unit.inputs &= ~moving_switches(unit.layout)
             self._push(unit)
+            send = self._send_now.get(unit.cfg.bus)
+            if send is not None:
+                send(unit.name)
+
+    def _estop_deadline(self) -> None:
+        """ESTOP_POWER_OFF_S after the e-stop: every unit not powered off yet is, now."""
+        estop = self.gate.estop
+        if estop is not None and self.clock() >= estop.t + ESTOP_POWER_OFF_S - 1e-3:
+            for unit in self._commanded():
+                self._power_off(unit)
 
     def _estop_progress(self, unit: UnitState, event: FeedbackEvent) -> None:
         """A drive's answer to a frame sent after the e-stop that says it has stopped."""

@@ -19,8 +19,9 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 from typing import Any, cast
 
 import pluggy
@@ -30,7 +31,7 @@ from abh3_supervisor.config.schema import ON_ERROR_VALUES
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
 from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
-from abh3_supervisor.errors import ConfigError, PluginError
+from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError
 from abh3_supervisor.plugin_host import hookspecs
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
@@ -127,6 +128,7 @@ class PluginHost:
         self.thread_setup: Callable[[], None] = lambda: None
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self.outputs: list[tuple[str, str]] = []  # (file, where it is set) plugins write
         self._load(config, installed() if available is None else available)
 
     # ------------------------------------------------------------ loading
@@ -151,6 +153,19 @@ class PluginHost:
             if self.pm.get_plugin(name) is not None:
                 self._configure(name, config, src)
         src.raise_if_problems()
+        self.outputs = list(src.outputs)  # what the plugins will write, and where it is set
+
+    def refuse_recording_onto_an_output(self, record: Path, units: Iterable[str]) -> None:
+        """:class:`Abh3Error` if ``--record`` names a file a plugin writes: two writers
+        would interleave in it (the recording that should hold the stop frames too)."""
+        target = record.resolve()
+        for text, where in self.outputs:
+            names = units if "{unit}" in text else ("",)
+            if any(Path(text.replace("{unit}", n)).resolve() == target for n in names):
+                raise Abh3Error(
+                    f"--record {record}: {where} writes that file too; two writers would "
+                    "interleave in it: give the recording another name"
+                )
 
     def _configure(self, name: str, config: Config, src: Source) -> None:
         """The plugin checks its own section (keys with section.only(...)); whatever it

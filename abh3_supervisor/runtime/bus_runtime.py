@@ -167,6 +167,7 @@ class Runtime:
             self._recorder = open_recorder(self.record, self.config)
             self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
         self.supervisor = Supervisor(self.config, clock=loop.time)
+        self.supervisor.call_at = loop.call_at
         self._arbitrate(loop)
         attach = getattr(self._recorder.writer if self._recorder else None, "attach", None)
         if self._recorder is not None and attach is not None:  # decoded values too (MCAP)

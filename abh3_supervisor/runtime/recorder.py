@@ -124,16 +124,20 @@ def known_formats() -> str:
 
 
 def check_format(path: Path) -> None:
-    """``--record``'s extension names a format we can write: asked before anything opens
-    (a bus, a file), so a typo is exit 2 with nothing started (:class:`Abh3Error`)."""
+    """``--record`` names a format we can write, in a folder that takes it: asked before
+    anything opens (a bus, a file), so a typo is exit 2 with nothing started
+    (:class:`Abh3Error`)."""
     suffixes = [s.lower() for s in path.suffixes[-2:]]
     suffix = suffixes[-1] if suffixes else ""
-    if suffix in OURS or suffix in can.io.logger.MESSAGE_WRITERS:
-        return
-    if suffix == ".gz" and len(suffixes) == 2 and suffixes[0] in GZIPPED:
-        return
-    said = f"'{suffix}'" if suffix else "no extension"
-    raise Abh3Error(f"--record {path}: {said} is not a recording format; use {known_formats()}")
+    known = suffix in OURS or suffix in can.io.logger.MESSAGE_WRITERS
+    if not known and not (suffix == ".gz" and len(suffixes) == 2 and suffixes[0] in GZIPPED):
+        said = f"'{suffix}'" if suffix else "no extension"
+        raise Abh3Error(f"--record {path}: {said} is not a recording format; use {known_formats()}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise Abh3Error(f"--record {path}: there is no folder {folder}: create it first")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise Abh3Error(f"--record {path}: cannot write in {folder} (permission denied)")
 
 
 def _writer(path: Path) -> can.Listener:

@@ -45,7 +45,7 @@ from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.inputs import CommandOutcome, InputFeed, InputSource, Motion, execute
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.core.text import clean
-from abh3_supervisor.errors import CommandError
+from abh3_supervisor.errors import Abh3Error, CommandError
 from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.terminal import KeyInput
 from abh3_supervisor.scheduler.core import HealthEvent
@@ -90,6 +90,14 @@ def preflight(options: ServiceOptions) -> dict[Path, socket.socket]:
     """The sockets bound, before any drive is commanded: whatever about them can fail
     fails here (exit 2 for a path that cannot be served). Each is handed to its
     :class:`ControlServer`; :func:`release` what was not."""
+    read_only = options.read_only_path
+    if read_only is not None and read_only.resolve() == options.path.resolve():
+        # one file cannot be both: the read-only server would take the control socket's
+        # place (no e-stop, no command through it), or the second bind would fail late
+        raise Abh3Error(
+            f"--read-only-socket {read_only}: that is the control socket's own file "
+            f"(--socket {options.path}); give the read-only socket a path of its own"
+        )
     gid = paths.group_id(options.group)
     bound = {options.path: paths.bind(options.path, gid)}
     if options.read_only_path is not None:
