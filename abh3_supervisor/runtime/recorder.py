@@ -135,9 +135,9 @@ def check_format(path: Path) -> None:
         raise Abh3Error(f"--record {path}: {said} is not a recording format; use {known_formats()}")
     folder = path.parent
     if not folder.is_dir():
-        raise Abh3Error(f"--record {path}: there is no folder {folder}: create it first")
+        raise Abh3Error(f"--record {path}: cannot write: there is no folder {folder}")
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise Abh3Error(f"--record {path}: cannot write in {folder} (permission denied)")
+        raise Abh3Error(f"--record {path}: cannot write: {folder}: permission denied")
 
 
 def _writer(path: Path) -> can.Listener:
