@@ -484,7 +484,10 @@ class SupervisorApp(App[None]):
             return
         self.sup.estop = True  # confirmed: shown at once, the next state says it too
         self.refresh_view()
-        self.say("EMERGENCY STOP latched: every unit zero, START off — E (shift+e) to clear")
+        self.say(
+            "EMERGENCY STOP latched: every unit zero, START off, then SERVO and brake off "
+            "once stopped — E (shift+e) to clear"
+        )
         self.audit("key e-stop: EMERGENCY STOP")
 
     def action_clear_estop(self) -> None:
