@@ -416,7 +416,8 @@ class InputArbiter:
                     self.current[unit] = None  # refused: not the unit's command
             elif previous is not None:
                 self.apply(unit, ZERO)  # silence or release means zero (velocity or current)
-            self._changed(unit)  # once the unit has it (a refusal leaves it with nobody)
+            if self.owner(unit) != (previous[0] if previous is not None else None):
+                self._changed(unit)  # once the unit has it (a refusal leaves it with nobody)
         for state in self.sources.values():
             if state.command is not None and not state.fresh(now):
                 state.command = None  # expired: forget it, so a late deadline is not kept

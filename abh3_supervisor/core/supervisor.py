@@ -134,10 +134,9 @@ class Supervisor:
         self.wakers: dict[str, Callable[[], None]] = {}
         self._send_now: dict[str, Callable[[str], None]] = {}  # see senders()
         # set by the runtime: call a function at a loop time (the e-stop's power-off
-        # deadline, kept whatever the buses do); absent on a fake clock (dispatch checks)
+        # deadline, kept whatever the buses do); a fake-clock rig sets its own
         self.call_at: Callable[[float, Callable[[], None]], object] | None = None
         self._throttle = Throttle(1.0)
-        self._last_clamped = False
         for unit in self.units.values():
             self._push(unit)
 
@@ -169,14 +168,6 @@ class Supervisor:
         for event in self.schedulers[bus].drain_events():
             self._apply(event)
             self._emit(event)
-        now = self.clock()
-        estop = self.gate.estop
-        if estop is not None and now >= estop.t + ESTOP_POWER_OFF_S:
-            for unit in self._commanded():  # the drive did not say it stopped: power off now
-                if unit.cfg.bus == bus:
-                    self._power_off(unit)
-        if now >= self.arbiter.next_deadline():  # without a timer (a fake clock): expire here
-            self.arbiter.poll(now)
         health = self.bus_health[bus]
         for change in health.drain() if health.changes else ():
             bad = change.new is not BusState.OK
@@ -358,7 +349,6 @@ class Supervisor:
             self.arbiter.add(_Api(owner, (name,), timeout=timeout))
         if self.arbiter.closed:
             raise CommandError("the supervisor is stopping: commands are refused")
-        self._last_clamped = False
         self.arbiter.submit(owner, command, self.clock(), standing=standing)
         if unit.setpoint.owner != owner and (ay or bx):
             holder = self.arbiter.owner(name)
@@ -367,7 +357,8 @@ class Supervisor:
                 if holder is not None and holder != owner
                 else f"unit '{name}' did not take the command (see the notices)"
             )
-        return SetResult(unit.setpoint.ay, unit.setpoint.bx, self._last_clamped)
+        clamped = _limited(unit, ay, bx, kind)[2] is not None  # as _set found it
+        return SetResult(unit.setpoint.ay, unit.setpoint.bx, clamped)
 
     def _target(self, unit: UnitState, command: InputCommand) -> tuple[float, float, ControlMode]:
         """The AY/BX values ``command`` asks of ``unit`` in its model, and their kind."""
@@ -462,7 +453,6 @@ class Supervisor:
     ) -> None:
         self._check(unit, ay, bx, kind)
         ay, bx, note = _limited(unit, ay, bx, kind)
-        self._last_clamped = note is not None
         if note is not None:  # a stream beyond the limit (a joystick) says it once a second
             held = self._throttle.allow((unit.name, "clamped"), self.clock())
             if held is not None:
@@ -639,9 +629,7 @@ class Supervisor:
             self.arbiter.hold(unit.name)
             unit.inputs &= ~unit.layout.start.both
             self._zero(unit)
-            send = self._send_now.get(unit.cfg.bus)
-            if send is not None:
-                send(unit.name)
+            self._send_at_once(unit)
         self.notice(
             None,
             logging.CRITICAL,
@@ -668,9 +656,13 @@ class Supervisor:
         if self.gate.power_off(unit.name):
             unit.inputs &= ~moving_switches(unit.layout)
             self._push(unit)
-            send = self._send_now.get(unit.cfg.bus)
-            if send is not None:
-                send(unit.name)
+            self._send_at_once(unit)
+
+    def _send_at_once(self, unit: UnitState) -> None:
+        """``unit``'s frame as just pushed, on the wire now, outside its schedule."""
+        send = self._send_now.get(unit.cfg.bus)
+        if send is not None:
+            send(unit.name)
 
     def _estop_deadline(self) -> None:
         """ESTOP_POWER_OFF_S after the e-stop: every unit not powered off yet is, now."""
@@ -710,10 +702,7 @@ class Supervisor:
             return
         with self.gate.writing(unit):
             self.restrict(name)
-            # the safe word on the wire before any write frame, not at the next period
-            send = self._send_now.get(unit.cfg.bus)
-            if send is not None:
-                send(name)
+            self._send_at_once(unit)  # the safe word before any write frame
             try:
                 yield
             finally:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 from abh3_supervisor.config import Config
 from abh3_supervisor.core.inputs import InputFeed, InputSource
@@ -34,6 +35,7 @@ class Rig:
         self.scheduler = self.sup.schedulers[bus]
         self.timeline.add(self.scheduler, after_step=lambda: self.sup.dispatch(bus))
         self.timeline.add(self.sim)
+        self.timeline.add(Clockwork(self.sup))
         self.events: list[object] = []
         self.sup.subscribe(self.events.append)
         for unit in config.units:  # the test is the operator: its API commands stand
@@ -65,3 +67,38 @@ class _TestSource(InputSource):
 
     def stop(self) -> None:
         pass
+
+
+class Clockwork:
+    """The runtime's timers on the fake clock: the arbitration expired at its deadline
+    (``Runtime._arbitrate``), the supervisor's ``call_at`` calls run when due (the
+    e-stop's power-off deadline)."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        self.sup = sup
+        self.calls: list[tuple[float, Callable[[], None]]] = []
+        sup.call_at = self.at
+
+    def at(self, when: float, fn: Callable[[], None]) -> None:
+        self.calls.append((when, fn))
+
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        pass
+
+    def on_send_failed(self, arbitration_id: int) -> None:
+        pass
+
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        pass
+
+    def poll(self, now: float) -> list[tuple[int, bytes]]:
+        due = [fn for when, fn in self.calls if when <= now]
+        self.calls = [(when, fn) for when, fn in self.calls if when > now]
+        for fn in due:
+            fn()
+        if now >= self.sup.arbiter.next_deadline():
+            self.sup.arbiter.poll(now)
+        return []
+
+    def next_deadline(self) -> float:
+        return min([self.sup.arbiter.next_deadline(), *(when for when, _ in self.calls)])
