@@ -22,7 +22,7 @@ import yaml
 
 from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.schema import config_schema
-from abh3_supervisor.config import parse
+from abh3_supervisor.config import parse, robots
 from abh3_supervisor.config.parse import parse_config
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import GROUP, PluginHost, section_schemas
@@ -147,6 +147,10 @@ def test_the_schema_names_exactly_the_loaders_keys() -> None:
     assert set(unit["geometry"]["properties"]) == parse.GEOMETRY_KEYS
     assert set(unit["limits"]["properties"]) == parse.LIMIT_KEYS
     assert set(unit["data_select"]["properties"]) == parse.SELECT_KEYS
+    robot = props["robots"]["items"]["properties"]
+    assert set(robot) == robots.ROBOT_KEYS
+    assert set(robot["wheels"]["items"]["properties"]) == robots.WHEEL_KEYS
+    assert set(robot["limits"]["properties"]) == robots.ROBOT_LIMIT_KEYS
 
 
 @pytest.mark.parametrize("plugin", ["csv", "keyboard", "joystick", "ros2"])

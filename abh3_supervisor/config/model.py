@@ -8,6 +8,7 @@ from typing import Any
 
 from abh3_supervisor.config.source import Source
 from abh3_supervisor.core.kinematics import Geometry
+from abh3_supervisor.core.robot import RobotConfig, from_geometry
 from abh3_supervisor.params.telabh3 import TelFormat
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
@@ -192,6 +193,32 @@ class Config:
     source: Source | None = field(default=None, compare=False, repr=False)
     # the YAML as read: a client of the control socket rebuilds this same Config from it
     text: str = field(default="", compare=False, repr=False)
+    # the robots the file declares (``robots:``); every commanded unit not a wheel of one
+    # is a one-drive robot of its own, named after it, from its ``geometry`` (added here)
+    declared_robots: dict[str, RobotConfig] = field(default_factory=dict)
+    # the declared robots whose units are all here, then the one-drive robots
+    robots: dict[str, RobotConfig] = field(default_factory=dict, init=False, compare=False)
+    _by_unit: dict[str, RobotConfig] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
+
+    def __post_init__(self) -> None:
+        for name, robot in self.declared_robots.items():
+            if all(u in self.units for u in robot.units):
+                self.robots[name] = robot
+        wheels_of = {u for r in self.robots.values() for u in r.units}
+        for unit in self.units.values():
+            if unit.role is Role.COMMAND and unit.name not in wheels_of:
+                self.robots.setdefault(unit.name, from_geometry(unit.name, unit.geometry))
+        self._by_unit.update((u, r) for r in self.robots.values() for u in r.units)
 
     def units_on(self, bus: str) -> list[UnitConfig]:
         return [u for u in self.units.values() if u.bus == bus]
+
+    def robot_of(self, unit: str) -> RobotConfig | None:
+        """The robot ``unit`` is a wheel drive of; None for a monitor unit."""
+        return self._by_unit.get(unit)
+
+    def robot(self, name: str) -> RobotConfig | None:
+        """The robot called ``name``, or the robot of the unit called ``name``."""
+        return self.robots.get(name) or self.robot_of(name)

@@ -20,6 +20,7 @@ from abh3_supervisor.config.model import (
     VelocityModel,
     VerifyMode,
 )
+from abh3_supervisor.config.robots import RADIUS_KEYS, parse_robots, radius_keys
 from abh3_supervisor.config.simdrives import (
     TAU_MAX_MS,
     check_sim_units,
@@ -39,7 +40,7 @@ from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 BITRATES = (250_000, 500_000, 1_000_000)  # what the ABH3 supports (§1)
 
-TOP_KEYS = {"buses", "units", "plugins"}
+TOP_KEYS = {"buses", "units", "robots", "plugins"}
 BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options"}
 BUS_ARGUMENTS = {"interface", "channel", "bitrate"}  # can.Bus(...) takes them from the bus
 SIM_KEYS = {
@@ -102,6 +103,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     units = _units(top, buses)
     check_fault_units(top, buses, units)
     check_sim_units(top, buses, units)
+    robots = parse_robots(top, units, NAME)
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     src.raise_if_problems()
@@ -113,6 +115,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
         plugin_lines={name: src.line(("plugins", name)) for name, _ in plugins.items()},
         source=src,
         text=text,
+        declared_robots=robots,
     )
     _dry_run_startup(src, config)
     src.raise_if_problems()
@@ -286,7 +289,8 @@ def _unit(u: Section, buses: dict[str, BusConfig]) -> UnitConfig | None:
         bus = ""
     d = UnitConfig(name=name, bus=bus)
     b = u.sub("broadcast", BROADCAST_KEYS)
-    g = u.sub("geometry", GEOMETRY_KEYS)
+    g = u.sub("geometry", GEOMETRY_KEYS | RADIUS_KEYS)
+    radius_keys(g, "wheel")
     lim = u.sub("limits", LIMIT_KEYS)
     sel = u.sub("data_select", SELECT_KEYS)
     tel = u.sub("telabh3", TELABH3_KEYS)

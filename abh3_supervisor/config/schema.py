@@ -23,7 +23,9 @@ from abh3_supervisor.config.model import (
     VelocityModel,
     VerifyMode,
 )
+from abh3_supervisor.config.robots import DIAMETER_MAX_M
 from abh3_supervisor.config.source import MAX_BYTES
+from abh3_supervisor.core.robot import AXES, Side
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.protocol.ids import MAX_ADDRESS
@@ -283,6 +285,52 @@ def _unit() -> Schema:
     )
 
 
+def _robot() -> Schema:
+    diameter = number(0.001, DIAMETER_MAX_M, "the wheel's DIAMETER [m] (not its radius)")
+    gear = number(1e-6, 1e6, "motor revolutions per wheel revolution (10:1 → 10)", lo_open=True)
+    pulses = number(0, 1e9, "encoder pulses per motor revolution; 0: unknown", 0.0)
+    wheel = mapping(
+        {
+            "unit": text("a declared commanded unit"),
+            "axis": choice(list(AXES), "the unit's axis this wheel's motor is on"),
+            "side": choice([s.value for s in Side], "the robot's side this wheel is on"),
+            "sign": {
+                "enum": [1, -1],
+                "default": 1,
+                "description": "1: the motor forward rolls the robot forward; -1: mirrored",
+            },
+            "diameter_m": diameter,
+            "gear_ratio": gear,
+            "pulses_per_rev": pulses,
+        },
+        required=("unit", "axis", "side"),
+    )
+    limit = "the robot's limit; a twist beyond it is scaled down, path kept"
+    return mapping(
+        {
+            "name": {"type": "string", "pattern": NAME_PATTERN, "description": "unique"},
+            "track_m": number(
+                0.001, 100, "distance between left and right wheels [m]", lo_open=True
+            ),
+            "wheels": {"type": "array", "minItems": 2, "items": wheel},
+            "limits": mapping(
+                {
+                    "linear_mps": number(0, 1e3, f"[m/s] {limit}", lo_open=True),
+                    "angular_radps": number(0, 1e3, f"[rad/s] {limit}", lo_open=True),
+                    "linear_accel_mps2": number(0, 1e3, "[m/s²] speeding up", lo_open=True),
+                    "angular_accel_radps2": number(0, 1e3, "[rad/s²] speeding up", lo_open=True),
+                }
+            ),
+            "frame_id": text("the odometry's frame", "odom"),
+            "child_frame_id": text("the robot's body frame", "base_link"),
+            "diameter_m": diameter,
+            "gear_ratio": _doc(dict(gear), "", 1.0),
+            "pulses_per_rev": pulses,
+        },
+        required=("name", "track_m", "wheels"),
+    )
+
+
 ON_ERROR_VALUES = ("continue", "stop")  # every plugin section's on_error (plugin_host)
 ON_ERROR = choice(
     list(ON_ERROR_VALUES), "what a failing output (disk full) does to the run", "continue"
@@ -319,6 +367,12 @@ def document(plugins: dict[str, Schema]) -> Schema:
                 "additionalProperties": _bus(),
             },
             "units": {"type": "array", "minItems": 1, "items": _unit()},
+            "robots": {
+                "type": "array",
+                "minItems": 1,
+                "items": _robot(),
+                "description": "robots made of wheels on any units' axes (docs/robots.md)",
+            },
             "plugins": {
                 "type": ["object", "null"],
                 "properties": plugins,

@@ -313,6 +313,8 @@ class InputArbiter:
     superseded: dict[str, float] = field(default_factory=dict)
     # told each unit whose owner changed (taken over, let go, held): a client says so at once
     watchers: list[Callable[[str], None]] = field(default_factory=list)
+    # unit → the units decided with it, its robot's (config.robot_of); absent: alone
+    domains: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     def add(self, source: InputSource) -> None:
         self.sources[source.name] = _SourceState(
@@ -360,10 +362,15 @@ class InputArbiter:
     def hold(self, unit: str) -> None:
         """The unit stopped (a gap, offline, the e-stop, a hold, a parameter write): only a
         command submitted after this call may move it again; a value that was fresh before
-        is never resumed. The caller zeroes the unit."""
-        self.held[unit] = self.submissions
-        self.current[unit] = None
-        self._changed(unit)
+        is never resumed. The whole robot of the unit stops with it; the caller zeroes the
+        unit (the Supervisor zeroes the rest of its robot)."""
+        for member in self.domain(unit):
+            had = self.current.get(member)
+            self.held[member] = self.submissions
+            self.current[member] = None
+            if member != unit and had is not None:
+                self.apply(member, ZERO)
+            self._changed(member)
 
     def _changed(self, unit: str) -> None:
         for watch in self.watchers:
@@ -380,44 +387,76 @@ class InputArbiter:
             default=math.inf,
         )
 
+    def domain(self, unit: str) -> tuple[str, ...]:
+        """The units decided together with ``unit``: its robot's (one unit if alone)."""
+        return self.domains.get(unit, (unit,))
+
     def _decide(self, units: tuple[str, ...], now: float) -> None:
+        done: set[str] = set()
         for unit in units:
-            since = self.held.get(unit, 0)
-            replaced = self.superseded.get(unit, -math.inf)
-            candidates = [
-                s
-                for s in self.sources.values()
-                if unit in s.units
-                and s.fresh(now)
-                and s.seq > since
-                and not (s.standing and s.heard < replaced)
-            ]
-            if candidates:
-                best = max(candidates, key=lambda s: (s.priority, s.heard))
-                assert best.command is not None
-                chosen: tuple[str, InputCommand] | None = (best.name, best.command)
-            else:
-                chosen = None
-            previous = self.current.get(unit)
-            if chosen == previous:
-                continue
-            if previous is not None and (chosen is None or chosen[0] != previous[0]):
-                owner = self.sources.get(previous[0])
-                if owner is None or not owner.fresh(now):
-                    # the owner of the active setpoint left (silence, release, gone): a
-                    # standing command given before now was replaced and never comes back
+            if unit not in done:
+                domain = self.domain(unit)
+                done.update(domain)
+                self._decide_domain(domain, now)
+        self._expire(now)
+
+    def _decide_domain(self, domain: tuple[str, ...], now: float, *, again: bool = False) -> None:
+        """One winner for the whole robot: its twist drives every unit of it; any other
+        command drives the units its source targets and the rest of the robot gets zero,
+        so a robot never has two owners. All or nothing: a unit that refuses stops the
+        robot. ``again``: apply the winner's commands anew (a ramp's next step)."""
+        since = max(self.held.get(u, 0) for u in domain)
+        replaced = max(self.superseded.get(u, -math.inf) for u in domain)
+        candidates = [
+            s
+            for s in self.sources.values()
+            if any(u in s.units for u in domain)
+            and s.fresh(now)
+            and s.seq > since
+            and not (s.standing and s.heard < replaced)
+        ]
+        best = max(candidates, key=lambda s: (s.priority, s.heard)) if candidates else None
+        previous = next((c[0] for u in domain if (c := self.current.get(u)) is not None), None)
+        if previous is not None and (best is None or best.name != previous):
+            owner = self.sources.get(previous)
+            if owner is None or not owner.fresh(now):
+                # the owner of the active setpoint left (silence, release, gone): a
+                # standing command given before now was replaced and never comes back
+                for unit in domain:
                     self.superseded[unit] = now
-                    taker = self.sources[chosen[0]] if chosen is not None else None
-                    if taker is not None and taker.standing and taker.heard < now:
-                        chosen = None
+                if best is not None and best.standing and best.heard < now:
+                    best = None
+        wanted = {u: _share(best, u) for u in domain}
+        if not again and all(wanted[u] == self.current.get(u) for u in domain):
+            return
+        before = {u: self.owner(u) for u in domain}
+        refused = False
+        for unit in domain:
+            chosen, had = wanted[unit], self.current.get(unit)
+            if chosen == had and not again:
+                continue
             self.current[unit] = chosen
             if chosen is not None:
-                if self.apply(unit, chosen[1]) is False:
-                    self.current[unit] = None  # refused: not the unit's command
-            elif previous is not None:
+                if self.apply(unit, chosen[1]) is False:  # refused: not the unit's command
+                    self.current[unit] = None
+                    refused = True
+                    break
+            elif had is not None:
                 self.apply(unit, ZERO)  # silence or release means zero (velocity or current)
-            if self.owner(unit) != (previous[0] if previous is not None else None):
+        if refused:  # the robot moves whole or not at all
+            for unit in domain:
+                if self.current.get(unit) is not None:
+                    self.current[unit] = None
+                    self.apply(unit, ZERO)
+        for unit in domain:
+            if self.owner(unit) != before[unit]:
                 self._changed(unit)  # once the unit has it (a refusal leaves it with nobody)
+
+    def again(self, unit: str) -> None:
+        """Apply ``unit``'s robot's winning commands anew (a twist's ramp steps on)."""
+        self._decide_domain(self.domain(unit), self.clock(), again=True)
+
+    def _expire(self, now: float) -> None:
         for state in self.sources.values():
             if state.command is not None and not state.fresh(now):
                 state.command = None  # expired: forget it, so a late deadline is not kept
@@ -425,3 +464,13 @@ class InputArbiter:
                     self.on_lapse(state.name)
         if self.on_change is not None:
             self.on_change()
+
+
+def _share(best: _SourceState | None, unit: str) -> tuple[str, InputCommand] | None:
+    """What the robot's winner gives ``unit``: its twist (to the whole robot), its other
+    commands to the units it targets; None (zero) to the rest."""
+    if best is None or best.command is None:
+        return None
+    if isinstance(best.command, Twist) or unit in best.units:
+        return best.name, best.command
+    return None

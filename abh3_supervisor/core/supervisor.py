@@ -35,7 +35,9 @@ from abh3_supervisor.core.inputs import (
     Twist,
     VelocityYX,
 )
-from abh3_supervisor.core.kinematics import ab_to_yx, twist_to_yx, yx_to_ab
+from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.core.robot_motion import RobotMotion
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.core.throttle import Throttle, held_note
@@ -125,6 +127,14 @@ class Supervisor:
         self.gate = MotionGate()
         # who owns each unit's motion (core/inputs.py): every setpoint is a source's
         self.arbiter = InputArbiter(apply=self._arbitrated, clock=clock)
+        # each robot's twist, decided once for all its drives (core/robot_motion.py)
+        self.robots = {
+            name: RobotMotion(robot, config.units) for name, robot in config.robots.items()
+        }
+        self._robot_of = {u: self.robots[r.name] for r in config.robots.values() for u in r.units}
+        self.arbiter.domains = {
+            u: r.units for r in config.robots.values() if len(r.units) > 1 for u in r.units
+        }
         self.arbiter.on_lapse = lambda name: self.notice(
             None,
             logging.WARNING,
@@ -314,10 +324,26 @@ class Supervisor:
     def set_twist(
         self, name: str, linear_x: float, angular_z: float, *, source: str | None = None
     ) -> SetResult:
-        """Robot twist [m/s, rad/s] through the unit's geometry."""
-        self._commandable(name)
+        """Robot twist [m/s, rad/s] to the robot ``name`` (or the robot of the unit
+        ``name``): every drive of it at once. The result is the named unit's (the robot's
+        first unit when a robot is named)."""
+        robot = self.robot(name)
+        for unit in robot.units:
+            self._commandable(unit)
         _finite(linear_x, angular_z)
-        return self._submit(name, Twist(linear_x, angular_z), source)
+        first = name if name in robot.units else robot.units[0]
+        owner = source if source is not None else f"{API_SOURCE}:{robot.name}"
+        return self._submit(first, Twist(linear_x, angular_z), owner, units=robot.units)
+
+    def robot(self, name: str) -> RobotConfig:
+        """The robot called ``name``, or the robot of the unit called ``name``."""
+        robot = self.config.robot(name)
+        if robot is None:
+            known = ", ".join(self.config.robots) or "none"
+            raise CommandError(
+                f"no robot named '{name}' and no commanded unit of one (robots: {known})"
+            )
+        return robot
 
     def set_current(
         self, name: str, ay: float, bx: float, *, source: str | None = None
@@ -335,43 +361,66 @@ class Supervisor:
         self._zero(unit)
 
     def _submit(
-        self, name: str, command: InputCommand, source: str | None, *, standing: bool = False
+        self,
+        name: str,
+        command: InputCommand,
+        source: str | None,
+        *,
+        standing: bool = False,
+        units: tuple[str, ...] = (),
     ) -> SetResult:
-        """``command`` as ``source``'s (default ``api:<name>``, streamed) in the arbitration;
-        refused (raised) if the unit cannot take it now, or if another source owns it."""
-        unit = self.unit(name)
-        ay, bx, kind = self._target(unit, command)
-        self._check(unit, ay, bx, kind)  # the caller hears a refusal, not a notice
+        """``command`` as ``source``'s (default ``api:<name>``, streamed) in the arbitration,
+        for ``units`` (default: ``name``); refused (raised) if a unit cannot take it now,
+        or if another source owns it. The result is ``name``'s."""
+        targets = units or (name,)
+        wanted = {}
+        for target in targets:  # the caller hears a refusal, not a notice
+            state = self.unit(target)
+            wanted[target] = self._target(state, command, preview=True)
+            self._check(state, *wanted[target])
         owner = source if source is not None else f"{API_SOURCE}:{name}"
         if owner not in self.arbiter.sources:
             # the start-up's motion stands for the whole run; the API's is streamed
             timeout = math.inf if owner.startswith(STARTUP_SOURCE) else DEFAULT_TIMEOUT
-            self.arbiter.add(_Api(owner, (name,), timeout=timeout))
+            self.arbiter.add(_Api(owner, targets, timeout=timeout))
         if self.arbiter.closed:
             raise CommandError("the supervisor is stopping: commands are refused")
         self.arbiter.submit(owner, command, self.clock(), standing=standing)
-        if unit.setpoint.owner != owner and (ay or bx):
-            holder = self.arbiter.owner(name)
-            raise CommandError(
-                f"unit '{name}' is driven by input {holder}: not applied"
-                if holder is not None and holder != owner
-                else f"unit '{name}' did not take the command (see the notices)"
-            )
+        for target in targets:
+            ay, bx, _ = wanted[target]
+            if self.units[target].setpoint.owner != owner and (ay or bx):
+                holder = self.arbiter.owner(target)
+                raise CommandError(
+                    f"unit '{target}' is driven by input {holder}: not applied"
+                    if holder is not None and holder != owner
+                    else f"unit '{target}' did not take the command (see the notices)"
+                )
+        unit = self.units[name]
+        ay, bx, kind = wanted[name]
         clamped = _limited(unit, ay, bx, kind)[2] is not None  # as _set found it
+        if isinstance(command, Twist):
+            plan = self._robot_of[name].last
+            clamped = plan is not None and plan.note is not None
         return SetResult(unit.setpoint.ay, unit.setpoint.bx, clamped)
 
-    def _target(self, unit: UnitState, command: InputCommand) -> tuple[float, float, ControlMode]:
-        """The AY/BX values ``command`` asks of ``unit`` in its model, and their kind."""
+    def _target(
+        self, unit: UnitState, command: InputCommand, *, preview: bool = False
+    ) -> tuple[float, float, ControlMode]:
+        """The AY/BX values ``command`` asks of ``unit`` in its model, and their kind
+        (``preview``: a twist as asked, its robot's plan left as it is)."""
         if isinstance(command, Stop):
             return 0.0, 0.0, unit.setpoint.kind
         if isinstance(command, CurrentCommand):
             return command.ay, command.bx, ControlMode.CURRENT
         if isinstance(command, VelocityCommand):
             return command.ay, command.bx, ControlMode.VELOCITY
-        if isinstance(command, Twist):
-            y, x = twist_to_yx(command.linear_x, command.angular_z, unit.cfg.geometry)
-        else:
-            y, x = command.y, command.x
+        if isinstance(command, Twist):  # the robot's plan: one decision for all its drives
+            motion = self._robot_of[unit.name]
+            twist = command.linear_x, command.angular_z
+            fields = motion.preview(*twist) if preview else motion.plan(*twist, self.clock()).fields
+            ay, bx = fields[unit.name]
+            return ay, bx, ControlMode.VELOCITY
+        y, x = command.y, command.x
         if unit.cfg.velocity_model is VelocityModel.MOTOR:
             y, x = yx_to_ab(y, x)
         return y, x, ControlMode.VELOCITY
@@ -388,6 +437,10 @@ class Supervisor:
             _finite(*_values(command))
             ay, bx, kind = self._target(unit, command)
             self._set(unit, ay, bx, kind, self.arbiter.owner(name))
+            if isinstance(command, Twist):
+                self._twisted(name)
+            else:
+                self._robot_of[name].reset()
         except CommandError as exc:
             if unit.cfg.role is Role.COMMAND and not self.stopping:
                 self._zero(unit)  # the owner asked for something else: not the old value
@@ -399,6 +452,28 @@ class Supervisor:
                 )
             return False
         return True
+
+    def _twisted(self, name: str) -> None:
+        """After a twist reached ``name``: the robot's clamp said (once a second per
+        robot), and the ramp's next step set while it has not reached its target."""
+        motion = self._robot_of[name]
+        plan = motion.last
+        if plan is None:
+            return
+        if plan.note is not None:
+            held = self._throttle.allow((motion.robot.name, "clamped"), self.clock())
+            if held is not None:
+                self.notice(name, logging.WARNING, plan.note + held_note(held))
+        if plan.ramping and not motion.step_pending and self.call_at is not None:
+            motion.step_pending = True
+            self.call_at(plan.t + motion.step_s, lambda: self._ramp_step(name))
+
+    def _ramp_step(self, name: str) -> None:
+        motion = self._robot_of[name]
+        motion.step_pending = False
+        current = self.arbiter.current.get(name)
+        if current is not None and isinstance(current[1], Twist) and not self.stopping:
+            self.arbiter.again(name)
 
     def set_inputs(self, name: str, data: int, mask: int) -> None:
         """Change the input bits selected by ``mask`` to those of ``data`` (seed inp_data)."""
@@ -464,7 +539,11 @@ class Supervisor:
         self._push(unit)
 
     def _zero(self, unit: UnitState) -> None:
-        """Zero command in the unit's current mode (velocity or current)."""
+        """Zero command in the unit's current mode (velocity or current); its robot's next
+        twist ramps from rest."""
+        motion = self._robot_of.get(unit.name)
+        if motion is not None:
+            motion.reset()
         self._store(unit, Setpoint(kind=unit.setpoint.kind))
 
     def _push(self, unit: UnitState) -> None:

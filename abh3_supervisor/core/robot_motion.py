@@ -1,0 +1,106 @@
+"""A robot's twist, decided once for all its drives: its limits, its ramp, one clamp.
+
+A twist to a robot becomes each of its units' (A, B) motor speeds in one decision: the
+robot's linear and angular limits, then its acceleration ramp, then the one factor that
+keeps every axis within its unit's limits and the robot's own — applied to the whole
+twist, so a robot asked to go straight never turns because one side saturated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from abh3_supervisor.config.model import UnitConfig, VelocityModel
+from abh3_supervisor.core.kinematics import ab_to_yx
+from abh3_supervisor.core.robot import RobotConfig, motor_speeds, ramp, within_robot_limits
+from abh3_supervisor.protocol.scaling import VELOCITY
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    target: tuple[float, float]  # the twist asked (linear.x, angular.z)
+    t: float
+    twist: tuple[float, float]  # the twist applied: within limits, ramp and axes
+    fields: dict[str, tuple[float, float]]  # per unit, AY/BX in its velocity model
+    note: str | None  # what limited the twist, for the operator
+    ramping: bool  # the ramp has not reached the (limited) target yet
+
+
+class RobotMotion:
+    """One robot's twist state: the last plan, from which the ramp steps on."""
+
+    def __init__(self, robot: RobotConfig, units: dict[str, UnitConfig]) -> None:
+        self.robot = robot
+        self.units = {name: units[name] for name in robot.units}
+        # the ramp steps at the robot's fastest command period
+        self.step_s = min(1.0 / u.command_rate_hz for u in self.units.values())
+        self.last: Plan | None = None
+        self.step_pending = False  # a ramp step is scheduled
+
+    def reset(self) -> None:
+        """The robot was stopped (or commanded otherwise): the next twist ramps from rest."""
+        self.last = None
+
+    def plan(self, linear_x: float, angular_z: float, now: float) -> Plan:
+        """The robot's plan for a twist now (the same plan for every unit of one turn)."""
+        last = self.last
+        if last is not None and last.target == (linear_x, angular_z) and last.t == now:
+            return last
+        robot = self.robot
+        scale = within_robot_limits(robot, linear_x, angular_z)
+        limited = (linear_x * scale, angular_z * scale)
+        before, since = (last.twist, last.t) if last is not None else ((0.0, 0.0), now)
+        ramped = ramp(robot, before, limited, min(now - since, self.step_s))
+        axes = self._axis_scale(*ramped)
+        twist = (ramped[0] * axes, ramped[1] * axes)
+        notes = []
+        if scale < 1.0:
+            notes.append(self._robot_limit(linear_x, angular_z, scale))
+        if axes < 1.0:
+            notes.append("an axis at its speed limit: the whole twist scaled alike")
+        note = None
+        if notes:
+            note = (
+                f"robot {robot.name}: twist {linear_x:g} {angular_z:g} → "
+                f"{twist[0]:.4g} {twist[1]:.4g} ({'; '.join(notes)})"
+            )
+        self.last = Plan(
+            (linear_x, angular_z), now, twist, self._fields(*twist), note, ramped != limited
+        )
+        return self.last
+
+    def _robot_limit(self, linear_x: float, angular_z: float, scale: float) -> str:
+        lim = self.robot.limits
+        if lim.linear_mps is not None and abs(linear_x) * scale >= lim.linear_mps * (1 - 1e-9):
+            return f"limits.linear_mps {lim.linear_mps:g}"
+        return f"limits.angular_radps {lim.angular_radps:g}"
+
+    def preview(self, linear_x: float, angular_z: float) -> dict[str, tuple[float, float]]:
+        """Each unit's fields for a twist as asked, no limit, no ramp, nothing kept: what
+        a check before submitting needs (the sign and whether it moves)."""
+        return self._fields(linear_x, angular_z)
+
+    def _fields(self, linear_x: float, angular_z: float) -> dict[str, tuple[float, float]]:
+        out = {}
+        for name, (a, b) in motor_speeds(self.robot, linear_x, angular_z).items():
+            model = self.units[name].velocity_model
+            out[name] = (a, b) if model is VelocityModel.MOTOR else ab_to_yx(a, b)
+        return out
+
+    def _axis_scale(self, linear_x: float, angular_z: float) -> float:
+        """The one factor (≤ 1) that keeps every unit's fields within its limits and the
+        wire's range, and every wheel's motor within the robot's own axis limit."""
+        scale = 1.0
+        motors = motor_speeds(self.robot, linear_x, angular_z)
+        for name, values in self._fields(linear_x, angular_z).items():
+            limit = self.units[name].limits.velocity
+            for v in values:
+                if v:
+                    bound = min(limit, VELOCITY.maximum if v > 0 else -VELOCITY.minimum)
+                    scale = min(scale, bound / abs(v))
+        for wheel in self.robot.wheels:
+            axis_limit = self.robot.axis_limit(wheel)
+            speed = motors[wheel.unit][wheel.axis]
+            if axis_limit is not None and speed:
+                scale = min(scale, axis_limit / abs(speed))
+        return scale
