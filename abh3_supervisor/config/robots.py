@@ -61,6 +61,7 @@ def parse_robots(
             r.error("name", f"duplicate robot name '{robot.name}'")
             continue
         _claim(r, robot, taken)
+        _one_turn(r, robot, units)
         robots[robot.name] = robot
     for index, robot in enumerate(robots.values()):
         foreign = robot.name in units and robot.name not in robot.units
@@ -169,6 +170,22 @@ def _wheel(
         sign=int(sign),
         pulses_per_rev=w.number("pulses_per_rev", pulses, 0, 1e9),
     )
+
+
+def _one_turn(r: Section, robot: RobotConfig, units: dict[str, UnitConfig]) -> None:
+    """A robot's units on one bus send in the same turn: only at one command rate."""
+    first: dict[str, str] = {}
+    for j, wheel in enumerate(robot.wheels):
+        cfg = units[wheel.unit]
+        other = units[first.setdefault(cfg.bus, wheel.unit)]
+        if other.command_rate_hz != cfg.command_rate_hz:
+            r.src.error(
+                (*r.path, "wheels", j, "unit"),
+                f"unit '{cfg.name}' runs at command_rate_hz {cfg.command_rate_hz:g} and unit "
+                f"'{other.name}' of the same robot and bus at {other.command_rate_hz:g}: a "
+                "robot's drives send in the same turn, so give them one rate",
+            )
+            return
 
 
 def _claim(r: Section, robot: RobotConfig, taken: dict[tuple[str, int], str]) -> None:

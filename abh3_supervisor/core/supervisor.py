@@ -115,7 +115,11 @@ class Supervisor:
         self.clock = clock
         now = clock()
         self.units = {name: UnitState.initial(cfg) for name, cfg in config.units.items()}
-        self.schedulers = {bus: BusScheduler(config.units_on(bus), now) for bus in config.buses}
+        # a robot's units send in the same turn (one phase per robot on each bus)
+        together = {u: r.name for r in config.robots.values() for u in r.units}
+        self.schedulers = {
+            bus: BusScheduler(config.units_on(bus), now, together) for bus in config.buses
+        }
         # what each bus's interface reports of itself (bus-off, error-passive, …)
         self.bus_health = {bus: BusHealth(bus) for bus in config.buses}
         self._observers: list[Observer] = []

@@ -10,7 +10,7 @@ bus: the caller passes ``now`` in and sends what :meth:`poll` returns.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from abh3_supervisor.config.model import Role, UnitConfig
@@ -163,8 +163,13 @@ class UnitSlot:
 class BusScheduler:
     """Multiplexes every unit of one bus; see the module docstring."""
 
-    def __init__(self, units: Iterable[UnitConfig], now: float) -> None:
+    def __init__(
+        self, units: Iterable[UnitConfig], now: float, together: Mapping[str, str] | None = None
+    ) -> None:
+        """``together``: unit → the name of the units it sends with (its robot): they share
+        one phase, so a robot's frames leave in the same turn; groups are staggered."""
         cfgs = list(units)
+        groups = list(dict.fromkeys((together or {}).get(c.name, c.name) for c in cfgs))
         self.slots: dict[str, UnitSlot] = {}
         self._routes: dict[int, tuple[UnitSlot, int]] = {}  # id → (slot, -1 DP0 | packet)
         self._senders: dict[int, UnitSlot] = {}  # our request ids → slot
@@ -174,9 +179,10 @@ class BusScheduler:
         self._tp_routes: dict[int, tuple[ParamChannel, bool]] = {}  # drive's id → (ch, is DT)
         self._params_active = False  # some channel has a request queued or open
         self._tp_senders: dict[int, ParamChannel] = {}
-        for i, cfg in enumerate(cfgs):
+        for cfg in cfgs:
             # stagger first sends so the units do not all hit the bus at one instant
-            slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / max(1, len(cfgs)))
+            i = groups.index((together or {}).get(cfg.name, cfg.name))
+            slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / max(1, len(groups)))
             self.slots[cfg.name] = slot
             self._senders[slot.command_id] = slot
             self._senders[slot.poll_id] = slot
