@@ -114,6 +114,18 @@ class RobotConfig:
         return None if fastest is None else abs(wheel.motor_speed(fastest))
 
 
+def axis_limits(robot: RobotConfig, unit: str) -> tuple[float, float] | None:
+    """``unit``'s motor A, B limits [min⁻¹] from the robot's limits (an axis that is no
+    wheel of it: none, ∞); None when the robot sets no speed limit."""
+    if robot.fastest_wheel_mps() is None:
+        return None
+    limits = [math.inf, math.inf]
+    for wheel in robot.wheels:
+        if wheel.unit == unit:
+            limits[wheel.axis] = robot.axis_limit(wheel) or math.inf
+    return limits[0], limits[1]
+
+
 def side_speeds(track_m: float, linear_x: float, angular_z: float) -> tuple[float, float]:
     """(left, right) ground speeds [m/s] of a twist."""
     half = angular_z * track_m / 2

@@ -8,6 +8,7 @@ twist, so a robot asked to go straight never turns because one side saturated.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from abh3_supervisor.config.model import UnitConfig, VelocityModel
@@ -49,7 +50,8 @@ class RobotMotion:
         robot = self.robot
         scale = within_robot_limits(robot, linear_x, angular_z)
         limited = (linear_x * scale, angular_z * scale)
-        before, since = (last.twist, last.t) if last is not None else ((0.0, 0.0), now)
+        # from rest, the first step is one period's worth: it moves at once
+        before, since = (last.twist, last.t) if last is not None else ((0.0, 0.0), -math.inf)
         ramped = ramp(robot, before, limited, min(now - since, self.step_s))
         axes = self._axis_scale(*ramped)
         twist = (ramped[0] * axes, ramped[1] * axes)

@@ -54,6 +54,9 @@ class UnitState:
     words: dict[str, int] = field(default_factory=dict)  # error, alarm, control, io, inputs
     # the drive's CAN settings against the file (core/verify.py); set in __post_init__
     verify: Verification = field(default=None)  # type: ignore[assignment]
+    # motor A, B speed limits [min⁻¹] that follow from the unit's robot's limits
+    # (core/robot.py RobotConfig.axis_limit); None: its robot sets none
+    axis_limits: tuple[float, float] | None = None
 
     layout: flags.Layout = field(init=False)  # the unit's generation's flag words
 

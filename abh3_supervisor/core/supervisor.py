@@ -36,7 +36,7 @@ from abh3_supervisor.core.inputs import (
     VelocityYX,
 )
 from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
-from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.core.robot import RobotConfig, axis_limits
 from abh3_supervisor.core.robot_motion import RobotMotion
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.core.text import clean
@@ -136,6 +136,9 @@ class Supervisor:
             name: RobotMotion(robot, config.units) for name, robot in config.robots.items()
         }
         self._robot_of = {u: self.robots[r.name] for r in config.robots.values() for u in r.units}
+        for robot in config.robots.values():
+            for name in robot.units:
+                self.units[name].axis_limits = axis_limits(robot, name)
         self.arbiter.domains = {
             u: r.units for r in config.robots.values() if len(r.units) > 1 for u in r.units
         }
@@ -826,20 +829,28 @@ def _values(command: InputCommand) -> tuple[float, ...]:
 def _limited(
     unit: UnitState, ay: float, bx: float, kind: ControlMode
 ) -> tuple[float, float, str | None]:
-    """The values within the unit's limit and the wire's range, both axes scaled alike
-    (the robot keeps its heading, only slower), and the note saying so if they changed."""
+    """The values within the unit's limit, its robot's axis limits and the wire's range,
+    both axes scaled alike (the robot keeps its heading, only slower), and the note saying
+    so if they changed."""
     if kind is ControlMode.VELOCITY:
         word, key, limit, wire = "VEL", "velocity", unit.cfg.limits.velocity, VELOCITY
     else:
         word, key, limit, wire = "CUR", "current", unit.cfg.limits.current, CURRENT
     scale = min([1.0, *(_bound(v, limit, wire) / abs(v) for v in (ay, bx) if v)])
-    if scale >= 1.0:
+    axes = 1.0
+    if kind is ControlMode.VELOCITY and unit.axis_limits is not None:
+        motors = (ay, bx) if unit.cfg.velocity_model is VelocityModel.MOTOR else yx_to_ab(ay, bx)
+        axes = min([1.0, *(m / abs(v) for v, m in zip(motors, unit.axis_limits, strict=True) if v)])
+    if min(scale, axes) >= 1.0 - 1e-12:  # a robot's plan scaled exactly to the bound
         return ay, bx, None
-    # the binding bound: the YAML's limit, or the wire's range where no limit is set
-    if limit < wire.largest:
+    # the binding bound: the robot's, the YAML's limit, or the wire's range
+    if axes < scale:
+        why = "the robot's limits: A ≤ {:.6g}, B ≤ {:.6g} min⁻¹".format(*unit.axis_limits or ())
+    elif limit < wire.largest:
         why = f"limits.{key} {limit:g}"
     else:
         why = f"wire range {wire.minimum:g} … {wire.maximum:g}"
+    scale = min(scale, axes)
     new_ay, new_bx = ay * scale, bx * scale
     note = f"clamped: {word} {ay:g} {bx:g} → {new_ay:.6g} {new_bx:.6g} ({why})"
     return new_ay, new_bx, note
