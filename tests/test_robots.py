@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import math
+import re
+from pathlib import Path
 
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.config.advice import warnings
 from abh3_supervisor.core.commands import VelocityCommand
 from abh3_supervisor.core.inputs import Twist
 from abh3_supervisor.core.kinematics import twist_to_ab
-from abh3_supervisor.core.robot import motor_speeds, twist_of
+from abh3_supervisor.core.robot import Side, motor_speeds, twist_of
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.errors import CommandError, ConfigError
 from abh3_supervisor.protocol import frames, ids
@@ -287,3 +290,52 @@ def test_a_robots_drives_on_one_bus_share_one_command_rate() -> None:
     )
     with pytest.raises(ConfigError, match="give them one rate"):
         parse_config(text, "robot.yaml")
+
+
+def robot_docs_files() -> list[str]:
+    text = (Path(__file__).parent.parent / "docs" / "robots.md").read_text()
+    blocks = re.findall(r"```yaml\n(.*?)```", text, re.S)
+    return [b for b in blocks if b.startswith("buses:")]
+
+
+def test_the_docs_three_shapes_are_complete_files_check_passes_without_warning() -> None:
+    files = robot_docs_files()
+    assert len(files) == 3
+    for text in files:
+        config = parse_config(text, "docs/robots.md")
+        assert warnings(config) == []
+        (robot,) = [r for r in config.robots.values() if not r.implicit]
+        assert {w.side for w in robot.wheels} == set(Side)
+
+
+def test_real_bus_without_limits_or_with_startup_motion_is_warned_with_its_line() -> None:
+    real = UNITS.replace(
+        "interface: virtual, channel: t, simulate: true", "interface: socketcan, channel: can0"
+    )
+    moving = real.replace(
+        "velocity_model: motor}",
+        'velocity_model: motor, limits: {velocity: 900}, startup: ["SERVO ON ON", "START ON ON", "VEL 100 0"]}',
+        1,
+    )
+    said = warnings(parse_config(moving, "real.yaml"))
+    assert len(said) == 2
+    assert said[0].startswith("real.yaml:5: units[0].startup: unit 'l' moves at start")
+    assert said[1].startswith("real.yaml:6: units[1].limits: unit 'r' has no speed limit")
+    # a robot's limits count as the unit's; simulated buses are never warned
+    limited = real + ONE_PER_DRIVE[len(UNITS) :].replace(
+        "    gear_ratio: 10\n",
+        "    gear_ratio: 10\n    limits: {linear_mps: 0.5, angular_radps: 1.0}\n",
+    )
+    assert warnings(parse_config(limited, "real.yaml")) == []
+    assert warnings(parse_config(UNITS, "sim.yaml")) == []
+
+
+def test_the_demos_motion_runs_only_while_simulated() -> None:
+    demo = (Path(__file__).parent.parent / "configs" / "demo.yaml").read_text()
+    config = parse_config(demo, "demo.yaml")
+    assert config.units["left"].startup[-1] == "VEL 300 20"
+    real = demo.replace("interface: virtual", "interface: socketcan")
+    real = re.sub(r"    simulate:.*?\n\nunits:", "\nunits:", real, flags=re.S)
+    config = parse_config(real, "real.yaml")
+    assert all(u.startup == () for u in config.units.values())  # the robot waits
+    assert warnings(config) == []

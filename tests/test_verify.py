@@ -468,7 +468,10 @@ def test_abh3_verify_asks_a_running_supervisor_and_releases_a_held_unit(tmp_path
     """`abh3 verify UNIT`: the running supervisor reads the drive again; fixed, the unit a
     `verify: refuse` held runs its start-up commands."""
     text = (Path(__file__).parent.parent / "configs" / "demo.yaml").read_text()
-    text = text.replace("simulate: true ", "simulate: {params: {left: {0x4117: 750}}} ")
+    text = text.replace(
+        "    simulate: ", "    simulate:\n      params: {left: {0x4117: 750}}\n    "
+    )
+    assert "0x4117: 750" in text  # the demo still has its simulate section
     text = text.replace('protocol: "2021"', 'verify: refuse\n    protocol: "2021"')
     config = tmp_path / "held.yaml"
     config.write_text(text)
@@ -483,6 +486,8 @@ def test_abh3_verify_asks_a_running_supervisor_and_releases_a_held_unit(tmp_path
         for line in run.stderr:
             if "held at its idle word" in line:
                 break
+        else:
+            pytest.fail("the run ended without holding the unit")
 
         def abh3(*args: str) -> subprocess.CompletedProcess[str]:
             cmd = [sys.executable, "-m", "abh3_supervisor", *args, "--connect", str(sock)]

@@ -438,6 +438,10 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
     for p in plans:
         if p.warning:
             log.warning("bus %s: %s", p.bus, p.warning)
+    from abh3_supervisor.config.advice import warnings
+
+    for warning in warnings(config):
+        log.warning("%s", warning)
     if args.record is not None:
         from abh3_supervisor.runtime.recording import recording
 
@@ -544,10 +548,12 @@ def _plugins(config: Config) -> PluginHost:
 def _check(config: Config, as_json: bool) -> int:
     import json
 
+    from abh3_supervisor.config.advice import warnings
     from abh3_supervisor.core.planner import overloads, plan
 
     plans = plan(config)
     refused = overloads(config, plans)
+    advice = warnings(config)
     if as_json:
         print(
             json.dumps(
@@ -557,6 +563,7 @@ def _check(config: Config, as_json: bool) -> int:
                     "units": len(config.units),
                     "buses": [p.to_json() for p in plans],
                     "errors": refused,
+                    "warnings": advice,
                 },
                 indent=2,
             )
@@ -576,5 +583,7 @@ def _check(config: Config, as_json: bool) -> int:
                 )
             if p.warning:
                 print(f"  warning: {p.warning}")
+        for warning in advice:
+            print(f"warning: {warning}")
     report(refused)
     return EXIT_RUNTIME if refused else EXIT_OK

@@ -109,6 +109,9 @@ class SimConfig:
     params: tuple[tuple[str, tuple[tuple[int, int], ...]], ...] = ()
     # per unit, the only TelABH3 forms its drive reads (() none); a unit not named reads all
     telabh3_forms: tuple[tuple[str, tuple[TelFormat, ...]], ...] = ()
+    # per unit, commands run at start after its own ``startup:``, only while simulated (a
+    # demo's motion: the same file on a real bus waits): ((unit, (command, ...)), ...)
+    startup: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     def params_of(self, unit: str) -> dict[int, int]:
         return dict(next((words for name, words in self.params if name == unit), ()))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path as FsPath
 from typing import Any
@@ -26,6 +27,7 @@ from abh3_supervisor.config.simdrives import (
     check_sim_units,
     parse_forms,
     parse_params,
+    parse_startup,
     parse_time_constants,
 )
 from abh3_supervisor.config.source import Section, Source, load_source, read_text
@@ -55,6 +57,7 @@ SIM_KEYS = {
     "faults",
     "params",
     "telabh3_form",
+    "startup",
 }
 UNIT_KEYS = {
     "name",
@@ -103,6 +106,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     units = _units(top, buses)
     check_fault_units(top, buses, units)
     check_sim_units(top, buses, units)
+    units = _with_simulated_startup(buses, units)
     robots = parse_robots(top, units, NAME)
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
@@ -145,7 +149,37 @@ def _dry_run_startup(src: Source, config: Config) -> None:
             answer = sup.apply_text(name, text, source=f"startup:{name}", standing=True)
             if answer != RESPONSE_OK:
                 why = reasons[-1] if reasons else "not a command"
-                src.error(("units", index, "startup", i), f"would be refused at start: {why}")
+                src.error(
+                    _startup_path(config, index, unit, i), f"would be refused at start: {why}"
+                )
+
+
+def _with_simulated_startup(
+    buses: dict[str, BusConfig], units: dict[str, UnitConfig]
+) -> dict[str, UnitConfig]:
+    """Each unit's start-up with its simulated bus's ``simulate.startup`` after its own."""
+    out = dict(units)
+    for name, unit in units.items():
+        sim = buses[unit.bus].simulate if unit.bus in buses else None
+        extra = dict(sim.startup).get(name, ()) if sim is not None else ()
+        if extra:
+            out[name] = dataclasses.replace(unit, startup=unit.startup + extra)
+    return out
+
+
+def _startup_path(config: Config, index: int, unit: UnitConfig, i: int) -> tuple[str | int, ...]:
+    """Where start-up command ``i`` of ``unit`` is written: its own, or its bus's."""
+    own = len(_own_startup(config, index))
+    if i < own:
+        return ("units", index, "startup", i)
+    return ("buses", unit.bus, "simulate", "startup", unit.name, i - own)
+
+
+def _own_startup(config: Config, index: int) -> list[object]:
+    raw = config.source.data.get("units") if config.source is not None else None
+    item = raw[index] if isinstance(raw, list) and index < len(raw) else None
+    own = item.get("startup") if isinstance(item, dict) else None
+    return own if isinstance(own, list) else []
 
 
 def _buses(top: Section) -> dict[str, BusConfig]:
@@ -227,6 +261,7 @@ def _simulate(b: Section) -> SimConfig | None:
         faults=parse_faults(s),
         params=parse_params(s),
         telabh3_forms=parse_forms(s),
+        startup=parse_startup(s),
     )
 
 

@@ -122,6 +122,12 @@ def _bus() -> Schema:
                 "description": "per unit, its drive's own velocity time constant [ms]",
                 "additionalProperties": number(0, 60_000, lo_open=True),
             },
+            "startup": {
+                "type": "object",
+                "description": "per unit, commands run at start after its own startup, only "
+                "while this bus is simulated (a real bus never runs them)",
+                "additionalProperties": {"type": "array", "items": {"type": "string"}},
+            },
             "reply_latency_ms": number(0, 10_000, default=0.2),
             "dp0_period_ms": integer(0, 1000, "> 0: DP0 replies also periodically", 0),
             "broadcast_period_ms": integer(0, 1000, "> 0: broadcasts also periodically", 0),

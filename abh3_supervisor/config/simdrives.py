@@ -1,6 +1,7 @@
-"""``simulate.params``, ``simulate.telabh3_form`` and ``simulate.unit_time_constant_ms``:
-simulated drives set up otherwise than the file says, to rehearse what `verify` and the
-TelABH3 form probe report, or answering with a time constant of their own.
+"""``simulate.params``, ``simulate.telabh3_form``, ``simulate.unit_time_constant_ms`` and
+``simulate.startup``: simulated drives set up otherwise than the file says, to rehearse
+what `verify` and the TelABH3 form probe report, answering with a time constant of their
+own, or commanded at start only while simulated.
 
 The simulated drives' parameter tables follow the file (their unit's ``abh3_id``,
 ``host_id``, ``brd_group``, ``drive_timeout_ms`` and the bus's bitrate, simulator/bus.py);
@@ -15,7 +16,8 @@ from typing import Any
 
 from abh3_supervisor.config.model import BusConfig, UnitConfig
 from abh3_supervisor.config.source import EXPONENT_ONLY, Section
-from abh3_supervisor.errors import CodecError
+from abh3_supervisor.core.commands import parse_command
+from abh3_supervisor.errors import CodecError, CommandError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import DEFAULT_FORMAT, Checksum, TelFormat
 
@@ -48,6 +50,26 @@ def parse_params(sim: Section) -> tuple[tuple[str, tuple[tuple[int, int], ...]],
                 continue
             words[address] = word
         out.append((unit, tuple(words.items())))
+    return tuple(out)
+
+
+def parse_startup(sim: Section) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """``startup: {UNIT: [commands]}``: run at start after the unit's own ``startup:``,
+    only while this bus is simulated (the demos' motion: a real bus never runs it)."""
+    if not sim.has("startup"):
+        return ()
+    units = sim.sub("startup", None)
+    out = []
+    for unit, raw in units.items():
+        if not isinstance(raw, list) or not all(isinstance(c, str) for c in raw):
+            units.error(unit, "expected a list of command strings, e.g. ['SERVO ON ON']")
+            continue
+        for i, command in enumerate(raw):
+            try:
+                parse_command(command)
+            except CommandError as exc:
+                sim.src.error((*units.path, unit, i), f"{command!r}: {exc}")
+        out.append((unit, tuple(raw)))
     return tuple(out)
 
 
@@ -136,6 +158,7 @@ def check_sim_units(
         named = [("params", unit) for unit, _ in sim.params]
         named += [("telabh3_form", unit) for unit, _ in sim.telabh3_forms]
         named += [("unit_time_constant_ms", unit) for unit, _ in sim.unit_time_constant_ms]
+        named += [("startup", unit) for unit, _ in sim.startup]
         forms = _raw(top.data, "buses", name, "simulate", "telabh3_form")
         named += [("telabh3_form", str(u)) for u in forms]  # also those that read `any`
         for key, unit in dict.fromkeys(named):

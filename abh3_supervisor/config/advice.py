@@ -1,0 +1,59 @@
+"""Warnings for a file that is valid but unsafe on real drives (``check`` and the log at
+start): a real bus is one without ``simulate:``; what is harmless on the simulator —
+no speed limit, motion at start — is said there, never refused (docs/robots.md)."""
+
+from __future__ import annotations
+
+from abh3_supervisor.config.model import Config, Role, UnitConfig
+from abh3_supervisor.config.source import Path, dotted
+from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
+from abh3_supervisor.errors import CommandError
+from abh3_supervisor.protocol.scaling import VELOCITY
+
+
+def warnings(config: Config) -> list[str]:
+    """``FILE:LINE: key: why`` for each commanded unit on a real bus that has no speed
+    limit (its own or its robot's) or moves at start."""
+    out: list[str] = []
+    for index, unit in enumerate(config.units.values()):
+        bus = config.buses.get(unit.bus)
+        if bus is None or bus.simulate is not None or unit.role is not Role.COMMAND:
+            continue
+        real = f"bus {bus.name} ({bus.interface} {bus.channel}) is a real bus"
+        if not _limited(config, unit):
+            out.append(
+                _where(config, ("units", index, "limits"))
+                + f"unit '{unit.name}' has no speed limit and {real}: a command may run its "
+                f"motors up to {VELOCITY.largest:g} min⁻¹; set its limits.velocity or its "
+                "robot's limits.linear_mps and angular_radps"
+            )
+        moving = [text for text in unit.startup if _moves(text)]
+        if moving:
+            out.append(
+                _where(config, ("units", index, "startup"))
+                + f"unit '{unit.name}' moves at start ({', '.join(map(repr, moving))}) and "
+                f"{real}: its motors turn the moment `run` starts, with no question asked; "
+                "give motion from a client, or put it under the bus's simulate.startup"
+            )
+    return out
+
+
+def _limited(config: Config, unit: UnitConfig) -> bool:
+    if unit.limits.velocity < VELOCITY.largest:
+        return True
+    robot = config.robot_of(unit.name)
+    return robot is not None and robot.fastest_wheel_mps() is not None
+
+
+def _moves(text: str) -> bool:
+    """A non-zero setpoint: a ``VEL``/``CUR`` that is not zero on both axes."""
+    try:
+        command = parse_command(text)
+    except CommandError:
+        return False
+    return isinstance(command, VelocityCommand | CurrentCommand) and bool(command.ay or command.bx)
+
+
+def _where(config: Config, path: Path) -> str:
+    line = config.source.line(path) if config.source is not None else 1
+    return f"{config.file}:{line}: {dotted(path)}: "
