@@ -274,6 +274,8 @@ class IdentitySteps(UnitSteps):
             await self._fresh(1)
         else:
             await self._until(lambda: "control" in self.state.words, 0.5)
+        if not self._generation():
+            return False
         control = self.state.words.get("control")
         if control is None:
             self._check("identity", "velocity model", Verdict.WARN, "control word not read")
@@ -292,3 +294,44 @@ class IdentitySteps(UnitSteps):
             return False
         self._check("identity", "velocity model", Verdict.PASS, str(drive))
         return ok
+
+    def _generation(self) -> bool:
+        """The drive's frames in the file's protocol generation's layout (False: named,
+        with its fix). A 2021 reply carries Y and X velocities, which are (A ± B) / 2; a
+        2023 reply carries the control word there, which echoes the data select sent."""
+        file, fb = self.cfg.protocol, self.state.feedback
+        if fb is None:
+            return True
+        lay = self.state.layout
+        sent = self.state.inputs & lay.select_mask
+        if file is Generation.G2021:
+            y, x = (fb.vel_a + fb.vel_b) / 2, (fb.vel_a - fb.vel_b) / 2
+            raw = round(fb.vel_y / 0.2) & 0xFFFF | (round(fb.vel_x / 0.2) & 0xFFFF) << 16
+            echo = self.state.words.get("control")
+            # the reply's Y and X are not (A ± B) / 2, or broadcast 1 does not echo
+            wrong = max(abs(fb.vel_y - y), abs(fb.vel_x - x)) > 0.5 or (
+                bool(sent) and echo is not None and echo & lay.select_mask != sent
+            )
+            what = f"DP0 reply bytes 4–7 0x{raw:08X} are no Y/X velocities of A and B"
+        else:
+            control = fb.control or 0
+            wrong = bool(sent) and control & lay.select_mask != sent
+            what = (
+                f"DP0 reply bytes 4–7 0x{control:08X} do not echo the data select sent "
+                f"(0x{sent:08X}): Y/X velocities, not a control word"
+            )
+        if not wrong:
+            self._check("identity", "protocol generation", Verdict.PASS, f"{file} frames")
+            return True
+        other = Generation.G2023 if file is Generation.G2021 else Generation.G2021
+        self._check(
+            "identity",
+            "protocol generation",
+            Verdict.FAIL,
+            f"the drive answers in {other}'s layout: {what}",
+            f'protocol: "{file}"',
+            f'protocol: "{other}" for units.{self.unit} in the YAML: the flag words of the '
+            f"two generations differ (a {file} word sent to a {other} drive sets the wrong "
+            "bits, e.g. torque mode on both axes)",
+        )
+        return False
