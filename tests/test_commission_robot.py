@@ -250,6 +250,59 @@ def test_a_wrong_track_or_diameter_is_measured_with_its_fix(
     assert fix in fails[0][1]
 
 
+LEGACY = BUS + (
+    "units:\n"
+    "  - {{name: front, abh3_id: 1, velocity_model: motor, limits: {{velocity: 3000}},\n"
+    "     geometry: {{rate_num: 1, rate_den: 10, wheel: 0.15, width: 0.5, pulses_per_rev: 4096}}}}\n"
+    '  - {{name: rear, abh3_id: 3, protocol: "2023", velocity_model: motor,\n'
+    "     limits: {{velocity: 3000}},\n"
+    "     geometry: {{rate_num: 1, rate_den: 10, wheel: 0.15, width: 0.5, pulses_per_rev: 4096}}}}\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("fault", "robot", "name", "fix"),
+    [
+        (
+            "{kind: mirrored_wheel, unit: rear, axis: B}",
+            "rear",
+            "mirrored wheel rear.B (right)",
+            "robots: section with sign: -1 for unit rear axis B",
+        ),
+        (
+            "{kind: swapped_axes_with_encoders, unit: front}",
+            "front",
+            "A and B swapped with their encoders: front",
+            "axis A on the right and B on the left",
+        ),
+        (
+            "{kind: swapped_drives, unit: rear, other: front}",
+            "front",
+            "drives swapped: front ↔ rear",
+            "swap the abh3_id of units front and rear",
+        ),
+        (
+            "{kind: wrong_diameter, unit: rear, factor: 2}",
+            "rear",
+            "wheel diameter off by +100%",
+            "units.rear.geometry.wheel: 0.3",
+        ),
+    ],
+)
+def test_a_file_without_robots_commissions_each_units_one_drive_robot(
+    fault: str, robot: str, name: str, fix: str
+) -> None:
+    """The legacy file: each unit a robot of its own from its geometry (A left, B right)."""
+    bench = FakeBench(parse_config(LEGACY.format(faults=fault), "legacy.yaml"))
+    results, robots, _ = run(bench)
+    assert all(r.verdict is Verdict.PASS for r in results.values())
+    fails = failing(robots[robot])
+    assert [n for n, _ in fails] == [name] and fix in fails[0][1]
+    if "swapped_drives" not in fault:
+        other = "front" if robot == "rear" else "rear"
+        assert robots[other].verdict is Verdict.PASS
+
+
 # ---------------------------------------------------------------- protocol generation
 
 

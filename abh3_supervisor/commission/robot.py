@@ -89,6 +89,15 @@ class RobotSequence:
         self.result = RobotResult(robot)
         self.view: RobotView | None = bench.sim_robot(robot.name)
         self.names = wheels.places(robot)
+        # the other simulated robots: a drive may sit on one of their wheels (swapped)
+        self.others: dict[str, RobotView] = {}
+        self.elsewhere: dict[Place, str] = {}
+        for other in self.sup.config.robots.values():
+            view = bench.sim_robot(other.name)
+            if other.name != robot.name and view is not None and self.view is not None:
+                self.others[other.name] = view
+                for place, name in wheels.places(other).items():
+                    self.elsewhere[place] = f"{name} of robot {other.name}"
         self.jog = {
             u: settings.jog_speed(self.sup.units[u].cfg.limits.velocity) for u in robot.units
         }
@@ -150,7 +159,7 @@ class RobotSequence:
             return
         for w in r.wheels:
             self.result.seen[w.unit, w.axis] = await self._one_wheel(w)
-        found = wheels.judge_wheels(r, self.result.seen)
+        found = wheels.judge_wheels(r, self.result.seen, self.elsewhere)
         for c in found:
             self._check(c)
         if any(c.verdict is Verdict.FAIL for c in found):
@@ -193,11 +202,16 @@ class RobotSequence:
 
     async def _one_wheel(self, w: Wheel) -> Seen:
         place = (w.unit, w.axis)
-        before = dict(self.view.travel) if self.view is not None else {}
+        before = self._travel()
         await self._move(self._wheel(w), self.settings.jog_s)
         if self.view is not None:
-            return _turned(before, self.view.travel, self.creep * self.settings.jog_s)
+            return _turned(before, self._travel(), self.creep * self.settings.jog_s)
         return await self._ask(w, place)
+
+    def _travel(self) -> dict[Place, float]:
+        """Every simulated wheel's travel: this robot's, then the others'."""
+        views = [v for v in (self.view, *self.others.values()) if v is not None]
+        return {p: d for v in views for p, d in v.travel.items()}
 
     async def _ask(self, w: Wheel, place: Place) -> Seen:
         keys = {str(i + 1): p for i, p in enumerate(self.names)}

@@ -10,6 +10,7 @@ the file lists a side's wheels (:func:`places`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from abh3_supervisor.commission.model import AXES, Check, Verdict
@@ -73,10 +74,13 @@ def mirrored_fix(robot: RobotConfig, w: Wheel) -> str:
 
 
 def swapped_drives_fix(robot: RobotConfig, u: str, v: str) -> str:
-    return (
-        f"in robots.{robot.name}.wheels swap unit: {u} and unit: {v} (or swap the two "
-        f"units' abh3_id), or swap the two drives' motor cables (with their encoders)"
+    yaml = (
+        f"swap the abh3_id of units {u} and {v} in the YAML"
+        if robot.implicit
+        else f"in robots.{robot.name}.wheels swap unit: {u} and unit: {v} (or swap the two "
+        "units' abh3_id)"
     )
+    return f"{yaml}, or swap the two drives' motor cables (with their encoders)"
 
 
 def swapped_axes_fix(robot: RobotConfig, unit: str) -> str:
@@ -90,30 +94,50 @@ def swapped_axes_fix(robot: RobotConfig, unit: str) -> str:
     return f"{yaml}, or swap motor A's and B's cables together with their encoder cables"
 
 
-def judge_wheels(robot: RobotConfig, seen: dict[Place, Seen]) -> list[Check]:
+def _swapped_with(robot: RobotConfig, seen: dict[Place, Seen], u: str) -> str | None:
+    """The unit whose wheels (axis for axis) ``u``'s wheels all turned, if another."""
+    mine = [w for w in robot.wheels if w.unit == u]
+    turned = [seen[w.unit, w.axis].place for w in mine]
+    others = {p[0] for p in turned if p is not None}
+    if None in turned or len(others) != 1 or u in others:
+        return None
+    v = others.pop()
+    if any(p != (v, w.axis) for w, p in zip(mine, turned, strict=True)):
+        return None
+    return v
+
+
+def judge_wheels(
+    robot: RobotConfig, seen: dict[Place, Seen], elsewhere: dict[Place, str] | None = None
+) -> list[Check]:
     """One check per wheel (a pass where it is as the file says) and one per fault found:
-    drives swapped, A and B swapped with their encoders, a mirrored mounting."""
-    names = places(robot)
+    drives swapped, A and B swapped with their encoders, a mirrored mounting.
+    ``elsewhere``: the names of other robots' wheel places a wheel may have turned (a
+    unit's drive on another one-drive robot's wheels: the two drives swapped)."""
+    names = {**(elsewhere or {}), **places(robot)}
     checks: list[Check] = []
     explained: set[Place] = set()
     units = robot.units
-    for i, u in enumerate(units):
-        for v in units[i + 1 :]:
-            pairs = [(w, (v, w.axis)) for w in robot.wheels if w.unit == u]
-            pairs += [(w, (u, w.axis)) for w in robot.wheels if w.unit == v]
-            if pairs and all(seen[w.unit, w.axis].place == p for w, p in pairs):
-                turned = ", ".join(f"{w.name} turned {names[p]}" for w, p in pairs)
-                checks.append(
-                    Check(
-                        STEP,
-                        f"drives swapped: {u} ↔ {v}",
-                        Verdict.FAIL,
-                        turned,
-                        "each unit turns its own wheels",
-                        swapped_drives_fix(robot, u, v),
-                    )
-                )
-                explained |= {(w.unit, w.axis) for w, _ in pairs}
+    for u in units:
+        v = _swapped_with(robot, seen, u)
+        if v is None or (
+            v in units and (_swapped_with(robot, seen, v) != u or units.index(v) < units.index(u))
+        ):
+            continue  # not swapped, or named from the other unit's side
+        pairs = [(w, (v, w.axis)) for w in robot.wheels if w.unit == u]
+        pairs += [(w, (u, w.axis)) for w in robot.wheels if w.unit == v]
+        turned = ", ".join(f"{w.name} turned {names[p]}" for w, p in pairs)
+        checks.append(
+            Check(
+                STEP,
+                f"drives swapped: {' ↔ '.join(sorted((u, v), key=_order(units)))}",
+                Verdict.FAIL,
+                turned,
+                "each unit turns its own wheels",
+                swapped_drives_fix(robot, *sorted((u, v), key=_order(units))),
+            )
+        )
+        explained |= {(w.unit, w.axis) for w, _ in pairs}
     for u in units:
         a, b = robot.wheel(u, 0), robot.wheel(u, 1)
         if a is None or b is None or {(u, 0), (u, 1)} & explained:
@@ -174,6 +198,11 @@ def judge_wheels(robot: RobotConfig, seen: dict[Place, Seen]) -> list[Check]:
         else:
             checks.append(Check(STEP, label, Verdict.PASS, "turned, rolling the robot forward"))
     return checks
+
+
+def _order(units: tuple[str, ...]) -> Callable[[str], int]:
+    """The robot's units first, in its order; another robot's after."""
+    return lambda u: units.index(u) if u in units else len(units)
 
 
 def judge_diameter(robot: RobotConfig, expected_m: float, measured_m: float) -> Check:
