@@ -37,6 +37,10 @@ class SimBus:
         self._due = {a: d.next_deadline() for a, d in self.drives.items()}
         # the robots whose wheels are all on this bus, as built (simulator/robot.py)
         self.robots = {r.name: r for r in robots}
+        self._robots_of: dict[int, list[SimRobot]] = {}  # drive address → its robots
+        for robot in self.robots.values():
+            for address in dict.fromkeys(w.address for w in robot.wheels):
+                self._robots_of.setdefault(address, []).append(robot)
 
     @classmethod
     def for_units(
@@ -105,7 +109,7 @@ class SimBus:
         for drive in targets:
             drive.on_frame(arbitration_id, data, now)
             self._due[drive.abh3_id] = drive.next_deadline()
-        self._moved()
+            self._moved(drive.abh3_id)
 
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         out: list[tuple[int, bytes]] = []
@@ -114,11 +118,12 @@ class SimBus:
                 drive = self.drives[address]
                 out.extend(drive.poll(now))
                 self._due[address] = drive.next_deadline()
-        self._moved()
+                self._moved(address)
         return out
 
-    def _moved(self) -> None:
-        for robot in self.robots.values():
+    def _moved(self, address: int) -> None:
+        """The drive at ``address`` advanced: its robots take in what it turned."""
+        for robot in self._robots_of.get(address, ()):
             robot.update(self.drives)
 
     def robot(self, name: str, now: float | None = None) -> SimRobot:
