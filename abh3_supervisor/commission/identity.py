@@ -297,28 +297,28 @@ class IdentitySteps(UnitSteps):
 
     def _generation(self) -> bool:
         """The drive's frames in the file's protocol generation's layout (False: named,
-        with its fix). A 2021 reply carries Y and X velocities, which are (A ± B) / 2; a
-        2023 reply carries the control word there, which echoes the data select sent."""
+        with its fix). Bytes 4–7 of a DP0 reply tell: a 2021 drive puts its Y and X
+        velocities there, (A ± B) / 2 of bytes 0–3; a 2023 drive its control word, never
+        0 while the host writes a data select (the word reflects it)."""
         file, fb = self.cfg.protocol, self.state.feedback
         if fb is None:
             return True
-        lay = self.state.layout
-        sent = self.state.inputs & lay.select_mask
+        sent = self.state.inputs & self.state.layout.select_mask
         if file is Generation.G2021:
-            y, x = (fb.vel_a + fb.vel_b) / 2, (fb.vel_a - fb.vel_b) / 2
-            raw = round(fb.vel_y / 0.2) & 0xFFFF | (round(fb.vel_x / 0.2) & 0xFFFF) << 16
-            echo = self.state.words.get("control")
-            # the reply's Y and X are not (A ± B) / 2, or broadcast 1 does not echo
-            wrong = max(abs(fb.vel_y - y), abs(fb.vel_x - x)) > 0.5 or (
-                bool(sent) and echo is not None and echo & lay.select_mask != sent
-            )
-            what = f"DP0 reply bytes 4–7 0x{raw:08X} are no Y/X velocities of A and B"
+            first, second, y, x = fb.vel_a, fb.vel_b, fb.vel_y, fb.vel_x
+            wrong = not _y_and_x(first, second, y, x)
+            raw = _raw(y) | _raw(x) << 16
+            what = f"DP0 reply bytes 4–7 0x{raw:08X} are no Y/X velocities of its A and B"
         else:
             control = fb.control or 0
-            wrong = bool(sent) and control & lay.select_mask != sent
+            travel = self.cfg.velocity_model is VelocityModel.TRAVEL
+            first, second = (fb.vel_y, fb.vel_x) if travel else (fb.vel_a, fb.vel_b)
+            y, x = (_int16(control & 0xFFFF) * 0.2, _int16(control >> 16) * 0.2)
+            moving = _y_and_x(first, second, y, x) and bool(first or second)
+            wrong = moving or (bool(sent) and not control)
             what = (
-                f"DP0 reply bytes 4–7 0x{control:08X} do not echo the data select sent "
-                f"(0x{sent:08X}): Y/X velocities, not a control word"
+                f"DP0 reply bytes 4–7 0x{control:08X}: Y/X velocities, not a control word "
+                f"(which would reflect the data select written, 0x{sent:08X})"
             )
         if not wrong:
             self._check("identity", "protocol generation", Verdict.PASS, f"{file} frames")
@@ -335,3 +335,17 @@ class IdentitySteps(UnitSteps):
             "bits, e.g. torque mode on both axes)",
         )
         return False
+
+
+def _y_and_x(a: float, b: float, y: float, x: float) -> bool:
+    """Are ``y`` and ``x`` the travel and turn velocities of motors ``a`` and ``b``
+    (within the wire's rounding)?"""
+    return abs(y - (a + b) / 2) <= 0.5 and abs(x - (a - b) / 2) <= 0.5
+
+
+def _raw(value: float) -> int:
+    return round(value / 0.2) & 0xFFFF
+
+
+def _int16(word: int) -> int:
+    return word - 0x10000 if word & 0x8000 else word
