@@ -23,8 +23,15 @@ from abh3_supervisor.commission.report import Session, html_text, to_json
 from abh3_supervisor.commission.robot import RobotResult
 from abh3_supervisor.commission.sequence import commission
 from abh3_supervisor.commission.unit import RobotView, UnitResult
-from abh3_supervisor.commission.wheels import places
+from abh3_supervisor.commission.wheels import (
+    Seen,
+    judge_diameter,
+    judge_track,
+    judge_wheels,
+    places,
+)
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.simulator.robot import SimRobot
 from tests.commission_bench import FakeBench, Headless
 
@@ -516,3 +523,46 @@ def test_the_skid_steer_demo_names_its_mirrored_wheel_with_exit_1(
         "rear-left, forward",
         "rear-right, backward",
     ]
+
+
+# ---------------------------------------------------------------- the judgements alone
+
+
+def _robot(shape: str) -> RobotConfig:
+    return parse_config(config_text(shape), "robot.yaml").robots["robot"]
+
+
+def test_places_are_named_by_side_and_front_to_rear_as_listed() -> None:
+    assert list(places(_robot("skid-steer on two drives")).values()) == [
+        "front-left",
+        "rear-left",
+        "front-right",
+        "rear-right",
+    ]
+    assert list(places(_robot("one wheel per drive")).values()) == ["left", "right"]
+
+
+def test_a_wheel_that_did_not_turn_or_turned_another_is_named_with_its_keys() -> None:
+    robot = _robot("skid-steer on two drives")
+    seen = {(w.unit, w.axis): Seen((w.unit, w.axis), 1) for w in robot.wheels}
+    seen["front", 0] = Seen(None, 0)
+    seen["rear", 1] = Seen(("front", 1), 1)  # and front.B turned its own: not a swap
+    checks = {c.name: c for c in judge_wheels(robot, seen)}
+    assert checks["wheel front.A (front-left) did not turn"].verdict is Verdict.FAIL
+    other = checks["wheel rear.B (rear-right) turned another wheel"]
+    assert other.measured == "front-right turned"
+    assert "unit: and axis: of the front-right wheel" in other.fix
+    assert checks["wheel rear.A (rear-left)"].verdict is Verdict.PASS
+
+
+def test_a_straight_run_off_by_a_factor_names_the_diameter_it_measured() -> None:
+    robot = _robot("diff drive on one drive")  # diameter_m: 0.15
+    check = judge_diameter(robot, expected_m=0.4, measured_m=0.2)
+    assert check.verdict is Verdict.FAIL and "diameter_m: 0.075" in check.fix
+    radius = judge_diameter(robot, expected_m=0.4, measured_m=0.8)  # the file gave a radius
+    assert radius.name == "wheel diameter off by +100%" and "diameter_m: 0.3 " in radius.fix
+    assert "not a radius" in radius.fix
+    assert judge_diameter(robot, 0.4, 0.41).verdict is Verdict.PASS
+    assert judge_track(robot, math.pi / 2, math.pi / 2 * 1.02).verdict is Verdict.PASS
+    wide = judge_track(robot, math.pi / 2, math.pi / 4)  # turned half as far: twice the track
+    assert wide.verdict is Verdict.FAIL and "track_m: 1" in wide.fix
