@@ -465,9 +465,11 @@ def test_the_e_stop_key_at_a_wheel_question_ends_the_session_with_everything_sto
         def answer(self, question: str, options: Sequence[tuple[str, str]]) -> str:
             return "e"
 
-    _, robots, why = run(bench, Stopping(bench))
+    results, robots, why = run(bench, Stopping(bench))
     assert why == "e-stop pressed"
-    assert robots["robot"].verdict is Verdict.FAIL
+    assert failing(robots["robot"]) == [("aborted", "")]
+    assert robots["robot"].checks[-1].measured == "e-stop pressed during its step"
+    assert results["base"].verdict is Verdict.PASS  # its own steps were over and passed
     assert_at_rest(bench)
 
 

@@ -301,10 +301,10 @@ async def commission(
         if robots is not None:
             await _robots(bench, operator, units, settings, results, robots)
     except Aborted as exc:
-        _ended(bench, units, results, "aborted", str(exc))
+        _ended(bench, units, results, "aborted", str(exc), robots)
         return str(exc)
     except asyncio.CancelledError:  # Ctrl-C, a signal, the runtime's fatal error
-        _ended(bench, units, results, "interrupted", "the session was stopped")
+        _ended(bench, units, results, "interrupted", "the session was stopped", robots)
         raise
     finally:
         for unit in units:
@@ -348,10 +348,20 @@ def _moved_well(result: UnitResult) -> bool:
 
 
 def _ended(
-    bench: Bench, units: Sequence[str], results: dict[str, UnitResult], name: str, why: str
+    bench: Bench,
+    units: Sequence[str],
+    results: dict[str, UnitResult],
+    name: str,
+    why: str,
+    robots: dict[str, RobotResult] | None = None,
 ) -> None:
-    """The session ended early: the unit it interrupted fails (it was not fully checked,
-    whatever passed before), and so does each unit that never began."""
+    """The session ended early: the unit (or the robot) it interrupted fails (it was not
+    fully checked, whatever passed before), and so does each unit that never began."""
+    robot = next(reversed(robots), None) if robots else None
+    if robots and robot is not None:
+        robots[robot].checks.append(Check("session", name, Verdict.FAIL, f"{why} during its step"))
+        robots[robot].ended = robots[robot].ended or why
+        return  # every unit's own steps were over
     current = next(reversed(results), None)
     for unit in units:
         result = results.get(unit)
