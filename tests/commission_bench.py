@@ -7,9 +7,9 @@ import asyncio
 from collections.abc import Sequence
 from typing import TypeVar
 
-from abh3_supervisor.commission.unit import Bench
+from abh3_supervisor.commission.unit import Bench, RobotView
 from abh3_supervisor.config import Config
-from abh3_supervisor.core.inputs import InputArbiter, InputSource, VelocityYX
+from abh3_supervisor.core.inputs import InputArbiter, InputSource, Twist, VelocityYX
 from abh3_supervisor.core.kinematics import ab_to_yx
 from abh3_supervisor.core.verify import Verification
 from abh3_supervisor.core.verifying import verify_units
@@ -77,6 +77,10 @@ class FakeBench(Rig, Bench):
     def release(self, unit: str) -> None:
         self.arbiter.submit(f"commission:{unit}", None, self.now())
 
+    def twist(self, unit: str, linear_x: float, angular_z: float) -> None:
+        if not self.stalled:
+            self.arbiter.submit(f"commission:{unit}", Twist(linear_x, angular_z), self.now())
+
     def wire(self) -> Sequence[tuple[float, int, bytes]]:
         return [(f.start, f.arbitration_id, f.data) for f in self.timeline.frames if f.node == 0]
 
@@ -98,13 +102,27 @@ class FakeBench(Rig, Bench):
         job = asyncio.ensure_future(verify_units(self.sup, [unit], act=False))
         return (await self._stepping(job))[unit]
 
+    def sim_robot(self, name: str) -> RobotView | None:
+        return self.sim.robots.get(name)
+
 
 class Headless:
-    """Says yes to every question and presses the e-stop when asked, at once."""
+    """Says yes to every question and presses the e-stop when asked, at once; no terminal
+    to choose a key or type a number on."""
+
+    interactive = False
 
     def __init__(self, bench: FakeBench, answers: bool = True) -> None:
         self.bench, self.answers = bench, answers
         self.lines: list[str] = []
+
+    async def choose(self, question: str, options: Sequence[tuple[str, str]]) -> str | None:
+        self.lines.append(f"? {question}")
+        return None
+
+    async def measure(self, question: str) -> float | None:
+        self.lines.append(f"? {question}")
+        return None
 
     def say(self, text: str) -> None:
         self.lines.append(text)

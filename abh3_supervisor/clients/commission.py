@@ -11,8 +11,11 @@ short timeout, so a stalled sequence lets the jog lapse to zero.
 
 Units not named are monitors (never commanded); no unit runs its ``startup:`` and no
 plugin is loaded: only this sequence moves anything. On a terminal, ``e`` is the e-stop
-at every moment and questions take ``y``/``n``; without one, ``--wheels-off-ground`` and
-``--yes`` are the operator's consent, and the e-stop rehearsal presses the key itself.
+at every moment, questions take ``y``/``n``, the robot step's one key per answer (which
+wheel, which way) and a typed number (a measured distance or angle); without one,
+``--wheels-off-ground`` and ``--yes`` are the operator's consent, the e-stop rehearsal
+presses the key itself, and on real drives the robot step is not run (nobody to say
+which wheel turned; in simulation the simulated robot tells).
 """
 
 from __future__ import annotations
@@ -33,8 +36,9 @@ from pathlib import Path
 from abh3_supervisor import __version__
 from abh3_supervisor.commission.model import Settings, Verdict
 from abh3_supervisor.commission.report import Session, html_text, json_text
+from abh3_supervisor.commission.robot import RobotResult
 from abh3_supervisor.commission.sequence import SOURCE_TIMEOUT_S, commission
-from abh3_supervisor.commission.unit import Aborted, UnitResult
+from abh3_supervisor.commission.unit import Aborted, RobotView, UnitResult
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.core.inputs import InputFeed, InputSource
 from abh3_supervisor.core.kinematics import ab_to_yx
@@ -237,6 +241,11 @@ class LiveBench:
         if feed is not None:
             feed.release()
 
+    def twist(self, unit: str, linear_x: float, angular_z: float) -> None:
+        feed = self.sources[unit].feed
+        if feed is not None:
+            feed.twist(linear_x, angular_z)
+
     def wire(self) -> Sequence[tuple[float, int, bytes]]:
         return self.sent
 
@@ -252,15 +261,24 @@ class LiveBench:
                 await asyncio.shield(self.rt.verifying)
         return self.sup.units[unit].verify
 
+    def sim_robot(self, name: str) -> RobotView | None:
+        for sim in self.rt.sims.values():
+            if name in sim.robots:
+                return sim.robots[name]
+        return None
+
 
 class TerminalOperator:
-    """Questions and the e-stop on a terminal (``e`` at any moment; ``y``/``n``), or the
-    flags' consent without one."""
+    """Questions and the e-stop on a terminal (``e`` at any moment; ``y``/``n``, one key
+    per choice, a typed number), or the flags' consent without one."""
 
     def __init__(self, bench: LiveBench, args: argparse.Namespace, keys: bool) -> None:
         self.bench, self.args, self.keys = bench, args, keys
+        self.interactive = keys
         self._answer: asyncio.Future[str] | None = None
         self._estop: asyncio.Future[float] | None = None
+        self._keys = ""  # the keys the open question takes; "yn": a yes/no one
+        self._line: list[str] | None = None  # a number being typed
 
     def say(self, text: str) -> None:
         print(text, flush=True)
@@ -275,8 +293,26 @@ class TerminalOperator:
                 self._estop.set_result(t)
             elif self._answer is not None and not self._answer.done():
                 self._answer.set_exception(Aborted("e-stop pressed"))  # ends the session now
-        elif self._answer is not None and not self._answer.done() and char in "yYnN\r\n":
+        elif self._answer is None or self._answer.done():
+            return
+        elif self._line is not None:
+            self._typed(char)
+        elif self._keys == "yn" and char in "yYnN\r\n":
             self._answer.set_result("y" if char in "yY" else "n")  # [y/N]: Enter is no
+        elif self._keys != "yn" and char.lower() in self._keys:
+            self._answer.set_result(char.lower())
+
+    def _typed(self, char: str) -> None:
+        """A number's keys: digits, a point, a minus; backspace; Enter ends it."""
+        assert self._answer is not None and self._line is not None
+        if char in "\r\n":
+            self._answer.set_result("".join(self._line))
+        elif char in ("\x7f", "\b") and self._line:
+            self._line.pop()
+            print("\b \b", end="", flush=True)
+        elif char in "0123456789.-":
+            self._line.append(char)
+            print(char, end="", flush=True)
 
     async def confirm(self, question: str) -> bool:
         wheels = "OFF THE GROUND" in question
@@ -287,11 +323,42 @@ class TerminalOperator:
             flag = "--wheels-off-ground" if wheels else "--yes"
             self.say(f"{question} no (no terminal to ask: {flag} gives consent)")
             return False
-        self._answer = asyncio.get_running_loop().create_future()
+        self._answer, self._keys = asyncio.get_running_loop().create_future(), "yn"
         print(f"{question} [y/N] ", end="", flush=True)
         answer = await self._answer
         self.say(answer)
         return answer == "y"
+
+    async def choose(self, question: str, options: Sequence[tuple[str, str]]) -> str | None:
+        if not self.keys:
+            self.say(f"{question} (no terminal to ask)")
+            return None
+        self._answer = asyncio.get_running_loop().create_future()
+        self._keys = "".join(k.lower() for k, _ in options)
+        listed = ", ".join(f"{k} {meaning}" for k, meaning in options)
+        print(f"{question} [{listed}] ", end="", flush=True)
+        answer = await self._answer
+        self.say(dict((k.lower(), m) for k, m in options)[answer])
+        return answer
+
+    async def measure(self, question: str) -> float | None:
+        if not self.keys:
+            self.say(f"{question} (no terminal to ask)")
+            return None
+        while True:
+            self._answer, self._line = asyncio.get_running_loop().create_future(), []
+            print(f"{question} ", end="", flush=True)
+            try:
+                text = await self._answer
+            finally:
+                self._line = None
+            self.say("")
+            if not text:
+                return None
+            try:
+                return float(text)
+            except ValueError:
+                self.say(f"  {text!r} is not a number: again, or Enter to skip")
 
     async def press_estop(self, prompt: str) -> float | None:
         if not self.keys:
@@ -362,6 +429,7 @@ async def _commissioning(
         print(recording(args.record), flush=True)
     rt = Runtime(used, record=args.record, plugins=plugins)
     results: dict[str, UnitResult] = {}
+    robots: dict[str, RobotResult] = {}
     ended: str | None = None
     stopped_by: list[int] = []  # the signal that ended the sequence
     async with rt:
@@ -386,7 +454,7 @@ async def _commissioning(
             fatal = asyncio.ensure_future(rt.fatal) if rt.fatal is not None else None
             startups = {u: config.units[u].startup for u in units}
             run = asyncio.ensure_future(
-                commission(bench, operator, units, settings, results, startups)
+                commission(bench, operator, units, settings, results, startups, robots)
             )
             sequence.append(run)
             waiting = {run} | ({fatal} if fatal is not None else set())
@@ -417,6 +485,7 @@ async def _commissioning(
         ended=ended,
         stops=stops,
         record=str(args.record) if args.record else None,
+        robots=robots,
     )
     _summary(session)
     if args.report is not None:
@@ -427,7 +496,8 @@ async def _commissioning(
         return 128 + stopped_by[0]
     if not rt.stops_confirmed:
         return EXIT_STOP_UNCONFIRMED
-    failed = ended is not None or any(r.verdict is Verdict.FAIL for r in results.values())
+    verdicts = [r.verdict for r in results.values()] + [r.verdict for r in robots.values()]
+    failed = ended is not None or Verdict.FAIL in verdicts
     return 1 if failed else 0
 
 
@@ -442,6 +512,13 @@ def _summary(s: Session) -> None:
         for c in fails:
             if c.fix:
                 print(f"    fix ({c.name}): {c.fix}")
+    for name, robot in (s.robots or {}).items():
+        fails = [c for c in robot.checks if c.verdict is Verdict.FAIL]
+        print(f"  robot {name}: {robot.verdict.value.upper()}")
+        if robot.ended:
+            print(f"    {robot.ended}")
+        for c in fails:
+            print(f"    {c.name}: {c.measured}" + (f"\n    fix: {c.fix}" if c.fix else ""))
     if s.ended:
         print(f"  ended early: {s.ended}")
 

@@ -274,6 +274,8 @@ class IdentitySteps(UnitSteps):
             await self._fresh(1)
         else:
             await self._until(lambda: "control" in self.state.words, 0.5)
+        if not self._generation():
+            return False
         control = self.state.words.get("control")
         if control is None:
             self._check("identity", "velocity model", Verdict.WARN, "control word not read")
@@ -292,3 +294,58 @@ class IdentitySteps(UnitSteps):
             return False
         self._check("identity", "velocity model", Verdict.PASS, str(drive))
         return ok
+
+    def _generation(self) -> bool:
+        """The drive's frames in the file's protocol generation's layout (False: named,
+        with its fix). Bytes 4–7 of a DP0 reply tell: a 2021 drive puts its Y and X
+        velocities there, (A ± B) / 2 of bytes 0–3; a 2023 drive its control word, never
+        0 while the host writes a data select (the word reflects it)."""
+        file, fb = self.cfg.protocol, self.state.feedback
+        if fb is None:
+            return True
+        sent = self.state.inputs & self.state.layout.select_mask
+        if file is Generation.G2021:
+            first, second, y, x = fb.vel_a, fb.vel_b, fb.vel_y, fb.vel_x
+            wrong = not _y_and_x(first, second, y, x)
+            raw = _raw(y) | _raw(x) << 16
+            what = f"DP0 reply bytes 4–7 0x{raw:08X} are no Y/X velocities of its A and B"
+        else:
+            control = fb.control or 0
+            travel = self.cfg.velocity_model is VelocityModel.TRAVEL
+            first, second = (fb.vel_y, fb.vel_x) if travel else (fb.vel_a, fb.vel_b)
+            y, x = (_int16(control & 0xFFFF) * 0.2, _int16(control >> 16) * 0.2)
+            moving = _y_and_x(first, second, y, x) and bool(first or second)
+            wrong = moving or (bool(sent) and not control)
+            what = (
+                f"DP0 reply bytes 4–7 0x{control:08X}: Y/X velocities, not a control word "
+                f"(which would reflect the data select written, 0x{sent:08X})"
+            )
+        if not wrong:
+            self._check("identity", "protocol generation", Verdict.PASS, f"{file} frames")
+            return True
+        other = Generation.G2023 if file is Generation.G2021 else Generation.G2021
+        self._check(
+            "identity",
+            "protocol generation",
+            Verdict.FAIL,
+            f"the drive answers in {other}'s layout: {what}",
+            f'protocol: "{file}"',
+            f'protocol: "{other}" for units.{self.unit} in the YAML: the flag words of the '
+            f"two generations differ (a {file} word sent to a {other} drive sets the wrong "
+            "bits, e.g. torque mode on both axes)",
+        )
+        return False
+
+
+def _y_and_x(a: float, b: float, y: float, x: float) -> bool:
+    """Are ``y`` and ``x`` the travel and turn velocities of motors ``a`` and ``b``
+    (within the wire's rounding)?"""
+    return abs(y - (a + b) / 2) <= 0.5 and abs(x - (a - b) / 2) <= 0.5
+
+
+def _raw(value: float) -> int:
+    return round(value / 0.2) & 0xFFFF
+
+
+def _int16(word: int) -> int:
+    return word - 0x10000 if word & 0x8000 else word

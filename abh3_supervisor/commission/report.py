@@ -10,9 +10,11 @@ from dataclasses import dataclass
 from html import escape
 from typing import Any
 
-from abh3_supervisor.commission.model import Settings, Verdict
+from abh3_supervisor.commission.model import AXES, Settings, Verdict
+from abh3_supervisor.commission.robot import RobotResult
 from abh3_supervisor.commission.svg import plot
 from abh3_supervisor.commission.unit import UnitResult
+from abh3_supervisor.commission.wheels import places
 from abh3_supervisor.params import table
 
 
@@ -27,6 +29,7 @@ class Session:
     ended: str | None = None  # why the session ended early
     stops: Mapping[str, str] | None = None  # unit → the stop's outcome at the end
     record: str | None = None
+    robots: Mapping[str, RobotResult] | None = None  # the robot step's, per robot
 
 
 def unit_json(name: str, r: UnitResult, stop: str | None) -> dict[str, Any]:
@@ -51,6 +54,41 @@ def unit_json(name: str, r: UnitResult, stop: str | None) -> dict[str, Any]:
     }
 
 
+def robot_json(r: RobotResult) -> dict[str, Any]:
+    names = places(r.robot)
+    return {
+        "robot": r.robot.name,
+        "verdict": r.verdict.value,
+        "track_m": r.robot.track_m,
+        "told_by": r.source,
+        "ended": r.ended,
+        "wheels": [
+            {
+                "unit": w.unit,
+                "axis": AXES[w.axis],
+                "place": names[w.unit, w.axis],
+                "side": w.side.value,
+                "sign": w.sign,
+                "diameter_m": w.diameter_m,
+                "gear_ratio": w.gear_ratio,
+                "turned": _turned(r, w.unit, w.axis),
+            }
+            for w in r.robot.wheels
+        ],
+        "checks": [c.to_json() for c in r.checks],
+    }
+
+
+def _turned(r: RobotResult, unit: str, axis: int) -> str | None:
+    seen = r.seen.get((unit, axis))
+    if seen is None:
+        return None
+    if seen.place is None or not seen.direction:
+        return "none"
+    way = "forward" if seen.direction > 0 else "backward"
+    return f"{places(r.robot)[seen.place]}, {way}"
+
+
 def to_json(s: Session) -> dict[str, Any]:
     stops = s.stops or {}
     return {
@@ -62,12 +100,14 @@ def to_json(s: Session) -> dict[str, Any]:
         "record": s.record,
         "verdict": overall(s).value,
         "units": {n: unit_json(n, r, stops.get(n)) for n, r in s.results.items()},
+        "robots": {n: robot_json(r) for n, r in (s.robots or {}).items()},
         "yaml": s.yaml,
     }
 
 
 def overall(s: Session) -> Verdict:
     verdicts = {r.verdict for r in s.results.values()}
+    verdicts |= {r.verdict for r in (s.robots or {}).values()}
     for v in (Verdict.FAIL, Verdict.WARN):
         if v in verdicts:
             return v
@@ -130,9 +170,16 @@ def html_text(s: Session) -> str:
                 u["verdict"],
             )
         )
+    for name, r in doc["robots"].items():
+        on = ", ".join(dict.fromkeys(w["unit"] for w in r["wheels"]))
+        out.append(
+            _row([f"robot {name}", f"{len(r['wheels'])} wheels on {on}", r["verdict"], "–", "–"])
+        )
     out.append("</table>")
     for name, u in doc["units"].items():
         out += _unit_html(name, u, s.results[name])
+    for name, r in doc["robots"].items():
+        out += _robot_html(name, r)
     out.append("<h2>Configuration</h2>")
     out.append(f"<pre>{escape(s.yaml)}</pre>")
     out.append("</body></html>")
@@ -176,4 +223,45 @@ def _unit_html(name: str, u: dict[str, Any], r: UnitResult) -> list[str]:
         note = f" — stopped: {trace.stopped}" if trace.stopped else ""
         out.append(f"<h3>{escape(trace.title)}{escape(note)}</h3>")
         out.append(f'<figure data-trace="{escape(trace.title)}">{plot(trace)}</figure>')
+    return out
+
+
+def _robot_html(name: str, r: dict[str, Any]) -> list[str]:
+    out = [f'<h2 id="robot-{escape(name)}">Robot {escape(name)} — {escape(r["verdict"])}</h2>']
+    out.append(
+        f"<p>Track {r['track_m']:g} m. Each wheel alone, forward at creep speed; which "
+        f"wheel turned and which way: told by {escape(r['told_by'] or '–')}.</p>"
+    )
+    if r["ended"]:
+        out.append(f"<p>Not all of it ran: {escape(r['ended'])}</p>")
+    out.append("<table>")
+    out.append(
+        _row(
+            ["wheel", "place", "sign", "diameter", "gear ratio", "asked forward: turned"],
+            head=True,
+        )
+    )
+    for w in r["wheels"]:
+        turned = w["turned"] or "–"
+        ok = turned == f"{w['place']}, forward"
+        out.append(
+            _row(
+                [
+                    f"{w['unit']}.{w['axis']}",
+                    w["place"],
+                    f"{w['sign']:+d}",
+                    f"{w['diameter_m']:g} m",
+                    f"{w['gear_ratio']:g}",
+                    turned,
+                ],
+                "" if w["turned"] is None else ("pass" if ok else "fail"),
+            )
+        )
+    out.append("</table><table>")
+    out.append(_row(["check", "verdict", "measured", "limit", "what to change"], head=True))
+    for c in r["checks"]:
+        cls = c["verdict"].replace(" ", "-")
+        fix = c["fix"] if c["verdict"] != "pass" else ""
+        out.append(_row([c["name"], c["verdict"], c["measured"], c["limit"], fix], cls))
+    out.append("</table>")
     return out

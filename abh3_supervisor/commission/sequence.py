@@ -20,6 +20,7 @@ from abh3_supervisor.commission.analysis import Phase
 from abh3_supervisor.commission.guard import Guard
 from abh3_supervisor.commission.identity import IdentitySteps
 from abh3_supervisor.commission.model import AXES, Check, Settings, Trace, Verdict
+from abh3_supervisor.commission.robot import RobotResult, RobotSequence
 from abh3_supervisor.commission.unit import Aborted, Bench, Operator, UnitResult, halt
 from abh3_supervisor.config.model import VelocityModel
 from abh3_supervisor.core.kinematics import yx_to_ab
@@ -283,22 +284,27 @@ async def commission(
     settings: Settings,
     results: dict[str, UnitResult],
     startups: Mapping[str, Sequence[str]] | None = None,
+    robots: dict[str, RobotResult] | None = None,
 ) -> str | None:
     """Each unit in turn, its result in ``results`` as it goes (so an interrupted session
     still reports what it saw); why the session ended early, or None. The e-stop outside
     its rehearsal ends the session; every unit is stopped whatever happens. ``startups``:
-    the file's ``startup:`` per unit, not run; one that sets a unit moving refuses it."""
+    the file's ``startup:`` per unit, not run; one that sets a unit moving refuses it.
+    Given ``robots``, the robot step follows (:mod:`.robot`) for each robot of the file
+    whose units are all commissioned here, its result there."""
     try:
         for unit in units:
             startup = (startups or {}).get(unit, ())
             sequence = UnitSequence(bench, operator, unit, settings, startup)
             results[unit] = sequence.result
             await sequence.run()
+        if robots is not None:
+            await _robots(bench, operator, units, settings, results, robots)
     except Aborted as exc:
-        _ended(bench, units, results, "aborted", str(exc))
+        _ended(bench, units, results, "aborted", str(exc), robots)
         return str(exc)
     except asyncio.CancelledError:  # Ctrl-C, a signal, the runtime's fatal error
-        _ended(bench, units, results, "interrupted", "the session was stopped")
+        _ended(bench, units, results, "interrupted", "the session was stopped", robots)
         raise
     finally:
         for unit in units:
@@ -306,11 +312,56 @@ async def commission(
     return None
 
 
-def _ended(
-    bench: Bench, units: Sequence[str], results: dict[str, UnitResult], name: str, why: str
+async def _robots(
+    bench: Bench,
+    operator: Operator,
+    units: Sequence[str],
+    settings: Settings,
+    results: Mapping[str, UnitResult],
+    robots: dict[str, RobotResult],
 ) -> None:
-    """The session ended early: the unit it interrupted fails (it was not fully checked,
-    whatever passed before), and so does each unit that never began."""
+    for robot in bench.sup.config.robots.values():
+        if not set(robot.units) <= set(units):
+            continue  # a robot not commissioned here
+        sequence = RobotSequence(bench, operator, robot, settings)
+        robots[robot.name] = sequence.result
+        failed = [u for u in robot.units if not _moved_well(results[u])]
+        if failed:
+            sequence.result.checks.append(
+                Check(
+                    "robot",
+                    "not run",
+                    Verdict.SKIPPED,
+                    f"unit {', '.join(failed)} did not pass its own steps",
+                )
+            )
+            sequence.result.ended = "not run: its units' own steps did not pass"
+            operator.say(f"robot {robot.name}: not run: unit {', '.join(failed)} did not pass")
+            continue
+        await sequence.run()
+
+
+def _moved_well(result: UnitResult) -> bool:
+    """Every motion step ran and none failed."""
+    verdicts = {c.verdict for c in result.checks}
+    return Verdict.FAIL not in verdicts and Verdict.SKIPPED not in verdicts
+
+
+def _ended(
+    bench: Bench,
+    units: Sequence[str],
+    results: dict[str, UnitResult],
+    name: str,
+    why: str,
+    robots: dict[str, RobotResult] | None = None,
+) -> None:
+    """The session ended early: the unit (or the robot) it interrupted fails (it was not
+    fully checked, whatever passed before), and so does each unit that never began."""
+    robot = next(reversed(robots), None) if robots else None
+    if robots and robot is not None:
+        robots[robot].checks.append(Check("session", name, Verdict.FAIL, f"{why} during its step"))
+        robots[robot].ended = robots[robot].ended or why
+        return  # every unit's own steps were over
     current = next(reversed(results), None)
     for unit in units:
         result = results.get(unit)

@@ -25,6 +25,14 @@ class Aborted(Exception):
     """The e-stop was pressed outside its rehearsal: the session ends, drives stopped."""
 
 
+class RobotView(Protocol):
+    """A simulated robot's true motion (simulator/robot.py): what the robot step asks it."""
+
+    travel: dict[tuple[str, int], float]  # metres each wheel place rolled, forward positive
+    distance: float  # the centre's path length [m]
+    heading: float  # [rad], counter-clockwise positive
+
+
 class Bench(Protocol):
     sup: Supervisor
 
@@ -36,17 +44,32 @@ class Bench(Protocol):
     def release(self, unit: str) -> None:
         """The commissioning input lets go of ``unit``: zero at once."""
 
+    def twist(self, unit: str, linear_x: float, angular_z: float) -> None:
+        """A twist [m/s, rad/s] for ``unit``'s robot, as the commissioning input's."""
+
     def wire(self) -> Sequence[tuple[float, int, bytes]]:
         """Every frame the host sent, (time, identifier, data), in order."""
 
     async def identity(self, unit: str) -> str: ...
     async def read_param(self, unit: str, address: int) -> int: ...
     async def verification(self, unit: str) -> Verification: ...
+    def sim_robot(self, name: str) -> RobotView | None:
+        """The simulated robot ``name`` (the robot step asks it, not the operator); None
+        on real drives."""
 
 
 class Operator(Protocol):
+    # a person at a terminal answers choose() and measure(); without one they return None
+    interactive: bool
+
     def say(self, text: str) -> None: ...
     async def confirm(self, question: str) -> bool: ...
+    async def choose(self, question: str, options: Sequence[tuple[str, str]]) -> str | None:
+        """One key of ``options`` ((key, meaning), …); None: no answer to be had."""
+
+    async def measure(self, question: str) -> float | None:
+        """A number typed in (Enter alone: None, skipped)."""
+
     async def press_estop(self, prompt: str) -> float | None:
         """The bench time at which the operator pressed the e-stop key (the key itself
         latches the supervisor's e-stop); None if it was not pressed."""

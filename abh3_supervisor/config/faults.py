@@ -14,7 +14,7 @@ from abh3_supervisor.config.model import (
 )
 from abh3_supervisor.config.source import Section
 
-FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms", "axis", "factor"}
+FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms", "axis", "factor", "other"}
 KIND_KEYS = {  # what each kind reads besides kind, at_s, for_s and unit
     FaultKind.ERROR_BITS: {"bits"},
     FaultKind.SLOW_REPLIES: {"delay_ms"},
@@ -22,9 +22,17 @@ KIND_KEYS = {  # what each kind reads besides kind, at_s, for_s and unit
     FaultKind.REVERSED_AXIS: {"axis"},
     FaultKind.SCALE: {"axis", "factor"},
     FaultKind.NO_ENCODER: {"axis"},
+    FaultKind.MIRRORED_WHEEL: {"axis"},
+    FaultKind.SWAPPED_DRIVES: {"other"},
+    FaultKind.WRONG_TRACK: {"factor"},
+    FaultKind.WRONG_DIAMETER: {"factor"},
 }
 # what a wiring kind cannot do without (the others have defaults)
-REQUIRED = {k: KIND_KEYS[k] for k in AXIS_KINDS}
+REQUIRED = {k: KIND_KEYS[k] for k in AXIS_KINDS} | {
+    FaultKind.SWAPPED_DRIVES: {"unit", "other"},
+    FaultKind.WRONG_TRACK: {"factor"},
+    FaultKind.WRONG_DIAMETER: {"factor"},
+}
 AXES = ("A", "B")
 MAX_S = 7 * 86400.0
 
@@ -70,6 +78,7 @@ def parse_faults(sim: Section) -> tuple[Fault, ...]:
                 delay_ms=f.number("delay_ms", Fault.delay_ms, 0.0, 10_000.0, lo_open=True),
                 axis=AXES.index(f.choice("axis", "A", list(AXES))),
                 factor=f.number("factor", 1.0, 0.0, 100.0, lo_open=True),
+                other=f.text("other", "") or None,
             )
         )
     return tuple(faults)
@@ -78,21 +87,27 @@ def parse_faults(sim: Section) -> tuple[Fault, ...]:
 def _needs(key: str) -> str:
     if key == "axis":
         return "the motor: A or B"
+    if key in ("unit", "other"):
+        return "the two units whose drives sit on each other's wheels: unit: X, other: Y"
     return "pulses counted per pulse the file's geometry expects, e.g. 1.1"
 
 
 def check_fault_units(
     top: Section, buses: dict[str, BusConfig], units: dict[str, UnitConfig]
 ) -> None:
-    """A fault naming a unit must name one simulated on that bus."""
+    """A fault naming a unit (or an ``other`` one) must name one simulated on that bus."""
     for name, bus in buses.items():
         for i, fault in enumerate(bus.simulate.faults if bus.simulate else ()):
-            if fault.unit is None:
-                continue
-            unit = units.get(fault.unit)
-            if unit is None or unit.bus != name:
-                here = [u.name for u in units.values() if u.bus == name]
+            for key, named in (("unit", fault.unit), ("other", fault.other)):
+                unit = units.get(named) if named is not None else None
+                if named is not None and (unit is None or unit.bus != name):
+                    here = [u.name for u in units.values() if u.bus == name]
+                    top.src.error(
+                        ("buses", name, "simulate", "faults", i, key),
+                        f"no unit '{named}' on bus {name} (units there: {', '.join(here)})",
+                    )
+            if fault.other is not None and fault.other == fault.unit:
                 top.src.error(
-                    ("buses", name, "simulate", "faults", i, "unit"),
-                    f"no unit '{fault.unit}' on bus {name} (units there: {', '.join(here)})",
+                    ("buses", name, "simulate", "faults", i, "other"),
+                    "swapped_drives swaps two different units",
                 )

@@ -55,6 +55,13 @@ class FaultKind(StrEnum):
     SCALE = "scale"  # the motor's pulses count ``factor`` × what the file's geometry expects
     NO_ENCODER = "no_encoder"  # no feedback, no pulses; the current rises as when stalled
     OTHER_VELOCITY_MODEL = "other_velocity_model"  # the drive runs the model the file does not
+    # how the robot is built (simulator/robot.py): per-motor checks pass, the robot's fail
+    MIRRORED_WHEEL = "mirrored_wheel"  # the motor is mounted opposite to its wheel's sign
+    SWAPPED_DRIVES = "swapped_drives"  # ``unit`` and ``other`` sit on each other's wheels
+    SWAPPED_AXES_WITH_ENCODERS = "swapped_axes_with_encoders"  # A and B, encoders and all
+    WRONG_PROTOCOL = "wrong_protocol"  # the drive is of the other generation than the file's
+    WRONG_TRACK = "wrong_track"  # the robot's true track is ``factor`` × the file's
+    WRONG_DIAMETER = "wrong_diameter"  # the unit's wheels are ``factor`` × the file's diameter
 
 
 # kinds that describe how a drive is wired or set up: from the start, for ever, by default
@@ -65,9 +72,17 @@ WIRING_KINDS = frozenset(
         FaultKind.SCALE,
         FaultKind.NO_ENCODER,
         FaultKind.OTHER_VELOCITY_MODEL,
+        FaultKind.MIRRORED_WHEEL,
+        FaultKind.SWAPPED_DRIVES,
+        FaultKind.SWAPPED_AXES_WITH_ENCODERS,
+        FaultKind.WRONG_PROTOCOL,
+        FaultKind.WRONG_TRACK,
+        FaultKind.WRONG_DIAMETER,
     }
 )
-AXIS_KINDS = frozenset({FaultKind.REVERSED_AXIS, FaultKind.SCALE, FaultKind.NO_ENCODER})
+AXIS_KINDS = frozenset(
+    {FaultKind.REVERSED_AXIS, FaultKind.SCALE, FaultKind.NO_ENCODER, FaultKind.MIRRORED_WHEEL}
+)
 
 
 @dataclass(frozen=True)
@@ -81,7 +96,8 @@ class Fault:
     bits: int = 1 << 6  # error_bits: which error bits (default A overcurrent)
     delay_ms: float = 50.0  # slow_replies, tp_slow_dt
     axis: int = 0  # reversed_axis, scale, no_encoder: motor A (0) or B (1)
-    factor: float = 1.0  # scale: pulses counted per expected pulse
+    factor: float = 1.0  # scale: pulses counted per expected pulse; wrong_track/_diameter
+    other: str | None = None  # swapped_drives: the unit on whose wheels ``unit``'s drive sits
 
     def active(self, since_start: float) -> bool:
         return self.at_s <= since_start < self.at_s + self.for_s

@@ -207,8 +207,17 @@ def _fault() -> Schema:
             "unit": text("only this unit (not for bus_send_error)"),
             "bits": integer(1, 0xFFFFFFFF, "error_bits: which error bits", 0x40),
             "delay_ms": number(0, 10_000, "slow_replies: how late", 50.0, lo_open=True),
-            "axis": choice(["A", "B"], "reversed_axis, scale, no_encoder: the motor"),
-            "factor": number(0, 100, "scale: pulses per pulse the geometry expects", lo_open=True),
+            "axis": choice(
+                ["A", "B"], "the motor (reversed_axis, scale, no_encoder, mirrored_wheel)"
+            ),
+            "factor": number(
+                0,
+                100,
+                "scale: pulses per pulse the geometry expects; wrong_track, wrong_diameter: "
+                "the true value per the file's",
+                lo_open=True,
+            ),
+            "other": text("swapped_drives: the unit on whose wheels `unit`'s drive sits"),
         },
         required=("kind",),
     )
@@ -220,7 +229,14 @@ def _fault() -> Schema:
             "then": {"required": ["at_s", "for_s"]},
         },
         {"if": {"properties": {"kind": {"enum": axis}}}, "then": {"required": ["axis"]}},
-        {"if": {"properties": {"kind": {"const": "scale"}}}, "then": {"required": ["factor"]}},
+        {
+            "if": {"properties": {"kind": {"enum": ["scale", "wrong_track", "wrong_diameter"]}}},
+            "then": {"required": ["factor"]},
+        },
+        {
+            "if": {"properties": {"kind": {"const": "swapped_drives"}}},
+            "then": {"required": ["unit", "other"]},
+        },
     ]
     return fault
 

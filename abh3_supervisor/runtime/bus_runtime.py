@@ -179,7 +179,11 @@ class Runtime:
                 sim_bus = open_bus(cfg)
                 self._buses.append(sim_bus)
                 sim = SimBus.for_units(
-                    self.config.units_on(name), sim_cfg, loop.time(), bitrate=cfg.bitrate
+                    self.config.units_on(name),
+                    sim_cfg,
+                    loop.time(),
+                    bitrate=cfg.bitrate,
+                    robots=self.config.robots.values(),
                 )
                 self.sims[name] = sim
                 pump = BusPump(sim_bus, sim, name=f"{name} (simulator)", channel=cfg.channel)

@@ -82,6 +82,7 @@ class SimDrive:
         self.cmd_raw = (0, 0)  # last AY/BX command as written
         self.vel = [0.0, 0.0]  # motor A, B [min⁻¹], as they turn
         self.pulses = [0.0, 0.0]
+        self.revs = [0.0, 0.0]  # motor revolutions truly turned, whatever the encoder says
         self.accel_now = [0.0, 0.0]  # min⁻¹/s, first-order mode only (it costs current)
         self.stall = [0.0, 0.0]  # % of current pushed into a motor whose encoder is silent
         self.errors = 0  # latched errors (bit 22 is derived from the timeouts)
@@ -362,6 +363,7 @@ class SimDrive:
                 self.vel[i] += max(-step, min(step, goal - self.vel[i]))
             self.vel[i] = max(VELOCITY.minimum, min(VELOCITY.maximum, self.vel[i]))
             self.accel_now[i] = (self.vel[i] - before) / dt if self.tau is not None else 0.0
+            self.revs[i] += self.vel[i] / 60 * dt
             scale = self._axis_fault(FaultKind.SCALE, i)
             counts = self.sensed(i) * (scale.factor if scale else 1.0)
             self.pulses[i] += counts / 60 * self.pulses_per_rev * dt

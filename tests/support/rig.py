@@ -31,7 +31,9 @@ class Rig:
         bus = next(iter(config.buses))
         sim_cfg = config.buses[bus].simulate
         assert sim_cfg is not None
-        self.sim = SimBus.for_units(config.units_on(bus), sim_cfg, 0.0)
+        self.sim = SimBus.for_units(
+            config.units_on(bus), sim_cfg, 0.0, robots=config.robots.values()
+        )
         self.scheduler = self.sup.schedulers[bus]
         self.timeline.add(self.scheduler, after_step=lambda: self.sup.dispatch(bus))
         self.timeline.add(self.sim)

@@ -1,0 +1,258 @@
+"""What the robot step's observations say of how the robot is built, pure: which wheel
+each (unit, axis) turned and which way it rolled the robot in, named faults with their
+fixes out. No clock, no bus: tested on observations alone.
+
+A wheel's *place* is named as the file names it: the (unit, axis) the file gives the wheel
+there. The operator knows places by where they are: side, and front to rear in the order
+the file lists a side's wheels (:func:`places`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from abh3_supervisor.commission.model import AXES, Check, Verdict
+from abh3_supervisor.core.robot import RobotConfig, Side, Wheel
+
+STEP = "robot"
+Place = tuple[str, int]  # (unit, axis) of the wheel the file puts there
+GEOMETRY_TOLERANCE = 0.05  # a measured track or diameter beyond ±5 % of the file's: a fail
+
+
+@dataclass(frozen=True, slots=True)
+class Seen:
+    """What one wheel's jog did: the place of the wheel that turned (None: none did) and
+    which way it rolled the robot (+1 forward, −1 backward, 0 not at all)."""
+
+    place: Place | None
+    direction: int
+
+
+def places(robot: RobotConfig) -> dict[Place, str]:
+    """Each wheel's place, by name: ``left``/``right`` for one wheel a side,
+    ``front-left``/``rear-left`` for two (the file lists a side front to rear), ``left 1``,
+    ``left 2``… for more."""
+    out: dict[Place, str] = {}
+    for side in (Side.LEFT, Side.RIGHT):
+        of_side = [w for w in robot.wheels if w.side is side]
+        for i, w in enumerate(of_side):
+            if len(of_side) == 1:
+                name = side.value
+            elif len(of_side) == 2:
+                name = f"{('front', 'rear')[i]}-{side.value}"
+            else:
+                name = f"{side.value} {i + 1}"
+            out[w.unit, w.axis] = name
+    return out
+
+
+def _where(robot: RobotConfig) -> str:
+    return "a robots: section" if robot.implicit else f"robots: {robot.name}"
+
+
+def _wheel_key(robot: RobotConfig, w: Wheel) -> str:
+    if robot.implicit:
+        return f"units.{w.unit}.geometry (axis {AXES[w.axis]})"
+    index = robot.wheels.index(w)
+    return f"robots.{robot.name}.wheels[{index}] ({w.unit} axis {AXES[w.axis]})"
+
+
+def mirrored_fix(robot: RobotConfig, w: Wheel) -> str:
+    if robot.implicit:
+        yaml = (
+            f"describe the robot in {_where(robot)} with sign: {-w.sign} for unit {w.unit} "
+            f"axis {AXES[w.axis]} (docs/robots.md)"
+        )
+    else:
+        yaml = f"sign: {-w.sign} for {_wheel_key(robot, w)} (it is {w.sign})"
+    return (
+        f"{yaml}, or invert axis {AXES[w.axis]}'s direction in the drive (its polarity, "
+        "0x4000–0x4083, reversing motor and encoder together)"
+    )
+
+
+def swapped_drives_fix(robot: RobotConfig, u: str, v: str) -> str:
+    yaml = (
+        f"swap the abh3_id of units {u} and {v} in the YAML"
+        if robot.implicit
+        else f"in robots.{robot.name}.wheels swap unit: {u} and unit: {v} (or swap the two "
+        "units' abh3_id)"
+    )
+    return f"{yaml}, or swap the two drives' motor cables (with their encoders)"
+
+
+def swapped_axes_fix(robot: RobotConfig, unit: str) -> str:
+    if robot.implicit:
+        yaml = (
+            f"describe the robot in a robots: section with unit {unit}'s axis A on the "
+            "right and B on the left (docs/robots.md)"
+        )
+    else:
+        yaml = f"swap axis: A and axis: B of unit {unit}'s wheels in robots.{robot.name}.wheels"
+    return f"{yaml}, or swap motor A's and B's cables together with their encoder cables"
+
+
+def _swapped_with(robot: RobotConfig, seen: dict[Place, Seen], u: str) -> str | None:
+    """The unit whose wheels (axis for axis) ``u``'s wheels all turned, if another."""
+    mine = [w for w in robot.wheels if w.unit == u]
+    turned = [seen[w.unit, w.axis].place for w in mine]
+    others = {p[0] for p in turned if p is not None}
+    if None in turned or len(others) != 1 or u in others:
+        return None
+    v = others.pop()
+    if any(p != (v, w.axis) for w, p in zip(mine, turned, strict=True)):
+        return None
+    return v
+
+
+def judge_wheels(
+    robot: RobotConfig, seen: dict[Place, Seen], elsewhere: dict[Place, str] | None = None
+) -> list[Check]:
+    """One check per wheel (a pass where it is as the file says) and one per fault found:
+    drives swapped, A and B swapped with their encoders, a mirrored mounting.
+    ``elsewhere``: the names of other robots' wheel places a wheel may have turned (a
+    unit's drive on another one-drive robot's wheels: the two drives swapped)."""
+    names = {**(elsewhere or {}), **places(robot)}
+    checks: list[Check] = []
+    explained: set[Place] = set()
+    units = robot.units
+    for u in units:
+        v = _swapped_with(robot, seen, u)
+        if v is None or (
+            v in units and (_swapped_with(robot, seen, v) != u or units.index(v) < units.index(u))
+        ):
+            continue  # not swapped, or named from the other unit's side
+        pairs = [(w, (v, w.axis)) for w in robot.wheels if w.unit == u]
+        pairs += [(w, (u, w.axis)) for w in robot.wheels if w.unit == v]
+        turned = ", ".join(f"{w.name} turned {names[p]}" for w, p in pairs)
+        checks.append(
+            Check(
+                STEP,
+                f"drives swapped: {' ↔ '.join(sorted((u, v), key=_order(units)))}",
+                Verdict.FAIL,
+                turned,
+                "each unit turns its own wheels",
+                swapped_drives_fix(robot, *sorted((u, v), key=_order(units))),
+            )
+        )
+        explained |= {(w.unit, w.axis) for w, _ in pairs}
+    for u in units:
+        a, b = robot.wheel(u, 0), robot.wheel(u, 1)
+        if a is None or b is None or {(u, 0), (u, 1)} & explained:
+            continue
+        if seen[u, 0].place == (u, 1) and seen[u, 1].place == (u, 0):
+            checks.append(
+                Check(
+                    STEP,
+                    f"A and B swapped with their encoders: {u}",
+                    Verdict.FAIL,
+                    f"{a.name} turned {names[u, 1]}, {b.name} turned {names[u, 0]}",
+                    "each axis turns its own wheel",
+                    swapped_axes_fix(robot, u),
+                )
+            )
+            explained |= {(u, 0), (u, 1)}
+    for w in robot.wheels:
+        place = (w.unit, w.axis)
+        s = seen[place]
+        label = f"wheel {w.name} ({names[place]})"
+        if place in explained:
+            continue
+        if s.place is None or s.direction == 0:
+            checks.append(
+                Check(
+                    STEP,
+                    f"{label} did not turn",
+                    Verdict.FAIL,
+                    "no wheel turned",
+                    f"{names[place]} forward",
+                    "is the wheel coupled (gearbox, brake) and free? the drive's other "
+                    f"checks passed; the wheel's unit: and axis: in {_where(robot)}",
+                )
+            )
+        elif s.place != place:
+            checks.append(
+                Check(
+                    STEP,
+                    f"{label} turned another wheel",
+                    Verdict.FAIL,
+                    f"{names[s.place]} turned",
+                    f"{names[place]}",
+                    f"the unit: and axis: of the {names[s.place]} wheel in {_where(robot)} "
+                    f"are {w.unit} and {AXES[w.axis]}, or the motor cables are crossed",
+                )
+            )
+        elif s.direction < 0:
+            checks.append(
+                Check(
+                    STEP,
+                    f"mirrored wheel {w.name} ({names[place]})",
+                    Verdict.FAIL,
+                    "it rolled the robot backwards when asked forwards",
+                    "forward",
+                    mirrored_fix(robot, w),
+                )
+            )
+        else:
+            checks.append(Check(STEP, label, Verdict.PASS, "turned, rolling the robot forward"))
+    return checks
+
+
+def _order(units: tuple[str, ...]) -> Callable[[str], int]:
+    """The robot's units first, in its order; another robot's after."""
+    return lambda u: units.index(u) if u in units else len(units)
+
+
+def judge_diameter(robot: RobotConfig, expected_m: float, measured_m: float) -> Check:
+    """A straight run: the distance the encoders and the file's diameters give against the
+    one measured. Their ratio is the diameters' (every wheel alike)."""
+    ratio = measured_m / expected_m if expected_m else math.nan
+    diameter = robot.wheels[0].diameter_m
+    measured = f"{measured_m:.3f} m measured, {expected_m:.3f} m by the file's wheels"
+    if not math.isfinite(ratio) or abs(ratio - 1) <= GEOMETRY_TOLERANCE:
+        verdict = Verdict.PASS if math.isfinite(ratio) else Verdict.FAIL
+        return Check(STEP, "wheel diameter (straight run)", verdict, measured, "±5 %")
+    key = (
+        f"units.{robot.name}.geometry.wheel: {diameter * ratio:.4g}"
+        if robot.implicit
+        else f"diameter_m: {diameter * ratio:.4g} in robots: {robot.name} (it is {diameter:g})"
+    )
+    return Check(
+        STEP,
+        f"wheel diameter off by {100 * (ratio - 1):+.0f}%",
+        Verdict.FAIL,
+        measured,
+        "±5 %",
+        f"{key}; a diameter, not a radius — or a gear_ratio that is not the motor's revs "
+        "per wheel rev",
+    )
+
+
+def judge_track(robot: RobotConfig, expected_rad: float, measured_rad: float) -> Check:
+    """A turn on the spot: the angle the encoders and the file's track give against the
+    one measured; the true track is the file's × expected / measured."""
+    measured = (
+        f"{math.degrees(measured_rad):.1f}° measured, "
+        f"{math.degrees(expected_rad):.1f}° by the file's track"
+    )
+    if not measured_rad:
+        return Check(STEP, "track (turn on the spot)", Verdict.FAIL, measured, "±5 %")
+    ratio = expected_rad / measured_rad
+    if abs(ratio - 1) <= GEOMETRY_TOLERANCE:
+        return Check(STEP, "track (turn on the spot)", Verdict.PASS, measured, "±5 %")
+    track = robot.track_m * ratio
+    key = (
+        f"units.{robot.name}.geometry.width: {track:.4g}"
+        if robot.implicit
+        else f"track_m: {track:.4g} in robots: {robot.name} (it is {robot.track_m:g})"
+    )
+    return Check(
+        STEP,
+        f"track off by {100 * (ratio - 1):+.0f}%",
+        Verdict.FAIL,
+        measured,
+        "±5 %",
+        f"{key}: the distance between the left and right wheels' contact lines",
+    )
