@@ -225,3 +225,25 @@ def test_every_robot_with_known_pulses_and_every_monitor_unit_with_geometry() ->
     assert set(found) == {"rover", "solo", "eye"}  # plain has no pulses_per_rev
     assert found["rover"].geometry is None and found["rover"].units == ("l", "r")
     assert found["solo"].geometry == cfg.units["solo"].geometry
+
+
+def test_units_at_different_rates_are_compared_at_one_instant() -> None:
+    """Straight ahead at a steady speed, the left drive reporting at 50 Hz and the right
+    at 20 Hz (its clock a little off): every pose is straight, at the round's distance."""
+    rate = 10_000.0  # pulses per second on each wheel
+    reports = [(i * 0.02, "l") for i in range(100)] + [(0.003 + i * 0.05, "r") for i in range(40)]
+    odo = RobotOdometry(TWO_DRIVES)
+    poses, latest = [], {}
+    for t, unit in sorted(reports):
+        count = round(rate * t) * (1 if unit == "l" else -1)  # the right wheel is mirrored
+        latest[unit] = t
+        pose = odo.update(unit, count, 0, t)
+        if pose is not None:
+            poses.append((min(latest.values()), pose))  # a round's time: the earliest latest
+    assert 38 <= len(poses) <= 40  # a round per report of the slower drive
+    (t0, start), (t1, end) = poses[0], poses[-1]
+    assert t0 == 0.003  # the origin: once both had reported
+    for _, pose in poses:
+        assert pose.yaw == pytest.approx(0.0, abs=2 * MPP / 0.5)  # counts round to a pulse
+        assert pose.y == pytest.approx(0.0, abs=1e-6)
+    assert end.x - start.x == pytest.approx(rate * (t1 - t0) * MPP, abs=2 * MPP)

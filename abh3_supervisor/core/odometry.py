@@ -2,19 +2,22 @@
 measured twist from every wheel's velocity feedback.
 
 Each unit reports its two counts (pulse A, pulse B: int32 that wrap; a step is taken
-modulo 2³²) in its own broadcast, at its own time. A robot's wheels may sit on several
-units, so the pose advances in *rounds*: once every unit of the robot has reported since
-the last step, each wheel's travel since then (its count's step × its metres per pulse,
-mounting sign included) is taken, each side's travel is the mean of its wheels', and the
-pose moves along the arc they make (midpoint heading). Nothing is lost or counted twice
-whatever the units' rates — a count is cumulative, so a unit that reports twice within a
-round only moves its own wheels' reading on — and a round waits for the slowest unit: a
-unit that stops reporting (offline, broadcast 4 not in its mask) stops the pose. The
-first complete round is the origin.
+modulo 2³², so each wheel's count is unwrapped into an unbounded position) in its own
+broadcast, at its own time and rate. A robot's wheels may sit on several units, so the
+pose advances in *rounds*: once every unit of the robot has reported since the last
+step, the round's time is the earliest of the units' latest reports, each wheel's
+position is read at that time (interpolated linearly between the two reports of its unit
+around it, so wheels sampled up to a period apart are compared at one instant), each
+side's travel since the last step is the mean of its wheels' (metres per pulse, mounting
+sign included), and the pose moves along the arc they make (midpoint heading). Counts are
+cumulative, so nothing is lost or counted twice whatever the rates; a round waits for the
+slowest unit, and a unit that stops reporting (offline, broadcast 4 not in its mask)
+stops the pose. The first round at whose time every unit had reported is the origin.
+Without report times (``t`` None) the latest counts are taken as they are.
 
 A one-drive robot from a unit's ``geometry`` (axis A the left wheel and B the right one,
 as the seed's velocity model implies: A faster than B turns clockwise) completes a round
-at every report of its unit, with the seed's own conversion (:class:`PulseOdometry`).
+at every report of its unit, with the seed's own arithmetic (:class:`PulseOdometry`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ class Pose:
 def _step(new: int, old: int) -> int:
     """Signed difference of two int32 counters, across a wrap."""
     return (new - old + (1 << 31)) % (1 << 32) - (1 << 31)
+
+
+Position = int | float  # an unwrapped count; a float once interpolated
 
 
 class RobotOdometry:
@@ -70,33 +76,69 @@ class RobotOdometry:
             for side in Side
         }
         self.pose = Pose()
-        self._latest: dict[str, tuple[int, int]] = {}  # each unit's last report
-        self._base: dict[str, tuple[int, int]] | None = None  # the counts at the last step
+        self._raw: dict[str, tuple[int, int]] = {}  # each unit's last counts, as sent
+        # per unit: (time, unwrapped (A, B)) of its reports from just before the last round
+        self._reports: dict[str, list[tuple[float | None, tuple[int, int]]]] = {}
+        self._base: dict[tuple[str, int], Position] | None = None  # at the last step
         self._fresh: set[str] = set()  # units that reported since the last step
 
-    def update(self, unit: str, pulse_a: int, pulse_b: int) -> Pose | None:
-        """One unit's counts; the pose when they complete a round, else None."""
+    def update(self, unit: str, pulse_a: int, pulse_b: int, t: float | None = None) -> Pose | None:
+        """One unit's counts, reported at ``t`` [s]; the pose when they complete a round,
+        else None."""
         if unit not in self.units:
             return None
-        self._latest[unit] = (pulse_a, pulse_b)
+        reports = self._reports.setdefault(unit, [])
+        raw = self._raw.get(unit)
+        if raw is None:
+            position = (pulse_a, pulse_b)
+        else:
+            a, b = reports[-1][1]
+            position = (a + _step(pulse_a, raw[0]), b + _step(pulse_b, raw[1]))
+        self._raw[unit] = (pulse_a, pulse_b)
+        reports.append((t, position))
         self._fresh.add(unit)
         if self._fresh != self.units:
             return None
+        at = self._round_time()
+        if at is not None and any(
+            r[0][0] is not None and r[0][0] > at for r in self._reports.values()
+        ):
+            return None  # the origin: a unit was first heard after another's latest report
         self._fresh = set()
-        base, self._base = self._base, dict(self._latest)
+        positions = {(u, axis): self._position(u, axis, at) for u in self.units for axis in (0, 1)}
+        base, self._base = self._base, positions
         if base is not None:
             left, right = (self._travel(side, base) for side in (Side.LEFT, Side.RIGHT))
             self._advance(left, right)
         return self.pose
 
-    def _travel(self, side: Side, base: Mapping[str, tuple[int, int]]) -> float:
+    def _round_time(self) -> float | None:
+        """The earliest of the units' latest report times; None if a report has none."""
+        latest = [r[-1][0] for r in self._reports.values()]
+        return None if any(t is None for t in latest) else min(t for t in latest if t is not None)
+
+    def _position(self, unit: str, axis: int, at: float | None) -> Position:
+        """``unit``'s ``axis`` position at ``at``: between the reports around it, the last
+        one when ``at`` is later (or None); every unit has one at or before ``at``. Reports
+        before that one are dropped afterwards: rounds only move on."""
+        reports = self._reports[unit]
+        t1, p1 = reports[-1]
+        if at is None or t1 is None or t1 <= at:
+            del reports[:-1]
+            return p1[axis]
+        i = max(i for i, (t, _) in enumerate(reports) if t is not None and t <= at)
+        del reports[:i]
+        (t0, p0), (t1, p1) = reports[0], reports[1]
+        assert t0 is not None and t1 is not None
+        return p0[axis] + (p1[axis] - p0[axis]) * (at - t0) / (t1 - t0)
+
+    def _travel(self, side: Side, base: Mapping[tuple[str, int], Position]) -> float:
         """The mean travel [m] of ``side``'s wheels since ``base`` (0 with no wheel)."""
         wheels = self._sides[side]
         if not wheels:
             return 0.0
-        steps = [
-            _step(self._latest[unit][axis], base[unit][axis]) * mpp for (unit, axis), mpp in wheels
-        ]
+        assert self._base is not None
+        steps = [(self._base[key] - base[key]) * mpp for key, mpp in wheels]
         return sum(steps) / len(steps)
 
     def _advance(self, left: float, right: float) -> None:
@@ -154,9 +196,9 @@ class Odometer:
     def units(self) -> tuple[str, ...]:
         return self.robot.units
 
-    def pulses(self, unit: str, pulse_a: int, pulse_b: int) -> Pose | None:
-        """``unit``'s counts; the pose when they complete a round, else None."""
-        return self.odometry.update(unit, pulse_a, pulse_b)
+    def pulses(self, unit: str, pulse_a: int, pulse_b: int, t: float | None = None) -> Pose | None:
+        """``unit``'s counts, reported at ``t``; the pose when they complete a round."""
+        return self.odometry.update(unit, pulse_a, pulse_b, t)
 
     def twist(self, feedback: Mapping[str, Feedback | None]) -> tuple[float, float]:
         """(linear.x, angular.z) the units' latest velocity feedback amounts to, every
