@@ -123,6 +123,11 @@ def ros_env(distro: str) -> tuple[Path, Path]:
 
 @pytest.fixture(scope="module", params=["kilted", "jazzy"])
 def ros(request: pytest.FixtureRequest) -> tuple[str, Path, Path]:
+    return ros_distro(request.param)
+
+
+def ros_distro(distro: str) -> tuple[str, Path, Path]:
+    """The distro, its cached venv and interface prefix; or skip (fail in CI) with why."""
     for tool in ("cmake", "make", "c++", "unshare", "ip"):
         if shutil.which(tool) is None:
             unavailable(f"{tool} is not installed (apt-get install cmake make g++ iproute2)")
@@ -132,10 +137,10 @@ def ros(request: pytest.FixtureRequest) -> tuple[str, Path, Path]:
     if ns.returncode != 0:
         unavailable(f"no network namespace (unshare -n): {ns.stderr.strip()}")
     try:
-        venv, prefix = ros_env(request.param)
+        venv, prefix = ros_env(distro)
     except (ri.BuildError, OSError, subprocess.CalledProcessError) as exc:
-        unavailable(f"ROS 2 {request.param} from the registry: {exc}")
-    return request.param, venv, prefix
+        unavailable(f"ROS 2 {distro} from the registry: {exc}")
+    return distro, venv, prefix
 
 
 def scenario(
