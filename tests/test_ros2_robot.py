@@ -30,7 +30,7 @@ from abh3_supervisor.protocol import frames
 from abh3_supervisor.scheduler.core import FeedbackEvent, StatusEvent
 from tests.support.rig import Rig
 from tests.support.robot_truth import Truth
-from tests.test_ros2_unit import MemoryTransport
+from tests.support.ros2_memory import MemoryTransport
 
 UNITS = """
 buses: {{b: {{interface: virtual, channel: robot, simulate: true}}}}

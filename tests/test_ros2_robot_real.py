@@ -24,7 +24,7 @@ import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.robot import RobotConfig, motor_speeds, twist_of
-from tests.test_ros2_real import DECODE, NETNS, PROBE, ROOT, RUNNER, ros_distro
+from tests.support.ros2_real import DECODE, NETNS, PROBE, ROOT, RUNNER, ros_distro
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
