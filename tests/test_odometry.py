@@ -247,3 +247,15 @@ def test_units_at_different_rates_are_compared_at_one_instant() -> None:
         assert pose.yaw == pytest.approx(0.0, abs=2 * MPP / 0.5)  # counts round to a pulse
         assert pose.y == pytest.approx(0.0, abs=1e-6)
     assert end.x - start.x == pytest.approx(rate * (t1 - t0) * MPP, abs=2 * MPP)
+
+
+def test_a_silent_drive_costs_no_memory_and_the_pose_waits_for_it() -> None:
+    odo = RobotOdometry(TWO_DRIVES)
+    odo.update("l", 0, 0, 0.0)
+    odo.update("r", 0, 0, 0.0)
+    for i in range(1, 5001):  # the right drive went silent: no round, nothing kept
+        assert odo.update("l", i, 0, i * 0.02) is None
+    assert max(len(r) for r in odo._reports.values()) <= 2
+    pose = odo.update("r", -5000, 0, 100.0)  # back: its whole travel counts at once
+    assert pose is not None
+    assert (pose.x, pose.yaw) == pytest.approx((5000 * MPP, 0.0))

@@ -97,13 +97,13 @@ class RobotOdometry:
         self._raw[unit] = (pulse_a, pulse_b)
         reports.append((t, position))
         self._fresh.add(unit)
-        if self._fresh != self.units:
+        at = self._round_time() if self._fresh == self.units else None
+        if self._fresh != self.units or (
+            at is not None
+            and any(r[0][0] is not None and r[0][0] > at for r in self._reports.values())
+        ):  # not a round yet (for the origin: a unit was first heard after another's latest)
+            self._prune(t)
             return None
-        at = self._round_time()
-        if at is not None and any(
-            r[0][0] is not None and r[0][0] > at for r in self._reports.values()
-        ):
-            return None  # the origin: a unit was first heard after another's latest report
         self._fresh = set()
         positions = {(u, axis): self._position(u, axis, at) for u in self.units for axis in (0, 1)}
         base, self._base = self._base, positions
@@ -116,6 +116,25 @@ class RobotOdometry:
         """The earliest of the units' latest report times; None if a report has none."""
         latest = [r[-1][0] for r in self._reports.values()]
         return None if any(t is None for t in latest) else min(t for t in latest if t is not None)
+
+    def _prune(self, now: float | None) -> None:
+        """Drop the reports no round can need, so a silent unit costs no memory: the next
+        round's time is no earlier than a fresh unit's latest report, nor than ``now``
+        when a unit has yet to report again."""
+        fresh = [r[-1][0] for u, r in self._reports.items() if u in self._fresh]
+        if len(self._fresh) < len(self.units):
+            fresh.append(now)
+        known = [t for t in fresh if t is not None]
+        if len(known) < len(fresh):  # without times only the latest counts are read
+            for reports in self._reports.values():
+                del reports[:-1]
+            return
+        floor = min(known)
+        for reports in self._reports.values():
+            keep = max(
+                (i for i, (t, _) in enumerate(reports) if t is not None and t <= floor), default=0
+            )
+            del reports[:keep]
 
     def _position(self, unit: str, axis: int, at: float | None) -> Position:
         """``unit``'s ``axis`` position at ``at``: between the reports around it, the last
