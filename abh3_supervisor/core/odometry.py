@@ -97,20 +97,23 @@ class RobotOdometry:
         self._raw[unit] = (pulse_a, pulse_b)
         reports.append((t, position))
         self._fresh.add(unit)
-        at = self._round_time() if self._fresh == self.units else None
-        if self._fresh != self.units or (
-            at is not None
-            and any(r[0][0] is not None and r[0][0] > at for r in self._reports.values())
-        ):  # not a round yet (for the origin: a unit was first heard after another's latest)
+        at = self._round_time()
+        if not self._complete(at):
             self._prune(t)
             return None
         self._fresh = set()
         positions = {(u, axis): self._position(u, axis, at) for u in self.units for axis in (0, 1)}
         base, self._base = self._base, positions
         if base is not None:
-            left, right = (self._travel(side, base) for side in (Side.LEFT, Side.RIGHT))
+            left, right = (self._travel(side, base, positions) for side in (Side.LEFT, Side.RIGHT))
             self._advance(left, right)
         return self.pose
+
+    def _complete(self, at: float | None) -> bool:
+        """Every unit reported anew — and, for the origin, each had reported by ``at``."""
+        if self._fresh != self.units:
+            return False
+        return at is None or all(r[0][0] is None or r[0][0] <= at for r in self._reports.values())
 
     def _round_time(self) -> float | None:
         """The earliest of the units' latest report times; None if a report has none."""
@@ -151,13 +154,18 @@ class RobotOdometry:
         assert t0 is not None and t1 is not None
         return p0[axis] + (p1[axis] - p0[axis]) * (at - t0) / (t1 - t0)
 
-    def _travel(self, side: Side, base: Mapping[tuple[str, int], Position]) -> float:
-        """The mean travel [m] of ``side``'s wheels since ``base`` (0 with no wheel)."""
+    def _travel(
+        self,
+        side: Side,
+        before: Mapping[tuple[str, int], Position],
+        now: Mapping[tuple[str, int], Position],
+    ) -> float:
+        """The mean travel [m] of ``side``'s wheels from ``before`` to ``now`` (0 with no
+        wheel)."""
         wheels = self._sides[side]
         if not wheels:
             return 0.0
-        assert self._base is not None
-        steps = [(self._base[key] - base[key]) * mpp for key, mpp in wheels]
+        steps = [(now[key] - before[key]) * mpp for key, mpp in wheels]
         return sum(steps) / len(steps)
 
     def _advance(self, left: float, right: float) -> None:
