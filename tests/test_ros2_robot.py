@@ -1,9 +1,10 @@
 """The ROS 2 bridge's ``cmd_vel`` and ``odom`` per robot, on the fake clock: the plugin on
 an in-memory transport, the supervisor and simulated drives of tests/support/rig.py.
 
-A two-drive robot (one wheel per drive, the right one mounted mirrored) and a skid-steer
-on two drives: a ``cmd_vel`` moves every wheel, in the same scheduler turn, with its
-mounting's sign; ``odom`` from every wheel follows the motion the simulated drives made.
+A two-drive robot (one wheel per drive, the right one mounted mirrored), a skid-steer on
+two drives and a robot declared on one drive (its left motor mirrored): a ``cmd_vel``
+moves every wheel, in the same scheduler turn, with its mounting's sign; ``odom`` from
+every wheel follows the motion the simulated drives made.
 """
 
 from __future__ import annotations
@@ -65,6 +66,13 @@ SKID = UNITS.format(
         for a, s in (("A", "left"), ("B", "right"))
     ),
 )
+ONE_DRIVE = UNITS.format(  # declared on one drive: the robot's names, not the unit's
+    units=UNIT.format("base", 1),
+    name="cart",
+    track=0.4,
+    wheels="      - {unit: base, axis: A, side: left, sign: -1}\n"
+    "      - {unit: base, axis: B, side: right}",
+)
 TWIST = (0.2, 0.5)
 
 
@@ -122,7 +130,9 @@ class Bridged:
         return float(self.rig.drive(unit).vel[axis])
 
 
-@pytest.fixture(params=[TWO_DRIVES, SKID], ids=["two-drives", "skid-steer"])
+@pytest.fixture(
+    params=[TWO_DRIVES, SKID, ONE_DRIVE], ids=["two-drives", "skid-steer", "one-drive-declared"]
+)
 def bridged(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterator[Bridged]:
     b = Bridged(request.param, monkeypatch)
     yield b
