@@ -1,8 +1,8 @@
 """A real rclpy node against ``abh3 run``: run with a ROS 2 venv's Python (tests/test_ros2_real.py).
 
 Prints one JSON object on stdout: what it saw of the graph (nodes, per-topic endpoint names
-and GIDs, the node's own endpoints), the topics, /diagnostics, odom at rest and while
-driving, the service, and the wall-clock times of its cmd_vel publishing (for the frames
+and GIDs, the node's own endpoints), the topics, /diagnostics, odom at rest, while
+driving and (``settle``) once stopped, the service, and the wall-clock times of its cmd_vel publishing (for the frames
 the supervisor recorded). Every wait is bounded; a missing thing is reported, not waited
 for (a thing that must be absent only for ``absent_wait`` seconds).
 """
@@ -10,6 +10,7 @@ for (a thing that must be absent only for ``absent_wait`` seconds).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from typing import Any
@@ -94,6 +95,10 @@ def run(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -
     out["cmd_vel"] = {"first": first, "last": last}
     if odoms:  # the latest odom while the twist was still being sent
         out["odom_driving"] = odometry(odoms[-1])
+    settle = float(args.get("settle", 0))
+    if settle and odoms:  # the robot stopped (silence, then the drives' ramp): where it is
+        spin_until(lambda: False, settle)
+        out["odom_final"] = odometry(odoms[-1])
 
 
 def graph(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) -> None:
@@ -122,11 +127,15 @@ def graph(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any)
 
 
 def odometry(o: Any) -> dict[str, Any]:
+    q = o.pose.pose.orientation
     return {
         "frame_id": o.header.frame_id,
         "child_frame_id": o.child_frame_id,
         "linear_x": o.twist.twist.linear.x,
         "angular_z": o.twist.twist.angular.z,
+        "x": o.pose.pose.position.x,
+        "y": o.pose.pose.position.y,
+        "yaw": 2 * math.atan2(q.z, q.w),
     }
 
 

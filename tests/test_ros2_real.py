@@ -18,11 +18,8 @@ skip with the reason — and FAIL in CI (``CI=true``), where they must run.
 
 from __future__ import annotations
 
-import functools
-import importlib.metadata
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -32,14 +29,10 @@ import pytest
 
 from abh3_supervisor.clients import ros2_interface as ri
 from abh3_supervisor.core.kinematics import Geometry, twist_to_yx
+from tests.support.ros2_real import DECODE, NETNS, PROBE, ROOT, RUNNER, ros_distro
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
-ROOT = Path(__file__).resolve().parent.parent
-DECODE = [sys.executable, "-m", "abh3_supervisor", "decode"]
-PROBE = ROOT / "tests" / "ros2_probe.py"
-RUNNER = ROOT / "tests" / "ros2_netns_run.py"
-NETNS = ["unshare", "-n", "sh", "-c", 'ip link set lo up && exec "$@"', "sh"]
 TIMEOUT_MS = 300
 PERIOD = 1 / 50  # the default DP0 exchange rate
 TWIST = (0.2, 0.5)
@@ -79,63 +72,9 @@ COMMANDS = ["START OFF OFF", "START ON ON", "FOO"]  # stop, start again, a wrong
 BARE = "_CREATED_BY_BARE_DDS_APP_/_CREATED_BY_BARE_DDS_APP_"
 
 
-def unavailable(reason: str) -> None:
-    """Skip outside CI; in CI the real-ROS proof must run, so it fails with the reason."""
-    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-        pytest.fail(f"real ROS 2 test cannot run in CI: {reason}", pytrace=False)
-    pytest.skip(reason)
-
-
-def _bridge_requirements() -> list[str]:
-    """The supervisor's own runtime dependencies (for ``abh3 run`` in the ROS venv)."""
-    reqs = importlib.metadata.requires("abh3-supervisor") or []
-    return sorted(r for r in reqs if "extra ==" not in r)
-
-
-PROBE_INSTALL = (
-    "import os, abh3_supervisor, abh3_plugins.ros2; "
-    "print(os.path.dirname(abh3_supervisor.__file__))"
-)
-
-
-@functools.cache
-def ros_env(distro: str) -> tuple[Path, Path]:
-    """The cached ROS venv (with this checkout installed) and the built interface prefix."""
-    venv = ri.ensure_venv(distro, runtime=True, extra=_bridge_requirements())
-    prefix = ri.cached_build(venv)
-    python = str(venv / "bin" / "python")
-    where = subprocess.run(
-        [python, "-c", PROBE_INSTALL],
-        capture_output=True,
-        text=True,
-        check=False,
-        cwd="/",  # not this checkout's directory: what the venv itself imports
-        env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
-    ).stdout.strip()
-    if where != str(ROOT / "abh3_supervisor"):  # this checkout, not another's
-        with ri._locked(venv.parent / f"{venv.name}.project.lock"):
-            ri._run(
-                [python, "-m", "pip", "install", "-q", "--no-deps", "-e", str(ROOT)],
-                "installing this checkout into the ROS venv",
-            )
-    return venv, prefix
-
-
 @pytest.fixture(scope="module", params=["kilted", "jazzy"])
 def ros(request: pytest.FixtureRequest) -> tuple[str, Path, Path]:
-    for tool in ("cmake", "make", "c++", "unshare", "ip"):
-        if shutil.which(tool) is None:
-            unavailable(f"{tool} is not installed (apt-get install cmake make g++ iproute2)")
-    ns = subprocess.run(
-        ["unshare", "-n", "sh", "-c", "ip link set lo up"], capture_output=True, text=True
-    )
-    if ns.returncode != 0:
-        unavailable(f"no network namespace (unshare -n): {ns.stderr.strip()}")
-    try:
-        venv, prefix = ros_env(request.param)
-    except (ri.BuildError, OSError, subprocess.CalledProcessError) as exc:
-        unavailable(f"ROS 2 {request.param} from the registry: {exc}")
-    return request.param, venv, prefix
+    return ros_distro(request.param)
 
 
 def scenario(

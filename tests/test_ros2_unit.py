@@ -26,6 +26,7 @@ from abh3_supervisor.core.state import UnitState
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames
+from tests.support.ros2_memory import MemoryTransport
 
 UNITS = """
 buses: {b: {interface: virtual, channel: u, simulate: true}}
@@ -33,32 +34,6 @@ units:
   - {name: left, broadcast: {mask: 0x13}, geometry: {pulses_per_rev: 1000}}
   - {name: eye, abh3_id: 3, role: monitor}
 """
-
-
-class MemoryTransport:
-    """Publishers append to lists; the test delivers samples to the subscriptions."""
-
-    msg = types
-
-    def __init__(self) -> None:
-        self.published: dict[str, list[Any]] = {}
-        self.handlers: dict[str, Callable[[Any], None]] = {}
-        self.services: dict[str, Callable[[str], concurrent.futures.Future[str]]] = {}
-
-    def publisher(self, name: str, typ: type) -> Callable[[Any], None]:
-        return self.published.setdefault(name, []).append
-
-    def subscribe(self, name: str, typ: type, handle: Callable[[Any], None]) -> None:
-        self.handlers[name] = handle
-
-    def serve(self, name: str, handle: Callable[[str], concurrent.futures.Future[str]]) -> None:
-        self.services[name] = handle
-
-    def start(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 @dataclass

@@ -6,8 +6,11 @@ writes it, so ``ros2 bag info/play``, Foxglove and rosbags open it. Topics:
 - ``/can/<bus>/tx`` and ``/can/<bus>/rx`` (``can_msgs/msg/Frame``): every frame the bus
   pump sent or received, the stop frames included — the same frames a ``.log`` holds;
 - per unit, with the ROS 2 bridge's names: ``/<unit>/vel_fbk_ab``, ``/<unit>/vel_fbk_yx``
-  after every DP0 reply, ``/<unit>/brd<n>_data`` for every status packet 0–6, and
-  ``/<unit>/odom`` when ``geometry.pulses_per_rev`` is known;
+  after every DP0 reply, ``/<unit>/brd<n>_data`` for every status packet 0–6;
+- per robot, ``/<robot>/odom`` from every wheel's pulse counts and velocity feedback
+  (:mod:`..core.odometry`) when every wheel's pulses_per_rev is known, with the robot's
+  frame ids; a unit of a file without ``robots:`` is a one-drive robot named after it
+  (``/<unit>/odom`` when its ``geometry.pulses_per_rev`` is known, as before robots);
 - ``/diagnostics`` once a second and when a level changes (:mod:`..core.diagnostics`).
 
 Written on the event loop as frames and events arrive. The chunk in progress is closed,
@@ -34,8 +37,7 @@ import can
 
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.diagnostics import Health, Level, Status
-from abh3_supervisor.core.kinematics import yx_to_twist
-from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
+from abh3_supervisor.core.odometry import Odometer, Pose, odometers, yaw_quaternion
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.protocol import frames
@@ -173,11 +175,10 @@ class McapRecording(can.Listener):
         self.config = config
         self.counts: dict[str, int] = {}
         self.health: Health | None = None
-        self.odometry = {
-            name: PulseOdometry(u.geometry)
-            for name, u in config.units.items()
-            if u.geometry.pulses_per_rev > 0
-        }
+        self.odometry: dict[str, list[Odometer]] = {}  # unit → the robots it is a drive of
+        for odometer in odometers(config):
+            for unit in odometer.units:
+                self.odometry.setdefault(unit, []).append(odometer)
         self.offset_ns = 0  # wall clock minus the supervisor's clock
         self._clock: Callable[[], float] = time.monotonic
         self._next_diagnostics = -math.inf
@@ -258,20 +259,22 @@ class McapRecording(can.Listener):
             name, fields = named
             topic = f"/{event.unit}/brd{event.packet}_data"
             self.write(topic, f"abh3_can_interface/msg/{name}", fields, ns)
-        odometry = self.odometry.get(event.unit)
-        if odometry is not None and isinstance(event.record, frames.Brd4):
-            self._odom(event.unit, odometry, event.record, ns)
+        record = event.record
+        if isinstance(record, frames.Brd4):
+            for odometer in self.odometry.get(event.unit, ()):
+                pose = odometer.pulses(event.unit, record.pulse_a, record.pulse_b, event.t)
+                if pose is not None:  # every unit of the robot reported anew
+                    self._odom(odometer, pose, ns)
 
-    def _odom(self, unit: str, odometry: PulseOdometry, record: frames.Brd4, ns: int) -> None:
+    def _odom(self, odometer: Odometer, pose: Pose, ns: int) -> None:
         assert self.health is not None
-        pose = odometry.update(record.pulse_a, record.pulse_b)
-        fbk = self.health.sup.units[unit].feedback
-        cfg = self.config.units[unit]
-        linear, angular = yx_to_twist(fbk.vel_y, fbk.vel_x, cfg.geometry) if fbk else (0.0, 0.0)
+        units = self.health.sup.units
+        robot = odometer.robot
+        linear, angular = odometer.twist({u: units[u].feedback for u in robot.units})
         qx, qy, qz, qw = yaw_quaternion(pose.yaw)
         odom = {
-            "header": {"stamp": _stamp(ns), "frame_id": "odom"},
-            "child_frame_id": "base_link",
+            "header": {"stamp": _stamp(ns), "frame_id": robot.frame_id},
+            "child_frame_id": robot.child_frame_id,
             "pose": {
                 "pose": {
                     "position": {"x": pose.x, "y": pose.y, "z": 0.0},
@@ -287,7 +290,7 @@ class McapRecording(can.Listener):
                 "covariance": ZERO36,
             },
         }
-        self.write(f"/{unit}/odom", "nav_msgs/msg/Odometry", odom, ns)
+        self.write(f"/{robot.name}/odom", "nav_msgs/msg/Odometry", odom, ns)
 
     def _diagnostics(self, now: float, ns: int, changed: bool) -> None:
         if self.health is None or (now < self._next_diagnostics and not changed):

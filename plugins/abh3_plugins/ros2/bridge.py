@@ -8,57 +8,49 @@ Per unit, under ``<namespace>/<unit>/`` (every name remappable, see settings.py)
 - status node: ``brd_num`` asks for a packet of the unit's mask; ``brd0_data`` …
   ``brd6_data`` for the mask, also on the scheduler's own polling (``status: poll``);
 - conversion node: ``xa``/``yx``/``ab`` → ``xa_yx``, ``xa_ab``, ``yx_xa``, ``yx_ab``,
-  ``ab_yx``, ``ab_xa`` with the unit's geometry;
-- and what ROS users expect today: ``cmd_vel`` (with ``allow_commands``) and ``odom``
-  from the pulse counts when ``geometry.pulses_per_rev`` is known.
+  ``ab_yx``, ``ab_xa`` with the unit's geometry.
 
-Motion commands go through the input arbitration as one source per unit: silence
-longer than ``command_timeout_ms`` means zero, like every other source. Every incoming
-value is checked (finite, within the protocol's range) before it can reach a drive.
+And what ROS users expect today, per robot (robot.py): ``cmd_vel`` (with
+``allow_commands``) driving the whole robot and ``odom`` from every wheel's pulse counts,
+under ``<namespace>/<robot>/``. A unit of a file without ``robots:`` is a one-drive robot
+named after it: its pair is the unit's, with the names and behaviour of before.
+
+Motion commands go through the input arbitration as one source per unit (and one per
+declared robot, for its ``cmd_vel``): silence longer than ``command_timeout_ms`` means
+zero, like every other source. Every incoming value is checked (finite, within the
+protocol's range) before it can reach a drive.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import logging
-import math
 import time
 from collections.abc import Callable
 from typing import Any
 
 from abh3_plugins.ros2.diagnostics import TOPIC, DiagnosticsPublisher, DiagnosticsThread
+from abh3_plugins.ros2.robot import RobotBridge, RobotTopics
 from abh3_plugins.ros2.settings import Settings, parse, schema
 from abh3_plugins.ros2.transport import Transport, decide, open_transport
+from abh3_plugins.ros2.values import Guard, twist_values, within
+from abh3_plugins.ros2.values import Refused as Refused  # the bridge's names, as before
+from abh3_plugins.ros2.values import twist as twist
 from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core import kinematics
 from abh3_supervisor.core.commands import RESPONSE_INVALID
 from abh3_supervisor.core.diagnostics import Health
 from abh3_supervisor.core.inputs import InputFeed, InputSource
-from abh3_supervisor.core.odometry import PulseOdometry, yaw_quaternion
+from abh3_supervisor.core.robot import from_geometry
 from abh3_supervisor.core.state import Feedback, UnitState
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.protocol import frames
-from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 
 log = logging.getLogger(__name__)
 MAX_COMMAND_TEXT = 256  # longer than any command of the language
-
-
-class Refused(ValueError):
-    """An incoming value that must not reach a drive."""
-
-
-def _within(scale: Scale | None, *values: float) -> None:
-    """Finite, and within ``scale``'s wire range when given."""
-    for v in values:
-        if not math.isfinite(v):
-            raise Refused(f"{v} is not a finite number")
-        if scale is not None and not scale.minimum <= v <= scale.maximum:
-            raise Refused(
-                f"{v:g} is beyond the protocol's range {scale.minimum:g} … {scale.maximum:g}"
-            )
 
 
 def _int32(value: int) -> int:
@@ -91,21 +83,17 @@ def brd_message(msg: Any, record: frames.Broadcast) -> Any:
     return getattr(msg, name)(**{f: getattr(record, f) for f in fields})
 
 
-def twist(msg: Any, linear_x: float, angular_z: float) -> Any:
-    return msg.Twist(linear=msg.Vector3(x=linear_x), angular=msg.Vector3(z=angular_z))
-
-
-def _twist_values(m: Any) -> tuple[float, float]:
-    """linear.x and angular.z of a Twist; every component must be finite."""
-    values = (m.linear.x, m.linear.y, m.linear.z, m.angular.x, m.angular.y, m.angular.z)
-    _within(None, *values)
-    return m.linear.x, m.angular.z
-
-
 class UnitBridge(InputSource):
-    """One unit's topics and service; also its input source in the arbitration."""
+    """One unit's topics and service; also its input source in the arbitration.
 
-    def __init__(self, unit: UnitState, t: Transport, settings: Settings) -> None:
+    ``one_drive``: the unit is a one-drive robot of its own (its ``geometry``), so it also
+    carries that robot's ``cmd_vel`` and ``odom``; False for a wheel drive of a declared
+    robot, whose pair is the robot's (:class:`RobotBridge`).
+    """
+
+    def __init__(
+        self, unit: UnitState, t: Transport, settings: Settings, *, one_drive: bool = True
+    ) -> None:
         super().__init__(
             f"ros2:{unit.name}", (unit.name,), settings.priority, settings.command_timeout
         )
@@ -113,7 +101,7 @@ class UnitBridge(InputSource):
         self.cfg = unit.cfg
         self.feed: InputFeed | None = None
         self.requested: set[int] = set()  # brd_num packets awaiting their answer
-        self._warned: dict[str, float] = {}
+        self._guarded = Guard(unit.name)
         msg = t.msg
         self.fbk_ab = t.publisher(self.name_of("vel_fbk_ab"), msg.Abh3Velocity)
         self.fbk_yx = t.publisher(self.name_of("vel_fbk_yx"), msg.Abh3Velocity)
@@ -124,13 +112,23 @@ class UnitBridge(InputSource):
         }
         self.mask = set(packets)
         t.subscribe(self.name_of("brd_num"), msg.Int32, self._guarded("brd_num", self.on_brd_num))
-        self.odometry: PulseOdometry | None = None
-        if self.cfg.geometry.pulses_per_rev > 0:
-            self.odometry = PulseOdometry(self.cfg.geometry)
-            self.odom = t.publisher(self.name_of("odom"), msg.Odometry)
+        commands = settings.allow_commands and self.cfg.role is Role.COMMAND
+        self.robot: RobotTopics | None = None
+        if one_drive:
+            self.robot = RobotTopics(
+                from_geometry(unit.name, self.cfg.geometry),
+                t,
+                settings,
+                states={unit.name: unit},
+                feed=lambda: self.feed,
+                commands=commands,
+                frame_ids=(settings.odom_frame, settings.base_frame),
+                geometry=self.cfg.geometry,
+                guard=self._guarded,
+            )
         if settings.conversion:
             self._conversion()
-        if settings.allow_commands and self.cfg.role is Role.COMMAND:
+        if commands:
             self._commands()
 
     def name_of(self, name: str) -> str:
@@ -146,21 +144,6 @@ class UnitBridge(InputSource):
 
     # ------------------------------------------------------------ incoming
 
-    def _guarded(self, topic: str, handle: Callable[[Any], None]) -> Callable[[Any], None]:
-        def guarded(sample: Any) -> None:
-            try:
-                handle(sample)
-            except Refused as exc:
-                self._warn(topic, f"ros2: {self.unit.name}: {topic} refused: {exc}")
-
-        return guarded
-
-    def _warn(self, topic: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._warned.get(topic, -math.inf) >= 5.0:  # a flood logs once per 5 s
-            self._warned[topic] = now
-            log.warning("%s", text)
-
     def on_brd_num(self, m: Any) -> None:
         if m.data not in self.mask:  # as the seed: numbers outside 0–6 or the mask
             raise Refused(f"packet {m.data} is not in the unit's mask {sorted(self.mask)}")
@@ -173,24 +156,16 @@ class UnitBridge(InputSource):
         t, msg = self.t, self.t.msg
 
         def vel_cmd(m: Any) -> None:
-            _within(VELOCITY, m.vel_ay, m.vel_bx)
+            within(VELOCITY, m.vel_ay, m.vel_bx)
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.velocity(m.vel_ay, m.vel_bx)
 
         def cur_cmd(m: Any) -> None:
-            _within(CURRENT, m.cur_ay, m.cur_bx)
+            within(CURRENT, m.cur_ay, m.cur_bx)
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.current(m.cur_ay, m.cur_bx)
-
-        def cmd_vel(m: Any) -> None:
-            linear_x, angular_z = _twist_values(m)
-            y, x = kinematics.twist_to_yx(linear_x, angular_z, self.cfg.geometry)
-            _within(VELOCITY, *kinematics.yx_to_ab(y, x))
-            feed = self.feed  # None once the inputs stopped
-            if feed is not None:
-                feed.twist(linear_x, angular_z)
 
         def inp_data(m: Any) -> None:
             if undefined := self.unit.layout.undefined(m.data & m.mask):
@@ -204,7 +179,6 @@ class UnitBridge(InputSource):
         for name, typ, handle in (
             ("vel_cmd", msg.Abh3Velocity, vel_cmd),
             ("cur_cmd", msg.Abh3Current, cur_cmd),
-            ("cmd_vel", msg.Twist, cmd_vel),
             ("inp_data", msg.Abh3Input, inp_data),
         ):
             t.subscribe(self.name_of(name), typ, self._guarded(name, handle))
@@ -236,17 +210,17 @@ class UnitBridge(InputSource):
             return msg.Abh3Velocity(vel_ay=ay, vel_bx=bx)
 
         def from_xa(m: Any) -> None:
-            y, x = kinematics.twist_to_yx(*_twist_values(m), g)
+            y, x = kinematics.twist_to_yx(*twist_values(m), g)
             out["xa_yx"](velocity(y, x))
             out["xa_ab"](velocity(*kinematics.yx_to_ab(y, x)))
 
         def from_yx(m: Any) -> None:
-            _within(None, m.vel_ay, m.vel_bx)
+            within(None, m.vel_ay, m.vel_bx)
             out["yx_xa"](twist(msg, *kinematics.yx_to_twist(m.vel_ay, m.vel_bx, g)))
             out["yx_ab"](velocity(*kinematics.yx_to_ab(m.vel_ay, m.vel_bx)))
 
         def from_ab(m: Any) -> None:
-            _within(None, m.vel_ay, m.vel_bx)
+            within(None, m.vel_ay, m.vel_bx)
             out["ab_yx"](velocity(*kinematics.ab_to_yx(m.vel_ay, m.vel_bx)))
             out["ab_xa"](twist(msg, *kinematics.ab_to_twist(m.vel_ay, m.vel_bx, g)))
 
@@ -261,7 +235,7 @@ class UnitBridge(InputSource):
         self.fbk_ab(msg.Abh3Velocity(vel_ay=feedback.vel_a, vel_bx=feedback.vel_b))
         self.fbk_yx(msg.Abh3Velocity(vel_ay=feedback.vel_y, vel_bx=feedback.vel_x))
 
-    def status(self, packet: int, record: frames.Broadcast) -> None:
+    def status(self, packet: int, record: frames.Broadcast, t: float | None = None) -> None:
         asked = packet in self.requested
         self.requested.discard(packet)
         publish = self.brd.get(packet)
@@ -269,35 +243,8 @@ class UnitBridge(InputSource):
             message = brd_message(self.t.msg, record)
             if message is not None:
                 publish(message)
-        if self.odometry is not None and isinstance(record, frames.Brd4):
-            self.odom(self._odometry(record))
-
-    def _odometry(self, record: frames.Brd4) -> Any:
-        assert self.odometry is not None
-        msg = self.t.msg
-        pose = self.odometry.update(record.pulse_a, record.pulse_b)
-        fbk = self.unit.feedback  # read across threads: a whole, immutable record
-        linear_x, angular_z = (
-            kinematics.yx_to_twist(fbk.vel_y, fbk.vel_x, self.cfg.geometry)
-            if fbk is not None
-            else (0.0, 0.0)
-        )
-        now = time.time_ns()
-        qx, qy, qz, qw = yaw_quaternion(pose.yaw)
-        return msg.Odometry(
-            header=msg.Header(
-                stamp=msg.Time(sec=now // 1_000_000_000, nanosec=now % 1_000_000_000),
-                frame_id=self.settings.odom_frame,
-            ),
-            child_frame_id=self.settings.base_frame,
-            pose=msg.PoseWithCovariance(
-                pose=msg.Pose(
-                    position=msg.Point(x=pose.x, y=pose.y),
-                    orientation=msg.Quaternion(x=qx, y=qy, z=qz, w=qw),
-                )
-            ),
-            twist=msg.TwistWithCovariance(twist=twist(msg, linear_x, angular_z)),
-        )
+        if self.robot is not None:
+            self.robot.status(self.unit.name, record, t)
 
 
 def _brd_type(msg: Any, n: int) -> type:
@@ -309,6 +256,8 @@ class Ros2Plugin:
         self.settings = Settings()
         self.transport: Transport | None = None
         self.units: dict[str, UnitBridge] = {}
+        self.robots: dict[str, RobotBridge] = {}  # the declared robots' cmd_vel and odom
+        self._robots_of: dict[str, list[RobotBridge]] = {}  # unit → its declared robot
         self.diagnostics: DiagnosticsPublisher | None = None
         self._diagnostics_thread: DiagnosticsThread | None = None
 
@@ -332,8 +281,16 @@ class Ros2Plugin:
     @hookimpl
     def abh3_start(self, supervisor: Supervisor) -> None:
         t = self.transport = open_transport(self.settings)
+        declared = [r for r in supervisor.config.robots.values() if not r.implicit]
+        wheels = {u for r in declared for u in r.units}
         for name, unit in supervisor.units.items():
-            self.units[name] = UnitBridge(unit, t, self.settings)
+            self.units[name] = UnitBridge(unit, t, self.settings, one_drive=name not in wheels)
+        for robot in declared:
+            bridge = self.robots[robot.name] = RobotBridge(
+                robot, t, self.settings, supervisor.units
+            )
+            for unit_name in robot.units:
+                self._robots_of.setdefault(unit_name, []).append(bridge)
         publish = t.publisher(TOPIC, t.msg.DiagnosticArray)
         self.diagnostics = DiagnosticsPublisher(
             Health(supervisor), publish, t.msg, self.settings.diagnostics_hz
@@ -351,11 +308,24 @@ class Ros2Plugin:
             type(t).__name__,
             "ALLOWED" if self.settings.allow_commands else "off (allow_commands: false)",
         )
+        for robot in declared:
+            log.info(
+                "ros2: robot %s (%s): %s, %s",
+                robot.name,
+                ", ".join(robot.units),
+                self.settings.name(robot.name, "cmd_vel"),
+                self.settings.name(robot.name, "odom")
+                if robot.odometry_ready
+                else "no odom (a wheel without pulses_per_rev)",
+            )
 
     @hookimpl
     def abh3_input_sources(self, register: Callable[[InputSource], None]) -> None:
         for bridge in self.units.values():
             register(bridge)  # brd_num needs the feed too, so always registered
+        if self.settings.allow_commands:
+            for robot in self.robots.values():
+                register(robot)
 
     @hookimpl
     def abh3_feedback(self, unit: str, feedback: Feedback) -> None:
@@ -364,10 +334,14 @@ class Ros2Plugin:
             bridge.feedback(feedback)
 
     @hookimpl
-    def abh3_status(self, unit: str, packet: int, record: frames.Broadcast) -> None:
+    def abh3_status(
+        self, unit: str, packet: int, record: frames.Broadcast, t: float | None = None
+    ) -> None:
         bridge = self.units.get(unit)
         if bridge is not None:
-            bridge.status(packet, record)
+            bridge.status(packet, record, t)
+        for robot in self._robots_of.get(unit, ()):
+            robot.status(unit, record, t)
 
     @hookimpl
     def abh3_health(self) -> None:

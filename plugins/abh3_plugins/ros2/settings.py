@@ -10,8 +10,10 @@ from typing import Any
 from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.model import Config, Role, UnitConfig
 from abh3_supervisor.config.source import Section
+from abh3_supervisor.core.robot import RobotConfig
 
-# every name the bridge uses, per unit: the seed's names plus cmd_vel and odom
+# every name the bridge uses, per unit: the seed's names; plus per robot cmd_vel and odom
+# (a one-drive robot from a unit's geometry is named after its unit)
 COMMANDS = ("vel_cmd", "cur_cmd", "cmd_vel", "inp_data", "inp_service")
 NAMES = (
     *COMMANDS,
@@ -46,7 +48,7 @@ CONVERSION_OUT = ("xa_yx", "xa_ab", "yx_xa", "yx_ab", "ab_yx", "ab_xa")
 @dataclass(frozen=True)
 class Settings:
     domain_id: int = 0
-    namespace: str = "/{unit}"  # {unit} is replaced by each unit's name
+    namespace: str = "/{unit}"  # {unit} is replaced by each unit's (or robot's) name
     transport: str = "auto"  # rclpy when importable, else dds
     conversion: bool = True
     allow_commands: bool = False
@@ -63,7 +65,8 @@ class Settings:
     remap: dict[str, str] = field(default_factory=dict)
 
     def name(self, unit: str, name: str) -> str:
-        """The fully qualified ROS name of ``name`` for ``unit``, after remapping.
+        """The fully qualified ROS name of ``name`` for ``unit`` (or a robot: its
+        ``cmd_vel`` and ``odom``), after remapping.
 
         A remap key is a bare name (every unit) or ``<unit>/<name>`` (that unit, first);
         a relative target goes under the unit's namespace, an absolute one is used as is.
@@ -185,34 +188,52 @@ def outputs(settings: Settings, unit: UnitConfig) -> list[str]:
     return names
 
 
+def robot_outputs(robot: RobotConfig) -> list[str]:
+    """The names a declared robot publishes (its ``cmd_vel`` is an input)."""
+    return ["odom"] if robot.odometry_ready else []
+
+
 def _check_names(section: Section, settings: Settings, config: Config) -> None:
-    """Every unit's names must be valid ROS names, and its outputs its own.
+    """Every unit's and robot's names must be valid ROS names, and its outputs its own.
 
     Inputs may be shared on purpose (one ``/cmd_vel`` for both drives of a robot).
     """
+    declared = {r.name: r for r in config.robots.values() if not r.implicit}
+    named = [*(("unit", u) for u in config.units), *(("robot", r) for r in declared)]
     try:
-        spaces = {unit: settings.namespace.format(unit=unit) for unit in config.units}
+        spaces = {(kind, n): settings.namespace.format(unit=n) for kind, n in named}
     except (KeyError, IndexError, ValueError):
         section.error("namespace", f"{settings.namespace!r}: only {{unit}} may stand in braces")
         return
-    for unit, space in spaces.items():
+    for (kind, name), space in spaces.items():
         if not (space == "/" or (space.startswith("/") and _NAME.match(space))):
             section.error(
                 "namespace",
-                f"{space!r} (unit {unit}) is not an absolute ROS name like /robot/{{unit}}: "
+                f"{space!r} ({kind} {name}) is not an absolute ROS name like /robot/{{unit}}: "
                 "ROS names take letters, digits and _",
             )
             return
+    publishes = [
+        *((f"unit {u}", u, outputs(settings, cfg)) for u, cfg in config.units.items()),
+        *((f"robot {r}", r, robot_outputs(robot)) for r, robot in declared.items()),
+    ]
     owner: dict[str, str] = {}
-    for unit, cfg in config.units.items():
-        for name in outputs(settings, cfg):
-            full = settings.name(unit, name)
-            other = owner.setdefault(full, unit)
-            if other != unit:
+    for who, space_of, names in publishes:
+        for name in names:
+            full = settings.name(space_of, name)
+            other = owner.setdefault(full, who)
+            if other != who:
                 key = "namespace" if "{unit}" not in settings.namespace else "remap"
                 section.error(
                     key,
-                    f"units {other} and {unit} would both publish {full}: "
+                    f"{_both(other, who)} would both publish {full}: "
                     "put {unit} in the namespace, or remap one of them",
                 )
                 return
+
+
+def _both(first: str, second: str) -> str:
+    """'units a and b', or 'unit a and robot r'."""
+    if first.startswith("unit ") and second.startswith("unit "):
+        return f"units {first[5:]} and {second[5:]}"
+    return f"{first} and {second}"
