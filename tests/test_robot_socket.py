@@ -12,7 +12,7 @@ import pytest
 
 from abh3_supervisor.clients.control import ControlClient
 from abh3_supervisor.errors import RunError
-from tests.support.robots import SKID, TWO_DRIVES, first_moving, motor, turns
+from tests.support.robots import SKID, TWO_DRIVES, first_moving, in_one_turn, motor, sent
 from tests.support.served import Served, wait_for
 from tests.support.wire_monitor import WireMonitor
 
@@ -48,19 +48,19 @@ def test_a_twist_to_a_robot_reaches_every_drive_in_one_turn_with_its_signs(
 ) -> None:
     with Served(tmp_path, config) as served:
         assert served.rt is not None
-        units = list(served.rt.config.robots[robot].units)
-        client = running(served, units)
-        seen = served.on_loop(turns, served.rt.supervisor)
+        units = served.rt.config.robots[robot].units
+        client = running(served, list(units))
+        seen = served.on_loop(sent, served.rt.supervisor)
         wheel = served.rt.config.robots[robot].wheels[0]
         m = motor(0.1, wheel.diameter_m, wheel.gear_ratio)
         try:
             reply = client.call("twist", robot=robot, linear_x=0.1, angular_z=0.0)
             assert reply == {"ok": True, "fresh_for_s": 0.5, "robots": [robot]}
-            wait_for(lambda: any(any(p) for t in list(seen) for p in t.values()), "a turn moving")
-            turn = first_moving(list(seen))
-            assert set(turn) == set(units)  # all the robot's drives, in that one turn
-            for unit, (ay, bx) in expect(m).items():
-                assert turn[unit] == pytest.approx((ay, bx), abs=0.2)
+            wait_for(lambda: first_moving(seen, units) is not None, "every drive moving")
+            first = first_moving(seen, units)
+            assert first is not None and in_one_turn(first)
+            for unit, pair in expect(m).items():
+                assert (first[unit].ay, first[unit].bx) == pytest.approx(pair, abs=0.2)
             owners = {sp[2] for sp in setpoints(served).values()}
             assert owners == {f"{client.call('hello')['name']}:{robot}"}  # one source
         finally:

@@ -5,6 +5,7 @@ drives' command words each turn sent."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.protocol import frames
@@ -53,32 +54,51 @@ def motor(ground_mps: float, diameter_m: float, gear_ratio: float) -> float:
     return ground_mps * 60.0 * gear_ratio / (math.pi * diameter_m)
 
 
-Turn = dict[str, tuple[float, float]]  # unit → the (AY, BX) its DP0 command carried
+@dataclass(frozen=True, slots=True)
+class Sent:
+    """A DP0 command the scheduler sent: when (its clock), to which unit, its AY/BX."""
+
+    t: float
+    unit: str
+    ay: float
+    bx: float
 
 
-def turns(sup: Supervisor, bus: str = "b") -> list[Turn]:
-    """Every turn of ``bus``'s scheduler from now on that sent a DP0 command: per unit,
-    the velocities it carried (the scheduler's own poll, wrapped: a turn is one poll)."""
+def sent(sup: Supervisor, bus: str = "b") -> list[Sent]:
+    """Every DP0 command ``bus``'s scheduler sends from now on (its poll, wrapped)."""
     sched = sup.schedulers[bus]
     ids = {slot.command_id: name for name, slot in sched.slots.items()}
-    seen: list[Turn] = []
+    seen: list[Sent] = []
     real = sched.poll
 
     def spy(now: float) -> list[tuple[int, bytes]]:
         out = real(now)
-        turn = {}
         for ident, data in out:
             if ident in ids:
                 ay, bx, _ = frames.unpack_dp0_command(data)
-                turn[ids[ident]] = (VELOCITY.to_physical(ay), VELOCITY.to_physical(bx))
-        if turn:
-            seen.append(turn)
+                seen.append(
+                    Sent(now, ids[ident], VELOCITY.to_physical(ay), VELOCITY.to_physical(bx))
+                )
         return out
 
     sched.poll = spy  # type: ignore[method-assign]
     return seen
 
 
-def first_moving(seen: list[Turn]) -> Turn:
-    """The first turn in which some drive's command was not zero."""
-    return next(t for t in seen if any(v for pair in t.values() for v in pair))
+def first_moving(seen: list[Sent], units: tuple[str, ...]) -> dict[str, Sent] | None:
+    """Each unit's first command that was not zero, once every one of ``units`` had one."""
+    first: dict[str, Sent] = {}
+    for s in list(seen):
+        if (s.ay or s.bx) and s.unit not in first:
+            first[s.unit] = s
+    return first if set(first) >= set(units) else None
+
+
+def in_one_turn(first: dict[str, Sent]) -> bool:
+    """The robot's drives got their speeds in one turn of the schedule: at the same
+    scheduled moment (a robot's units share one phase; the next robot's is a whole
+    phase away, 10 ms at 50 Hz with two). A drive whose reply to the previous command
+    comes in after its turn is due waits for it (one exchange in flight per drive), so
+    its frame may leave a poll later, within the same turn: 5 ms allows for that."""
+    times = [s.t for s in first.values()]
+    return max(times) - min(times) < 0.005
