@@ -107,6 +107,10 @@ class PaneHandler(logging.Handler):
             self.pending.append(styled(record.levelno, record.getMessage()))
 
 
+def _names(robots: tuple[RobotConfig, ...]) -> str:
+    return ", ".join(r.name for r in robots)
+
+
 def _b(key: str, action: str, short: str, long: str = "", show: bool = False) -> Binding:
     return Binding(key, action, short, show=show, tooltip=long or short)
 
@@ -357,8 +361,10 @@ class SupervisorApp(App[None]):
                     (height - 2) // len(SERIES),
                 )
             )
+        robots = self.arrow_robots()
+        arrows = "" if all(r.implicit for r in robots) else f" · arrows: {_names(robots)}"
         self.sub_title = (
-            f"unit {self.unit}{' (all units)' if self.drive_all else ''} · "
+            f"unit {self.unit}{' (all units)' if self.drive_all else ''}{arrows} · "
             f"speed {self.speed:.2f} m/s, turn {self.turn:.2f} rad/s"
         )
 
