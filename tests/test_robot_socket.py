@@ -143,6 +143,7 @@ def test_a_twist_names_robots_it_knows(tmp_path: Path) -> None:
     with Served(tmp_path, TWO_DRIVES) as served:
         client = ControlClient(served.path)
         try:
+            assert client.call("hello")["robots"] == {"rover": ["l", "r"]}
             with pytest.raises(RunError, match=r"no robot or unit named 'tank' \(robots: rover\)"):
                 client.call("twist", robot="tank", linear_x=0.1, angular_z=0.0)
             with pytest.raises(RunError, match="give 'robot'"):

@@ -481,6 +481,8 @@ class ControlServer:
             "config_path": str(Path(config.file).resolve()),  # the file, wherever we run
             "read_only": client.read_only,
             "units": list(config.units),
+            # each robot's drives (a twist drives them all); one-drive robots too
+            "robots": {name: list(robot.units) for name, robot in config.robots.items()},
             "buses": list(config.buses),
             "config_text": config.text,  # a client rebuilds the same typed Config from it
             "simulated": sorted(self.rt.sims),
