@@ -101,6 +101,27 @@ def test_another_clients_twist_or_vel_on_the_robot_takes_all_of_it(tmp_path: Pat
             first.close()
 
 
+def test_another_clients_twist_on_the_robot_is_arbitrated_as_for_units(tmp_path: Path) -> None:
+    with Served(tmp_path, TWO_DRIVES) as served:
+        first = running(served, ["l", "r"])
+        second = ControlClient(served.path)
+        try:
+            one, two = first.call("hello")["name"], second.call("hello")["name"]
+            first.call("twist", robot="rover", linear_x=0.1, angular_z=0.0)
+            second.call("twist", unit="r", linear_x=0.0, angular_z=0.5)  # later: it wins
+            sp = setpoints(served)
+            assert {sp[u][2] for u in ("l", "r")} == {f"{two}:rover"}
+            assert sp["l"][0] < 0 and sp["r"][0] < 0  # turning left: both motors backwards
+            assert first.call("alive")["lost"] == dict.fromkeys(
+                ("l", "r"), f"taken over by {two}:rover"
+            )
+            first.call("twist", robot="rover", linear_x=0.1, angular_z=0.0)  # and back
+            assert {sp[2] for sp in setpoints(served).values()} == {f"{one}:rover"}
+        finally:
+            second.close()
+            first.close()
+
+
 def test_a_vel_on_both_drives_of_a_robot_moves_both(tmp_path: Path) -> None:
     with Served(tmp_path, TWO_DRIVES) as served:
         client = running(served, ["l", "r"])
