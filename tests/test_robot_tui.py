@@ -74,7 +74,11 @@ def test_the_arrows_fastest_twist_is_what_the_robots_one_clamp_lets_through() ->
         "    track_m: 0.5\n",
         "    track_m: 0.5\n    limits: {linear_mps: 0.5, angular_radps: 1.0}\n",
     )
-    for config in (TWO_DRIVES, SKID, limited):
+    # the travel model: the limit holds on the Y/X fields the drive reads
+    travel = SKID.replace(
+        "velocity_model: motor", "velocity_model: travel, limits: {velocity: 500}"
+    )
+    for config in (TWO_DRIVES, SKID, limited, travel):
         rig = Rig(parse_config(config, "t.yaml"))
         robot = next(iter(rig.config.robots.values()))
         speed, turn = operator.speed_caps(mirror_of(rig), robot.units[-1:])
