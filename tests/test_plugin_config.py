@@ -27,7 +27,7 @@ def problems(plugins: str) -> list[str]:
 @pytest.mark.parametrize("plugin", ["keyboard", "joystick"])
 def test_inputs_may_only_name_declared_units(plugin: str) -> None:
     assert problems(f"  {plugin}: {{units: [left, base]}}\n") == [
-        f"p.yaml:9: plugins.{plugin}.units[1]: no unit named 'base' (units: left, right)"
+        f"p.yaml:9: plugins.{plugin}.units[1]: no robot or unit named 'base' (units: left, right)"
     ]
 
 

@@ -163,9 +163,14 @@ def test_each_plugin_accepts_every_key_its_schema_names_at_its_default(
     schemas, _ = section_schemas()
     section_schema = schemas[plugin]
     assert section_schema is not None
-    required = {k: ["base"] for k in section_schema.get("required", ())}
+    # what is required, or the first of the alternatives (keyboard: units or robot)
+    first = section_schema.get("anyOf", [{}])[0].get("required", ())
+    required = {k: ["base"] for k in (*section_schema.get("required", ()), *first)}
     for key, prop in section_schema["properties"].items():
-        value = prop.get("default", ["base"] if prop.get("type") == "array" else {})
+        kind = prop.get("type")
+        value = prop.get(
+            "default", ["base"] if kind == "array" else "base" if kind == "string" else {}
+        )
         text = yaml.safe_dump({**MINIMAL, "plugins": {plugin: {**required, key: value}}})
         PluginHost(parse_config(text))  # raises ConfigError listing any problem
 

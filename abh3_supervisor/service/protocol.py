@@ -158,12 +158,18 @@ def number(params: dict[str, Any], key: str) -> float:
     raise RpcError(INVALID_PARAMS, f"'{key}' must be a finite number")
 
 
+def names(params: dict[str, Any], one: str, many: str) -> tuple[str, ...]:
+    """``one`` (a name) or ``many`` (a list of names), in order, each once."""
+    raw = params.get(many, [params[one]] if one in params else None)
+    if not isinstance(raw, list) or not raw or not all(isinstance(u, str) for u in raw):
+        raise RpcError(INVALID_PARAMS, f"give '{one}' (a name) or '{many}' (a list of names)")
+    return tuple(dict.fromkeys(raw))
+
+
 def units(params: dict[str, Any], known: tuple[str, ...]) -> tuple[str, ...]:
     """``unit`` (one name) or ``units`` (a list), each a declared unit."""
-    raw = params.get("units", [params["unit"]] if "unit" in params else None)
-    if not isinstance(raw, list) or not raw or not all(isinstance(u, str) for u in raw):
-        raise RpcError(INVALID_PARAMS, "give 'unit' (a name) or 'units' (a list of names)")
+    raw = names(params, "unit", "units")
     unknown = [u for u in raw if u not in known]
     if unknown:
         raise RpcError(REFUSED, f"no unit named {shown(unknown[0])!r} (units: {', '.join(known)})")
-    return tuple(dict.fromkeys(raw))
+    return raw

@@ -42,7 +42,17 @@ from abh3_supervisor.core.commands import (
     parse_command,
 )
 from abh3_supervisor.core.eventlog import EventLog
-from abh3_supervisor.core.inputs import CommandOutcome, InputFeed, InputSource, Motion, execute
+from abh3_supervisor.core.inputs import (
+    CommandOutcome,
+    InputCommand,
+    InputFeed,
+    InputSource,
+    Motion,
+    Twist,
+    VelocityYX,
+    execute,
+)
+from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import Abh3Error, CommandError
@@ -118,13 +128,19 @@ def release(bound: dict[Path, socket.socket]) -> None:
 
 
 class ClientSource(InputSource):
-    """One client's motion on one unit (``<client>:<unit>``): a client may hold a ``VEL`` on
-    one unit and another on the next, each its own in the arbitration."""
+    """One client's motion on one robot (``<client>:<robot>``; a one-drive robot is named
+    after its unit, so that is ``<client>:<unit>``). Whatever the client commands on the
+    robot — a twist (the whole robot), a ``VEL`` on some of its drives — is this one
+    source's, so a client never competes with itself for a robot (the arbitration gives a
+    robot one winner) and a ``VEL`` on both drives of a robot moves both. A client may
+    hold motion on one robot and other motion on the next, each its own in the
+    arbitration."""
 
-    def __init__(self, client: str, unit: str) -> None:
-        name = f"{client}:{unit}"
-        super().__init__(name, (unit,), priority=CLIENT_PRIORITY, timeout=CLIENT_TIMEOUT_S)
-        self.unit = unit
+    def __init__(self, client: str, robot: RobotConfig) -> None:
+        name = f"{client}:{robot.name}"
+        super().__init__(name, robot.units, priority=CLIENT_PRIORITY, timeout=CLIENT_TIMEOUT_S)
+        self.robot = robot
+        self.targets = robot.units  # the units its last motion was given to
         self.feed: InputFeed | None = None
         self.moving = False  # its motion was taken and has not ended yet (as far as said)
         self.standing = False  # that motion is a held VEL/CUR, not a stream
@@ -152,7 +168,7 @@ class _Client:
         self.read_only = read_only
         self.events = False
         self.state_task: asyncio.Task[None] | None = None
-        self.sources: dict[str, ClientSource] = {}  # unit → this client's motion on it
+        self.sources: dict[str, ClientSource] = {}  # robot → this client's motion on it
         self.label = "client"  # what it calls itself in `hello` (e.g. "tui")
         writer.on_hangup = self.let_go  # at once: not after a request under way ends
 
@@ -390,8 +406,10 @@ class ControlServer:
                 if not why:  # a stream that stopped: the client's own doing
                     continue
                 source.lost = why
-                log.warning("control %s: its motion on %s ended: %s", client.name, source.unit, why)
-                client.send(rpc.notification("lost", {"unit": source.unit, "reason": why}))
+                on = ",".join(source.targets)
+                log.warning("control %s: its motion on %s ended: %s", client.name, on, why)
+                for unit in source.targets:
+                    client.send(rpc.notification("lost", {"unit": unit, "reason": why}))
 
     def _why_lost(self, source: ClientSource) -> str | None:
         """None while ``source`` still owns its unit's motion; else why not (``""``: its
@@ -402,7 +420,10 @@ class ControlServer:
             return "the supervisor is stopping"
         if self.rt.supervisor.estop:
             return "the emergency stop is latched"
-        owner = arbiter.owner(source.unit)
+        # the robot's one owner: another source's VEL on the robot's other drive leaves
+        # this source's units with none (zero), so every unit of the robot is asked
+        robot = source.robot.units
+        owner = next((o for u in robot if (o := arbiter.owner(u)) is not None), None)
         if owner is not None and owner != source.name:
             return f"taken over by {owner}"
         if not source.standing:
@@ -413,7 +434,7 @@ class ControlServer:
             )
         if owner == source.name:
             return None
-        if not self.rt.supervisor.units[source.unit].online:
+        if not all(self.rt.supervisor.units[u].online for u in source.targets):
             return "the unit went offline"
         return "the drive stopped on its own (a gap in its answers), or the unit is held"
 
@@ -460,6 +481,8 @@ class ControlServer:
             "config_path": str(Path(config.file).resolve()),  # the file, wherever we run
             "read_only": client.read_only,
             "units": list(config.units),
+            # each robot's drives (a twist drives them all); one-drive robots too
+            "robots": {name: list(robot.units) for name, robot in config.robots.items()},
             "buses": list(config.buses),
             "config_text": config.text,  # a client rebuilds the same typed Config from it
             "simulated": sorted(self.rt.sims),
@@ -518,8 +541,8 @@ class ControlServer:
         the motion it held on a unit ended (taken over, e-stop, lapsed, the drive)."""
         self._check_motion()  # as things are now, not as they were at the last check
         sources = client.sources.values()
-        holds = [s.unit for s in sources if s.moving and s.standing]
-        lost = {s.unit: s.lost for s in sources if s.lost is not None}
+        holds = [u for s in sources if s.moving and s.standing for u in s.targets]
+        lost = {u: s.lost for s in sources if s.lost is not None for u in s.targets}
         return {"ok": True, "holds": holds, "lost": lost}
 
     async def _command(self, client: _Client, params: dict[str, Any]) -> Any:
@@ -529,10 +552,7 @@ class ControlServer:
         text = rpc.text(params, "text")
 
         def submit(command: Motion) -> None:
-            for feed in self._feeds(client, units):
-                feed.hold(command)
-            for unit in units:
-                client.sources[unit].took(standing=True)
+            self._submit(self._per_robot(client, units), command, standing=True)
 
         if _moves(text) or len(units) == 1:  # motion: on every unit or on none
             outcome = await execute(self.rt.supervisor, units, text, submit)
@@ -561,38 +581,93 @@ class ControlServer:
             "held": outcome.motion and response == RESPONSE_OK,
         }
 
-    def _feeds(self, client: _Client, units: tuple[str, ...]) -> list[InputFeed]:
-        """The client's motion source on each of ``units``, attached on first use."""
+    def _source(self, client: _Client, robot: RobotConfig) -> ClientSource:
+        """The client's motion source on ``robot``, attached on first use."""
         if self.host is None:
             raise rpc.RpcError(rpc.REFUSED, "this supervisor runs without inputs")
-        feeds = []
-        for unit in units:
-            source = client.sources.get(unit)
-            if source is None:
-                source = ClientSource(client.name, unit)
-                if self.host.attach(source) is None:
-                    raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
-                client.sources[unit] = source
-            if source.feed is None:
+        source = client.sources.get(robot.name)
+        if source is None:
+            source = ClientSource(client.name, robot)
+            if self.host.attach(source) is None:
                 raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
-            feeds.append(source.feed)
-        return feeds
+            client.sources[robot.name] = source
+        if source.feed is None:
+            raise rpc.RpcError(rpc.REFUSED, "the supervisor is stopping")
+        return source
+
+    def _per_robot(
+        self, client: _Client, units: tuple[str, ...]
+    ) -> list[tuple[ClientSource, tuple[str, ...]]]:
+        """The client's source on each robot of ``units``, with the units of it named."""
+        config = self.rt.config
+        named: dict[str, list[str]] = {}
+        for unit in units:
+            robot = config.robot_of(unit)
+            if robot is None:  # a monitor unit: _commanded refused it already
+                raise rpc.RpcError(rpc.REFUSED, f"unit {unit!r} drives no robot")
+            named.setdefault(robot.name, []).append(unit)
+        return [(self._source(client, config.robots[r]), tuple(us)) for r, us in named.items()]
+
+    def _submit(
+        self,
+        targets: list[tuple[ClientSource, tuple[str, ...]]],
+        command: InputCommand,
+        *,
+        standing: bool,
+    ) -> None:
+        """``command`` as each source's, on its units, on the loop now (the reply comes
+        after the arbitration decided). The source is given its units before the
+        decision, so its previous command never reaches the new units, not even for
+        the length of one decision."""
+        arbiter = self.rt.supervisor.arbiter
+        if arbiter.closed:
+            raise CommandError("the supervisor is stopping: commands are refused")
+        for source, units in targets:
+            arbiter.sources[source.name].units = source.targets = units
+            arbiter.submit(source.name, command, arbiter.clock(), standing=standing)
+        if standing or not self.rt.supervisor.estop:  # zero under the e-stop: nothing to lose
+            for source, _ in targets:
+                source.took(standing=standing)
+
+    def _robots(self, params: dict[str, Any]) -> tuple[RobotConfig, ...]:
+        """``robot``/``robots``, or ``unit``/``units`` naming robots or units (each unit
+        stands for its robot): the robots a twist drives, each as a whole."""
+        sup, config = self.rt.supervisor, self.rt.config
+        if "robot" in params or "robots" in params:
+            names = rpc.names(params, "robot", "robots")
+        else:
+            names = rpc.names(params, "unit", "units")
+        robots: dict[str, RobotConfig] = {}
+        for name in names:
+            robot = config.robots.get(name)
+            if robot is None and name in sup.units:
+                robot = config.robot_of(self._commanded({"unit": name})[0])
+            if robot is None:
+                known = ", ".join(config.robots) or "none"
+                raise rpc.RpcError(
+                    rpc.REFUSED, f"no robot or unit named {rpc.shown(name)!r} (robots: {known})"
+                )
+            robots[robot.name] = robot
+        return tuple(robots.values())
 
     async def _motion(self, method: str, client: _Client, params: dict[str, Any]) -> Any:
         values = [rpc.number(params, key) for key in _FIELDS[method]]  # checked before use
-        units = self._commanded(params)
+        if method == "twist":  # a robot's twist drives all its drives (core/robot_motion.py)
+            robots = self._robots(params)
+            units = tuple(u for robot in robots for u in robot.units)
+        else:
+            units = self._commanded(params)
         if any(values):  # refused in the answer, not only in a notice: e-stop, held, …
             for unit in units:
                 try:
                     self.rt.supervisor.refuse_motion(unit)
                 except CommandError as exc:
                     raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
-        for feed in self._feeds(client, units):
-            getattr(feed, method)(*values)
-        if not self.rt.supervisor.estop:  # zero under the e-stop: nothing to lose, nor say
-            for unit in units:
-                client.sources[unit].took(standing=False)
-        return {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
+        self._submit(self._per_robot(client, units), _COMMANDS[method](*values), standing=False)
+        reply: dict[str, Any] = {"ok": True, "fresh_for_s": CLIENT_TIMEOUT_S}
+        if method == "twist":
+            reply["robots"] = [robot.name for robot in robots]
+        return reply
 
     async def _release(self, client: _Client, params: dict[str, Any]) -> Any:
         for source in client.sources.values():
@@ -731,6 +806,12 @@ def _moves(text: str) -> bool:
         return False
 
 
+_COMMANDS: dict[str, Callable[[float, float], InputCommand]] = {
+    "twist": Twist,
+    "velocity_yx": VelocityYX,
+    "velocity": VelocityCommand,
+    "current": CurrentCommand,
+}
 _FIELDS = {
     "twist": ("linear_x", "angular_z"),
     "velocity_yx": ("y", "x"),

@@ -1,4 +1,4 @@
-"""``joystick``: drive units from a Linux game controller, like the seed's testCMD.
+"""``joystick``: drive a robot from a Linux game controller, like the seed's testCMD.
 
 Reads the kernel's joystick device API (``/dev/input/js0``: the axis and button numbers
 the ROS ``joy`` node uses). As testCMD: travel = ``gainX`` × axis 4, turn = ``gainA`` ×
@@ -9,13 +9,17 @@ axis 0 (axes normalised to −1…1, up/left positive). On top of the seed:
 * **turbo**: ``turbo_button`` scales by ``turbo_scale`` instead of ``scale``;
 * **hot-plug**: a vanished device means zero at once; it is reopened when it returns;
 * the current command is re-sent every ``repeat_s`` while held, so the input stays fresh
-  (a stick held still produces no events).
+  (a stick held still produces no events);
+* a **robot** (``robot:``, or the robots of the ``units:`` named) is driven as a whole, and
+  the twist stops at the fastest the robot may go (both parts scaled alike); without
+  ``gainX``/``gainA`` a robot's ``limits`` (linear_mps, angular_radps) are full stick.
 """
 
 from __future__ import annotations
 
 import errno
 import logging
+import math
 import os
 import select
 import struct
@@ -23,9 +27,12 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from abh3_plugins import teleop_target
+from abh3_supervisor.config import Config
 from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core.inputs import Feed, InputFeed, InputSource
+from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 
@@ -91,6 +98,7 @@ class Mapping:
     turbo_button: int | None = 5
     scale: float = 0.5
     turbo_scale: float = 1.0
+    fastest: tuple[float, float] = (math.inf, math.inf)  # the robot's (linear, angular)
     axes: dict[int, float] = field(default_factory=dict)
     buttons: dict[int, bool] = field(default_factory=dict)
 
@@ -114,10 +122,11 @@ class Mapping:
             return None
         turbo = self.turbo_button is not None and self.buttons.get(self.turbo_button, False)
         k = self.turbo_scale if turbo else self.scale
-        return (
+        twist = (
             k * self.gain_x * self.axes.get(self.travel_axis, 0.0),
             k * self.gain_a * self.axes.get(self.turn_axis, 0.0),
         )
+        return teleop_target.limit(twist, self.fastest)
 
 
 class JoystickSource(InputSource):
@@ -188,6 +197,13 @@ class JoystickSource(InputSource):
             self._thread.join(2)
 
 
+def _full_stick(robots: tuple[RobotConfig, ...], key: str) -> float:
+    """The default gain: the robots' limit ``key`` where every one sets it, else the
+    seed's 1.0."""
+    limits = [getattr(r.limits, key) for r in robots]
+    return min(limits) if limits and None not in limits else 1.0
+
+
 class JoystickPlugin:
     def __init__(self) -> None:
         self.units: tuple[str, ...] = ()
@@ -200,12 +216,13 @@ class JoystickPlugin:
         button = js.integer(0, 255)
         return js.mapping(
             {
-                "units": js.names("the units the joystick drives"),
+                "robot": js.text("the robot the joystick drives (a robot's or a unit's name)"),
+                "units": js.names("robots or units (each drives its whole robot)"),
                 "device": js.text(default="/dev/input/js0"),
                 "travel_axis": js.integer(0, 255, default=4),
                 "turn_axis": js.integer(0, 255, default=0),
-                "gainX": js.number(-100.0, 100.0, default=1.0),
-                "gainA": js.number(-100.0, 100.0, default=1.0),
+                "gainX": js.number(-100.0, 100.0, "m/s at full stick (or the robot's limit)", 1.0),
+                "gainA": js.number(-100.0, 100.0, "rad/s at full stick (or the robot's)", 1.0),
                 "deadman": js.boolean(default=True),
                 "deadman_button": {**button, "default": 4},
                 "turbo_button": {**button, "default": 5},
@@ -214,14 +231,13 @@ class JoystickPlugin:
                 "priority": js.integer(-100, 100, default=10),
                 "timeout": js.number(0.05, 10.0, "s", 0.5),
             },
-            required=("units",),
-        )
+        ) | {"anyOf": [{"required": ["units"]}, {"required": ["robot"]}]}
 
     @hookimpl
-    def abh3_configure(self, section: Section) -> None:
+    def abh3_configure(self, section: Section, config: Config) -> None:
         section.only(
             {
-                "units",
+                *teleop_target.KEYS,
                 "device",
                 "travel_axis",
                 "turn_axis",
@@ -236,20 +252,21 @@ class JoystickPlugin:
                 "timeout",
             }
         )
-        self.units = section.units("units")
-        if not self.units:
-            section.error("units", "missing: name the units the joystick drives, e.g. [left]")
+        robots = teleop_target.robots(section, config, "joystick")
+        self.units = teleop_target.units(robots)
+        gain_x, gain_a = (_full_stick(robots, key) for key in ("linear_mps", "angular_radps"))
         self.device = section.text("device", self.device)
         deadman = section.boolean("deadman", True)
         self.mapping = Mapping(
             travel_axis=section.integer("travel_axis", 4, 0, 255),
             turn_axis=section.integer("turn_axis", 0, 0, 255),
-            gain_x=section.number("gainX", 1.0, -100.0, 100.0),
-            gain_a=section.number("gainA", 1.0, -100.0, 100.0),
+            gain_x=section.number("gainX", gain_x, -100.0, 100.0),
+            gain_a=section.number("gainA", gain_a, -100.0, 100.0),
             deadman_button=section.integer("deadman_button", 4, 0, 255) if deadman else None,
             turbo_button=section.integer("turbo_button", 5, 0, 255),
             scale=section.number("scale", 0.5, 0.0, 1.0),
             turbo_scale=section.number("turbo_scale", 1.0, 0.0, 1.0),
+            fastest=teleop_target.fastest(robots, config),
         )
         self.priority = section.integer("priority", 10, -100, 100)
         self.timeout = section.number("timeout", 0.5, 0.05, 10.0)

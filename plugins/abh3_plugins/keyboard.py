@@ -5,8 +5,10 @@
     m , .      w/x: linear ×1.1/×0.9   e/c: angular ×1.1/×0.9
     ctrl+e: EMERGENCY STOP (every unit; latched until cleared from a client)
 
-Each key press sends a robot twist to the configured units; hold a key (the terminal
-repeats it) to keep moving: silence longer than ``timeout`` means zero. The terminal is
+Each key press sends a twist to the configured robot (``robot:``, or the robots of the
+``units:`` named: each as a whole, all its drives together); hold a key (the terminal
+repeats it) to keep moving: silence longer than ``timeout`` means zero. The speeds stop
+at the fastest the robot may go (its ``limits``, its drives' velocity limits). The terminal is
 put in cbreak mode (no echo, Ctrl-C still stops the program) and restored on the way out.
 
 Inside the TUI the terminal is the TUI's (see :mod:`abh3_supervisor.plugin_host.terminal`): this
@@ -17,6 +19,7 @@ key the TUI uses moves to its alternative (``q`` → ``Q``, ``e`` → ``C``).
 from __future__ import annotations
 
 import logging
+import math
 import os
 import select
 import sys
@@ -26,6 +29,8 @@ import tty
 from collections.abc import Collection
 from typing import Any
 
+from abh3_plugins import teleop_target
+from abh3_supervisor.config import Config
 from abh3_supervisor.config import schema as js
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core.inputs import InputFeed, InputSource
@@ -79,15 +84,20 @@ MEANING = {
 
 
 class Teleop:
-    """Key → twist, the pure part (no terminal)."""
+    """Key → twist, the pure part (no terminal). ``fastest``: the speeds never pass it
+    (linear m/s, angular rad/s: the robot's, teleop_target.fastest)."""
 
-    def __init__(self, speed: float, turn: float) -> None:
-        self.speed, self.turn = speed, turn
+    def __init__(
+        self, speed: float, turn: float, fastest: tuple[float, float] = (math.inf, math.inf)
+    ) -> None:
+        self.fastest = fastest
+        self.speed, self.turn = min(speed, fastest[0]), min(turn, fastest[1])
 
     def key(self, ch: str) -> tuple[float, float] | None:
         if ch in SPEEDS:
             fs, ft = SPEEDS[ch]
-            self.speed, self.turn = self.speed * fs, self.turn * ft
+            self.speed = min(self.speed * fs, self.fastest[0])
+            self.turn = min(self.turn * ft, self.fastest[1])
             log.info("keyboard: speed %.2f m/s, turn %.2f rad/s", self.speed, self.turn)
             return None
         if ch in MOVES:
@@ -176,26 +186,27 @@ class KeyboardPlugin:
     def __init__(self) -> None:
         self.units: tuple[str, ...] = ()
         self.settings: dict[str, float] = {}
+        self.fastest = (math.inf, math.inf)
 
     @hookimpl
     def abh3_config_schema(self) -> dict[str, Any]:
         return js.mapping(
             {
-                "units": js.names("the units the keyboard drives"),
+                "robot": js.text("the robot the keyboard drives (a robot's or a unit's name)"),
+                "units": js.names("robots or units (each drives its whole robot)"),
                 "speed": js.number(0.0, 10.0, "m/s", 0.2, lo_open=True),
                 "turn": js.number(0.0, 20.0, "rad/s", 0.5, lo_open=True),
                 "priority": js.integer(-100, 100, default=0),
                 "timeout": js.number(0.05, 10.0, "s", 0.6),
             },
-            required=("units",),
-        )
+        ) | {"anyOf": [{"required": ["units"]}, {"required": ["robot"]}]}
 
     @hookimpl
-    def abh3_configure(self, section: Section) -> None:
-        section.only({"units", "speed", "turn", "priority", "timeout"})
-        self.units = section.units("units")
-        if not self.units:
-            section.error("units", "missing: name the units the keyboard drives, e.g. [left]")
+    def abh3_configure(self, section: Section, config: Config) -> None:
+        section.only({*teleop_target.KEYS, "speed", "turn", "priority", "timeout"})
+        robots = teleop_target.robots(section, config, "keyboard")
+        self.units = teleop_target.units(robots)
+        self.fastest = teleop_target.fastest(robots, config)
         self.settings = {
             "speed": section.number("speed", 0.2, 0.0, 10.0, lo_open=True),
             "turn": section.number("turn", 0.5, 0.0, 20.0, lo_open=True),
@@ -209,6 +220,9 @@ class KeyboardPlugin:
         s = self.settings
         register(
             KeyboardSource(
-                self.units, int(s["priority"]), s["timeout"], Teleop(s["speed"], s["turn"])
+                self.units,
+                int(s["priority"]),
+                s["timeout"],
+                Teleop(s["speed"], s["turn"], self.fastest),
             )
         )

@@ -57,6 +57,7 @@ from abh3_supervisor.clients.tui.screens import ConfirmScreen, HelpScreen, Opera
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.planner import plan
+from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.params import table
 
 REFRESH_S = 0.1
@@ -104,6 +105,10 @@ class PaneHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         if record.name != "abh3":  # the supervisor's own event lines arrive as events
             self.pending.append(styled(record.levelno, record.getMessage()))
+
+
+def _names(robots: tuple[RobotConfig, ...]) -> str:
+    return ", ".join(r.name for r in robots)
 
 
 def _b(key: str, action: str, short: str, long: str = "", show: bool = False) -> Binding:
@@ -316,7 +321,14 @@ class SupervisorApp(App[None]):
             else f"emergency stop latched as of {age(stale)} ago (stale)"
         )
         self.query_one("#table", Static).update(
-            overview.render(self.sup, self.names, self.selected, self._width("#table"), stale)
+            overview.render(
+                self.sup,
+                self.names,
+                self.selected,
+                self._width("#table"),
+                stale,
+                self.arrows_line(),
+            )
         )
         log = self.query_one("#log-scroll", RichLog)
         while self.pending_log:
@@ -349,8 +361,10 @@ class SupervisorApp(App[None]):
                     (height - 2) // len(SERIES),
                 )
             )
+        robots = self.arrow_robots()
+        arrows = "" if all(r.implicit for r in robots) else f" · arrows: {_names(robots)}"
         self.sub_title = (
-            f"unit {self.unit}{' (all units)' if self.drive_all else ''} · "
+            f"unit {self.unit}{' (all units)' if self.drive_all else ''}{arrows} · "
             f"speed {self.speed:.2f} m/s, turn {self.turn:.2f} rad/s"
         )
 
@@ -451,6 +465,18 @@ class SupervisorApp(App[None]):
         commanded = [n for n in self.names if self.sup.units[n].cfg.role is Role.COMMAND]
         return tuple(commanded) if self.drive_all else (self.unit,)
 
+    def arrow_robots(self) -> tuple[RobotConfig, ...]:
+        """The robots the arrows drive: the selected unit's (every one's with ``a``)."""
+        return operator.robots_of(self.sup, self.targets())
+
+    def arrows_line(self) -> str | None:
+        """What the arrows drive, for the overview, when the file declares robots (with
+        one-drive robots only, the selected unit ▶ says it)."""
+        robots = self.arrow_robots()
+        if all(r.implicit for r in robots):
+            return None
+        return f"the arrows drive {operator.arrows_drive(robots)}"
+
     def say(self, text: str) -> None:
         self.query_one("#response", Static).update(text)
 
@@ -511,20 +537,22 @@ class SupervisorApp(App[None]):
         if not self.connected():
             self.hold.stop()
             return
-        targets = self.targets()
+        robots = self.arrow_robots()  # each robot as a whole: all its drives together
+        units = operator.robot_units(robots)
         moving = bool(linear or angular)
-        why = operator.drive_refusal(self.sup, targets, moving)
+        why = operator.drive_refusal(self.sup, units, moving)
         if why is not None or not moving:
             self.hold.stop()
         if why is not None:
             self.say(why)
             return
         lin, ang = linear * self.speed, angular * self.turn
-        if not moving or self.hold.press(Drive(targets, lin, ang), self.clock()):
-            self.send("twist", units=list(targets), linear_x=lin, angular_z=ang)
-        what = f"drive {', '.join(targets)}: {lin:+.2f} m/s {ang:+.2f} rad/s"
+        names = tuple(r.name for r in robots)
+        if not moving or self.hold.press(Drive(names, lin, ang), self.clock()):
+            self.send("twist", robots=list(names), linear_x=lin, angular_z=ang)
+        what = f"drive {operator.arrows_drive(robots)}: {lin:+.2f} m/s {ang:+.2f} rad/s"
         self.audit(what, repeat_after=2.0)
-        self.still = operator.stillness(self.sup, targets) if moving else None
+        self.still = operator.stillness(self.sup, units) if moving else None
         self.say(self.still or f"{what} (hold the key; release = stop)")
 
     def drive_tick(self) -> None:
@@ -533,32 +561,34 @@ class SupervisorApp(App[None]):
         if due is None:
             return
         drive, held = due
-        if held and operator.drive_refusal(self.sup, drive.units, True) is not None:
+        robots = tuple(self.sup.config.robots[name] for name in drive.robots)
+        if held and operator.drive_refusal(self.sup, operator.robot_units(robots), True):
             self.hold.stop()  # e.g. latched by another client: its own notice says so
             return
         if self._not_connected() is not None:  # the banner says so; no line per tick
             self.hold.stop()
             return
         lin, ang = (drive.linear, drive.angular) if held else (0.0, 0.0)
-        self.send("twist", units=list(drive.units), linear_x=lin, angular_z=ang)
+        self.send("twist", robots=list(drive.robots), linear_x=lin, angular_z=ang)
         if not held and self.still is None:  # why nothing moved stays in sight
-            self.say(f"drive {', '.join(drive.units)}: key released, stop sent")
+            self.say(f"drive {operator.arrows_drive(robots)}: key released, stop sent")
 
     def action_speed(self, factor: float) -> None:
         speed_cap, turn_cap = operator.speed_caps(self.sup, self.targets())
         speed, turn = self.speed * factor, self.turn * factor
         self.speed, self.turn = min(speed, speed_cap), min(turn, turn_cap)
         capped = speed > speed_cap or turn > turn_cap
-        note = " (capped at the velocity limit)" if capped else ""
+        note = " (capped at the robot's limits)" if capped else ""
         self.say(f"arrow speeds: {self.speed:.2f} m/s, {self.turn:.2f} rad/s{note}")
 
     def action_toggle_all(self) -> None:
         self.drive_all = not self.drive_all
-        self.say(f"the arrows drive {', '.join(self.targets())}")
+        self.say(f"the arrows drive {operator.arrows_drive(self.arrow_robots())}")
 
     def action_select(self, step: int) -> None:
         self.selected = (self.selected + step) % len(self.names)
-        self.say(f"unit {self.unit} selected")
+        line = self.arrows_line()
+        self.say(f"unit {self.unit} selected" + (f" ({line})" if line else ""))
         self.refresh_view()
 
     def action_tab(self, tab: str) -> None:

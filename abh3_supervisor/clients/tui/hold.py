@@ -23,9 +23,9 @@ TICK_S = 0.05  # how often the app looks: the release is said within this much m
 
 @dataclass(frozen=True, slots=True)
 class Drive:
-    """One twist to some units, as an arrow key asks it."""
+    """One twist to some robots (each as a whole), as an arrow key asks it."""
 
-    units: tuple[str, ...]
+    robots: tuple[str, ...]
     linear: float
     angular: float
 
@@ -52,7 +52,7 @@ class HeldKey:
 
     def tick(self, now: float) -> tuple[Drive, bool] | None:
         """What to send at ``now``: ``(drive, True)`` the held drive again, ``(drive,
-        False)`` zero to its units (the key is up), or None: nothing."""
+        False)`` zero to its robots (the key is up), or None: nothing."""
         drive = self.drive
         if drive is None:
             return None

@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 from abh3_supervisor.clients.mirror import Mirror, UnitView
 from abh3_supervisor.clients.tui.model import axes, reported, spoken, unit_of
-from abh3_supervisor.config.model import Role, VelocityModel
-from abh3_supervisor.core.kinematics import twist_to_yx, yx_to_ab
+from abh3_supervisor.config.model import Role
+from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.core.twist_limits import fastest_twist
 from abh3_supervisor.protocol import flags
-from abh3_supervisor.protocol.scaling import VELOCITY
 
 SWITCHES = ("SERVO", "START", "BRAKE", "TORQUE")
 
@@ -173,21 +173,31 @@ def stillness(sup: Mirror, names: tuple[str, ...]) -> str | None:
     return f"{'; '.join(parts)} — nothing moves ({how})"
 
 
+def robots_of(sup: Mirror, names: tuple[str, ...]) -> tuple[RobotConfig, ...]:
+    """The robots whose drives ``names`` are, in order, each once (a monitor unit drives
+    none): what the arrows drive, each robot as a whole."""
+    found = (sup.config.robot_of(name) for name in names)
+    return tuple({r.name: r for r in found if r is not None}.values())
+
+
+def robot_units(robots: tuple[RobotConfig, ...]) -> tuple[str, ...]:
+    return tuple(u for robot in robots for u in robot.units)
+
+
+def arrows_drive(robots: tuple[RobotConfig, ...]) -> str:
+    """What the arrows drive, as said: a one-drive robot by its unit, a declared robot by
+    its name and its drives (``rover (left, right)``)."""
+    if not robots:
+        return "no robot"
+    return ", ".join(r.name if r.implicit else f"{r.name} ({', '.join(r.units)})" for r in robots)
+
+
 def speed_caps(sup: Mirror, names: tuple[str, ...]) -> tuple[float, float]:
-    """The fastest twist the arrow keys may ask of these units within their velocity
-    limits: (linear m/s, angular rad/s); the arrows give one or the other, never both."""
+    """The fastest twist the arrow keys may ask of the robots of these units within their
+    limits (the robot's own, each wheel's axis, each drive's velocity limit): (linear m/s,
+    angular rad/s); the arrows give one or the other, never both."""
     speed = turn = float("inf")
-    for name in names:
-        cfg = sup.units[name].cfg
-        limit = min(cfg.limits.velocity, VELOCITY.maximum)
-        per_mps = abs(_axis_max(*twist_to_yx(1.0, 0.0, cfg.geometry), cfg.velocity_model))
-        per_rad = abs(_axis_max(*twist_to_yx(0.0, 1.0, cfg.geometry), cfg.velocity_model))
-        speed = min(speed, limit / per_mps if per_mps else speed)
-        turn = min(turn, limit / per_rad if per_rad else turn)
+    for robot in robots_of(sup, names):
+        fastest = fastest_twist(robot, sup.config.units)
+        speed, turn = min(speed, fastest[0]), min(turn, fastest[1])
     return speed, turn
-
-
-def _axis_max(y: float, x: float, model: VelocityModel) -> float:
-    """The larger axis command [min⁻¹] of a Y/X pair in the drive's model."""
-    a, b = (y, x) if model is VelocityModel.TRAVEL else yx_to_ab(y, x)
-    return max(abs(a), abs(b))

@@ -103,9 +103,15 @@ LEGEND = (
 
 
 def render(
-    sup: Mirror, names: list[str], selected: int, width: int, stale: float | None = None
+    sup: Mirror,
+    names: list[str],
+    selected: int,
+    width: int,
+    stale: float | None = None,
+    arrows: str | None = None,
 ) -> Text:
-    """``stale``: how old the state is once it is no longer live (None: live)."""
+    """``stale``: how old the state is once it is no longer live (None: live);
+    ``arrows``: what the arrow keys drive, said under the table."""
     columns = fit(width)
     text = Text()
     if stale is not None:
@@ -140,5 +146,7 @@ def render(
                 text.append(f"{mark}{bit}", style)
                 text.append(" ")
             text.append("\n")
+    if arrows is not None:
+        text.append(f"\n{arrows}", "bold")
     text.append(LEGEND, style="dim")
     return text
