@@ -233,9 +233,9 @@ def test_abh3_send_names_its_target_holds_motion_and_reports_clamping(tmp_path: 
         )  # fmt: skip
         assert hold.stderr is not None
         clamp = hold.stderr.readline()
-        assert clamp.startswith("left: clamped: VEL 99999 0 → 6553.4 0"), clamp
+        assert clamp.startswith("left: clamped: VEL 99999 0 → 1500 0 (limits.velocity 1500)"), clamp
         assert "holding" in hold.stderr.readline()
-        assert setpoint() == pytest.approx(6553.4)  # held without repetition by the user
+        assert setpoint() == pytest.approx(1500)  # held without repetition by the user
         hold.send_signal(2)
         out, err = hold.communicate(timeout=10)
         assert hold.returncode == 0 and "released" in err

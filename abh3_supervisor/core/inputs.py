@@ -331,15 +331,26 @@ class InputArbiter:
         self.submit(name, command, self.clock())
 
     def submit(
-        self, name: str, command: InputCommand | None, now: float, *, standing: bool = False
+        self,
+        name: str,
+        command: InputCommand | None,
+        now: float,
+        *,
+        standing: bool = False,
+        units: tuple[str, ...] | None = None,
     ) -> None:
         """``standing``: the command holds without repetition while the source keeps
-        proving it is alive (:meth:`touch`), instead of for ``timeout`` after ``now``."""
+        proving it is alive (:meth:`touch`), instead of for ``timeout`` after ``now``.
+        ``units``: the source targets these from now on, in the same decision (its
+        previous command never reaches them; units left behind stop if it drove them)."""
         state = self.sources[name]
         self.submissions += 1
+        before = state.units
+        if units is not None:
+            state.units = units
         state.command, state.heard, state.seq = command, now, self.submissions
         state.standing, state.alive = standing, now
-        self._decide(state.units, now)
+        self._decide(tuple(dict.fromkeys((*before, *state.units))), now)
 
     def touch(self, name: str, now: float) -> None:
         """The source proves it is alive: its standing command holds another ``timeout``."""

@@ -616,15 +616,14 @@ class ControlServer:
         standing: bool,
     ) -> None:
         """``command`` as each source's, on its units, on the loop now (the reply comes
-        after the arbitration decided). The source is given its units before the
-        decision, so its previous command never reaches the new units, not even for
-        the length of one decision."""
+        after the arbitration decided). The source is given its units in the same
+        decision, so its previous command never reaches the new units."""
         arbiter = self.rt.supervisor.arbiter
         if arbiter.closed:
             raise CommandError("the supervisor is stopping: commands are refused")
         for source, units in targets:
-            arbiter.sources[source.name].units = source.targets = units
-            arbiter.submit(source.name, command, arbiter.clock(), standing=standing)
+            source.targets = units
+            arbiter.submit(source.name, command, arbiter.clock(), standing=standing, units=units)
         if standing or not self.rt.supervisor.estop:  # zero under the e-stop: nothing to lose
             for source, _ in targets:
                 source.took(standing=standing)
