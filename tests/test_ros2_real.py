@@ -29,7 +29,7 @@ import pytest
 
 from abh3_supervisor.clients import ros2_interface as ri
 from abh3_supervisor.core.kinematics import Geometry, twist_to_yx
-from tests.support.ros2_real import DECODE, NETNS, PROBE, ROOT, RUNNER, ros_distro
+from tests.support.ros2_real import PROBE, ROOT, bridge_and_probe, ros_distro
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
@@ -123,36 +123,11 @@ def scenario(
         "absent_wait": 3,
         "drive": 2.0,
     }
-    job = {
-        "bridge": bridge,
-        "bridge_env": bridge_env,
-        "bridge_log": str(tmp_path / "bridge.err"),
-        "probe": [str(venv / "bin" / "python"), str(PROBE), json.dumps(args)],
-        "probe_env": ros_side,
-        "timeout": 150,
-    }
-    done = subprocess.run(
-        [*NETNS, sys.executable, str(RUNNER), json.dumps(job)],
-        capture_output=True,
-        text=True,
-        timeout=240,
-        cwd=ROOT,
-        check=False,
+    probe = [str(venv / "bin" / "python"), str(PROBE), json.dumps(args)]
+    out, report, frames = bridge_and_probe(
+        bridge, bridge_env, probe, ros_side, tmp_path, record, cfg
     )
-    assert done.returncode == 0, done.stderr[-3000:]
-    out: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
-    report = json.dumps(out, indent=1)[-8000:]
-    assert out["probe"] is not None, report
-    assert out["probe"]["errors"] == [], report
-    assert out["bridge_rc"] == 0, report
-    assert "Traceback" not in out["bridge_err"], report
-    decoded = subprocess.run(
-        [*DECODE, str(record), "--json", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.splitlines()
-    commands = [f for f in map(json.loads, decoded) if f["kind"] == "dp0_command"]
+    commands = [f for f in frames if f["kind"] == "dp0_command"]
     out["dp0"] = [(f["t"], f["values"]["cmd_ay"], f["values"]["cmd_bx"]) for f in commands]
     out["dp0_inputs"] = [(f["t"], set(f["flags"]["inputs"])) for f in commands]
     out["report"] = report

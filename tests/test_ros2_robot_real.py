@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.robot import RobotConfig, motor_speeds, twist_of
-from tests.support.ros2_real import DECODE, NETNS, PROBE, ROOT, RUNNER, ros_distro
+from tests.support.ros2_real import PROBE, bridge_and_probe, ros_distro
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
@@ -119,36 +118,11 @@ def run(ros: tuple[str, Path, Path], tmp_path: Path, shape: str, transport: str)
         "drive": 2.0,
         "settle": 1.5,
     }
-    job = {
-        "bridge": bridge,
-        "bridge_env": bridge_env,
-        "bridge_log": str(tmp_path / "bridge.err"),
-        "probe": [str(venv / "bin" / "python"), str(PROBE), json.dumps(args)],
-        "probe_env": ros_side,
-        "timeout": 150,
-    }
-    done = subprocess.run(
-        [*NETNS, sys.executable, str(RUNNER), json.dumps(job)],
-        capture_output=True,
-        text=True,
-        timeout=240,
-        cwd=ROOT,
-        check=False,
+    probe = [str(venv / "bin" / "python"), str(PROBE), json.dumps(args)]
+    out, report, frames = bridge_and_probe(
+        bridge, bridge_env, probe, ros_side, tmp_path, record, cfg
     )
-    assert done.returncode == 0, done.stderr[-3000:]
-    out: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
-    report = json.dumps(out, indent=1)[-8000:]
-    assert out["probe"] is not None, report
-    assert out["probe"]["errors"] == [], report
-    assert out["bridge_rc"] == 0, report
-    assert "Traceback" not in out["bridge_err"], report
-    decoded = subprocess.run(
-        [*DECODE, str(record), "--json", "--config", str(cfg)],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.splitlines()
-    out["frames"] = [json.loads(line) for line in decoded]
+    out["frames"] = frames
     out["report"] = report
     out["robot"] = parse_config(cfg.read_text(), str(cfg)).robots[str(robot)]
     return out

@@ -20,6 +20,17 @@ class Verdict(StrEnum):
     SKIPPED = "not run"
 
 
+def overall(checks: list[Check]) -> Verdict:
+    """A unit's or a robot's verdict: any fail (or nothing checked) fails; any warning
+    or skipped check warns; else it passes."""
+    verdicts = {c.verdict for c in checks}
+    if Verdict.FAIL in verdicts or not checks:
+        return Verdict.FAIL
+    if verdicts & {Verdict.WARN, Verdict.SKIPPED}:
+        return Verdict.WARN
+    return Verdict.PASS
+
+
 @dataclass(frozen=True, slots=True)
 class Check:
     """One line of the summary: what was checked, what was measured against what limit,

@@ -14,7 +14,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from abh3_supervisor.commission import wheels
-from abh3_supervisor.commission.model import Check, Settings, Verdict
+from abh3_supervisor.commission.model import Check, Settings, Verdict, overall
 from abh3_supervisor.commission.unit import Aborted, Bench, Operator, RobotView, halt
 from abh3_supervisor.commission.wheels import STEP, Place, Seen
 from abh3_supervisor.core.robot import RobotConfig, Side, Wheel
@@ -37,12 +37,7 @@ class RobotResult:
 
     @property
     def verdict(self) -> Verdict:
-        verdicts = {c.verdict for c in self.checks}
-        if Verdict.FAIL in verdicts or not self.checks:
-            return Verdict.FAIL
-        if verdicts & {Verdict.WARN, Verdict.SKIPPED}:
-            return Verdict.WARN
-        return Verdict.PASS
+        return overall(self.checks)
 
 
 class Odometer:

@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from abh3_supervisor.commission.model import Check, Settings, Trace, Verdict
+from abh3_supervisor.commission.model import Check, Settings, Trace, Verdict, overall
 from abh3_supervisor.config.model import Role, UnitConfig
 from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.core.verify import Verification
@@ -87,12 +87,7 @@ class UnitResult:
 
     @property
     def verdict(self) -> Verdict:
-        verdicts = {c.verdict for c in self.checks}
-        if Verdict.FAIL in verdicts or not self.checks:
-            return Verdict.FAIL
-        if verdicts & {Verdict.WARN, Verdict.SKIPPED}:
-            return Verdict.WARN
-        return Verdict.PASS
+        return overall(self.checks)
 
     def add(self, check: Check) -> Check:
         self.checks.append(check)

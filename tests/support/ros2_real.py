@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import functools
 import importlib.metadata
+import json
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -81,3 +83,47 @@ def ros_distro(distro: str) -> tuple[str, Path, Path]:
     except (ri.BuildError, OSError, subprocess.CalledProcessError) as exc:
         unavailable(f"ROS 2 {distro} from the registry: {exc}")
     return distro, venv, prefix
+
+
+def bridge_and_probe(
+    bridge: list[str],
+    bridge_env: dict[str, str],
+    probe: list[str],
+    probe_env: dict[str, str],
+    log_dir: Path,
+    record: Path,
+    cfg: Path,
+) -> tuple[dict[str, Any], str, list[dict[str, Any]]]:
+    """Run the bridge and the probe together in a namespace with only loopback; the run's
+    report (checked: the probe ran without errors, the bridge exited 0 without a
+    traceback), the report as text for assertion messages, and the recorded frames."""
+    job = {
+        "bridge": bridge,
+        "bridge_env": bridge_env,
+        "bridge_log": str(log_dir / "bridge.err"),
+        "probe": probe,
+        "probe_env": probe_env,
+        "timeout": 150,
+    }
+    done = subprocess.run(
+        [*NETNS, sys.executable, str(RUNNER), json.dumps(job)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=ROOT,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    out: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    report = json.dumps(out, indent=1)[-8000:]
+    assert out["probe"] is not None, report
+    assert out["probe"]["errors"] == [], report
+    assert out["bridge_rc"] == 0, report
+    assert "Traceback" not in out["bridge_err"], report
+    decoded = subprocess.run(
+        [*DECODE, str(record), "--json", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.splitlines()
+    return out, report, [json.loads(line) for line in decoded]
