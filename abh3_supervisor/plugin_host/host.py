@@ -32,7 +32,7 @@ from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
 from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
 from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError
-from abh3_supervisor.plugin_host import hookspecs, validate
+from abh3_supervisor.plugin_host import hookspecs, inventory, validate
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
 log = logging.getLogger(__name__)
@@ -284,6 +284,7 @@ class PluginHost:
 
     def start(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
         self._sup, self._loop = sup, loop
+        log.info("%s", inventory.loaded_line(self.names, installed()))
         observing = ("abh3_feedback", "abh3_status", "abh3_health", "abh3_flags", "abh3_notice")
         for name in self.names:
             for hook in observing:
