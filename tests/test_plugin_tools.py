@@ -69,6 +69,10 @@ class Declares:
     def abh3_stop(self) -> None:
         pass
 
+    @hookimpl
+    def abh3_feedbak(self) -> None:
+        pass
+
 
 def fake_installed(monkeypatch: pytest.MonkeyPatch, extra: dict[str, str]) -> None:
     eps = dict(installed())
@@ -94,12 +98,15 @@ def test_listing_says_version_api_hooks_and_what_the_config_enables(
     assert csv["enabled"] is True and rows["keyboard"]["enabled"] is False
     declares = rows["declares"]
     assert declares["api_version"] == "2.1" and declares["compatible"] is False
-    assert declares["hooks"] == ["abh3_feedback", "abh3_stop"]
+    assert declares["hooks"] == ["abh3_feedback", "abh3_stop"]  # the typo is no hook:
+    (problem,) = declares["problems"]
+    assert "abh3_feedbak (" in problem and "did you mean 'abh3_feedback'?" in problem
+    assert csv["problems"] == []
     assert (
         rows["broken"]["error"] == "ModuleNotFoundError: No module named 'abh3_no_such_module_here'"
     )
     assert rows["broken"]["hooks"] == []
-    assert rows["gone"] == {"name": "gone", "error": "not installed", "enabled": True, "hooks": []}
+    assert rows["gone"]["error"] == "not installed" and rows["gone"]["enabled"] is True
 
 
 def test_the_text_listing_names_the_failure_in_one_line(

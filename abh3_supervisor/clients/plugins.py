@@ -36,7 +36,9 @@ def listing(config: Path | None) -> dict[str, Any]:
     available = installed()
     rows = [_row(describe(name, ep), current, enabled) for name, ep in sorted(available.items())]
     for name in sorted((enabled or set()) - set(available)):
-        rows.append({"name": name, "error": "not installed", "enabled": True, "hooks": []})
+        rows.append(
+            {"name": name, "error": "not installed", "enabled": True, "hooks": [], "problems": []}
+        )
     return {
         "api_version": current,
         "config": None if config is None else str(config),
@@ -55,6 +57,7 @@ def _row(info: PluginInfo, current: str | None, enabled: set[str] | None) -> dic
         "hooks": info.hooks,
         "enabled": None if enabled is None else info.name in enabled,
         "error": info.error,
+        "problems": info.problems,
     }
 
 
@@ -89,4 +92,5 @@ def _text(row: dict[str, Any], current: str, with_config: bool) -> list[str]:
         verdict = {True: "compatible", False: "NOT compatible", None: "unknown"}
         out.append(f"\n  API version: {declared} ({verdict[row['compatible']]} with {current})")
     out.append(f"\n  hooks: {', '.join(row['hooks']) or 'none'}")
+    out += [f"\n  problem: {problem}" for problem in row["problems"]]
     return out

@@ -13,7 +13,7 @@ from importlib.metadata import EntryPoint
 
 import pluggy
 
-from abh3_supervisor.plugin_host import hookspecs
+from abh3_supervisor.plugin_host import hookspecs, validate
 
 DECLARED = "ABH3_API_VERSION"  # on the plugin object, or in its module
 
@@ -27,6 +27,7 @@ class PluginInfo:
     api_version: str | None = None  # the API it says it was written for
     hooks: list[str] = field(default_factory=list)
     error: str | None = None  # why it could not be loaded
+    problems: list[str] = field(default_factory=list)  # methods pluggy would never call
 
 
 def distribution(ep: EntryPoint) -> tuple[str | None, str | None]:
@@ -50,7 +51,9 @@ def describe(name: str, ep: EntryPoint) -> PluginInfo:
         info.error = f"{type(exc).__name__}: {exc}"
         return info
     info.api_version = declared_api(plugin)
-    info.hooks = sorted(c.name for c in pm.get_hookcallers(plugin) or ())
+    known = validate.hook_names(pm)
+    info.hooks = sorted(c.name for c in pm.get_hookcallers(plugin) or () if c.name in known)
+    info.problems = validate.method_problems(name, plugin, pm)
     return info
 
 

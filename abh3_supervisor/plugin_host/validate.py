@@ -30,24 +30,9 @@ def validate_plugin(
     src: Source, name: str, plugin: object, settings: Any, pm: pluggy.PluginManager
 ) -> None:
     """Report (``src.error``) each silently ignored hook method and settings nobody reads."""
-    hooks = hook_names(pm)
     where = ("plugins", name)
-    for attr, func in _methods(plugin):
-        opts = pm.parse_hookimpl_opts(plugin, attr)
-        hook = (opts.get("specname") if opts is not None else None) or attr
-        if hook in hooks:
-            if opts is None:
-                src.error(
-                    where,
-                    f"plugin '{name}': {attr}{_at(func)} has no @hookimpl, so it is never "
-                    "called (from abh3_supervisor.plugin_api import hookimpl)",
-                )
-            continue
-        if opts is None and not attr.startswith(PREFIX):
-            continue  # an ordinary method of the plugin's own
-        close = difflib.get_close_matches(hook, hooks, n=1, cutoff=0.6)
-        hint = f"; did you mean '{close[0]}'?" if close else ""
-        src.error(where, f"plugin '{name}': {attr}{_at(func)} matches no hook{hint}")
+    for problem in method_problems(name, plugin, pm):
+        src.error(where, problem)
     if isinstance(settings, dict) and not _implements(pm, name, "abh3_configure"):
         for key in settings:
             if key not in HOST_KEYS:
@@ -55,6 +40,29 @@ def validate_plugin(
                     (*where, str(key)),
                     f"plugin '{name}' takes no settings (it implements no abh3_configure)",
                 )
+
+
+def method_problems(name: str, plugin: object, pm: pluggy.PluginManager) -> list[str]:
+    """The plugin's methods that pluggy would never call: a name that is no hook (with
+    the closest hook), a hook method without ``@hookimpl``."""
+    hooks = hook_names(pm)
+    problems = []
+    for attr, func in _methods(plugin):
+        opts = pm.parse_hookimpl_opts(plugin, attr)
+        hook = (opts.get("specname") if opts is not None else None) or attr
+        if hook in hooks:
+            if opts is None:
+                problems.append(
+                    f"plugin '{name}': {attr}{_at(func)} has no @hookimpl, so it is never "
+                    "called (from abh3_supervisor.plugin_api import hookimpl)"
+                )
+            continue
+        if opts is None and not attr.startswith(PREFIX):
+            continue  # an ordinary method of the plugin's own
+        close = difflib.get_close_matches(hook, hooks, n=1, cutoff=0.6)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
+        problems.append(f"plugin '{name}': {attr}{_at(func)} matches no hook{hint}")
+    return problems
 
 
 def _methods(plugin: object) -> list[tuple[str, Any]]:
