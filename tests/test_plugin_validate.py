@@ -4,6 +4,8 @@ without @hookimpl, settings for a plugin that reads none (plugin_host/validate.p
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import Any, cast
@@ -123,3 +125,78 @@ def test_the_documented_example_plugin_passes(monkeypatch: pytest.MonkeyPatch) -
     from abh3_speed_summary import SpeedSummary  # type: ignore[import-not-found]
 
     assert problems(SpeedSummary(), "{path: s.json}") == []
+
+
+PACKAGE = {
+    "pyproject.toml": """\
+[build-system]
+requires = ["setuptools>=68"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "abh3-typo"
+version = "0.2.0"
+
+[project.entry-points.abh3_supervisor]
+typo = "abh3_typo:Typo"
+
+[tool.setuptools]
+py-modules = ["abh3_typo"]
+""",
+    "abh3_typo.py": """\
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+
+
+class Typo:
+    @hookimpl
+    def abh3_feedbak(self, unit):
+        pass
+
+    def abh3_stop(self):
+        pass
+""",
+}
+
+
+@pytest.mark.wallclock
+def test_an_installed_plugin_with_hook_mistakes_fails_check_and_run_with_exit_2(
+    tmp_path: Path,
+) -> None:
+    source = tmp_path / "pkg"
+    source.mkdir()
+    for name, text in PACKAGE.items():
+        (source / name).write_text(text)
+    site = tmp_path / "site"
+    pip = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(site),
+            str(source),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert pip.returncode == 0, pip.stderr
+    config = tmp_path / "c.yaml"
+    config.write_text(TWO_UNITS + "plugins:\n  typo: {}\n")
+    env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
+    for command in (["check"], ["run", "--headless", "--no-socket", "--duration", "1"]):
+        out = subprocess.run(
+            [sys.executable, "-m", "abh3_supervisor", command[0], str(config), *command[1:]],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env=env,
+        )
+        assert out.returncode == 2, out.stderr
+        assert f"{config}:9: plugins.typo: plugin 'typo': abh3_feedbak (" in out.stderr
+        assert "abh3_typo.py:6) matches no hook; did you mean 'abh3_feedback'?" in out.stderr
+        assert "abh3_stop (" in out.stderr and "has no @hookimpl" in out.stderr
+        assert "Traceback" not in out.stderr

@@ -18,7 +18,8 @@ import pluggy
 from abh3_supervisor.config.source import Source
 
 PREFIX = "abh3_"
-HOST_KEYS = ("on_error", "critical")  # the host's keys, valid in every plugin section
+HOST_KEYS = ("on_error", "critical")
+DEFS = ("def ", "async def ")  # the host's keys, valid in every plugin section
 
 
 def hook_names(pm: pluggy.PluginManager) -> list[str]:
@@ -91,7 +92,9 @@ def _at(func: Any) -> str:
     """`` (file.py:LINE)``: where the method is defined, when Python can say."""
     try:
         file = inspect.getsourcefile(func)
-        line = inspect.getsourcelines(func)[1]
+        lines, line = inspect.getsourcelines(func)
     except (OSError, TypeError):
         return ""
+    # the `def` line, not its decorator's
+    line += next((i for i, t in enumerate(lines) if t.lstrip().startswith(DEFS)), 0)
     return f" ({file}:{line})" if file else ""
