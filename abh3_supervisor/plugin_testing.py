@@ -231,8 +231,13 @@ def running(
     """Run ``config`` for ``seconds`` with ``plugin`` loaded as ``name`` (its section:
     the file's ``plugins.<name>``, else ``settings``); yields while it runs, returns once
     it has ended with everything stopped. Other plugins the file names load as usual."""
-    cfg = simulated(_config(config), settings, name)
     run = PluginRun()
+    try:
+        cfg = simulated(_config(config), settings, name)
+    except ConfigError as exc:  # as `abh3 run` would: exit 2, the problems said
+        run._end(2, "\n".join(exc.problems))
+        yield run
+        return
     available = {**installed(), name: cast(EntryPoint, _Given(plugin))}
     failure: list[BaseException] = []
 

@@ -120,6 +120,12 @@ def test_settings_reach_the_plugin_and_mistakes_are_exit_2_with_file_line() -> N
     assert "<test config>:7: plugins.c.gane: unknown key; did you mean 'gain'?" in bad.error
 
 
+def test_a_broken_file_is_exit_2_with_its_problems() -> None:
+    run = run_with_plugin(CONFIG + "  - {name: left, abh3_id: 9}\n", Counts(), "c", 0.2)
+    assert run.exit_code == 2 and run.error is not None and "<test config>:" in run.error
+    assert not run.frames
+
+
 class Typo:
     @hookimpl
     def abh3_feedbak(self) -> None:
