@@ -1,5 +1,6 @@
 """The ``abh3`` command: ``run``, ``tui``, ``check``, ``status``, ``send``, ``estop``,
-``verify``, ``scan``, ``param``, ``commission``, ``decode``, ``schema``.
+``verify``, ``scan``, ``param``, ``commission``, ``decode``, ``schema``, ``plugins``,
+``plugin new``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 3 a stop the drives did
@@ -199,6 +200,23 @@ def _parser() -> argparse.ArgumentParser:
     from abh3_supervisor.clients.commission import add_parser as add_commission_parser
 
     add_commission_parser(sub)
+    plugins = sub.add_parser(
+        "plugins",
+        help="the installed plugins: version, API version, hooks; with CONFIG, which it enables",
+    )
+    plugins.add_argument("config", type=Path, nargs="?", metavar="CONFIG")
+    plugins.add_argument("--json", action="store_true", help="machine-readable output")
+    plugin = sub.add_parser("plugin", help="plugin authors' tools").add_subparsers(
+        dest="plugin", required=True
+    )
+    new = plugin.add_parser(
+        "new",
+        help="write a pip-installable plugin package: an example hook, its test, pyproject",
+    )
+    new.add_argument("name", help="the plugin's name in the YAML (lowercase, digits, _)")
+    new.add_argument(
+        "--dir", type=Path, default=Path("."), metavar="D", help="create it in D (default: .)"
+    )
     schema = sub.add_parser(
         "schema", help="print the configuration's JSON Schema (core and installed plugins)"
     )
@@ -328,6 +346,15 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         from abh3_supervisor.clients import commission
 
         return commission.run(args)
+    if args.cmd == "plugins":
+        from abh3_supervisor.clients.plugins import plugins_command
+
+        return plugins_command(args.config, args.json)
+    if args.cmd == "plugin":
+        from abh3_supervisor.clients.plugin_template import new_plugin
+
+        print(f"wrote {new_plugin(args.name, args.dir)}")
+        return EXIT_OK
     if args.cmd == "schema":
         from abh3_supervisor.clients.schema import schema_text
 

@@ -32,7 +32,7 @@ from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
 from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
 from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError
-from abh3_supervisor.plugin_host import hookspecs
+from abh3_supervisor.plugin_host import hookspecs, inventory, validate
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
 log = logging.getLogger(__name__)
@@ -146,6 +146,7 @@ class PluginHost:
             try:
                 plugin = _plugin_object(ep)
                 self.pm.register(plugin, name=name)
+                validate.validate_plugin(src, name, plugin, config.plugins[name], self.pm)
             except Exception as exc:  # a broken plugin is the plugin's fault, said plainly
                 src.error(("plugins", name), f"plugin '{name}' failed to load: {exc!r}")
         src.raise_if_problems()
@@ -283,6 +284,7 @@ class PluginHost:
 
     def start(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
         self._sup, self._loop = sup, loop
+        log.info("%s", inventory.loaded_line(self.names, installed()))
         observing = ("abh3_feedback", "abh3_status", "abh3_health", "abh3_flags", "abh3_notice")
         for name in self.names:
             for hook in observing:
