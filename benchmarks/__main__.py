@@ -18,6 +18,7 @@ from benchmarks import (
     cycle_timing,
     estop,
     host_cpu,
+    robot,
     ros2_bridge,
     scale,
 )
@@ -390,6 +391,9 @@ def main(argv: list[str] | None = None) -> int:
 
     # 8. the e-stop does not wait for the schedule (issue 29 item 4)
     rows += estop.rows(10 if a.quick else 50, runs)
+
+    # 9. a robot's twist, decided once for all its drives (issue 30)
+    rows += robot.rows(2_000 if a.quick else 20_000, runs)
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]
