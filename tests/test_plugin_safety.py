@@ -669,3 +669,41 @@ def test_a_thread_a_plugin_never_ends_cannot_hold_the_exit(tmp_path: Path) -> No
     assert (
         "exiting without waiting for thread 'forever' of plugin forever (exit code 0)" in run.stderr
     )
+
+
+class StuckThenRaises:
+    """Stuck past the run's end, then fails (on_error: stop would end the run)."""
+
+    def __init__(self) -> None:
+        self.go = threading.Event()
+
+    @hookimpl
+    def abh3_feedback(self) -> None:
+        self.go.wait()
+        raise ValueError("too late")
+
+
+def test_a_plugin_left_behind_that_fails_after_the_run_disturbs_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(plugin_host, "DRAIN_DEADLINE_S", 0.2)
+    uncaught: list[threading.ExceptHookArgs] = []
+    monkeypatch.setattr(threading, "excepthook", uncaught.append)
+    plugin = StuckThenRaises()
+    host = host_with(("late", plugin))
+    host.on_error["late"] = "stop"
+    rt = Runtime(CONFIG, plugins=host)
+    workers: list[threading.Thread] = []
+
+    async def scenario() -> None:
+        async with rt:
+            await until(lambda: host.workers["late"].busy is not None)
+            workers.append(host.workers["late"].thread)
+
+    asyncio.run(scenario())  # the loop is closed from here on
+    assert rt.stop_report == {"left": CONFIRMED, "right": CONFIRMED}
+    plugin.go.set()
+    workers[0].join(5)
+    assert not workers[0].is_alive()
+    assert host.failures == {"late": 1} and "late" in host.disabled
+    assert uncaught == []  # its failure was handled, though nothing is left to stop

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import math
 import numbers
@@ -163,7 +164,7 @@ class InputFeed:
             f"input {self._name} refused: {what}({shown}): not finite numbers; its units "
             f"stop at its timeout as if it were silent{more}"
         )
-        if not self._loop.is_closed():
+        with contextlib.suppress(RuntimeError):  # the loop closed: the run is over
             self._loop.call_soon_threadsafe(self._sup.notice, None, logging.WARNING, message)
         return None
 

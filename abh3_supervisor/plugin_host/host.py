@@ -288,9 +288,12 @@ class PluginHost:
     def _notice(self, message: str, level: int = logging.ERROR) -> bool:
         """An operator's notice from any thread (the supervisor is only touched on its
         loop); False when there is no running supervisor to take it."""
-        if self._sup is None or self._loop is None or self._loop.is_closed():
+        if self._sup is None or self._loop is None:
             return False
-        self._loop.call_soon_threadsafe(self._sup.notice, None, level, message)
+        try:
+            self._loop.call_soon_threadsafe(self._sup.notice, None, level, message)
+        except RuntimeError:  # the loop closed: the run is over
+            return False
         return True
 
     def _disable(self, name: str, why: str) -> bool:
