@@ -707,3 +707,60 @@ def test_a_plugin_left_behind_that_fails_after_the_run_disturbs_nothing(
     assert not workers[0].is_alive()
     assert host.failures == {"late": 1} and "late" in host.disabled
     assert uncaught == []  # its failure was handled, though nothing is left to stop
+
+
+BAD_START_PLUGIN = """
+from abh3_supervisor.core.inputs import InputSource
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+
+class Device(InputSource):
+    def __init__(self):
+        super().__init__("device", ("left",))
+
+    def start(self, feed):
+        raise OSError(19, "No such device", "/dev/input/js9")
+
+    def stop(self):
+        pass
+
+class BadStart:
+    @hookimpl
+    def abh3_input_sources(self, register):
+        register(Device())
+"""
+RUN_WITH_BAD_START = """
+import sys
+from importlib.metadata import EntryPoint
+import abh3_supervisor.plugin_host.host as host
+host.installed = lambda: {"dev": EntryPoint("dev", "badstart:BadStart", "abh3_supervisor")}
+from abh3_supervisor.clients.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_abh3_run_exits_1_when_a_source_cannot_start_and_commands_nothing(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "badstart.py").write_text(BAD_START_PLUGIN)
+    (tmp_path / "run.py").write_text(RUN_WITH_BAD_START)
+    (tmp_path / "c.yaml").write_text(
+        TWO_UNITS.replace("channel: t", "channel: badstart") + "plugins:\n  dev: {}\n"
+    )
+    record = tmp_path / "r.log"
+    run = subprocess.run(
+        [sys.executable, str(tmp_path / "run.py"), "run", str(tmp_path / "c.yaml"),
+         "--headless", "--no-socket", "--record", str(record)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"},
+        timeout=30,
+    )  # fmt: skip
+    assert run.returncode == 1, run.stderr
+    assert (
+        "error: plugin dev could not start (input device): OSError(19, 'No such device')"
+        in run.stderr
+    )
+    assert "Traceback" not in run.stderr
+    assert commands_to(record, 1, Generation.G2021) == []  # not one command frame
+    assert commands_to(record, 3, Generation.G2023) == []
