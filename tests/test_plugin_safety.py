@@ -764,3 +764,43 @@ def test_abh3_run_exits_1_when_a_source_cannot_start_and_commands_nothing(
     assert "Traceback" not in run.stderr
     assert commands_to(record, 1, Generation.G2021) == []  # not one command frame
     assert commands_to(record, 3, Generation.G2023) == []
+
+
+class Retargets(AB):
+    def __init__(self) -> None:
+        InputSource.__init__(self, "retargets", ("left",), timeout=0.3)
+        self.feed = None
+
+
+@pytest.mark.parametrize("units", [("aaa",), "left", ("left", None), 7])
+def test_retargeting_to_units_that_are_not_there_is_refused_and_leaves_nothing_moving(
+    units: object,
+) -> None:
+    """Had the arbitration taken ('aaa',), left would be no source's unit any more and
+    keep its 500 min⁻¹ for good (an unknown unit raised before left was decided)."""
+    source = Retargets()
+
+    class Provides:
+        @hookimpl
+        def abh3_input_sources(self, register: Any) -> None:
+            register(source)
+
+    rt = Runtime(CONFIG, plugins=host_with(("re", Provides())))
+    notices: list[str] = []
+
+    async def scenario() -> None:
+        async with rt:
+            sup = rt.supervisor
+            sup.subscribe(lambda e: notices.append(e.message) if isinstance(e, Notice) else None)
+            for text in ("SERVO ON ON", "START ON ON"):
+                assert await sup.command("left", text) == ""
+            assert source.feed is not None
+            source.feed.velocity(500.0, 0.0)
+            left = drives(rt)["left"]
+            await until(lambda: left.cmd_raw != (0, 0))
+            source.feed.retarget(units)  # type: ignore[arg-type]
+            await until(lambda: left.cmd_raw == (0, 0))  # its timeout, as silence
+            assert sup.units["left"].setpoint.ay == 0.0
+
+    asyncio.run(scenario())
+    assert any(n.startswith("input retargets refused: retarget(") for n in notices), notices

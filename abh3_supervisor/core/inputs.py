@@ -152,21 +152,25 @@ class InputFeed:
             for v in values
         ):
             return _real(values[0]), _real(values[1])
+        shown = ", ".join(clean(repr(v))[:40] for v in values)
+        self._refuse(
+            f"{what}({shown}): not finite numbers; its units stop at its timeout as if it "
+            "were silent"
+        )
+        return None
+
+    def _refuse(self, why: str) -> None:
+        """A call refused: said as a notice naming the source, at most once a second."""
         with self._refusals:
             self._refused += 1
             now = time.monotonic()
             if now - self._said < REFUSED_NOTICE_S:
-                return None
+                return
             count, self._refused, self._said = self._refused, 0, now
-        shown = ", ".join(clean(repr(v))[:40] for v in values)
         more = f" ({count - 1} more refused since the last notice)" if count > 1 else ""
-        message = (
-            f"input {self._name} refused: {what}({shown}): not finite numbers; its units "
-            f"stop at its timeout as if it were silent{more}"
-        )
+        message = f"input {self._name} refused: {why}{more}"
         with contextlib.suppress(RuntimeError):  # the loop closed: the run is over
             self._loop.call_soon_threadsafe(self._sup.notice, None, logging.WARNING, message)
-        return None
 
     def release(self) -> None:
         """The source lets go (deadman released, device lost): its units stop now."""
@@ -180,8 +184,16 @@ class InputFeed:
             self._loop.call_soon_threadsafe(self._sup.emergency_stop, f"input {self._name}")
 
     def retarget(self, units: tuple[str, ...]) -> None:
-        """Drive other units from now on; units left behind stop if this source drove them."""
-        self._on_loop(self._arbiter.retarget_now, self._name, units)
+        """Drive other units from now on; units left behind stop if this source drove them.
+        Names that are not this configuration's units are refused (nothing changes): a
+        unit the arbitration cannot decide would keep what it was last given."""
+        known = self._sup.units
+        if not isinstance(units, tuple | list) or not all(
+            isinstance(u, str) and u in known for u in units
+        ):
+            self._refuse(f"retarget({clean(repr(units))[:80]}): not a list of its units")
+            return
+        self._on_loop(self._arbiter.retarget_now, self._name, tuple(units))
 
     def inputs(self, data: int, mask: int) -> None:
         """Set the input bits selected by ``mask`` (uint32) to those of ``data``."""
