@@ -6,8 +6,9 @@ Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overl
 plan), 2 a user's mistake in the configuration or the command line, 3 a stop the drives did
 not confirm (``run``), 4 ``abh3 tui``/``abh3 run`` on a terminal: the supervisor went away
 while attached, or ``abh3 param restore`` stopped part way (journal saved), 5 a recording
-stopped early on a write error (``run``; ``runtime.stopping.final_report``), 128 + N
-stopped by signal N before anything was started. The README lists them.
+stopped early on a write error (``run``; ``runtime.stopping.final_report``), 6 a plugin
+was disabled during the run (``run``), 128 + N stopped by signal N before anything was
+started. The README lists them.
 """
 
 from __future__ import annotations
@@ -507,9 +508,17 @@ def _run_headless(args: argparse.Namespace, config: Config, plugins: PluginHost)
         exit_with_stdin=args.exit_with_stdin,
     )
     try:
-        return asyncio.run(running)
+        code = asyncio.run(running)
     finally:
         running.close()  # a signal before it started: no "never awaited" warning
+    left = plugins.leftovers()  # they would hold the interpreter's exit forever
+    if left:
+        log.error("exiting without waiting for %s (exit code %d)", ", ".join(left), code)
+        logging.shutdown()
+        with contextlib.suppress(OSError):
+            sys.stdout.flush()
+        os._exit(code)
+    return code
 
 
 def _not_terminals() -> list[str]:

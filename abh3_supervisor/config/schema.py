@@ -355,19 +355,24 @@ def _robot() -> Schema:
 
 ON_ERROR_VALUES = ("continue", "stop")  # every plugin section's on_error (plugin_host)
 ON_ERROR = choice(
-    list(ON_ERROR_VALUES), "what a failing output (disk full) does to the run", "continue"
+    list(ON_ERROR_VALUES),
+    "what a failure of the plugin (any exception, a failed output) does to the run",
+    "continue",
 )
+# every plugin section's critical (plugin_host): the plugin disabled ends the run
+CRITICAL = boolean("the run ends (drives stopped, non-zero exit) if this plugin is disabled", False)
+HOST_KEYS = {"on_error": ON_ERROR, "critical": CRITICAL}  # the host's, in every section
 
 
 def plugin_section(schema: Schema | None, description: str) -> Schema:
-    """A plugin's section: its own schema plus the host's ``on_error``; free-form when the
-    plugin gives none."""
+    """A plugin's section: its own schema plus the host's ``on_error`` and ``critical``;
+    free-form when the plugin gives none."""
     if schema is None:
         section = free_mapping(description)
-        section["properties"] = {"on_error": ON_ERROR}
+        section["properties"] = dict(HOST_KEYS)
         return section
     section = dict(schema)
-    section["properties"] = {**schema.get("properties", {}), "on_error": ON_ERROR}
+    section["properties"] = {**schema.get("properties", {}), **HOST_KEYS}
     return _doc(section, description, None)
 
 

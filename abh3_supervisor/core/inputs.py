@@ -16,8 +16,12 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import math
+import numbers
+import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,6 +34,7 @@ from abh3_supervisor.core.commands import (
     VelocityCommand,
     parse_command,
 )
+from abh3_supervisor.core.kinematics import ab_to_yx
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import CommandError
 
@@ -37,6 +42,7 @@ if TYPE_CHECKING:
     from abh3_supervisor.core.supervisor import Supervisor
 
 DEFAULT_TIMEOUT = 0.5
+REFUSED_NOTICE_S = 1.0  # a source's invalid values are said at most once in this
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,6 +104,11 @@ class InputFeed:
     Besides the arbitrated motion commands, a source may change input bits, run the
     command language and ask for status packets on its units (the seed's ``inp_data``,
     ``inp_service`` and ``brd_num``): these are not arbitrated, they act at once.
+
+    A motion value that is not a finite real number (NaN, inf, ``'100'``, None) is
+    refused here, with a notice naming the source (at most one per ``REFUSED_NOTICE_S``):
+    it is not a command, so the source's previous one lapses at its timeout and its
+    units stop, exactly as when the source is silent.
     """
 
     def __init__(
@@ -108,18 +119,58 @@ class InputFeed:
         supervisor: Supervisor,
     ) -> None:
         self._loop, self._arbiter, self._name, self._sup = loop, arbiter, name, supervisor
+        self._refusals = threading.Lock()  # a source may call from several threads
+        self._refused = 0  # invalid values not yet said
+        self._said = -math.inf  # when they were last said (monotonic)
 
     def twist(self, linear_x: float, angular_z: float) -> None:
-        self._submit(Twist(linear_x, angular_z))
+        if (v := self._valid("twist", linear_x, angular_z)) is not None:
+            self._submit(Twist(*v))
+
+    def velocity_ab(self, a: float, b: float) -> None:
+        """Motor-axis velocities A/B [min⁻¹], converted to each unit's model (as
+        ``Supervisor.set_velocity_ab``)."""
+        if (v := self._valid("velocity_ab", a, b)) is not None:
+            self._submit(VelocityYX(*ab_to_yx(*v)))
 
     def velocity_yx(self, y: float, x: float) -> None:
-        self._submit(VelocityYX(y, x))
+        if (v := self._valid("velocity_yx", y, x)) is not None:
+            self._submit(VelocityYX(*v))
 
     def velocity(self, ay: float, bx: float) -> None:
-        self._submit(VelocityCommand(ay, bx))
+        if (v := self._valid("velocity", ay, bx)) is not None:
+            self._submit(VelocityCommand(*v))
 
     def current(self, ay: float, bx: float) -> None:
-        self._submit(CurrentCommand(ay, bx))
+        if (v := self._valid("current", ay, bx)) is not None:
+            self._submit(CurrentCommand(*v))
+
+    def _valid(self, what: str, *values: object) -> tuple[float, float] | None:
+        """The values as floats, or None (refused: said, at most once a second)."""
+        if all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+            for v in values
+        ):
+            return _real(values[0]), _real(values[1])
+        shown = ", ".join(clean(repr(v))[:40] for v in values)
+        self._refuse(
+            f"{what}({shown}): not finite numbers; its units stop at its timeout as if it "
+            "were silent"
+        )
+        return None
+
+    def _refuse(self, why: str) -> None:
+        """A call refused: said as a notice naming the source, at most once a second."""
+        with self._refusals:
+            self._refused += 1
+            now = time.monotonic()
+            if now - self._said < REFUSED_NOTICE_S:
+                return
+            count, self._refused, self._said = self._refused, 0, now
+        more = f" ({count - 1} more refused since the last notice)" if count > 1 else ""
+        message = f"input {self._name} refused: {why}{more}"
+        with contextlib.suppress(RuntimeError):  # the loop closed: the run is over
+            self._loop.call_soon_threadsafe(self._sup.notice, None, logging.WARNING, message)
 
     def release(self) -> None:
         """The source lets go (deadman released, device lost): its units stop now."""
@@ -133,8 +184,16 @@ class InputFeed:
             self._loop.call_soon_threadsafe(self._sup.emergency_stop, f"input {self._name}")
 
     def retarget(self, units: tuple[str, ...]) -> None:
-        """Drive other units from now on; units left behind stop if this source drove them."""
-        self._on_loop(self._arbiter.retarget_now, self._name, units)
+        """Drive other units from now on; units left behind stop if this source drove them.
+        Names that are not this configuration's units are refused (nothing changes): a
+        unit the arbitration cannot decide would keep what it was last given."""
+        known = self._sup.units
+        if not isinstance(units, tuple | list) or not all(
+            isinstance(u, str) and u in known for u in units
+        ):
+            self._refuse(f"retarget({clean(repr(units))[:80]}): not a list of its units")
+            return
+        self._on_loop(self._arbiter.retarget_now, self._name, tuple(units))
 
     def inputs(self, data: int, mask: int) -> None:
         """Set the input bits selected by ``mask`` (uint32) to those of ``data``."""
@@ -211,6 +270,12 @@ class InputFeed:
 
     def _submit(self, command: InputCommand | None) -> None:
         self._on_loop(self._arbiter.submit_now, self._name, command)
+
+
+def _real(value: object) -> float:
+    """A value :meth:`InputFeed._valid` checked, as a float (a numpy scalar too)."""
+    assert isinstance(value, numbers.Real)
+    return float(value)
 
 
 Motion = VelocityCommand | CurrentCommand

@@ -2,19 +2,24 @@
 
 Plugins are found through the entry-point group ``abh3_supervisor`` (our built-ins too);
 listing them imports nothing. Only plugins named in the YAML ``plugins:`` section are
-loaded. Every hook call is isolated per plugin: an exception is logged with the plugin's
-name, and after ``MAX_FAILURES`` failures in one run the plugin is disabled. Observation
-hooks are queued to a worker thread per plugin, so a slow plugin never delays the bus;
-when its queue is full, events for it are dropped and counted, never waited for.
-Lifecycle hooks (start, input sources, stop) run on a thread of their own with a deadline:
-a plugin that fails or blocks while starting fails the run before any drive is commanded;
-one that blocks while stopping is abandoned, so the way out always ends.
+loaded. Every hook call is isolated per plugin: an exception (in a hook, or uncaught in a
+thread the plugin started) is logged with the plugin's name, and after ``MAX_FAILURES``
+failures in one run — the first, under ``on_error: stop`` — the plugin is disabled; a
+plugin disabled under ``on_error: stop`` or marked ``critical: true`` ends the run.
+Observation hooks are queued to a worker thread per plugin, so a slow plugin never delays
+the bus; when its queue is full, events for it are dropped and counted, never waited for,
+and a hook that runs longer than ``STUCK_S`` is logged while it sticks. Lifecycle calls
+(start, input sources and their ``start()``, stop) run on a thread of their own at normal
+priority with a deadline: a plugin that fails or blocks while starting fails the run
+before any drive is commanded; one that blocks while stopping (or in a hook, with its
+queue full) is abandoned, so the way out always ends.
 """
 
 from __future__ import annotations
 
 import _thread
 import asyncio
+import functools
 import logging
 import queue
 import threading
@@ -22,6 +27,7 @@ import time
 from collections.abc import Callable, Iterable
 from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
+from types import TracebackType
 from typing import Any, cast
 
 import pluggy
@@ -39,9 +45,11 @@ log = logging.getLogger(__name__)
 GROUP = "abh3_supervisor"
 MAX_FAILURES = 5
 QUEUE_SIZE = 10_000
-# what an output failure (an OSError: disk full, device gone) of a plugin does to the run
-START_DEADLINE_S = 5.0  # abh3_start and abh3_input_sources, per plugin
+START_DEADLINE_S = 5.0  # abh3_start, abh3_input_sources and each source's start()
 STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
+DRAIN_DEADLINE_S = 5.0  # every worker's queue together, on the way out
+LEFTOVER_GRACE_S = 1.0  # threads (not daemons) a plugin left running, after the run
+STUCK_S = 3.0  # a hook running longer is logged at once (the queue fills much later)
 _STOP = object()
 
 
@@ -82,6 +90,9 @@ class _Worker:
         self.host, self.name = host, name
         self.queue: queue.Queue[object] = queue.Queue(QUEUE_SIZE)
         self.dropped = 0
+        # the hook running now and since when (monotonic), for the stuck-hook watch
+        self.busy: tuple[str, float] | None = None
+        self.asked = False  # the end marker is queued
         self.thread = threading.Thread(target=self._run, name=f"plugin {name}", daemon=True)
         self.thread.start()
 
@@ -97,14 +108,34 @@ class _Worker:
         self.host.thread_setup()
         while (item := self.queue.get()) is not _STOP:
             hook, kwargs = cast(tuple[str, dict[str, Any]], item)
-            self.host.call_one(self.name, hook, **kwargs)
+            self.busy = hook, time.monotonic()
+            try:
+                self.host.call_one(self.name, hook, **kwargs)
+            finally:
+                self.busy = None
 
-    def close(self, timeout: float) -> None:
-        """Let the worker finish what is queued (so files get their last rows), then end."""
-        self.queue.put(_STOP)
-        self.thread.join(timeout)
+    def ask_to_end(self) -> bool:
+        """The end marker after what is queued (so files get their last rows); False
+        while the queue is full (a stuck hook): never waited for."""
+        if not self.asked:
+            try:
+                self.queue.put_nowait(_STOP)
+            except queue.Full:
+                return False
+            self.asked = True
+        return True
+
+    def close(self, end: float) -> None:
+        """Ends after its queue, or is left behind (a daemon thread) at ``end``
+        (monotonic); the wait is sliced, so a signal is handled at once."""
+        while self.thread.is_alive() and (left := end - time.monotonic()) > 0:
+            self.ask_to_end()
+            self.thread.join(min(left, 0.05))
         if self.thread.is_alive():
-            log.warning("plugin %s did not finish its queue within %.1f s", self.name, timeout)
+            busy = f" (in {self.busy[0]})" if self.busy is not None else ""
+            log.warning(
+                "plugin %s did not finish its queue in time%s: left behind", self.name, busy
+            )
 
 
 class PluginHost:
@@ -120,7 +151,17 @@ class PluginHost:
         self._inputs_stopped = False
         self.started: list[str] = []  # plugins whose abh3_start ran: they get abh3_stop
         self.on_error: dict[str, str] = {}  # plugin → "continue" (default) or "stop"
+        self.critical: set[str] = set()  # plugins whose being disabled ends the run
+        self.why_disabled: dict[str, str] = {}  # plugin → why, for the run's last lines
         self.output_failures: dict[str, str] = {}  # plugin → its output's OSError (the exit code)
+        self.ended_by: str | None = None  # why a plugin ended the run (on_error/critical)
+        self._lock = threading.Lock()  # failures come from any thread
+        self._modules: dict[str, set[str]] = {}  # module → the plugins (and sources) in it
+        self._threads: dict[threading.Thread, str] = {}  # threads started while it started
+        # the plugin whose start runs now, and the threads there were before it
+        self._starting_now: tuple[str, set[threading.Thread]] | None = None
+        self._excepthook: Callable[[threading.ExceptHookArgs], Any] | None = None
+        self._watching = threading.Event()  # set: the stuck-hook watch ends
         # set by the runtime: end the run, drives stopped (an output failed, on_error: stop)
         self.request_stop: Callable[[str], None] | None = None
         # run first on every thread plugins run on (and so inherited by the threads they
@@ -171,12 +212,15 @@ class PluginHost:
     def _configure(self, name: str, config: Config, src: Source) -> None:
         """The plugin checks its own section (keys with section.only(...)); whatever it
         raises is a problem with that section, reported like the core's (`check` too).
-        ``on_error`` is the host's key, valid in every section: the plugin never sees it."""
+        ``on_error`` and ``critical`` are the host's keys, valid in every section: the
+        plugin never sees them."""
         raw = config.plugins[name]
-        if isinstance(raw, dict) and "on_error" in raw:
+        if isinstance(raw, dict) and ("on_error" in raw or "critical" in raw):
             host = Section(src, ("plugins", name), raw, None)
             self.on_error[name] = host.choice("on_error", "continue", list(ON_ERROR_VALUES))
-            raw = {k: v for k, v in raw.items() if k != "on_error"}
+            if host.boolean("critical", False):
+                self.critical.add(name)
+            raw = {k: v for k, v in raw.items() if k not in ("on_error", "critical")}
         section = Section(src, ("plugins", name), raw, None)
         try:
             self._caller(name, "abh3_configure")(section=section, config=config)
@@ -217,64 +261,115 @@ class PluginHost:
             self._caller(name, hook)(**kwargs)
         except ConfigError:
             raise
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:  # sys.exit() in a hook ends no thread of ours
             self._failed(name, hook, exc)
 
-    def _failed(self, name: str, hook: str, exc: Exception) -> None:
+    def _failed(self, name: str, hook: str, exc: BaseException) -> None:
+        """Any thread. Counted; disabled at ``MAX_FAILURES`` (at once under on_error:
+        stop); an output's OSError disables it at once (its file is gone)."""
         if isinstance(exc, OSError):
             self._output_failed(name, exc)
             return
-        count = self.failures[name] = self.failures.get(name, 0) + 1
+        with self._lock:
+            count = self.failures[name] = self.failures.get(name, 0) + 1
+        limit = 1 if self.on_error.get(name) == "stop" else MAX_FAILURES
         log.error(
             "plugin %s failed in %s (failure %d of %d): %r",
             name,
             hook,
             count,
-            MAX_FAILURES,
+            limit,
             exc,
-            exc_info=count == 1,
+            exc_info=exc if count == 1 else None,
         )
-        if self._sup is not None and self._loop is not None and not self._loop.is_closed():
-            # may run on a worker thread: the supervisor is only touched on its loop
-            self._loop.call_soon_threadsafe(
-                self._sup.notice, None, logging.ERROR, f"plugin {name} failed in {hook}: {exc!r}"
-            )
-        if count >= MAX_FAILURES and name not in self.disabled:
-            self.disabled.add(name)  # a set add: safe from any thread; calls stop here
-            log.error(
-                "plugin %s disabled after %d failures; the others keep running", name, MAX_FAILURES
-            )
+        self._notice(f"plugin {name} failed in {hook}: {exc!r}")
+        if count >= limit:
+            self._disable(name, f"{count} failure(s), the last in {hook}: {exc!r}")
+
+    def _notice(self, message: str, level: int = logging.ERROR) -> bool:
+        """An operator's notice from any thread (the supervisor is only touched on its
+        loop); False when there is no running supervisor to take it."""
+        if self._sup is None or self._loop is None:
+            return False
+        try:
+            self._loop.call_soon_threadsafe(self._sup.notice, None, level, message)
+        except RuntimeError:  # the loop closed: the run is over
+            return False
+        return True
+
+    def _disable(self, name: str, why: str) -> bool:
+        """Any thread: the plugin is called no more; the run ends if its policy says so
+        (on_error: stop, critical: true). False if it was disabled already."""
+        with self._lock:
+            if name in self.disabled:
+                return False
+            self.disabled.add(name)
+            self.why_disabled[name] = why
+        policy = self._policy(name)
+        if policy is None:
+            log.error("plugin %s disabled (%s); the others keep running", name, why)
+            return True
+        ending = f"plugin {name} was disabled ({why}; {policy})"
+        log.error("%s: ending the run, drives stopped", ending)
+        if self.ended_by is None:
+            self.ended_by = ending
+        if self.request_stop is not None:
+            self.request_stop(ending)
+        return True
+
+    def _policy(self, name: str) -> str | None:
+        """What makes the plugin's being disabled end the run, or None."""
+        if self.on_error.get(name) == "stop":
+            return "on_error: stop"
+        return "critical: true" if name in self.critical else None
 
     def _bounded(self, name: str, hook: str, deadline: float, **kwargs: Any) -> str | None:
         """Run one plugin's lifecycle hook with a deadline (see :func:`bounded`)."""
+        return self._starting(
+            name, f"plugin {name} {hook}", deadline, lambda: self._caller(name, hook)(**kwargs)
+        )
 
-        def call() -> object:
-            self.thread_setup()
-            return self._caller(name, hook)(**kwargs)
-
-        return bounded(f"plugin {name} {hook}", deadline, call)
+    def _starting(
+        self, name: str, label: str, deadline: float, fn: Callable[[], object]
+    ) -> str | None:
+        """``fn`` (plugin ``name``'s code) on a thread at normal priority with a deadline;
+        threads that appear meanwhile are the plugin's (their exceptions name it)."""
+        before = set(threading.enumerate())
+        self._starting_now = name, before
+        try:
+            problem = bounded(label, deadline, self._normal(fn))
+        finally:
+            self._starting_now = None
+        for thread in set(threading.enumerate()) - before:
+            if thread.name != label:  # bounded's own
+                self._threads[thread] = name
+        return problem
 
     def _output_failed(self, name: str, exc: OSError) -> None:
         """Its output failed (disk full): one clear line, no traceback; the plugin writes
-        no more; the run goes on, or ends with the drives stopped under on_error: stop."""
-        if name in self.disabled:
-            return
-        self.disabled.add(name)
-        self.output_failures[name] = str(exc)
-        policy = self.on_error.get(name, "continue")
+        no more; the run goes on, or ends with the drives stopped under on_error: stop
+        (or critical: true)."""
+        with self._lock:
+            if name in self.disabled:
+                return
+            self.disabled.add(name)
+            self.why_disabled[name] = f"output failed: {exc}"
+            self.output_failures[name] = str(exc)
+        policy = self._policy(name)
         outcome = (
-            "stopping the run (on_error: stop)"
-            if policy == "stop"
+            f"stopping the run ({policy})"
+            if policy is not None
             else "it is switched off; the run goes on (on_error: continue)"
         )
         message = f"plugin {name}: output failed: {exc}; {outcome}"
-        if self._sup is not None and self._loop is not None and not self._loop.is_closed():
-            # the operator's log (headless, TUI) shows notices: said once, there
-            self._loop.call_soon_threadsafe(self._sup.notice, None, logging.ERROR, message)
-        else:
+        if not self._notice(message):  # the operator's log (headless, TUI) shows notices
             log.error("%s", message)
-        if policy == "stop" and self.request_stop is not None:
-            self.request_stop(f"the output of plugin {name} failed (on_error: stop)")
+        if policy is not None:
+            ending = f"the output of plugin {name} failed ({policy})"
+            if self.ended_by is None:
+                self.ended_by = ending
+            if self.request_stop is not None:
+                self.request_stop(ending)
 
     def _has(self, name: str, hook: str) -> bool:
         caller = getattr(self.pm.hook, hook)
@@ -285,15 +380,24 @@ class PluginHost:
     def start(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
         self._sup, self._loop = sup, loop
         log.info("%s", inventory.loaded_line(self.names, installed()))
+        self._excepthook = threading.excepthook
+        threading.excepthook = self._thread_failed
         observing = ("abh3_feedback", "abh3_status", "abh3_health", "abh3_flags", "abh3_notice")
         for name in self.names:
+            self._modules.setdefault(type(self.pm.get_plugin(name)).__module__, set()).add(name)
             for hook in observing:
                 self._caller(name, hook)
+        owners: dict[int, str] = {}  # source (by id) → the plugin that registered it
         for name in self.names:
             self.started.append(name)  # even if it fails half way: it may hold resources
+
+            def register(source: InputSource, name: str = name) -> None:
+                owners[id(source)] = name
+                self.sources.append(source)
+
             for hook, kwargs in (
                 ("abh3_start", {"supervisor": sup}),
-                ("abh3_input_sources", {"register": self.sources.append, "supervisor": sup}),
+                ("abh3_input_sources", {"register": register, "supervisor": sup}),
             ):
                 problem = self._bounded(name, hook, START_DEADLINE_S, **kwargs)
                 if problem is not None:  # the user asked for it: run without it, never
@@ -301,10 +405,16 @@ class PluginHost:
             if any(self._has(name, hook) for hook in observing):
                 self.workers[name] = _Worker(self, name)
         sup.subscribe(self._observe)
-        self._start_inputs(sup, loop)  # always: service clients may attach sources later
+        self._start_inputs(sup, loop, owners)  # always: service clients may attach later
+        if self.workers:
+            threading.Thread(target=self._watch, name="plugin watch", daemon=True).start()
 
-    def _start_inputs(self, sup: Supervisor, loop: asyncio.AbstractEventLoop) -> None:
-        """The plugins' sources join the supervisor's arbitration (core/inputs.py)."""
+    def _start_inputs(
+        self, sup: Supervisor, loop: asyncio.AbstractEventLoop, owners: dict[int, str]
+    ) -> None:
+        """The plugins' sources join the supervisor's arbitration (core/inputs.py), each
+        started like a plugin: off the loop, at normal priority, with a deadline; one
+        that fails or blocks fails the run before any drive is commanded."""
         arbiter = self.arbiter = sup.arbiter
         for source in self.sources:
             unknown = [u for u in source.units if u not in sup.units]
@@ -312,10 +422,69 @@ class PluginHost:
                 log.error("input %s names unknown units %s: not started", source.name, unknown)
                 continue
             arbiter.add(source)
-            try:
-                source.start(InputFeed(loop, arbiter, source.name, sup))
-            except Exception as exc:
-                log.error("input %s failed to start: %r", source.name, exc)
+            feed = InputFeed(loop, arbiter, source.name, sup)
+            owner = owners.get(id(source))
+            if owner is None:  # the host program's own (the TUI's): ours, on the loop
+                source.start(feed)
+                continue
+            self._modules.setdefault(type(source).__module__, set()).add(owner)
+            label = f"input {source.name} start"
+            start = functools.partial(source.start, feed)
+            problem = self._starting(owner, label, START_DEADLINE_S, start)
+            if problem is not None:  # like a plugin that cannot start: the run fails
+                raise PluginError(
+                    f"plugin {owner} could not start (input {source.name}): {problem}"
+                )
+
+    def _normal(self, fn: Callable[[], object]) -> Callable[[], object]:
+        """``fn`` run at normal priority (plugin code, on a thread of its own)."""
+
+        def call() -> object:
+            self.thread_setup()
+            return fn()
+
+        return call
+
+    def _thread_failed(self, args: threading.ExceptHookArgs) -> None:
+        """An exception nobody caught in a thread: a plugin's (one it started while
+        starting, or running its code) is that plugin's failure, named; else as before."""
+        name = self._owner(args.thread, args.exc_traceback)
+        if name is None or args.exc_value is None or args.exc_type is SystemExit:
+            if self._excepthook is not None:
+                self._excepthook(args)
+            return
+        thread = args.thread.name if args.thread is not None else "?"
+        self._failed(name, f"its thread {thread!r}", args.exc_value)
+
+    def _owner(self, thread: threading.Thread | None, tb: TracebackType | None) -> str | None:
+        if thread is not None and thread in self._threads:
+            return self._threads[thread]
+        starting = self._starting_now  # one that fails before its start returned
+        if thread is not None and starting is not None and thread not in starting[1]:
+            return starting[0]
+        while tb is not None:  # the plugin's code on the way to the exception
+            names = self._modules.get(tb.tb_frame.f_globals.get("__name__", ""), set())
+            if len(names) == 1:  # one module, one plugin: not the host's guess
+                return next(iter(names))
+            tb = tb.tb_next
+        return None
+
+    def _watch(self) -> None:
+        """A hook that sticks is said while it sticks (the queue fills much later)."""
+        said: dict[str, float] = {}  # plugin → the start of the call already said
+        while not self._watching.wait(min(STUCK_S / 4, 0.5)):
+            now = time.monotonic()
+            for name, worker in list(self.workers.items()):
+                busy = worker.busy
+                if busy is None or now - busy[1] < STUCK_S or said.get(name) == busy[1]:
+                    continue
+                said[name] = busy[1]
+                message = (
+                    f"plugin {name} is stuck in {busy[0]} for {now - busy[1]:.1f} s: its "
+                    "events queue up (then are dropped); the bus is not affected"
+                )
+                log.warning("%s", message)
+                self._notice(message, logging.WARNING)
 
     def attach(self, source: InputSource) -> InputFeed | None:
         """A source that comes and goes during the run (a service client), on the loop;
@@ -369,21 +538,51 @@ class PluginHost:
         if self.arbiter is not None:
             self.arbiter.closed = True  # calls still queued are dropped
 
-    def stop(self, sup: Supervisor, timeout: float = 5.0) -> None:
+    def stop(self, sup: Supervisor, timeout: float | None = None) -> None:
         """Last on the way out (drives already stopped): input sources let go of their
-        devices, queues drain, then abh3_stop — each with a deadline."""
+        devices, queues drain (``timeout`` for all), then abh3_stop — each with a
+        deadline, so a plugin stuck anywhere delays the others' stop, never prevents it."""
         self.stop_inputs()
         for source in self.sources:  # after the stop frames: a source stuck here delays
-            problem = bounded(f"input {source.name} stop", STOP_DEADLINE_S, source.stop)
+            problem = bounded(
+                f"input {source.name} stop", STOP_DEADLINE_S, self._normal(source.stop)
+            )
             if problem is not None:  # nothing that moves a motor
                 log.error("input %s failed to stop: %s", source.name, problem)
+        self._watching.set()
         for worker in self.workers.values():
-            worker.close(timeout)
+            worker.ask_to_end()  # all drain together
+        end = time.monotonic() + (DRAIN_DEADLINE_S if timeout is None else timeout)
+        for worker in self.workers.values():
+            worker.close(end)
         self.workers.clear()
         for name in self.started:
             problem = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=sup)
             if problem is not None:
                 log.error("plugin %s failed in abh3_stop: %s", name, problem)
+        if self._excepthook is not None and threading.excepthook == self._thread_failed:
+            threading.excepthook = self._excepthook  # what plugins left behind: as before
+
+    def leftovers(self, grace: float = LEFTOVER_GRACE_S) -> list[str]:
+        """After the run: the threads (not daemons) still running ``grace`` seconds on,
+        each named with its plugin where known. They would hold the interpreter's exit
+        forever (it joins them), so the caller exits without them."""
+        end = time.monotonic() + grace
+        main = threading.main_thread()
+
+        def running() -> list[threading.Thread]:
+            return [
+                t
+                for t in threading.enumerate()
+                if t is not main and t is not threading.current_thread() and not t.daemon
+            ]
+
+        while (left := running()) and time.monotonic() < end:
+            left[0].join(min(end - time.monotonic(), 0.05))  # sliced: a signal lands
+        owners = {t: self._owner(t, None) for t in left}
+        return [
+            f"thread {t.name!r}" + (f" of plugin {owners[t]}" if owners[t] else "") for t in left
+        ]
 
 
 def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None:
@@ -399,7 +598,7 @@ def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None
     def run() -> None:
         try:
             fn()
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:  # sys.exit() is no success either
             failure.append(repr(exc))
             log.debug("%s failed", label, exc_info=True)
         finally:

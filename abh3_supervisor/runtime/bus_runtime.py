@@ -12,6 +12,7 @@ says per unit what became of its stop.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import functools
 import logging
@@ -205,7 +206,9 @@ class Runtime:
         if self.plugins is not None:  # before any frame: a plugin that cannot start
 
             def request_stop(why: str) -> None:  # from a plugin's worker thread
-                loop.call_soon_threadsafe(self._on_fatal, PluginError(why))
+                # a plugin left behind may fail after the run: the loop is gone, nothing to end
+                with contextlib.suppress(RuntimeError):
+                    loop.call_soon_threadsafe(self._on_fatal, PluginError(why))
 
             self.plugins.request_stop = request_stop
             # plugins' threads (DDS, rclpy's executor) at normal priority: at the loop's

@@ -69,7 +69,7 @@ async def run_headless(
     (the TUI's child) — the end of stdin: the process that started us is gone."""
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    code = 0
+    failed: str | None = None  # what ended the run (exit code 1)
     # a socket that cannot be served fails the run before the first frame: bound now
     bound = preflight(service) if service is not None else {}
     rt = Runtime(config, record=record, plugins=plugins)
@@ -121,9 +121,10 @@ async def run_headless(
                 why = rt.fatal.result()
                 if isinstance(why, PluginError):
                     log.critical("stopping: %s", why)
+                    failed = str(why)
                 else:
                     log.critical("stopping after an internal error: %s", why)
-                code = 1
+                    failed = f"an internal error: {why}"
             else:
                 for line in status_lines(sup):
                     log.info("final %s", line)
@@ -136,8 +137,11 @@ async def run_headless(
     with handled:
         if record is not None:
             log.info("%s", recorded(rt, record))
-        ending = final_report(rt.stop_report, write_failures(rt, plugins))
-    return code or ending  # a run that failed (1) before a stop not confirmed (3), then 5
+        disabled = dict(plugins.why_disabled) if plugins is not None else {}
+        # a run that failed (1) before a stop not confirmed (3), then 5, then 6
+        return final_report(
+            rt.stop_report, write_failures(rt, plugins), failed=failed, disabled=disabled
+        )
 
 
 def _stop_at_end_of_stdin(sup: Supervisor, stop: asyncio.Event) -> None:

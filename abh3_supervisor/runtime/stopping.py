@@ -21,8 +21,10 @@ if TYPE_CHECKING:
     from abh3_supervisor.scheduler.pump import BusPump
 
 log = logging.getLogger(__name__)
+EXIT_FAILED = 1  # the run was ended by a failure (internal, a plugin's policy)
 EXIT_STOP_UNCONFIRMED = 3  # the run ended, but a drive did not confirm its stop frame
 EXIT_RECORDING_FAILED = 5  # the run ended, but a recording stopped early on a write error
+EXIT_PLUGIN_DISABLED = 6  # the run ended, but a plugin was disabled during it
 STOP_DEADLINE_S = 1.0  # stop frames are repeated until confirmed, at most this long
 STOP_RETRY_S = 0.05  # a stop not confirmed within this is sent again
 CONFIRMED, SENT = "confirmed", "sent, not confirmed"  # else "NOT sent: <reason>"
@@ -112,26 +114,52 @@ def _report(
     return report
 
 
-def final_report(report: dict[str, str], write_failures: list[str]) -> int:
-    """The last lines of a run and the exit code they call for: 3 when a drive did not
-    confirm its stop (that matters most), else 5 when a recording (``--record``, a
-    plugin's output) stopped early on a write error, else 0. ``report``: the outcome per
-    unit from :func:`stop_drives`; ``write_failures``: what stopped early, by name."""
+def final_report(
+    report: dict[str, str],
+    write_failures: list[str],
+    *,
+    failed: str | None = None,
+    disabled: dict[str, str] | None = None,
+) -> int:
+    """The last lines of a run and the exit code they call for, said on the line that
+    decides it: 1 when a failure ended the run (``failed``: why), else 3 when a drive
+    did not confirm its stop, else 5 when a recording (``--record``, a plugin's output)
+    stopped early on a write error, else 6 when a plugin was disabled during the run,
+    else 0. ``report``: the outcome per unit from :func:`stop_drives`;
+    ``write_failures``: what stopped early, by name; ``disabled``: plugin → why."""
     unconfirmed = [name for name, outcome in report.items() if outcome != CONFIRMED]
+    disabled = disabled or {}
+    if failed is not None:
+        code = EXIT_FAILED
+    elif unconfirmed:
+        code = EXIT_STOP_UNCONFIRMED
+    elif write_failures:
+        code = EXIT_RECORDING_FAILED
+    else:
+        code = EXIT_PLUGIN_DISABLED if disabled else 0
+
+    def decides(this: int) -> str:
+        return f" (exit code {code})" if code == this else ""
+
+    for name, why in sorted(disabled.items()):
+        log.error("plugin %s was disabled during the run: %s", name, why)
     if write_failures:
         log.error(
             "stopped early on a write error (the disk full?): %s; each holds what was "
-            "written before that (exit code %d)",
+            "written before that%s",
             ", ".join(write_failures),
-            EXIT_RECORDING_FAILED,
+            decides(EXIT_RECORDING_FAILED),
         )
     if unconfirmed:
         log.error(
-            "not every drive confirmed its stop frame: check them (exit code %d)",
-            EXIT_STOP_UNCONFIRMED,
+            "not every drive confirmed its stop frame: check them%s",
+            decides(EXIT_STOP_UNCONFIRMED),
         )
-        return EXIT_STOP_UNCONFIRMED
-    if write_failures:
+    elif write_failures or disabled or failed is not None:
         log.info("every drive confirmed its stop frame")
-        return EXIT_RECORDING_FAILED
-    return 0
+    if failed is not None:
+        log.error("the run was ended by a failure: %s (exit code %d)", failed, code)
+    elif code == EXIT_PLUGIN_DISABLED:
+        names = ", ".join(sorted(disabled))
+        log.error("plugin(s) disabled during the run: %s (exit code %d)", names, code)
+    return code
