@@ -358,16 +358,20 @@ ON_ERROR = choice(
     list(ON_ERROR_VALUES), "what a failing output (disk full) does to the run", "continue"
 )
 
+# every plugin section's tick_hz (plugin_host/tick.py): the rate of its abh3_tick
+TICK_HZ = number(0, 100, "how often abh3_tick is called [Hz]", 10.0, lo_open=True)
+
 
 def plugin_section(schema: Schema | None, description: str) -> Schema:
-    """A plugin's section: its own schema plus the host's ``on_error``; free-form when the
-    plugin gives none."""
+    """A plugin's section: its own schema plus the host's ``on_error`` and ``tick_hz``;
+    free-form when the plugin gives none."""
+    host = {"on_error": ON_ERROR, "tick_hz": TICK_HZ}
     if schema is None:
         section = free_mapping(description)
-        section["properties"] = {"on_error": ON_ERROR}
+        section["properties"] = host
         return section
     section = dict(schema)
-    section["properties"] = {**schema.get("properties", {}), "on_error": ON_ERROR}
+    section["properties"] = {**schema.get("properties", {}), **host}
     return _doc(section, description, None)
 
 
