@@ -9,6 +9,7 @@ every wheel follows the motion the simulated drives made.
 
 from __future__ import annotations
 
+import asyncio
 import math
 from collections.abc import Iterator
 
@@ -27,6 +28,7 @@ from abh3_supervisor.core.robot import RobotConfig, Side
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.plugin_host.view import SupervisorView
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.scheduler.core import FeedbackEvent, StatusEvent
 from tests.support.rig import Rig
@@ -103,7 +105,9 @@ class Bridged:
         monkeypatch.setattr(bridge_module, "open_transport", lambda settings: self.t)
         self.plugin = Ros2Plugin()
         self.plugin.settings = Settings(allow_commands=True, diagnostics_hz=0.0)
-        self.plugin.abh3_start(sup)
+        loop = asyncio.new_event_loop()  # no loop on the fake clock: the view's actions
+        loop.close()  # (unused by the bridge) do nothing
+        self.plugin.abh3_start(SupervisorView(sup, loop, "ros2"))
         self.sources: dict[str, InputSource] = {}
         self.plugin.abh3_input_sources(self._register)
         sup.subscribe(self._observe)

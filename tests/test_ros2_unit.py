@@ -24,6 +24,7 @@ from abh3_plugins.ros2.transport import open_transport
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.state import UnitState
 from abh3_supervisor.errors import ConfigError
+from abh3_supervisor.plugin_api import UnitView
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames
 from tests.support.ros2_memory import MemoryTransport
@@ -53,7 +54,7 @@ class RecordingFeed:
 def bridge(settings: Settings, unit: str = "left", t: Any = None) -> tuple[UnitBridge, Any, Any]:
     cfg = parse_config(UNITS, "u.yaml")
     t = t or MemoryTransport()
-    b = UnitBridge(UnitState.initial(cfg.units[unit]), t, settings)
+    b = UnitBridge(UnitView(UnitState.initial(cfg.units[unit])), t, settings)
     feed = RecordingFeed()
     b.start(feed)  # type: ignore[arg-type]
     return b, t, feed

@@ -47,7 +47,7 @@ WHOLE_FILE = (
     "timing-",
 )
 # plugins the docs show how to write; not installed here
-EXAMPLE_PLUGINS = {"my_plugin", "speed_summary"}
+EXAMPLE_PLUGINS = {"my_plugin", "speed_summary", "jsonl", "script", "overspeed"}
 MINIMAL = {
     "buses": {"can0": {"interface": "virtual", "simulate": True}},
     "units": [{"name": "base"}],

@@ -361,11 +361,15 @@ ON_ERROR = choice(
 )
 # every plugin section's critical (plugin_host): the plugin disabled ends the run
 CRITICAL = boolean("the run ends (drives stopped, non-zero exit) if this plugin is disabled", False)
-HOST_KEYS = {"on_error": ON_ERROR, "critical": CRITICAL}  # the host's, in every section
+# every plugin section's tick_hz (plugin_host/tick.py): the rate of its abh3_tick
+TICK_HZ = number(0, 100, "how often abh3_tick is called [Hz]", 10.0, lo_open=True)
+# the host's keys, in every plugin section
+HOST_KEYS = {"on_error": ON_ERROR, "critical": CRITICAL, "tick_hz": TICK_HZ}
 
 
 def plugin_section(schema: Schema | None, description: str) -> Schema:
-    """A plugin's section: its own schema plus the host's ``on_error`` and ``critical``;
+    """A plugin's section: its own schema plus the host's ``on_error``, ``critical``
+    and ``tick_hz``;
     free-form when the plugin gives none."""
     if schema is None:
         section = free_mapping(description)

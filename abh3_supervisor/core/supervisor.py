@@ -62,6 +62,11 @@ STARTUP_SOURCE = "startup"  # the source of a unit's startup: motion: startup:<u
 
 @dataclass(frozen=True, slots=True)
 class FlagChange:
+    """A flag word of a unit changed (hook ``abh3_flags``; public as
+    ``abh3_supervisor.plugin_api.FlagChange``). Name its bits in the unit's generation with
+    ``supervisor.units[change.unit].names(change.word, change.set_bits)``: every word an
+    event names, ``drive_inputs`` included."""
+
     unit: str
     t: float
     word: str  # a key of the unit's Layout.words: "error", "alarm", "control", "io", …
@@ -79,7 +84,8 @@ class FlagChange:
 
 @dataclass(frozen=True, slots=True)
 class Notice:
-    """Something an operator should read: clamping, e-stop, model mismatch, plugin errors."""
+    """Something an operator should read: clamping, e-stop, model mismatch, plugin errors
+    (hook ``abh3_notice``; public as ``abh3_supervisor.plugin_api.Notice``)."""
 
     unit: str | None
     t: float
@@ -98,7 +104,27 @@ class OperatorAction:
     action: str
 
 
-SupervisorEvent = Event | FlagChange | Notice | OperatorAction
+@dataclass(frozen=True, slots=True)
+class EstopChange:
+    """The e-stop was latched (``latched``) or cleared; ``source`` says who latched it
+    (``tui``, ``input joystick``, ``plugin watchdog: overspeed``) or cleared it."""
+
+    t: float
+    latched: bool
+    source: str
+
+
+@dataclass(frozen=True, slots=True)
+class OwnerChange:
+    """The input source whose command a unit has now changed (``None``: nobody; zero)."""
+
+    unit: str
+    t: float
+    old: str | None
+    new: str | None
+
+
+SupervisorEvent = Event | FlagChange | Notice | OperatorAction | EstopChange | OwnerChange
 Observer = Callable[[SupervisorEvent], None]
 
 
@@ -142,6 +168,8 @@ class Supervisor:
         self.arbiter.domains = {
             u: r.units for r in config.robots.values() if len(r.units) > 1 for u in r.units
         }
+        self._owners: dict[str, str | None] = {}  # as last said in an OwnerChange
+        self.arbiter.watchers.append(self._owner_watch)
         self.arbiter.on_lapse = lambda name: self.notice(
             None,
             logging.WARNING,
@@ -171,6 +199,14 @@ class Supervisor:
                 observer(event)
             except Exception:  # an observer's bug must never stop the bus path
                 log.exception("observer %r failed on %s", observer, type(event).__name__)
+
+    def _owner_watch(self, unit: str) -> None:
+        """The arbiter says an owner may have changed: an event only when it did."""
+        new = self.arbiter.owner(unit)
+        old = self._owners.get(unit)
+        if new != old:
+            self._owners[unit] = new
+            self._emit(OwnerChange(unit, self.clock(), old, new))
 
     def notice(self, unit: str | None, level: int, message: str) -> None:
         self._emit(Notice(unit, self.clock(), level, message))
@@ -722,10 +758,13 @@ class Supervisor:
             f"EMERGENCY STOP ({clean(source)}): all units zero, START off; SERVO and brake "
             "release off once each drive reports it stopped (latched)",
         )
+        if first:
+            self._emit(EstopChange(now, True, clean(source)))
 
-    def clear_emergency_stop(self) -> None:
+    def clear_emergency_stop(self, source: str = "api") -> None:
         """Unlatch: nothing heard before this moment moves anything (the arbitration is
-        voided again); START, SERVO and motion must be given anew."""
+        voided again); START, SERVO and motion must be given anew. ``source``: who cleared
+        it (the :class:`EstopChange` event says)."""
         if self.gate.estop is None:
             return
         for unit in self._commanded():  # not powered off yet: SERVO and brake go now too
@@ -735,6 +774,7 @@ class Supervisor:
             self.arbiter.hold(unit.name)
             self._push(unit)
         self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
+        self._emit(EstopChange(self.clock(), False, clean(source)))
 
     def _power_off(self, unit: UnitState) -> None:
         """The e-stop's second step: SERVO and brake release off (forgotten, not masked),

@@ -1,27 +1,29 @@
-"""The hooks a plugin may implement. Each is documented in docs/plugins.md.
+"""The hooks a plugin may implement. Each is documented in docs/plugins.md; plugins
+import them (and every record they name) from :mod:`abh3_supervisor.plugin_api`.
 
 Call conventions: hooks are called with keyword arguments, and an implementation may
 accept fewer arguments than its spec (pluggy's rule), so specs can grow without breaking
 plugins. Configuration runs while the file loads; start, input-source and stop hooks run
 on a thread of their own with a deadline (a plugin failing to start fails the run before
-any frame is sent); the observation hooks (``abh3_feedback`` … ``abh3_notice``) run in the
-plugin's own worker thread, so a slow plugin never delays the bus.
+any frame is sent); the observation hooks (``abh3_feedback`` … ``abh3_tick``) run in the
+plugin's own worker thread, so a slow plugin never delays the bus. ``supervisor`` is a
+read-only :class:`SupervisorView`, never the Supervisor itself.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pluggy
 
-if TYPE_CHECKING:
-    from abh3_supervisor.config.model import Config
-    from abh3_supervisor.config.source import Section
-    from abh3_supervisor.core.inputs import InputSource
-    from abh3_supervisor.core.state import Feedback, Setpoint
-    from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor
-    from abh3_supervisor.protocol.frames import Broadcast
+from abh3_supervisor.config.model import Config
+from abh3_supervisor.config.source import Section
+from abh3_supervisor.core.inputs import InputSource
+from abh3_supervisor.core.state import Feedback, Setpoint
+from abh3_supervisor.core.supervisor import EstopChange, FlagChange, Notice, OwnerChange
+from abh3_supervisor.plugin_host.view import SupervisorView
+from abh3_supervisor.protocol.frames import Broadcast
 
 PROJECT = "abh3_supervisor"
 hookspec = pluggy.HookspecMarker(PROJECT)
@@ -45,12 +47,12 @@ def abh3_config_schema() -> dict[str, Any] | None:
 
 
 @hookspec
-def abh3_start(supervisor: Supervisor) -> None:
+def abh3_start(supervisor: SupervisorView) -> None:
     """Before the first frame: open files, start threads; raise if you cannot (the run fails)."""
 
 
 @hookspec
-def abh3_input_sources(register: Callable[[InputSource], None], supervisor: Supervisor) -> None:
+def abh3_input_sources(register: Callable[[InputSource], None], supervisor: SupervisorView) -> None:
     """Contribute input sources by calling ``register(source)`` for each."""
 
 
@@ -80,5 +82,20 @@ def abh3_notice(notice: Notice) -> None:
 
 
 @hookspec
-def abh3_stop(supervisor: Supervisor) -> None:
+def abh3_estop(event: EstopChange) -> None:
+    """The e-stop was latched (``event.latched``) or cleared, and by whom (``event.source``)."""
+
+
+@hookspec
+def abh3_owner(change: OwnerChange) -> None:
+    """The input source whose command a unit has changed (taken over, let go, stopped)."""
+
+
+@hookspec
+def abh3_tick(t: float) -> None:
+    """Periodically, at the section's ``tick_hz`` (default 10): ``t`` on the events' clock."""
+
+
+@hookspec
+def abh3_stop(supervisor: SupervisorView) -> None:
     """Every way out, after the drives were stopped: flush and close everything."""

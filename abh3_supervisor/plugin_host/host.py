@@ -36,9 +36,17 @@ from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.schema import ON_ERROR_VALUES
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
-from abh3_supervisor.core.supervisor import FlagChange, Notice, Supervisor, SupervisorEvent
+from abh3_supervisor.core.supervisor import (
+    EstopChange,
+    FlagChange,
+    Notice,
+    OwnerChange,
+    Supervisor,
+    SupervisorEvent,
+)
 from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError
-from abh3_supervisor.plugin_host import hookspecs, inventory, validate
+from abh3_supervisor.plugin_host import hookspecs, inventory, tick, validate
+from abh3_supervisor.plugin_host.view import SupervisorView
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
 log = logging.getLogger(__name__)
@@ -164,6 +172,11 @@ class PluginHost:
         self._watching = threading.Event()  # set: the stuck-hook watch ends
         # set by the runtime: end the run, drives stopped (an output failed, on_error: stop)
         self.request_stop: Callable[[str], None] | None = None
+        # set by the runtime: end the run as a normal stop (a plugin's end_run, exit 0)
+        self.end_run: Callable[[str], None] | None = None
+        self.views: dict[str, SupervisorView] = {}  # what each plugin sees (plugin_host/view.py)
+        self.tick_hz: dict[str, float] = {}
+        self.tickers: list[tick.Ticker] = []
         # run first on every thread plugins run on (and so inherited by the threads they
         # start); the runtime drops the bus loop's real-time priority there
         self.thread_setup: Callable[[], None] = lambda: None
@@ -221,6 +234,7 @@ class PluginHost:
             if host.boolean("critical", False):
                 self.critical.add(name)
             raw = {k: v for k, v in raw.items() if k not in ("on_error", "critical")}
+        self.tick_hz[name], raw = tick.take_rate(Section(src, ("plugins", name), raw, None))
         section = Section(src, ("plugins", name), raw, None)
         try:
             self._caller(name, "abh3_configure")(section=section, config=config)
@@ -371,6 +385,11 @@ class PluginHost:
             if self.request_stop is not None:
                 self.request_stop(ending)
 
+    def _end_run(self, why: str) -> None:
+        """A plugin's view asks to end the run normally (from any thread)."""
+        if self.end_run is not None:
+            self.end_run(why)
+
     def _has(self, name: str, hook: str) -> bool:
         caller = getattr(self.pm.hook, hook)
         return any(impl.plugin_name == name for impl in caller.get_hookimpls())
@@ -382,7 +401,16 @@ class PluginHost:
         log.info("%s", inventory.loaded_line(self.names, installed()))
         self._excepthook = threading.excepthook
         threading.excepthook = self._thread_failed
-        observing = ("abh3_feedback", "abh3_status", "abh3_health", "abh3_flags", "abh3_notice")
+        observing = (
+            "abh3_feedback",
+            "abh3_status",
+            "abh3_health",
+            "abh3_flags",
+            "abh3_notice",
+            "abh3_estop",
+            "abh3_owner",
+            tick.HOOK,
+        )
         for name in self.names:
             self._modules.setdefault(type(self.pm.get_plugin(name)).__module__, set()).add(name)
             for hook in observing:
@@ -390,20 +418,26 @@ class PluginHost:
         owners: dict[int, str] = {}  # source (by id) → the plugin that registered it
         for name in self.names:
             self.started.append(name)  # even if it fails half way: it may hold resources
+            view = self.views[name] = SupervisorView(sup, loop, name, self._end_run)
 
             def register(source: InputSource, name: str = name) -> None:
                 owners[id(source)] = name
                 self.sources.append(source)
 
             for hook, kwargs in (
-                ("abh3_start", {"supervisor": sup}),
-                ("abh3_input_sources", {"register": register, "supervisor": sup}),
+                ("abh3_start", {"supervisor": view}),
+                ("abh3_input_sources", {"register": register, "supervisor": view}),
             ):
                 problem = self._bounded(name, hook, START_DEADLINE_S, **kwargs)
                 if problem is not None:  # the user asked for it: run without it, never
                     raise PluginError(f"plugin {name} could not start ({hook}): {problem}")
             if any(self._has(name, hook) for hook in observing):
                 self.workers[name] = _Worker(self, name)
+        for name, worker in self.workers.items():
+            if self._has(name, tick.HOOK):
+                hz = self.tick_hz.get(name, tick.DEFAULT_HZ)
+                ticker = tick.Ticker(name, hz, sup.clock, worker.post, self.thread_setup)
+                self.tickers.append(ticker)
         sup.subscribe(self._observe)
         self._start_inputs(sup, loop, owners)  # always: service clients may attach later
         if self.workers:
@@ -525,6 +559,10 @@ class PluginHost:
             hook, kwargs = "abh3_flags", {"change": event}
         elif isinstance(event, Notice):
             hook, kwargs = "abh3_notice", {"notice": event}
+        elif isinstance(event, EstopChange):
+            hook, kwargs = "abh3_estop", {"event": event}
+        elif isinstance(event, OwnerChange):
+            hook, kwargs = "abh3_owner", {"change": event}
         else:
             return
         for worker in self.workers.values():
@@ -550,6 +588,9 @@ class PluginHost:
             if problem is not None:  # nothing that moves a motor
                 log.error("input %s failed to stop: %s", source.name, problem)
         self._watching.set()
+        for ticker in self.tickers:
+            ticker.close()
+        self.tickers.clear()
         for worker in self.workers.values():
             worker.ask_to_end()  # all drain together
         end = time.monotonic() + (DRAIN_DEADLINE_S if timeout is None else timeout)
@@ -557,7 +598,8 @@ class PluginHost:
             worker.close(end)
         self.workers.clear()
         for name in self.started:
-            problem = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=sup)
+            view = self.views[name]  # made before its abh3_start
+            problem = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=view)
             if problem is not None:
                 log.error("plugin %s failed in abh3_stop: %s", name, problem)
         if self._excepthook is not None and threading.excepthook == self._thread_failed:

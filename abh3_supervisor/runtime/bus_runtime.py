@@ -144,6 +144,7 @@ class Runtime:
         self._buses: list[can.BusABC] = []
         self._recorder: GuardedRecorder | None = None
         self.fatal: asyncio.Future[object] | None = None
+        self.ended = asyncio.Event()  # a plugin ended the run (a normal stop, exit 0)
         self.stop_report: dict[str, str] = {}  # unit → CONFIRMED, SENT or "NOT sent: …"
         # the start-up check of the drives' CAN settings (core/verify.py), while it runs
         self.verifying: asyncio.Task[dict[str, verify.Verification]] | None = None
@@ -211,6 +212,11 @@ class Runtime:
                     loop.call_soon_threadsafe(self._on_fatal, PluginError(why))
 
             self.plugins.request_stop = request_stop
+
+            def end_run(why: str) -> None:  # a plugin is done (its view's end_run): exit 0
+                loop.call_soon_threadsafe(self.ended.set)
+
+            self.plugins.end_run = end_run
             # plugins' threads (DDS, rclpy's executor) at normal priority: at the loop's
             # real-time one they delayed rclpy's cmd_vel by 150–250 ms (runtime/priority.py)
             self.plugins.thread_setup = priority.normal
@@ -274,12 +280,14 @@ class Runtime:
         or ``timeout`` seconds pass."""
         assert self.fatal is not None, "only inside `async with Runtime(...)`"
         stopped: asyncio.Future[object] = asyncio.ensure_future(stop.wait())
+        ended: asyncio.Future[object] = asyncio.ensure_future(self.ended.wait())
         try:
             await asyncio.wait(
-                [stopped, self.fatal], timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+                [stopped, ended, self.fatal], timeout=timeout, return_when=asyncio.FIRST_COMPLETED
             )
         finally:
             stopped.cancel()
+            ended.cancel()
 
     @property
     def stops_confirmed(self) -> bool:

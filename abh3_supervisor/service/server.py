@@ -681,7 +681,7 @@ class ControlServer:
         return {"ok": True}
 
     async def _clear_estop(self, client: _Client, params: dict[str, Any]) -> Any:
-        self.rt.supervisor.clear_emergency_stop()
+        self.rt.supervisor.clear_emergency_stop(client.name)
         log.warning("control %s: emergency stop cleared", client.name)
         return {"ok": True}
 

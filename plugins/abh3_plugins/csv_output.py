@@ -27,14 +27,20 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import IO, Any
 
-from abh3_supervisor.config import schema as js
-from abh3_supervisor.config.model import ControlMode
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
-from abh3_supervisor.core.supervisor import Supervisor
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
-from abh3_supervisor.protocol import flags, frames
-from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.plugin_api import (
+    CURRENT,
+    VELOCITY,
+    ControlMode,
+    Feedback,
+    Section,
+    Setpoint,
+    SupervisorView,
+    UnitView,
+    flags,
+    frames,
+    hookimpl,
+)
+from abh3_supervisor.plugin_api import schema as js
 
 # flag-word columns; each unit's bits are named in its generation's layout. ``inputs`` is
 # the word the host commands; ``drive_inputs`` the one the drive reports (2023 broadcast 1)
@@ -186,7 +192,7 @@ class CsvPlugin:
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         self.failure: OSError | None = None  # the output failed: raised to the host
-        self.units: dict[str, UnitState] = {}
+        self.units: dict[str, UnitView] = {}
 
     @hookimpl
     def abh3_config_schema(self) -> dict[str, Any]:
@@ -216,7 +222,7 @@ class CsvPlugin:
         self.rotate_s = section.number("rotate_s", 0.0, 0.0, 30 * 86400.0)
 
     @hookimpl
-    def abh3_start(self, supervisor: Supervisor) -> None:
+    def abh3_start(self, supervisor: SupervisorView) -> None:
         self.units = dict(supervisor.units)
         self.layouts = {name: unit.layout for name, unit in supervisor.units.items()}
         names = supervisor.units if "{unit}" in str(self.path) else ["*"]

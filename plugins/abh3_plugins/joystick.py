@@ -28,13 +28,17 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from abh3_plugins import teleop_target
-from abh3_supervisor.config import Config
-from abh3_supervisor.config import schema as js
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.inputs import Feed, InputFeed, InputSource
-from abh3_supervisor.core.robot import RobotConfig
-from abh3_supervisor.core.supervisor import Supervisor
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_api import (
+    Config,
+    Feed,
+    InputFeed,
+    InputSource,
+    RobotConfig,
+    Section,
+    SupervisorView,
+    hookimpl,
+)
+from abh3_supervisor.plugin_api import schema as js
 
 log = logging.getLogger(__name__)
 JS_EVENT = struct.Struct("<IhBB")  # time ms, value, type, number (linux/joystick.h)
@@ -272,7 +276,7 @@ class JoystickPlugin:
         self.timeout = section.number("timeout", 0.5, 0.05, 10.0)
 
     @hookimpl
-    def abh3_input_sources(self, register: Any, supervisor: Supervisor) -> None:
+    def abh3_input_sources(self, register: Any, supervisor: SupervisorView) -> None:
         device = self.device
         register(
             JoystickSource(

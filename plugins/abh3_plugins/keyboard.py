@@ -30,13 +30,16 @@ from collections.abc import Collection
 from typing import Any
 
 from abh3_plugins import teleop_target
-from abh3_supervisor.config import Config
-from abh3_supervisor.config import schema as js
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.inputs import InputFeed, InputSource
-from abh3_supervisor.core.supervisor import Supervisor
-from abh3_supervisor.plugin_host import terminal
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_api import (
+    Config,
+    InputFeed,
+    InputSource,
+    Section,
+    SupervisorView,
+    hookimpl,
+    terminal,
+)
+from abh3_supervisor.plugin_api import schema as js
 
 log = logging.getLogger(__name__)
 MOVES = {
@@ -216,7 +219,7 @@ class KeyboardPlugin:
         }
 
     @hookimpl
-    def abh3_input_sources(self, register: Any, supervisor: Supervisor) -> None:
+    def abh3_input_sources(self, register: Any, supervisor: SupervisorView) -> None:
         s = self.settings
         register(
             KeyboardSource(

@@ -12,10 +12,7 @@ from __future__ import annotations
 import difflib
 import math
 
-from abh3_supervisor.config import Config
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.robot import RobotConfig
-from abh3_supervisor.core.twist_limits import fastest_twist
+from abh3_supervisor.plugin_api import Config, RobotConfig, Section, fastest_twist
 
 KEYS = {"robot", "units"}
 

@@ -14,10 +14,7 @@ import json
 import logging
 from pathlib import Path
 
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.state import Feedback
-from abh3_supervisor.core.supervisor import Supervisor
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_api import Feedback, Section, SupervisorView, hookimpl
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +41,7 @@ class SpeedSummary:
         self.samples[unit] = self.samples.get(unit, 0) + 1
 
     @hookimpl
-    def abh3_stop(self, supervisor: Supervisor) -> None:
+    def abh3_stop(self, supervisor: SupervisorView) -> None:
         summary = {
             u: {"peak_min-1": self.peak.get(u, 0.0), "samples": self.samples.get(u, 0)}
             for u in supervisor.units

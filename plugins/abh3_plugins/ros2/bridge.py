@@ -36,18 +36,24 @@ from abh3_plugins.ros2.transport import Transport, decide, open_transport
 from abh3_plugins.ros2.values import Guard, twist_values, within
 from abh3_plugins.ros2.values import Refused as Refused  # the bridge's names, as before
 from abh3_plugins.ros2.values import twist as twist
-from abh3_supervisor.config.model import Config, Role
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core import kinematics
-from abh3_supervisor.core.commands import RESPONSE_INVALID
-from abh3_supervisor.core.diagnostics import Health
-from abh3_supervisor.core.inputs import InputFeed, InputSource
-from abh3_supervisor.core.robot import from_geometry
-from abh3_supervisor.core.state import Feedback, UnitState
-from abh3_supervisor.core.supervisor import FlagChange, Supervisor
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
-from abh3_supervisor.protocol import frames
-from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
+from abh3_supervisor.plugin_api import (
+    CURRENT,
+    RESPONSE_INVALID,
+    VELOCITY,
+    Config,
+    Feedback,
+    FlagChange,
+    InputFeed,
+    InputSource,
+    Role,
+    Section,
+    SupervisorView,
+    UnitView,
+    frames,
+    from_geometry,
+    hookimpl,
+    kinematics,
+)
 
 log = logging.getLogger(__name__)
 MAX_COMMAND_TEXT = 256  # longer than any command of the language
@@ -92,7 +98,7 @@ class UnitBridge(InputSource):
     """
 
     def __init__(
-        self, unit: UnitState, t: Transport, settings: Settings, *, one_drive: bool = True
+        self, unit: UnitView, t: Transport, settings: Settings, *, one_drive: bool = True
     ) -> None:
         super().__init__(
             f"ros2:{unit.name}", (unit.name,), settings.priority, settings.command_timeout
@@ -279,7 +285,7 @@ class Ros2Plugin:
             )
 
     @hookimpl
-    def abh3_start(self, supervisor: Supervisor) -> None:
+    def abh3_start(self, supervisor: SupervisorView) -> None:
         t = self.transport = open_transport(self.settings)
         declared = [r for r in supervisor.config.robots.values() if not r.implicit]
         wheels = {u for r in declared for u in r.units}
@@ -293,7 +299,7 @@ class Ros2Plugin:
                 self._robots_of.setdefault(unit_name, []).append(bridge)
         publish = t.publisher(TOPIC, t.msg.DiagnosticArray)
         self.diagnostics = DiagnosticsPublisher(
-            Health(supervisor), publish, t.msg, self.settings.diagnostics_hz
+            supervisor.health(), publish, t.msg, self.settings.diagnostics_hz
         )
         if self.settings.diagnostics_hz > 0:  # 0: on changes only, from the hooks below
             self._diagnostics_thread = DiagnosticsThread(self.diagnostics)

@@ -31,7 +31,7 @@ from cyclonedds.util import duration
 from abh3_plugins.ros2 import discovery, types
 from abh3_plugins.ros2.settings import QosSettings, Settings
 from abh3_plugins.ros2.transport import Publish, ServiceHandler
-from abh3_supervisor.core.commands import RESPONSE_INVALID
+from abh3_supervisor.plugin_api import RESPONSE_INVALID
 
 log = logging.getLogger(__name__)
 TAKE = 64  # samples per reader per wake-up; more stay triggered for the next round

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from typing import Any
 
 from abh3_plugins.ros2.transport import Publish
-from abh3_supervisor.core.diagnostics import Health, Level, Status
+from abh3_supervisor.plugin_api import Health, Level, Status
 
 log = logging.getLogger(__name__)
 TOPIC = "/diagnostics"  # global, as every ROS driver publishes it

@@ -17,7 +17,7 @@ from typing import Any
 
 from abh3_plugins.ros2.settings import QosSettings, Settings
 from abh3_plugins.ros2.transport import Publish, ServiceHandler
-from abh3_supervisor.core.commands import RESPONSE_INVALID
+from abh3_supervisor.plugin_api import RESPONSE_INVALID
 
 log = logging.getLogger(__name__)
 NODE_NAME = "abh3_supervisor"

@@ -23,13 +23,19 @@ from typing import Any
 from abh3_plugins.ros2.settings import Settings
 from abh3_plugins.ros2.transport import Transport
 from abh3_plugins.ros2.values import Guard, twist, twist_values, within
-from abh3_supervisor.core import kinematics
-from abh3_supervisor.core.inputs import InputFeed, InputSource
-from abh3_supervisor.core.odometry import Odometer, Pose, yaw_quaternion
-from abh3_supervisor.core.robot import RobotConfig, motor_speeds
-from abh3_supervisor.core.state import UnitState
-from abh3_supervisor.protocol import frames
-from abh3_supervisor.protocol.scaling import VELOCITY
+from abh3_supervisor.plugin_api import (
+    VELOCITY,
+    InputFeed,
+    InputSource,
+    Odometer,
+    Pose,
+    RobotConfig,
+    UnitView,
+    frames,
+    kinematics,
+    motor_speeds,
+    yaw_quaternion,
+)
 
 
 class RobotTopics:
@@ -45,7 +51,7 @@ class RobotTopics:
         t: Transport,
         settings: Settings,
         *,
-        states: Mapping[str, UnitState],
+        states: Mapping[str, UnitView],
         feed: Callable[[], InputFeed | None],
         commands: bool,
         frame_ids: tuple[str, str],
@@ -123,7 +129,7 @@ class RobotBridge(InputSource):
     its own whose units are the robot's (``ros2:<robot>/cmd_vel``)."""
 
     def __init__(
-        self, robot: RobotConfig, t: Transport, settings: Settings, states: Mapping[str, UnitState]
+        self, robot: RobotConfig, t: Transport, settings: Settings, states: Mapping[str, UnitView]
     ) -> None:
         super().__init__(
             source_name(robot.name), robot.units, settings.priority, settings.command_timeout

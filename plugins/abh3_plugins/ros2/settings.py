@@ -7,10 +7,8 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from abh3_supervisor.config import schema as js
-from abh3_supervisor.config.model import Config, Role, UnitConfig
-from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.plugin_api import Config, RobotConfig, Role, Section, UnitConfig
+from abh3_supervisor.plugin_api import schema as js
 
 # every name the bridge uses, per unit: the seed's names; plus per robot cmd_vel and odom
 # (a one-drive robot from a unit's geometry is named after its unit)

@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from abh3_supervisor.protocol.scaling import Scale
+from abh3_supervisor.plugin_api import Scale
 
 log = logging.getLogger("abh3_plugins.ros2.bridge")
 WARN_EVERY_S = 5.0

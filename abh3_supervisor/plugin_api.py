@@ -1,0 +1,115 @@
+"""The public plugin API: the one module a plugin imports from abh3_supervisor.
+
+Everything a plugin needs is here, importable at runtime: the ``hookimpl`` marker, the
+records its hooks receive, the read-only supervisor view, input sources and their feed,
+the section and schema helpers for its settings, and the few pure helpers the built-in
+plugins use (kinematics, odometry, flag words, frames, diagnostics). Each name keeps the
+module it is defined in (``help()`` says which); import it from here, never from there.
+
+Compatibility (docs/plugins.md, "Compatibility"): ``API_VERSION`` is ``MAJOR.MINOR``.
+Within one major version, nothing here is removed or renamed, no hook argument is removed
+and no record field changes meaning; a minor version only adds (names, hooks, hook
+arguments, record fields with defaults). Hooks are called with keyword arguments and a
+plugin may take fewer than offered, so an added argument breaks no plugin. Anything
+imported from another abh3_supervisor module may change in any release.
+"""
+
+from __future__ import annotations
+
+from abh3_supervisor.config import schema
+from abh3_supervisor.config.model import Config, ControlMode, Role, UnitConfig, VelocityModel
+from abh3_supervisor.config.source import Section
+from abh3_supervisor.core import kinematics
+from abh3_supervisor.core.commands import RESPONSE_INVALID, RESPONSE_OK
+from abh3_supervisor.core.diagnostics import Health, Level, Status
+from abh3_supervisor.core.inputs import DEFAULT_TIMEOUT, Feed, InputFeed, InputSource
+from abh3_supervisor.core.odometry import Odometer, Pose, yaw_quaternion
+from abh3_supervisor.core.robot import RobotConfig, from_geometry, motor_speeds
+from abh3_supervisor.core.state import Feedback, Setpoint
+from abh3_supervisor.core.supervisor import (
+    EstopChange,
+    FlagChange,
+    Notice,
+    OperatorAction,
+    OwnerChange,
+)
+from abh3_supervisor.core.twist_limits import fastest_twist
+from abh3_supervisor.errors import CommandError
+from abh3_supervisor.plugin_host import terminal
+from abh3_supervisor.plugin_host.hookspecs import PROJECT, hookimpl
+from abh3_supervisor.plugin_host.view import SupervisorView, UnitView, word_of
+from abh3_supervisor.protocol import flags, frames
+from abh3_supervisor.protocol.frames import (
+    Brd0,
+    Brd1,
+    Brd2,
+    Brd3,
+    Brd4,
+    Brd5,
+    Brd6,
+    Brd7,
+    Broadcast,
+)
+from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
+
+API_VERSION = "1.0"
+"""``MAJOR.MINOR`` of this module's promise; a plugin may check the major it was written for."""
+
+# the entry-point group a plugin registers under: [project.entry-points.abh3_supervisor]
+GROUP = PROJECT
+
+__all__ = [
+    "API_VERSION",
+    "CURRENT",
+    "DEFAULT_TIMEOUT",
+    "GROUP",
+    "RESPONSE_INVALID",
+    "RESPONSE_OK",
+    "VELOCITY",
+    "Brd0",
+    "Brd1",
+    "Brd2",
+    "Brd3",
+    "Brd4",
+    "Brd5",
+    "Brd6",
+    "Brd7",
+    "Broadcast",
+    "CommandError",
+    "Config",
+    "ControlMode",
+    "EstopChange",
+    "Feed",
+    "Feedback",
+    "FlagChange",
+    "Health",
+    "InputFeed",
+    "InputSource",
+    "Level",
+    "Notice",
+    "Odometer",
+    "OperatorAction",
+    "OwnerChange",
+    "Pose",
+    "RobotConfig",
+    "Role",
+    "Scale",
+    "Section",
+    "Setpoint",
+    "Status",
+    "SupervisorView",
+    "UnitConfig",
+    "UnitView",
+    "VelocityModel",
+    "fastest_twist",
+    "flags",
+    "frames",
+    "from_geometry",
+    "hookimpl",
+    "kinematics",
+    "motor_speeds",
+    "schema",
+    "terminal",
+    "word_of",
+    "yaw_quaternion",
+]
