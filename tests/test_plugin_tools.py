@@ -8,7 +8,6 @@ import json
 import subprocess
 import sys
 import types
-from collections.abc import Iterator
 from importlib.metadata import EntryPoint
 from pathlib import Path
 
@@ -24,35 +23,6 @@ from tests.support.rig import TWO_UNITS
 
 ROOT = Path(__file__).resolve().parent.parent
 GROUP = "abh3_supervisor"
-
-
-def has_plugin_api() -> bool:
-    return importlib.util.find_spec("abh3_supervisor.plugin_api") is not None
-
-
-@pytest.fixture
-def plugin_api(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """The public API module: the real one when it exists, else a stand-in of the names
-    the template uses, in sys.modules only for this test (never in the package)."""
-    if not has_plugin_api():
-        from abh3_supervisor.core.inputs import InputSource
-        from abh3_supervisor.core.state import Feedback, Setpoint
-        from abh3_supervisor.core.supervisor import FlagChange, Notice
-        from abh3_supervisor.plugin_host.hookspecs import hookimpl as marker
-
-        stand_in = types.ModuleType("abh3_supervisor.plugin_api")
-        for key, value in {
-            "API_VERSION": "1.0",
-            "hookimpl": marker,
-            "InputSource": InputSource,
-            "Feedback": Feedback,
-            "Setpoint": Setpoint,
-            "Notice": Notice,
-            "FlagChange": FlagChange,
-        }.items():
-            setattr(stand_in, key, value)
-        monkeypatch.setitem(sys.modules, "abh3_supervisor.plugin_api", stand_in)
-    yield
 
 
 # ---------------------------------------------------------------- abh3 plugins
@@ -118,7 +88,7 @@ def test_the_text_listing_names_the_failure_in_one_line(
     assert "broken\n  failed to load: ModuleNotFoundError: No module named" in out
     assert "Traceback" not in out
     assert "hooks: abh3_config_schema, abh3_configure, " in out  # the built-ins'
-    assert "API version: not declared" in out
+    assert "API version: 1.0 (compatible with 1.0)" in out  # the built-ins declare it
 
 
 def test_the_declared_api_version_is_read_from_the_object_or_its_module() -> None:
@@ -165,9 +135,7 @@ def load(path: Path, name: str) -> types.ModuleType:
 
 
 @pytest.mark.wallclock  # its test runs the plugin for a second
-def test_the_template_passes_its_own_test(
-    plugin_api: None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_the_template_passes_its_own_test(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     package = new_plugin("speed_log", tmp_path)
     assert package == tmp_path / "abh3-speed-log"
     monkeypatch.syspath_prepend(str(package))
@@ -190,7 +158,6 @@ def test_the_template_refuses_a_bad_name_or_an_existing_folder(
 
 
 @pytest.mark.wallclock
-@pytest.mark.skipif(not has_plugin_api(), reason="abh3_supervisor.plugin_api not merged yet")
 def test_the_template_installs_with_pip_is_listed_and_passes_its_test(tmp_path: Path) -> None:
     package = new_plugin("speed_log", tmp_path)
     site = tmp_path / "site"

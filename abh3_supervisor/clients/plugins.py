@@ -6,23 +6,18 @@ imported is listed with the reason in one line, and the others still are.
 
 from __future__ import annotations
 
-import importlib
 import json
 from pathlib import Path
 from typing import Any
 
+from abh3_supervisor.plugin_api import API_VERSION
 from abh3_supervisor.plugin_host.host import installed
 from abh3_supervisor.plugin_host.inventory import PluginInfo, compatible, describe
 
 
-def api_version() -> str | None:
+def api_version() -> str:
     """This supervisor's plugin API version (``abh3_supervisor.plugin_api.API_VERSION``)."""
-    try:
-        module = importlib.import_module("abh3_supervisor.plugin_api")
-    except ImportError:
-        return None
-    version = getattr(module, "API_VERSION", None)
-    return None if version is None else str(version)
+    return API_VERSION
 
 
 def listing(config: Path | None) -> dict[str, Any]:

@@ -95,6 +95,9 @@ FLUSH_S = 0.5  # default seconds between flushes: at most what a kill -9 loses
 MONITOR_DIGITS = 7  # monitors are float32: seven significant digits hold all they carry
 
 
+ABH3_API_VERSION = "1.0"  # the plugin API (abh3_supervisor.plugin_api) this is written for
+
+
 def number(column: str, value: float) -> str:
     decimals = FORMATS.get(column, ("", None))[1]
     if decimals is None:

@@ -41,6 +41,7 @@ from abh3_supervisor.plugin_api import (
 from abh3_supervisor.plugin_api import schema as js
 
 log = logging.getLogger(__name__)
+ABH3_API_VERSION = "1.0"  # the plugin API (abh3_supervisor.plugin_api) this is written for
 JS_EVENT = struct.Struct("<IhBB")  # time ms, value, type, number (linux/joystick.h)
 JS_BUTTON, JS_AXIS, JS_INIT = 0x01, 0x02, 0x80
 AXIS_MAX = 32767.0

@@ -42,6 +42,7 @@ from abh3_supervisor.plugin_api import (
 from abh3_supervisor.plugin_api import schema as js
 
 log = logging.getLogger(__name__)
+ABH3_API_VERSION = "1.0"  # the plugin API (abh3_supervisor.plugin_api) this is written for
 MOVES = {
     "i": (1, 0),
     "o": (1, -1),

@@ -56,6 +56,7 @@ from abh3_supervisor.plugin_api import (
 )
 
 log = logging.getLogger(__name__)
+ABH3_API_VERSION = "1.0"  # the plugin API (abh3_supervisor.plugin_api) this is written for
 MAX_COMMAND_TEXT = 256  # longer than any command of the language
 
 
