@@ -339,3 +339,34 @@ def test_the_demos_motion_runs_only_while_simulated() -> None:
     config = parse_config(real, "real.yaml")
     assert all(u.startup == () for u in config.units.values())  # the robot waits
     assert warnings(config) == []
+
+
+def test_robot_limits_beyond_what_the_wire_carries_are_no_limit() -> None:
+    real = UNITS.replace(
+        "interface: virtual, channel: t, simulate: true", "interface: socketcan, channel: can0"
+    )
+    fast = real + ONE_PER_DRIVE[len(UNITS) :].replace(
+        "    gear_ratio: 10\n",
+        "    gear_ratio: 50\n    limits: {linear_mps: 2.0, angular_radps: 4.0}\n",
+    )
+    said = warnings(parse_config(fast, "real.yaml"))
+    assert len(said) == 2 and all("has no speed limit" in w for w in said)
+
+
+def test_check_points_at_our_keys_and_takes_axis_and_side_in_any_case() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(ONE_PER_DRIVE.replace("gear_ratio: 10", "gear: 10"), "robot.yaml")
+    assert "robots[0].gear: unknown key; did you mean 'gear_ratio'?" in str(info.value)
+    assert "radius" not in str(info.value)  # never offered as allowed
+    lower = ONE_PER_DRIVE.replace(
+        "{unit: l, axis: A, side: left}", "{unit: l, axis: a, side: Left}"
+    )
+    assert parse_config(lower, "robot.yaml").robots["rover"].wheels[0].axis == 0
+    with pytest.raises(ConfigError) as info:
+        parse_config(
+            ONE_PER_DRIVE.replace(
+                "{unit: l, axis: A, side: left}", "{unit: x, axis: C, side: left}"
+            ),
+            "robot.yaml",
+        )
+    assert "'C' is not one of: A, B" in str(info.value) and "no unit named 'x'" in str(info.value)

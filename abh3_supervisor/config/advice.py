@@ -25,7 +25,8 @@ def warnings(config: Config) -> list[str]:
                 _where(config, ("units", index, "limits"))
                 + f"unit '{unit.name}' has no speed limit and {real}: a command may run its "
                 f"motors up to {VELOCITY.largest:g} min⁻¹; set its limits.velocity or its "
-                "robot's limits.linear_mps and angular_radps"
+                "robot's limits.linear_mps and angular_radps (low enough that its wheels' "
+                "motors stay below that)"
             )
         moving = [text for text in unit.startup if _moves(text)]
         if moving:
@@ -39,10 +40,17 @@ def warnings(config: Config) -> list[str]:
 
 
 def _limited(config: Config, unit: UnitConfig) -> bool:
+    """A limit below the wire's maximum binds every axis of the unit: its own, or the one
+    its robot's limits give each of its wheels (robot limits that allow more than the
+    wire can carry limit nothing)."""
     if unit.limits.velocity < VELOCITY.largest:
         return True
     robot = config.robot_of(unit.name)
-    return robot is not None and robot.fastest_wheel_mps() is not None
+    if robot is None:
+        return False
+    wheels = [w for w in robot.wheels if w.unit == unit.name]
+    limits = [robot.axis_limit(w) for w in wheels]
+    return bool(wheels) and all(x is not None and x < VELOCITY.largest for x in limits)
 
 
 def _moves(text: str) -> bool:

@@ -21,7 +21,7 @@ from abh3_supervisor.config.model import (
     VelocityModel,
     VerifyMode,
 )
-from abh3_supervisor.config.robots import RADIUS_KEYS, parse_robots, radius_keys
+from abh3_supervisor.config.robots import parse_robots, section
 from abh3_supervisor.config.simdrives import (
     TAU_MAX_MS,
     check_sim_units,
@@ -324,8 +324,7 @@ def _unit(u: Section, buses: dict[str, BusConfig]) -> UnitConfig | None:
         bus = ""
     d = UnitConfig(name=name, bus=bus)
     b = u.sub("broadcast", BROADCAST_KEYS)
-    g = u.sub("geometry", GEOMETRY_KEYS | RADIUS_KEYS)
-    radius_keys(g, "wheel")
+    g = section(u.src, (*u.path, "geometry"), u.data.get("geometry"), GEOMETRY_KEYS, "wheel")
     lim = u.sub("limits", LIMIT_KEYS)
     sel = u.sub("data_select", SELECT_KEYS)
     tel = u.sub("telabh3", TELABH3_KEYS)

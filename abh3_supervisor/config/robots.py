@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from abh3_supervisor.config.model import Role, UnitConfig
-from abh3_supervisor.config.source import Section
+from abh3_supervisor.config.source import Path, Section, Source
 from abh3_supervisor.core.robot import AXES, RobotConfig, RobotLimits, Side, Wheel
 
 ROBOT_KEYS = {
@@ -28,6 +28,37 @@ DIAMETER_MAX_M = 10.0
 FRAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_/")
 
 
+# keys users reach for, pointed at ours (difflib finds no match for these)
+SYNONYMS = {
+    "gear": "gear_ratio",
+    "ratio": "gear_ratio",
+    "reduction": "gear_ratio",
+    "diameter": "diameter_m",
+    "wheel": "diameter_m",
+    "track": "track_m",
+    "width": "track_m",
+    "wheelbase": "track_m",
+    "direction": "sign",
+    "mirrored": "sign",
+    "invert": "sign",
+}
+
+
+def section(src: Source, path: Path, data: Any, allowed: set[str], diameter: str) -> Section:
+    """A mapping checked against ``allowed``: a radius-like key points at ``diameter``, a
+    synonym at our key, each said once; the rest as every section's unknown keys."""
+    raw = Section(src, path, data, None)
+    radius_keys(raw, diameter)
+    for key in set(raw.data) & set(SYNONYMS) - allowed:
+        if SYNONYMS[key] in allowed:
+            raw.error(key, f"unknown key; did you mean '{SYNONYMS[key]}'?")
+    known = RADIUS_KEYS | {k for k in SYNONYMS if SYNONYMS[k] in allowed}
+    rest = {k: v for k, v in raw.data.items() if k in allowed or k not in known}
+    checked = Section(src, path, rest, allowed)
+    checked.data = raw.data  # values are read from the whole mapping
+    return checked
+
+
 def radius_keys(section: Section, diameter: str) -> None:
     """Point every radius-like key of ``section`` at the diameter key ``diameter``."""
     for key in RADIUS_KEYS & set(section.data):
@@ -47,13 +78,13 @@ def parse_robots(
     if raw is None:
         return {}
     if not isinstance(raw, list) or not raw:
-        top.error("robots", "expected a list of robots (each with name, track_m and wheels)")
+        empty = " (an empty one: drop `robots:`)" if raw == [] else ""
+        top.error("robots", f"expected a list of robots{empty}, each with name, track_m and wheels")
         return {}
     robots: dict[str, RobotConfig] = {}
     taken: dict[tuple[str, int], str] = {}  # (unit, axis) → the robot whose wheel it is
     for i, item in enumerate(raw):
-        r = Section(top.src, ("robots", i), item, ROBOT_KEYS | RADIUS_KEYS)
-        radius_keys(r, "diameter_m")
+        r = section(top.src, ("robots", i), item, ROBOT_KEYS, "diameter_m")
         robot = _robot(r, units, name_ok)
         if robot is None:
             continue
@@ -126,8 +157,7 @@ def _wheels(
     wheels: list[Wheel] = []
     for j, item in enumerate(raw):
         before = len(r.src.problems)
-        w = Section(r.src, (*r.path, "wheels", j), item, WHEEL_KEYS | RADIUS_KEYS)
-        radius_keys(w, "diameter_m")
+        w = section(r.src, (*r.path, "wheels", j), item, WHEEL_KEYS, "diameter_m")
         wheel = _wheel(w, units, defaults)
         if wheel is not None and len(r.src.problems) == before:
             wheels.append(wheel)
@@ -146,15 +176,23 @@ def _wheel(
         if not w.has(key):
             w.error(key, "missing: every wheel needs unit, axis (A or B) and side (left or right)")
             return None
-    unit = w.text("unit", "")
+    # A/B and left/right in any case: `axis: a` is no mistake worth stopping for
+    for key in ("axis", "side"):
+        if isinstance(w.data.get(key), str):
+            w.data[key] = w.data[key].upper() if key == "axis" else w.data[key].lower()
+    axis = w.choice("axis", "A", list(AXES))
+    side = w.choice("side", "left", [s.value for s in Side])
+    value = w.data.get("unit")
+    unit = value if isinstance(value, str) else ""
+    if not isinstance(value, str) or not value:
+        w.error("unit", f"expected a unit's name, got {value!r}")
+        return None
     if unit not in units:
         w.error("unit", f"no unit named {unit!r} (units: {', '.join(units) or 'none'})")
         return None
     if units[unit].role is not Role.COMMAND:
         w.error("unit", f"unit '{unit}' is role: monitor: it drives no wheel")
         return None
-    axis = w.choice("axis", "A", list(AXES))
-    side = w.choice("side", "left", [s.value for s in Side])
     sign = w.data.get("sign", 1)
     if sign not in (1, -1) or isinstance(sign, bool):
         w.error("sign", f"expected 1 (mounted forward) or -1 (mounted mirrored), got {sign!r}")

@@ -134,8 +134,11 @@ class KeyboardSource(InputSource):
             self._feed = feed
             log.info("keyboard: the terminal is %s's; it passes the teleop keys on", owner)
             return
-        fd = self.stream.fileno()
-        if not os.isatty(fd):
+        try:  # pytest's captured stdin, a pipe wrapper: no descriptor, no terminal
+            fd = self.stream.fileno()
+        except (OSError, ValueError):
+            fd = -1
+        if fd < 0 or not os.isatty(fd):
             log.warning("keyboard: standard input is not a terminal; teleop is off")
             return
         self._saved = termios.tcgetattr(fd)
