@@ -43,7 +43,7 @@ class FakeFeed:
     def velocity_yx(self, y: float, x: float) -> None:
         raise AssertionError("the joystick sends twists")
 
-    velocity = current = velocity_yx
+    velocity = current = velocity_ab = velocity_yx
 
     def release(self) -> None:
         self.sent.append(None)

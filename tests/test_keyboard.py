@@ -40,7 +40,7 @@ class Feed:
     def velocity_yx(self, y: float, x: float) -> None:
         raise AssertionError
 
-    velocity = current = velocity_yx
+    velocity = current = velocity_ab = velocity_yx
 
     def release(self) -> None:
         self.sent.append(None)
