@@ -310,6 +310,60 @@ def test_a_file_without_robots_commissions_each_units_one_drive_robot(
         assert robots[other].verdict is Verdict.PASS
 
 
+TWO_ROBOTS = BUS + (
+    "units:\n"
+    "  - {{name: a, abh3_id: 1, velocity_model: motor, limits: {{velocity: 3000}}}}\n"
+    '  - {{name: b, abh3_id: 3, protocol: "2023", velocity_model: motor,\n'
+    "     limits: {{velocity: 3000}}}}\n"
+    "robots:\n"
+    "  - name: one\n    track_m: 0.5\n    diameter_m: 0.15\n    gear_ratio: 10\n"
+    "    wheels: [{{unit: a, axis: A, side: left}}, {{unit: a, axis: B, side: right}}]\n"
+    "  - name: two\n    track_m: 0.5\n    diameter_m: 0.15\n    gear_ratio: 10\n"
+    "    wheels: [{{unit: b, axis: A, side: left}}, {{unit: b, axis: B, side: right}}]\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "robot", "other", "fixes"),
+    [
+        (
+            LEGACY.format(faults="{kind: swapped_drives, unit: front, other: rear}"),
+            "front",
+            "rear",
+            ["swap the abh3_id of units front and rear"],
+        ),
+        (
+            TWO_ROBOTS.format(faults="{kind: swapped_drives, unit: a, other: b}"),
+            "one",
+            "two",
+            [
+                "swap the abh3_id of units a and b",
+                "unit: a → b in robots.one.wheels and unit: b → a in robots.two.wheels",
+            ],
+        ),
+    ],
+)
+def test_drives_swapped_between_two_robots_are_reported_with_a_fix_check_accepts(
+    text: str, robot: str, other: str, fixes: list[str]
+) -> None:
+    """Each drive turned the other robot's wheels: the report is written (the robot's
+    page names the other robot's wheel) and the fix never puts one unit in two robots."""
+    bench = FakeBench(parse_config(text, "two.yaml"))
+    results, robots, _ = run(bench)
+    fails = failing(robots[robot])
+    assert len(fails) == 1 and fails[0][0].startswith("drives swapped"), fails
+    for fix in fixes:
+        assert fix in fails[0][1]
+    assert "swap unit: " not in fails[0][1]  # within one robot's wheels: check refuses it
+    session = Session("t", "now", "two.yaml", "", FAST, results, robots=robots)
+    wheels = {w["place"]: w["turned"] for w in to_json(session)["robots"][robot]["wheels"]}
+    assert wheels == {
+        "left": f"left of robot {other}, forward",
+        "right": f"right of robot {other}, forward",
+    }
+    assert f"left of robot {other}, forward" in html_text(session)
+
+
 # ---------------------------------------------------------------- protocol generation
 
 

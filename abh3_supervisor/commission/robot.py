@@ -33,6 +33,8 @@ class RobotResult:
     checks: list[Check] = field(default_factory=list)
     seen: dict[Place, Seen] = field(default_factory=dict)
     source: str = ""  # who told which wheel turned: "the simulated robot", "the operator"
+    # the other robots' wheel places a wheel of this one may have turned, by name
+    elsewhere: dict[Place, str] = field(default_factory=dict)
     ended: str | None = None
 
     @property
@@ -86,13 +88,13 @@ class RobotSequence:
         self.names = wheels.places(robot)
         # the other simulated robots: a drive may sit on one of their wheels (swapped)
         self.others: dict[str, RobotView] = {}
-        self.elsewhere: dict[Place, str] = {}
+        self.other_robots: list[RobotConfig] = []
         for other in self.sup.config.robots.values():
             view = bench.sim_robot(other.name)
             if other.name != robot.name and view is not None and self.view is not None:
                 self.others[other.name] = view
-                for place, name in wheels.places(other).items():
-                    self.elsewhere[place] = f"{name} of robot {other.name}"
+                self.other_robots.append(other)
+        self.result.elsewhere = wheels.elsewhere(robot, self.other_robots)
         self.jog = {
             u: settings.jog_speed(self.sup.units[u].cfg.limits.velocity) for u in robot.units
         }
@@ -154,7 +156,7 @@ class RobotSequence:
             return
         for w in r.wheels:
             self.result.seen[w.unit, w.axis] = await self._one_wheel(w)
-        found = wheels.judge_wheels(r, self.result.seen, self.elsewhere)
+        found = wheels.judge_wheels(r, self.result.seen, self.other_robots)
         for c in found:
             self._check(c)
         if any(c.verdict is Verdict.FAIL for c in found):

@@ -10,7 +10,7 @@ the file lists a side's wheels (:func:`places`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from abh3_supervisor.commission.model import AXES, Check, Verdict
@@ -48,6 +48,16 @@ def places(robot: RobotConfig) -> dict[Place, str]:
     return out
 
 
+def elsewhere(robot: RobotConfig, others: Sequence[RobotConfig]) -> dict[Place, str]:
+    """The other robots' wheel places, by name ("left of robot rear")."""
+    return {
+        place: f"{name} of robot {other.name}"
+        for other in others
+        if other.name != robot.name
+        for place, name in places(other).items()
+    }
+
+
 def _where(robot: RobotConfig) -> str:
     return "a robots: section" if robot.implicit else f"robots: {robot.name}"
 
@@ -73,14 +83,25 @@ def mirrored_fix(robot: RobotConfig, w: Wheel) -> str:
     )
 
 
-def swapped_drives_fix(robot: RobotConfig, u: str, v: str) -> str:
-    yaml = (
-        f"swap the abh3_id of units {u} and {v} in the YAML"
-        if robot.implicit
-        else f"in robots.{robot.name}.wheels swap unit: {u} and unit: {v} (or swap the two "
-        "units' abh3_id)"
-    )
+def swapped_drives_fix(robot: RobotConfig, u: str, v: str, other: RobotConfig | None) -> str:
+    """``other``: the robot ``v`` drives when it is not ``robot`` (a swap between robots)."""
+    if robot.implicit and (other is None or other.implicit):
+        yaml = f"swap the abh3_id of units {u} and {v} in the YAML"
+    elif other is None or other.name == robot.name:
+        yaml = (
+            f"in robots.{robot.name}.wheels swap unit: {u} and unit: {v} (or swap the two "
+            "units' abh3_id)"
+        )
+    else:  # one unit, one robot: a wheel list alone cannot take the other robot's unit
+        yaml = (
+            f"swap the abh3_id of units {u} and {v} in the YAML (or, in both robots' wheels, "
+            f"unit: {u} → {v} in {_wheels_of(robot)} and unit: {v} → {u} in {_wheels_of(other)})"
+        )
     return f"{yaml}, or swap the two drives' motor cables (with their encoders)"
+
+
+def _wheels_of(robot: RobotConfig) -> str:
+    return f"units.{robot.name}.geometry" if robot.implicit else f"robots.{robot.name}.wheels"
 
 
 def swapped_axes_fix(robot: RobotConfig, unit: str) -> str:
@@ -108,13 +129,14 @@ def _swapped_with(robot: RobotConfig, seen: dict[Place, Seen], u: str) -> str | 
 
 
 def judge_wheels(
-    robot: RobotConfig, seen: dict[Place, Seen], elsewhere: dict[Place, str] | None = None
+    robot: RobotConfig, seen: dict[Place, Seen], others: Sequence[RobotConfig] = ()
 ) -> list[Check]:
     """One check per wheel (a pass where it is as the file says) and one per fault found:
     drives swapped, A and B swapped with their encoders, a mirrored mounting.
-    ``elsewhere``: the names of other robots' wheel places a wheel may have turned (a
-    unit's drive on another one-drive robot's wheels: the two drives swapped)."""
-    names = {**(elsewhere or {}), **places(robot)}
+    ``others``: the other robots whose wheels a wheel may have turned (a unit's drive on
+    another robot's wheels: the two drives swapped)."""
+    names = {**elsewhere(robot, others), **places(robot)}
+    robot_of = {u: o for o in others if o.name != robot.name for u in o.units}
     checks: list[Check] = []
     explained: set[Place] = set()
     units = robot.units
@@ -127,14 +149,15 @@ def judge_wheels(
         pairs = [(w, (v, w.axis)) for w in robot.wheels if w.unit == u]
         pairs += [(w, (u, w.axis)) for w in robot.wheels if w.unit == v]
         turned = ", ".join(f"{w.name} turned {names[p]}" for w, p in pairs)
+        first, second = sorted((u, v), key=_order(units))
         checks.append(
             Check(
                 STEP,
-                f"drives swapped: {' ↔ '.join(sorted((u, v), key=_order(units)))}",
+                f"drives swapped: {first} ↔ {second}",
                 Verdict.FAIL,
                 turned,
                 "each unit turns its own wheels",
-                swapped_drives_fix(robot, *sorted((u, v), key=_order(units))),
+                swapped_drives_fix(robot, first, second, robot_of.get(v)),
             )
         )
         explained |= {(w.unit, w.axis) for w, _ in pairs}
