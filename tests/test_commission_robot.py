@@ -235,6 +235,24 @@ def test_each_robot_fault_is_named_with_its_fix_and_the_healthy_wheels_pass(
     assert_at_rest(bench)
 
 
+def test_a_and_b_swapped_on_a_drive_with_one_wheel_is_named_from_the_drives_own_feedback() -> None:
+    """Wheels on left.A and right.A; left's A and B swapped with their encoders: motor A
+    turns nothing (B is no wheel), yet its drive reports it turning — the axis swap."""
+    bench = bench_of("one wheel per drive", "{kind: swapped_axes_with_encoders, unit: left}")
+    results, robots, _ = run(bench)
+    assert all(r.verdict is Verdict.PASS for r in results.values())
+    robot = robots["robot"]
+    fails = failing(robot)
+    assert [n for n, _ in fails] == [
+        "A and B swapped with their encoders: left (wheel left.A (left) did not turn)"
+    ]
+    assert "axis: B for robots.robot.wheels[0] (left axis A)" in fails[0][1]
+    assert "encoder cables" in fails[0][1] and "coupled" in fails[0][1]
+    seen = robot.seen["left", 0]
+    assert seen.place is None and seen.motor_min == pytest.approx(FAST.jog_speed(3000), rel=0.1)
+    assert "wheel right.A (right)" in passed_wheels(robot)
+
+
 @pytest.mark.parametrize(
     ("fault", "name", "fix"),
     [
@@ -609,6 +627,27 @@ def test_a_wheel_that_did_not_turn_or_turned_another_is_named_with_its_keys() ->
     assert other.measured == "front-right turned"
     assert "unit: and axis: of the front-right wheel" in other.fix
     assert checks["wheel rear.A (rear-left)"].verdict is Verdict.PASS
+
+
+def test_a_still_wheel_whose_motor_turned_and_whose_twin_is_no_wheel_is_an_axis_swap() -> None:
+    robot = _robot("one wheel per drive")
+    seen = {(w.unit, w.axis): Seen((w.unit, w.axis), 1) for w in robot.wheels}
+    seen["right", 0] = Seen(None, 0)  # nobody watched the drive: a still wheel
+    assert [c.name for c in judge_wheels(robot, seen) if c.verdict is Verdict.FAIL] == [
+        "wheel right.A (right) did not turn"
+    ]
+    seen["right", 0] = Seen(None, 0, motor_min=150.0)
+    (check,) = [c for c in judge_wheels(robot, seen) if c.verdict is Verdict.FAIL]
+    assert check.name.startswith("A and B swapped with their encoders: right")
+    assert "reports motor A turning (+150 min⁻¹)" in check.measured
+    # on a drive whose other axis is a wheel too, a still wheel with its motor turning is
+    # not the swap (the twin would have turned): a wheel not coupled
+    skid = _robot("skid-steer on two drives")
+    seen = {(w.unit, w.axis): Seen((w.unit, w.axis), 1) for w in skid.wheels}
+    seen["rear", 0] = Seen(None, 0, motor_min=150.0)
+    (check,) = [c for c in judge_wheels(skid, seen) if c.verdict is Verdict.FAIL]
+    assert check.name == "wheel rear.A (rear-left) did not turn"
+    assert "although drive rear reports motor A turning" in check.measured
 
 
 def test_a_straight_run_off_by_a_factor_names_the_diameter_it_measured() -> None:

@@ -9,6 +9,7 @@ within its unit's jog speed; the commands lapse as the units' do (the same input
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from abh3_supervisor.scheduler.core import FeedbackEvent
 REFRESH_S = 0.05
 SETTLE_S = 0.5  # after a move, until the wheels stand
 TURNED = 0.2  # of the travel asked: a wheel that rolled less did not turn
+MOTOR_TURNED = 0.5  # of the speed asked, by its drive's feedback: the motor turned
 RUN_S = 1.5  # the straight run and the turn, each
 
 
@@ -95,6 +97,7 @@ class RobotSequence:
                 self.others[other.name] = view
                 self.other_robots.append(other)
         self.result.elsewhere = wheels.elsewhere(robot, self.other_robots)
+        self.peak: dict[Place, float] = {}  # each motor's fastest in the move, by feedback
         self.jog = {
             u: settings.jog_speed(self.sup.units[u].cfg.limits.velocity) for u in robot.units
         }
@@ -189,10 +192,16 @@ class RobotSequence:
         return lambda: self.bench.twist(unit, linear_x, angular_z)
 
     def _watch(self) -> None:
-        """A motor beyond twice its jog speed: every unit of the robot stopped at once."""
+        """A motor beyond twice its jog speed: every unit of the robot stopped at once.
+        Each motor's fastest by its drive's feedback is noted (:attr:`peak`)."""
         for unit in self.robot.units:
             fb = self.sup.units[unit].feedback
-            if fb is not None and max(abs(fb.vel_a), abs(fb.vel_b)) > 2 * self.jog[unit]:
+            if fb is None:
+                continue
+            for axis, vel in enumerate((fb.vel_a, fb.vel_b)):
+                if abs(vel) > abs(self.peak.get((unit, axis), 0.0)):
+                    self.peak[unit, axis] = vel
+            if max(abs(fb.vel_a), abs(fb.vel_b)) > 2 * self.jog[unit]:
                 for u in self.robot.units:
                     halt(self.bench, u)
                 raise Aborted(f"robot {self.robot.name}: unit {unit} beyond twice its jog speed")
@@ -200,10 +209,18 @@ class RobotSequence:
     async def _one_wheel(self, w: Wheel) -> Seen:
         place = (w.unit, w.axis)
         before = self._travel()
+        self.peak.clear()
         await self._move(self._wheel(w), self.settings.jog_s)
+        # the drive's own word on its motor: turning while no wheel does says where it is
+        asked, fastest = w.motor_speed(self.creep), self.peak.get(place, 0.0)
+        motor = (
+            fastest if fastest * asked > 0 and abs(fastest) >= MOTOR_TURNED * abs(asked) else None
+        )
         if self.view is not None:
-            return _turned(before, self._travel(), self.creep * self.settings.jog_s)
-        return await self._ask(w, place)
+            seen = _turned(before, self._travel(), self.creep * self.settings.jog_s)
+        else:
+            seen = await self._ask(w, place)
+        return dataclasses.replace(seen, motor_min=motor)
 
     def _travel(self) -> dict[Place, float]:
         """Every simulated wheel's travel: this robot's, then the others'."""

@@ -28,6 +28,9 @@ class Seen:
 
     place: Place | None
     direction: int
+    # the commanded motor's fastest by its drive's own feedback [min⁻¹] when it turned (at
+    # least half the speed asked); None: it did not, or nobody watched
+    motor_min: float | None = None
 
 
 def places(robot: RobotConfig) -> dict[Place, str]:
@@ -184,17 +187,7 @@ def judge_wheels(
         if place in explained:
             continue
         if s.place is None or s.direction == 0:
-            checks.append(
-                Check(
-                    STEP,
-                    f"{label} did not turn",
-                    Verdict.FAIL,
-                    "no wheel turned",
-                    f"{names[place]} forward",
-                    "is the wheel coupled (gearbox, brake) and free? the drive's other "
-                    f"checks passed; the wheel's unit: and axis: in {_where(robot)}",
-                )
-            )
+            checks.append(_still(robot, w, s, names[place]))
         elif s.place != place:
             checks.append(
                 Check(
@@ -221,6 +214,39 @@ def judge_wheels(
         else:
             checks.append(Check(STEP, label, Verdict.PASS, "turned, rolling the robot forward"))
     return checks
+
+
+def _still(robot: RobotConfig, w: Wheel, s: Seen, place: str) -> Check:
+    """A wheel that did not turn. Its drive's feedback may say its motor turned: then
+    the motor is not on that wheel — when the drive's other axis is no wheel of the
+    robot, A and B swapped with their encoders (the other motor is on this wheel, and
+    this one on nothing), or the wheel decoupled."""
+    label = f"wheel {w.name} ({place})"
+    turning = s.motor_min is not None
+    if not turning or robot.wheel(w.unit, 1 - w.axis) is not None:
+        spun = f" although drive {w.unit} reports motor {AXES[w.axis]} turning" if turning else ""
+        return Check(
+            STEP,
+            f"{label} did not turn",
+            Verdict.FAIL,
+            f"no wheel turned{spun}",
+            f"{place} forward",
+            "is the wheel coupled (gearbox, brake) and free? the drive's other "
+            f"checks passed; the wheel's unit: and axis: in {_where(robot)}",
+        )
+    other = AXES[1 - w.axis]
+    return Check(
+        STEP,
+        f"A and B swapped with their encoders: {w.unit} ({label} did not turn)",
+        Verdict.FAIL,
+        f"no wheel turned although drive {w.unit} reports motor {AXES[w.axis]} turning "
+        f"({s.motor_min:+.0f} min⁻¹); its axis {other} is no wheel of the robot, so its "
+        f"motor {other} is likely the one on this wheel",
+        f"{place} forward",
+        f"axis: {other} for {_wheel_key(robot, w)}, or swap motor A's and B's cables "
+        "together with their encoder cables; else the wheel is not coupled to its motor "
+        "(gearbox, key, brake)",
+    )
 
 
 def _order(units: tuple[str, ...]) -> Callable[[str], int]:
