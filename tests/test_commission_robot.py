@@ -275,6 +275,34 @@ def test_a_wrong_track_or_diameter_is_measured_with_its_fix(
     assert fix in fails[0][1]
 
 
+def test_a_wrong_diameter_on_one_side_is_named_by_the_straight_runs_curve() -> None:
+    """The right drive's wheels are 0.8 × the file's: the straight run curves; the side
+    and its unit are named, with a diameter_m per wheel of it (not a robot-wide mean),
+    and the track still passes (the turn corrected by each side's ratio)."""
+    text = (
+        BUS.format(faults="{kind: wrong_diameter, unit: rp, factor: 0.8}")
+        + "units:\n"
+        + UNIT.format(name="lp", id=1, gen="2021")
+        + UNIT.format(name="rp", id=3, gen="2023")
+        + "robots:\n  - name: robot\n    track_m: 0.5\n    diameter_m: 0.15\n"
+        + "    gear_ratio: 10\n    wheels:\n"
+        + "      - {unit: lp, axis: A, side: left}\n      - {unit: lp, axis: B, side: left}\n"
+        + "      - {unit: rp, axis: A, side: right}\n      - {unit: rp, axis: B, side: right}\n"
+    )
+    bench = FakeBench(parse_config(text, "sides.yaml"))
+    _, robots, _ = run(bench)
+    robot = robots["robot"]
+    fails = failing(robot)
+    assert [n for n, _ in fails] == ["wheel diameter off: right side (rp) -20%"], robot.checks
+    check = next(c for c in robot.checks if c.verdict is Verdict.FAIL)
+    assert "the straight run curved -" in check.measured
+    assert "diameter_m: 0.12 for robots.robot.wheels[2] (rp axis A)" in check.fix
+    assert "diameter_m: 0.12 for robots.robot.wheels[3] (rp axis B)" in check.fix
+    assert "wheels[0]" not in check.fix and "in robots: robot" not in check.fix
+    track = next(c for c in robot.checks if c.name.startswith("track"))
+    assert track.verdict is Verdict.PASS
+
+
 LEGACY = BUS + (
     "units:\n"
     "  - {{name: front, abh3_id: 1, velocity_model: motor, limits: {{velocity: 3000}},\n"

@@ -264,15 +264,19 @@ class RobotSequence:
         finally:
             self.sup.unsubscribe(odo)
 
-    async def _straight(self, odo: Odometer, run_s: float) -> float:
-        """The diameters' ratio found (true/file's); 1 when not measured."""
+    async def _straight(self, odo: Odometer, run_s: float) -> tuple[float, float]:
+        """Each side's diameters' ratio found (true/file's); 1 where not measured."""
         start = self.view.distance if self.view is not None else 0.0
+        heading = self.view.heading if self.view is not None else 0.0
         before = odo.sides()
         await self._move(self._twist(self.creep, 0.0), run_s)
         after = odo.sides()
-        expected = sum(a - b for a, b in zip(after, before, strict=True)) / 2
+        sides = (after[0] - before[0], after[1] - before[1])
+        expected = sum(sides) / 2
+        drift: float | None = None
         if self.view is not None:
             measured: float | None = self.view.distance - start
+            drift = self.view.heading - heading
         else:
             measured = await self.op.measure(
                 f"robot {self.robot.name}: how far did it go, in metres (the file's wheels "
@@ -280,17 +284,26 @@ class RobotSequence:
             )
         if measured is None:
             self._skip("wheel diameter (straight run)", "not measured: the operator skipped it")
-            return 1.0
+            return 1.0, 1.0
+        curved = None if drift is None else wheels.judge_sides(self.robot, sides, measured, drift)
+        if curved is not None:
+            self._check(curved)
+            half = drift * self.robot.track_m / 2 if drift is not None else 0.0
+            return (
+                (measured - half) / sides[0] if sides[0] else 1.0,
+                (measured + half) / sides[1] if sides[1] else 1.0,
+            )
         check = wheels.judge_diameter(self.robot, expected, measured)
         self._check(check)
-        return measured / expected if expected and check.verdict is Verdict.FAIL else 1.0
+        ratio = measured / expected if expected and check.verdict is Verdict.FAIL else 1.0
+        return ratio, ratio
 
-    async def _turn(self, odo: Odometer, run_s: float, ratio: float) -> None:
+    async def _turn(self, odo: Odometer, run_s: float, ratio: tuple[float, float]) -> None:
         start = self.view.heading if self.view is not None else 0.0
         before = odo.sides()
         await self._move(self._twist(0.0, 2 * self.creep / self.robot.track_m), run_s)
         after = odo.sides()
-        left, right = (ratio * (a - b) for a, b in zip(after, before, strict=True))
+        left, right = (k * (a - b) for k, a, b in zip(ratio, after, before, strict=True))
         expected = (right - left) / self.robot.track_m
         if self.view is not None:
             measured: float | None = self.view.heading - start

@@ -259,7 +259,7 @@ def judge_diameter(robot: RobotConfig, expected_m: float, measured_m: float) -> 
     one measured. Their ratio is the diameters' (every wheel alike)."""
     ratio = measured_m / expected_m if expected_m else math.nan
     diameter = robot.wheels[0].diameter_m
-    measured = f"{measured_m:.3f} m measured, {expected_m:.3f} m by the file's wheels"
+    measured = f"ran {measured_m:.3f} m measured, {expected_m:.3f} m by the file's wheels"
     if not math.isfinite(ratio) or abs(ratio - 1) <= GEOMETRY_TOLERANCE:
         verdict = Verdict.PASS if math.isfinite(ratio) else Verdict.FAIL
         return Check(STEP, "wheel diameter (straight run)", verdict, measured, "±5 %")
@@ -277,6 +277,62 @@ def judge_diameter(robot: RobotConfig, expected_m: float, measured_m: float) -> 
         f"{key}; a diameter, not a radius — or a gear_ratio that is not the motor's revs "
         "per wheel rev",
     )
+
+
+def judge_sides(
+    robot: RobotConfig,
+    expected: tuple[float, float],
+    measured_m: float,
+    drift_rad: float,
+) -> Check | None:
+    """A straight run that curved: each side's true travel from the distance and the
+    heading it turned by (the file's track), against what its encoders and diameters
+    give (``expected``: left, right). None when both sides agree within the tolerance
+    (the diameters, if off, are off alike: :func:`judge_diameter`)."""
+    half = drift_rad * robot.track_m / 2
+    true = (measured_m - half, measured_m + half)
+    ratios = [t / e if e else math.nan for t, e in zip(true, expected, strict=True)]
+    if not all(map(math.isfinite, ratios)) or abs(ratios[0] - ratios[1]) <= GEOMETRY_TOLERANCE:
+        return None
+    both = list(zip((Side.LEFT, Side.RIGHT), ratios, strict=True))
+    off = [(side, r) for side, r in both if abs(r - 1) > GEOMETRY_TOLERANCE] or [
+        max(both, key=lambda s: abs(s[1] - 1))
+    ]
+    named = " and ".join(
+        f"{side.value} side ({', '.join(_units_of(robot, side))}) {100 * (ratio - 1):+.0f}%"
+        for side, ratio in off
+    )
+    fixes = [
+        _diameter_fix(robot, w, ratio)
+        for side, ratio in off
+        for w in robot.wheels
+        if w.side is side
+    ]
+    return Check(
+        STEP,
+        f"wheel diameter off: {named}",
+        Verdict.FAIL,
+        f"the straight run curved {math.degrees(drift_rad):+.1f}°: left side rolled "
+        f"{true[0]:.3f} m, right {true[1]:.3f} m; the file's wheels say {expected[0]:.3f} m, "
+        f"{expected[1]:.3f} m",
+        "±5 %, both sides alike",
+        "; ".join(fixes) + " — a diameter, not a radius; or a gear_ratio that is not the "
+        "motor's revs per wheel rev",
+    )
+
+
+def _units_of(robot: RobotConfig, side: Side) -> list[str]:
+    return list(dict.fromkeys(w.unit for w in robot.wheels if w.side is side))
+
+
+def _diameter_fix(robot: RobotConfig, w: Wheel, ratio: float) -> str:
+    value = f"diameter_m: {w.diameter_m * ratio:.4g}"
+    if robot.implicit:
+        return (
+            f"describe the robot in a robots: section with {value} for unit {w.unit} axis "
+            f"{AXES[w.axis]} (units.{w.unit}.geometry.wheel is both wheels'; docs/robots.md)"
+        )
+    return f"{value} for {_wheel_key(robot, w)} (it is {w.diameter_m:g})"
 
 
 def judge_track(robot: RobotConfig, expected_rad: float, measured_rad: float) -> Check:
