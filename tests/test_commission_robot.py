@@ -410,6 +410,28 @@ def test_drives_swapped_between_two_robots_are_reported_with_a_fix_check_accepts
     assert f"left of robot {other}, forward" in html_text(session)
 
 
+def test_the_per_motor_scale_is_held_against_the_robots_wheels_pulses_per_rev() -> None:
+    """Both motors of a drive count 1.2 × (so A = B): the wheels' pulses_per_rev (the
+    robot's, 4096) catches it, and the advice names the robot's keys, not geometry."""
+    faults = "{kind: scale, unit: rear, axis: A, factor: 1.2}, "
+    faults += "{kind: scale, unit: rear, axis: B, factor: 1.2}"
+    results, robots, _ = run(bench_of("skid-steer on two drives", faults))
+    assert results["front"].verdict is Verdict.PASS
+    fails = [c for c in results["rear"].checks if c.verdict is Verdict.FAIL]
+    assert [c.name for c in fails] == [
+        "gear/geometry scale of motor A off by +20%",
+        "gear/geometry scale of motor B off by +20%",
+    ]
+    assert fails[0].limit == "4096 ±5% pulses/rev"
+    assert (
+        "pulses_per_rev: 49" in fails[0].fix
+        and "for robots.robot.wheels[2] (rear.A)" in fails[0].fix
+    )
+    assert "robots.robot.pulses_per_rev for every wheel" in fails[0].fix
+    assert "geometry" not in fails[0].fix
+    assert robots["robot"].checks[0].verdict is Verdict.SKIPPED
+
+
 # ---------------------------------------------------------------- protocol generation
 
 
