@@ -432,6 +432,42 @@ def test_the_per_motor_scale_is_held_against_the_robots_wheels_pulses_per_rev() 
     assert robots["robot"].checks[0].verdict is Verdict.SKIPPED
 
 
+def test_drives_swapped_and_a_mirrored_wheel_are_both_named() -> None:
+    faults = "{kind: swapped_drives, unit: front, other: rear}, "
+    faults += "{kind: mirrored_wheel, unit: rear, axis: B}"
+    _, robots, _ = run(bench_of("skid-steer on two drives", faults))
+    fails = failing(robots["robot"])
+    assert [n for n, _ in fails] == [
+        "drives swapped: front ↔ rear",
+        "mirrored wheel at front-right (besides the swap)",
+    ]
+    assert "a fault behind the swap shows once it is fixed" in fails[0][1]
+
+
+def test_drives_swapped_on_a_robot_with_unequal_sides_is_one_fault() -> None:
+    """Two left wheels on l (A, B), one right wheel on r.A: swapped, l's B turns nothing
+    (r has no B wheel) — still the drives swapped, not three wheels' faults."""
+    text = (
+        BUS.format(faults="{kind: swapped_drives, unit: l, other: r}")
+        + "units:\n"
+        + UNIT.format(name="l", id=1, gen="2021")
+        + UNIT.format(name="r", id=3, gen="2023")
+        + "robots:\n  - name: robot\n    track_m: 0.5\n    diameter_m: 0.15\n"
+        + "    gear_ratio: 10\n    wheels:\n"
+        + "      - {unit: l, axis: A, side: left}\n      - {unit: l, axis: B, side: left}\n"
+        + "      - {unit: r, axis: A, side: right}\n"
+    )
+    _, robots, _ = run(FakeBench(parse_config(text, "unequal.yaml")))
+    robot = robots["robot"]
+    assert [c.name for c in robot.checks if c.verdict is Verdict.FAIL] == ["drives swapped: l ↔ r"]
+    check = robot.checks[0]
+    assert (
+        "l.A turned right" in check.measured
+        and "l.B turned none (r has no wheel on axis B)" in (check.measured)
+    )
+    assert "r.A turned front-left" in check.measured
+
+
 # ---------------------------------------------------------------- protocol generation
 
 

@@ -118,16 +118,21 @@ def swapped_axes_fix(robot: RobotConfig, unit: str) -> str:
     return f"{yaml}, or swap motor A's and B's cables together with their encoder cables"
 
 
-def _swapped_with(robot: RobotConfig, seen: dict[Place, Seen], u: str) -> str | None:
-    """The unit whose wheels (axis for axis) ``u``'s wheels all turned, if another."""
+def _swapped_with(
+    robot: RobotConfig, seen: dict[Place, Seen], u: str, has: Callable[[Place], bool]
+) -> str | None:
+    """The unit whose wheels (axis for axis) ``u``'s wheels turned, if another: each
+    turned that unit's wheel on its own axis, or nothing where that unit has no wheel
+    on it (``has``: is there a wheel at a place, of this robot or another)."""
     mine = [w for w in robot.wheels if w.unit == u]
     turned = [seen[w.unit, w.axis].place for w in mine]
     others = {p[0] for p in turned if p is not None}
-    if None in turned or len(others) != 1 or u in others:
+    if len(others) != 1 or u in others:
         return None
     v = others.pop()
-    if any(p != (v, w.axis) for w, p in zip(mine, turned, strict=True)):
-        return None
+    for w, p in zip(mine, turned, strict=True):
+        if p != (v, w.axis) and not (p is None and not has((v, w.axis))):
+            return None
     return v
 
 
@@ -143,15 +148,25 @@ def judge_wheels(
     checks: list[Check] = []
     explained: set[Place] = set()
     units = robot.units
+
+    def has(place: Place) -> bool:
+        return place in names
+
     for u in units:
-        v = _swapped_with(robot, seen, u)
+        v = _swapped_with(robot, seen, u, has)
         if v is None or (
-            v in units and (_swapped_with(robot, seen, v) != u or units.index(v) < units.index(u))
+            v in units
+            and (_swapped_with(robot, seen, v, has) != u or units.index(v) < units.index(u))
         ):
             continue  # not swapped, or named from the other unit's side
-        pairs = [(w, (v, w.axis)) for w in robot.wheels if w.unit == u]
-        pairs += [(w, (u, w.axis)) for w in robot.wheels if w.unit == v]
-        turned = ", ".join(f"{w.name} turned {names[p]}" for w, p in pairs)
+        pairs = [(w, seen[w.unit, w.axis]) for w in robot.wheels if w.unit in (u, v)]
+        turned = ", ".join(
+            f"{w.name} turned {names[s.place]}"
+            if s.place is not None
+            else f"{w.name} turned none ({u if w.unit == v else v} has no wheel on axis "
+            f"{AXES[w.axis]})"
+            for w, s in pairs
+        )
         first, second = sorted((u, v), key=_order(units))
         checks.append(
             Check(
@@ -160,9 +175,24 @@ def judge_wheels(
                 Verdict.FAIL,
                 turned,
                 "each unit turns its own wheels",
-                swapped_drives_fix(robot, first, second, robot_of.get(v)),
+                swapped_drives_fix(robot, first, second, robot_of.get(v))
+                + "; then commission again: a fault behind the swap shows once it is fixed",
             )
         )
+        # a wheel that also rolled backwards: mirrored besides (its place's wheel)
+        for w, s in pairs:
+            if s.place is not None and s.direction < 0:
+                checks.append(
+                    Check(
+                        STEP,
+                        f"mirrored wheel at {names[s.place]} (besides the swap)",
+                        Verdict.FAIL,
+                        f"turned by {w.name}, it rolled the robot backwards when asked forwards",
+                        "forward",
+                        "once the drives are swapped back, commission again: the sign: of "
+                        f"the {names[s.place]} wheel, or its axis's direction in the drive",
+                    )
+                )
         explained |= {(w.unit, w.axis) for w, _ in pairs}
     for u in units:
         a, b = robot.wheel(u, 0), robot.wheel(u, 1)
