@@ -17,7 +17,7 @@ from typing import cast
 import pytest
 
 from abh3_supervisor.clients.cli import main
-from abh3_supervisor.clients.commission import LiveBench, TerminalOperator
+from abh3_supervisor.clients.commission import LiveBench, TerminalOperator, _summary, _units
 from abh3_supervisor.commission.model import Settings, Verdict
 from abh3_supervisor.commission.report import Session, html_text, to_json
 from abh3_supervisor.commission.robot import RobotResult
@@ -32,6 +32,7 @@ from abh3_supervisor.commission.wheels import (
 )
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.simulator.robot import SimRobot
 from tests.commission_bench import FakeBench, Headless
 
@@ -489,6 +490,41 @@ def test_a_wrong_protocol_is_named_at_identity_and_nothing_of_that_drive_moves(
         assert results[name].verdict is Verdict.PASS
     # the robot step needs every drive of the robot: not run, and said so
     assert robots["robot"].checks[0].verdict is Verdict.SKIPPED
+    assert robots["robot"].verdict is Verdict.SKIPPED  # "not run", not a warning
+    assert robots["robot"].ended == f"not run: unit {unit} did not pass its own steps"
+
+
+def test_a_robot_with_a_unit_not_commissioned_is_not_run_and_says_which() -> None:
+    bench = bench_of("skid-steer on two drives")
+    results: dict[str, UnitResult] = {}
+    robots: dict[str, RobotResult] = {}
+    said: list[str] = []
+    op = Headless(bench)
+    op.say = said.append  # type: ignore[method-assign,assignment]
+    asyncio.run(commission(bench, op, ["front"], FAST, results, None, robots))
+    robot = robots["robot"]
+    assert robot.verdict is Verdict.SKIPPED and robot.ended == "not run: rear not commissioned"
+    assert "robot robot: not run: rear not commissioned" in said
+    assert bench.drive("rear").revs == [0.0, 0.0]
+
+
+def test_a_robots_name_stands_for_its_units_and_an_unknown_name_lists_the_robots() -> None:
+    config = parse_config(config_text("skid-steer on two drives"), "robot.yaml")
+    assert _units(config, ["robot"]) == ["front", "rear"]
+    assert _units(config, ["rear", "robot"]) == ["rear", "front"]
+    with pytest.raises(ConfigError) as err:
+        _units(config, ["rover"])
+    assert "no unit or robot named 'rover' (units: front, rear; robots: robot)" in str(err.value)
+
+
+def test_the_summary_puts_why_the_rest_was_not_run_after_the_wheel_that_failed(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    bench = bench_of("skid-steer on two drives", "{kind: mirrored_wheel, unit: rear, axis: B}")
+    results, robots, _ = run(bench)
+    _summary(Session("t", "now", "robot.yaml", "", FAST, results, robots=robots))
+    out = capsys.readouterr().out
+    assert out.index("mirrored wheel rear.B") < out.index("fix the wheels above first")
 
 
 # ---------------------------------------------------------------- the operator's keys

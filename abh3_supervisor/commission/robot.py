@@ -38,10 +38,11 @@ class RobotResult:
     # the other robots' wheel places a wheel of this one may have turned, by name
     elsewhere: dict[Place, str] = field(default_factory=dict)
     ended: str | None = None
+    not_run: bool = False  # never began: a unit of it failed or was not commissioned
 
     @property
     def verdict(self) -> Verdict:
-        return overall(self.checks)
+        return Verdict.SKIPPED if self.not_run else overall(self.checks)
 
 
 class Odometer:

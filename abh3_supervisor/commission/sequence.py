@@ -337,22 +337,22 @@ async def _robots(
     robots: dict[str, RobotResult],
 ) -> None:
     for robot in bench.sup.config.robots.values():
-        if not set(robot.units) <= set(units):
-            continue  # a robot not commissioned here
+        if not set(robot.units) & set(units):
+            continue  # none of its units commissioned here: not asked for
+        missing = [u for u in robot.units if u not in units]
+        failed = [u for u in robot.units if u in units and not _moved_well(results[u])]
         sequence = RobotSequence(bench, operator, robot, settings)
         robots[robot.name] = sequence.result
-        failed = [u for u in robot.units if not _moved_well(results[u])]
-        if failed:
-            sequence.result.checks.append(
-                Check(
-                    "robot",
-                    "not run",
-                    Verdict.SKIPPED,
-                    f"unit {', '.join(failed)} did not pass its own steps",
-                )
+        if missing or failed:
+            why = (
+                f"{', '.join(missing)} not commissioned"
+                if missing
+                else f"unit {', '.join(failed)} did not pass its own steps"
             )
-            sequence.result.ended = "not run: its units' own steps did not pass"
-            operator.say(f"robot {robot.name}: not run: unit {', '.join(failed)} did not pass")
+            sequence.result.checks.append(Check("robot", "not run", Verdict.SKIPPED, why))
+            sequence.result.ended = f"not run: {why}"
+            sequence.result.not_run = True
+            operator.say(f"robot {robot.name}: not run: {why}")
             continue
         await sequence.run()
 
