@@ -152,7 +152,7 @@ def _units(config: Config, named: Sequence[str]) -> list[str]:
     name stands for its units."""
     out: list[str] = []
     unknown = []
-    for name in named:
+    for name in dict.fromkeys(named):  # each once
         robot = config.robots.get(name) if name not in config.units else None
         if name in config.units:
             out.append(name)
