@@ -445,6 +445,24 @@ def test_drives_swapped_and_a_mirrored_wheel_are_both_named() -> None:
     assert "a fault behind the swap shows once it is fixed" in fails[0][1]
 
 
+def test_drives_swapped_between_sides_mounted_opposite_is_the_swap_alone() -> None:
+    """Left wheels sign 1, right ones -1 (mirror-mounted): a left drive on the right
+    wheels rolls them backwards by their mounting, not as a mirrored wheel."""
+    text = (
+        BUS.format(faults="{kind: swapped_drives, unit: lp, other: rp}")
+        + "units:\n"
+        + UNIT.format(name="lp", id=1, gen="2021")
+        + UNIT.format(name="rp", id=3, gen="2023")
+        + "robots:\n  - name: robot\n    track_m: 0.5\n    diameter_m: 0.15\n"
+        + "    gear_ratio: 10\n    wheels:\n"
+        + "      - {unit: lp, axis: A, side: left}\n      - {unit: lp, axis: B, side: left}\n"
+        + "      - {unit: rp, axis: A, side: right, sign: -1}\n"
+        + "      - {unit: rp, axis: B, side: right, sign: -1}\n"
+    )
+    _, robots, _ = run(FakeBench(parse_config(text, "sides.yaml")))
+    assert [n for n, _ in failing(robots["robot"])] == ["drives swapped: lp ↔ rp"]
+
+
 def test_drives_swapped_on_a_robot_with_unequal_sides_is_one_fault() -> None:
     """Two left wheels on l (A, B), one right wheel on r.A: swapped, l's B turns nothing
     (r has no B wheel) — still the drives swapped, not three wheels' faults."""

@@ -145,6 +145,7 @@ def judge_wheels(
     another robot's wheels: the two drives swapped)."""
     names = {**elsewhere(robot, others), **places(robot)}
     robot_of = {u: o for o in others if o.name != robot.name for u in o.units}
+    signs = {(w.unit, w.axis): w.sign for r in (*others, robot) for w in r.wheels}
     checks: list[Check] = []
     explained: set[Place] = set()
     units = robot.units
@@ -179,9 +180,10 @@ def judge_wheels(
                 + "; then commission again: a fault behind the swap shows once it is fixed",
             )
         )
-        # a wheel that also rolled backwards: mirrored besides (its place's wheel)
+        # a wheel that rolled the other way than its own mounting and the commanded
+        # wheel's make it: mirrored besides (the wheel at its place)
         for w, s in pairs:
-            if s.place is not None and s.direction < 0:
+            if s.place is not None and s.direction and s.direction != w.sign * signs[s.place]:
                 checks.append(
                     Check(
                         STEP,
@@ -275,7 +277,13 @@ def _still(robot: RobotConfig, w: Wheel, s: Seen, place: str) -> Check:
         f"{place} forward",
         f"axis: {other} for {_wheel_key(robot, w)}, or swap motor A's and B's cables "
         "together with their encoder cables; else the wheel is not coupled to its motor "
-        "(gearbox, key, brake)",
+        "(gearbox, key, brake)"
+        + "".join(
+            f"; or the drives of {w.unit} and {v} swapped, if {v}'s wheel stood still too "
+            "(their abh3_id, or the cables)"
+            for v in robot.units
+            if v != w.unit and robot.wheel(v, w.axis) is None
+        ),
     )
 
 
