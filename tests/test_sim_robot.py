@@ -225,6 +225,11 @@ robots:
             "unit: unit 'watch' is a monitor",
             "",
         ),
+        (
+            "{kind: mirrored_wheel, unit: l, axis: A, at_s: 5}",
+            "at_s: does not apply to kind mirrored_wheel: how it is built, for ever",
+            "",
+        ),
     ],
 )
 def test_a_robot_fault_that_cannot_be_is_a_file_line_error(

@@ -37,6 +37,17 @@ REQUIRED = {k: KIND_KEYS[k] for k in AXIS_KINDS} | {
     FaultKind.WRONG_TRACK: {"factor"},
     FaultKind.WRONG_DIAMETER: {"factor"},
 }
+# how the robot or the drive is built: the simulator builds them once, untimed
+BUILT_KINDS = frozenset(
+    {
+        FaultKind.MIRRORED_WHEEL,
+        FaultKind.SWAPPED_DRIVES,
+        FaultKind.SWAPPED_AXES_WITH_ENCODERS,
+        FaultKind.WRONG_PROTOCOL,
+        FaultKind.WRONG_TRACK,
+        FaultKind.WRONG_DIAMETER,
+    }
+)
 AXES = ("A", "B")
 MAX_S = 7 * 86400.0
 
@@ -65,6 +76,9 @@ def parse_faults(sim: Section) -> tuple[Fault, ...]:
             if f.has(key):
                 f.error(key, f"does not apply to kind {kind.value}")
         wiring = kind in WIRING_KINDS  # from the start, for ever, unless timed
+        for key in ("at_s", "for_s") if kind in BUILT_KINDS else ():
+            if f.has(key):
+                f.error(key, f"does not apply to kind {kind.value}: how it is built, for ever")
         for key in ("at_s", "for_s") if not wiring else ():
             if not f.has(key):
                 f.error(key, "missing: when the fault starts and how long it lasts [s]")
