@@ -17,7 +17,7 @@ from typing import cast
 import pytest
 
 from abh3_supervisor.clients.cli import main
-from abh3_supervisor.clients.commission import LiveBench, TerminalOperator
+from abh3_supervisor.clients.commission import LiveBench, TerminalOperator, _summary, _units
 from abh3_supervisor.commission.model import Settings, Verdict
 from abh3_supervisor.commission.report import Session, html_text, to_json
 from abh3_supervisor.commission.robot import RobotResult
@@ -32,6 +32,7 @@ from abh3_supervisor.commission.wheels import (
 )
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.simulator.robot import SimRobot
 from tests.commission_bench import FakeBench, Headless
 
@@ -235,6 +236,24 @@ def test_each_robot_fault_is_named_with_its_fix_and_the_healthy_wheels_pass(
     assert_at_rest(bench)
 
 
+def test_a_and_b_swapped_on_a_drive_with_one_wheel_is_named_from_the_drives_own_feedback() -> None:
+    """Wheels on left.A and right.A; left's A and B swapped with their encoders: motor A
+    turns nothing (B is no wheel), yet its drive reports it turning — the axis swap."""
+    bench = bench_of("one wheel per drive", "{kind: swapped_axes_with_encoders, unit: left}")
+    results, robots, _ = run(bench)
+    assert all(r.verdict is Verdict.PASS for r in results.values())
+    robot = robots["robot"]
+    fails = failing(robot)
+    assert [n for n, _ in fails] == [
+        "A and B swapped with their encoders: left (wheel left.A (left) did not turn)"
+    ]
+    assert "axis: B for robots.robot.wheels[0] (left axis A)" in fails[0][1]
+    assert "encoder cables" in fails[0][1] and "coupled" in fails[0][1]
+    seen = robot.seen["left", 0]
+    assert seen.place is None and seen.motor_min == pytest.approx(FAST.jog_speed(3000), rel=0.1)
+    assert "wheel right.A (right)" in passed_wheels(robot)
+
+
 @pytest.mark.parametrize(
     ("fault", "name", "fix"),
     [
@@ -255,6 +274,34 @@ def test_a_wrong_track_or_diameter_is_measured_with_its_fix(
     fails = failing(robots["robot"])
     assert [n for n, _ in fails] == [name]
     assert fix in fails[0][1]
+
+
+def test_a_wrong_diameter_on_one_side_is_named_by_the_straight_runs_curve() -> None:
+    """The right drive's wheels are 0.8 × the file's: the straight run curves; the side
+    and its unit are named, with a diameter_m per wheel of it (not a robot-wide mean),
+    and the track still passes (the turn corrected by each side's ratio)."""
+    text = (
+        BUS.format(faults="{kind: wrong_diameter, unit: rp, factor: 0.8}")
+        + "units:\n"
+        + UNIT.format(name="lp", id=1, gen="2021")
+        + UNIT.format(name="rp", id=3, gen="2023")
+        + "robots:\n  - name: robot\n    track_m: 0.5\n    diameter_m: 0.15\n"
+        + "    gear_ratio: 10\n    wheels:\n"
+        + "      - {unit: lp, axis: A, side: left}\n      - {unit: lp, axis: B, side: left}\n"
+        + "      - {unit: rp, axis: A, side: right}\n      - {unit: rp, axis: B, side: right}\n"
+    )
+    bench = FakeBench(parse_config(text, "sides.yaml"))
+    _, robots, _ = run(bench)
+    robot = robots["robot"]
+    fails = failing(robot)
+    assert [n for n, _ in fails] == ["wheel diameter off: right side (rp) -20%"], robot.checks
+    check = next(c for c in robot.checks if c.verdict is Verdict.FAIL)
+    assert "the straight run curved -" in check.measured
+    assert "diameter_m: 0.12 for robots.robot.wheels[2] (rp axis A)" in check.fix
+    assert "diameter_m: 0.12 for robots.robot.wheels[3] (rp axis B)" in check.fix
+    assert "wheels[0]" not in check.fix and "in robots: robot" not in check.fix
+    track = next(c for c in robot.checks if c.name.startswith("track"))
+    assert track.verdict is Verdict.PASS
 
 
 LEGACY = BUS + (
@@ -310,6 +357,136 @@ def test_a_file_without_robots_commissions_each_units_one_drive_robot(
         assert robots[other].verdict is Verdict.PASS
 
 
+TWO_ROBOTS = BUS + (
+    "units:\n"
+    "  - {{name: a, abh3_id: 1, velocity_model: motor, limits: {{velocity: 3000}}}}\n"
+    '  - {{name: b, abh3_id: 3, protocol: "2023", velocity_model: motor,\n'
+    "     limits: {{velocity: 3000}}}}\n"
+    "robots:\n"
+    "  - name: one\n    track_m: 0.5\n    diameter_m: 0.15\n    gear_ratio: 10\n"
+    "    wheels: [{{unit: a, axis: A, side: left}}, {{unit: a, axis: B, side: right}}]\n"
+    "  - name: two\n    track_m: 0.5\n    diameter_m: 0.15\n    gear_ratio: 10\n"
+    "    wheels: [{{unit: b, axis: A, side: left}}, {{unit: b, axis: B, side: right}}]\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "robot", "other", "fixes"),
+    [
+        (
+            LEGACY.format(faults="{kind: swapped_drives, unit: front, other: rear}"),
+            "front",
+            "rear",
+            ["swap the abh3_id of units front and rear"],
+        ),
+        (
+            TWO_ROBOTS.format(faults="{kind: swapped_drives, unit: a, other: b}"),
+            "one",
+            "two",
+            [
+                "swap the abh3_id of units a and b",
+                "unit: a → b in robots.one.wheels and unit: b → a in robots.two.wheels",
+            ],
+        ),
+    ],
+)
+def test_drives_swapped_between_two_robots_are_reported_with_a_fix_check_accepts(
+    text: str, robot: str, other: str, fixes: list[str]
+) -> None:
+    """Each drive turned the other robot's wheels: the report is written (the robot's
+    page names the other robot's wheel) and the fix never puts one unit in two robots."""
+    bench = FakeBench(parse_config(text, "two.yaml"))
+    results, robots, _ = run(bench)
+    fails = failing(robots[robot])
+    assert len(fails) == 1 and fails[0][0].startswith("drives swapped"), fails
+    for fix in fixes:
+        assert fix in fails[0][1]
+    assert "swap unit: " not in fails[0][1]  # within one robot's wheels: check refuses it
+    session = Session("t", "now", "two.yaml", "", FAST, results, robots=robots)
+    wheels = {w["place"]: w["turned"] for w in to_json(session)["robots"][robot]["wheels"]}
+    assert wheels == {
+        "left": f"left of robot {other}, forward",
+        "right": f"right of robot {other}, forward",
+    }
+    assert f"left of robot {other}, forward" in html_text(session)
+
+
+def test_the_per_motor_scale_is_held_against_the_robots_wheels_pulses_per_rev() -> None:
+    """Both motors of a drive count 1.2 × (so A = B): the wheels' pulses_per_rev (the
+    robot's, 4096) catches it, and the advice names the robot's keys, not geometry."""
+    faults = "{kind: scale, unit: rear, axis: A, factor: 1.2}, "
+    faults += "{kind: scale, unit: rear, axis: B, factor: 1.2}"
+    results, robots, _ = run(bench_of("skid-steer on two drives", faults))
+    assert results["front"].verdict is Verdict.PASS
+    fails = [c for c in results["rear"].checks if c.verdict is Verdict.FAIL]
+    assert [c.name for c in fails] == [
+        "gear/geometry scale of motor A off by +20%",
+        "gear/geometry scale of motor B off by +20%",
+    ]
+    assert fails[0].limit == "4096 ±5% pulses/rev"
+    assert (
+        "pulses_per_rev: 49" in fails[0].fix
+        and "for robots.robot.wheels[2] (rear.A)" in fails[0].fix
+    )
+    assert "robots.robot.pulses_per_rev for every wheel" in fails[0].fix
+    assert "geometry" not in fails[0].fix
+    assert robots["robot"].checks[0].verdict is Verdict.SKIPPED
+
+
+def test_drives_swapped_and_a_mirrored_wheel_are_both_named() -> None:
+    faults = "{kind: swapped_drives, unit: front, other: rear}, "
+    faults += "{kind: mirrored_wheel, unit: rear, axis: B}"
+    _, robots, _ = run(bench_of("skid-steer on two drives", faults))
+    fails = failing(robots["robot"])
+    assert [n for n, _ in fails] == [
+        "drives swapped: front ↔ rear",
+        "mirrored wheel at front-right (besides the swap)",
+    ]
+    assert "a fault behind the swap shows once it is fixed" in fails[0][1]
+
+
+def test_drives_swapped_between_sides_mounted_opposite_is_the_swap_alone() -> None:
+    """Left wheels sign 1, right ones -1 (mirror-mounted): a left drive on the right
+    wheels rolls them backwards by their mounting, not as a mirrored wheel."""
+    text = (
+        BUS.format(faults="{kind: swapped_drives, unit: lp, other: rp}")
+        + "units:\n"
+        + UNIT.format(name="lp", id=1, gen="2021")
+        + UNIT.format(name="rp", id=3, gen="2023")
+        + "robots:\n  - name: robot\n    track_m: 0.5\n    diameter_m: 0.15\n"
+        + "    gear_ratio: 10\n    wheels:\n"
+        + "      - {unit: lp, axis: A, side: left}\n      - {unit: lp, axis: B, side: left}\n"
+        + "      - {unit: rp, axis: A, side: right, sign: -1}\n"
+        + "      - {unit: rp, axis: B, side: right, sign: -1}\n"
+    )
+    _, robots, _ = run(FakeBench(parse_config(text, "sides.yaml")))
+    assert [n for n, _ in failing(robots["robot"])] == ["drives swapped: lp ↔ rp"]
+
+
+def test_drives_swapped_on_a_robot_with_unequal_sides_is_one_fault() -> None:
+    """Two left wheels on l (A, B), one right wheel on r.A: swapped, l's B turns nothing
+    (r has no B wheel) — still the drives swapped, not three wheels' faults."""
+    text = (
+        BUS.format(faults="{kind: swapped_drives, unit: l, other: r}")
+        + "units:\n"
+        + UNIT.format(name="l", id=1, gen="2021")
+        + UNIT.format(name="r", id=3, gen="2023")
+        + "robots:\n  - name: robot\n    track_m: 0.5\n    diameter_m: 0.15\n"
+        + "    gear_ratio: 10\n    wheels:\n"
+        + "      - {unit: l, axis: A, side: left}\n      - {unit: l, axis: B, side: left}\n"
+        + "      - {unit: r, axis: A, side: right}\n"
+    )
+    _, robots, _ = run(FakeBench(parse_config(text, "unequal.yaml")))
+    robot = robots["robot"]
+    assert [c.name for c in robot.checks if c.verdict is Verdict.FAIL] == ["drives swapped: l ↔ r"]
+    check = robot.checks[0]
+    assert (
+        "l.A turned right" in check.measured
+        and "l.B turned none (r has no wheel on axis B)" in (check.measured)
+    )
+    assert "r.A turned front-left" in check.measured
+
+
 # ---------------------------------------------------------------- protocol generation
 
 
@@ -331,6 +508,41 @@ def test_a_wrong_protocol_is_named_at_identity_and_nothing_of_that_drive_moves(
         assert results[name].verdict is Verdict.PASS
     # the robot step needs every drive of the robot: not run, and said so
     assert robots["robot"].checks[0].verdict is Verdict.SKIPPED
+    assert robots["robot"].verdict is Verdict.SKIPPED  # "not run", not a warning
+    assert robots["robot"].ended == f"not run: unit {unit} did not pass its own steps"
+
+
+def test_a_robot_with_a_unit_not_commissioned_is_not_run_and_says_which() -> None:
+    bench = bench_of("skid-steer on two drives")
+    results: dict[str, UnitResult] = {}
+    robots: dict[str, RobotResult] = {}
+    said: list[str] = []
+    op = Headless(bench)
+    op.say = said.append  # type: ignore[method-assign,assignment]
+    asyncio.run(commission(bench, op, ["front"], FAST, results, None, robots))
+    robot = robots["robot"]
+    assert robot.verdict is Verdict.SKIPPED and robot.ended == "not run: rear not commissioned"
+    assert "robot robot: not run: rear not commissioned" in said
+    assert bench.drive("rear").revs == [0.0, 0.0]
+
+
+def test_a_robots_name_stands_for_its_units_and_an_unknown_name_lists_the_robots() -> None:
+    config = parse_config(config_text("skid-steer on two drives"), "robot.yaml")
+    assert _units(config, ["robot"]) == ["front", "rear"]
+    assert _units(config, ["rear", "robot"]) == ["rear", "front"]
+    with pytest.raises(ConfigError) as err:
+        _units(config, ["rover"])
+    assert "no unit or robot named 'rover' (units: front, rear; robots: robot)" in str(err.value)
+
+
+def test_the_summary_puts_why_the_rest_was_not_run_after_the_wheel_that_failed(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    bench = bench_of("skid-steer on two drives", "{kind: mirrored_wheel, unit: rear, axis: B}")
+    results, robots, _ = run(bench)
+    _summary(Session("t", "now", "robot.yaml", "", FAST, results, robots=robots))
+    out = capsys.readouterr().out
+    assert out.index("mirrored wheel rear.B") < out.index("fix the wheels above first")
 
 
 # ---------------------------------------------------------------- the operator's keys
@@ -555,6 +767,27 @@ def test_a_wheel_that_did_not_turn_or_turned_another_is_named_with_its_keys() ->
     assert other.measured == "front-right turned"
     assert "unit: and axis: of the front-right wheel" in other.fix
     assert checks["wheel rear.A (rear-left)"].verdict is Verdict.PASS
+
+
+def test_a_still_wheel_whose_motor_turned_and_whose_twin_is_no_wheel_is_an_axis_swap() -> None:
+    robot = _robot("one wheel per drive")
+    seen = {(w.unit, w.axis): Seen((w.unit, w.axis), 1) for w in robot.wheels}
+    seen["right", 0] = Seen(None, 0)  # nobody watched the drive: a still wheel
+    assert [c.name for c in judge_wheels(robot, seen) if c.verdict is Verdict.FAIL] == [
+        "wheel right.A (right) did not turn"
+    ]
+    seen["right", 0] = Seen(None, 0, motor_min=150.0)
+    (check,) = [c for c in judge_wheels(robot, seen) if c.verdict is Verdict.FAIL]
+    assert check.name.startswith("A and B swapped with their encoders: right")
+    assert "reports motor A turning (+150 min⁻¹)" in check.measured
+    # on a drive whose other axis is a wheel too, a still wheel with its motor turning is
+    # not the swap (the twin would have turned): a wheel not coupled
+    skid = _robot("skid-steer on two drives")
+    seen = {(w.unit, w.axis): Seen((w.unit, w.axis), 1) for w in skid.wheels}
+    seen["rear", 0] = Seen(None, 0, motor_min=150.0)
+    (check,) = [c for c in judge_wheels(skid, seen) if c.verdict is Verdict.FAIL]
+    assert check.name == "wheel rear.A (rear-left) did not turn"
+    assert "although drive rear reports motor A turning" in check.measured
 
 
 def test_a_straight_run_off_by_a_factor_names_the_diameter_it_measured() -> None:

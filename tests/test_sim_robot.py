@@ -168,3 +168,86 @@ def test_robot_faults_are_checked_with_file_line(fault: str, message: str) -> No
     with pytest.raises(ConfigError) as err:
         parse_config(SKID.format(faults=fault), "skid.yaml")
     assert "skid.yaml:" in str(err.value) and message in str(err.value)
+
+
+ONE_WHEEL_AND_A_MONITOR = """
+buses:
+  b:
+    interface: virtual
+    channel: t
+    simulate:
+      faults:
+        - {fault}
+units:
+  - {{name: l, abh3_id: 1, velocity_model: motor}}
+  - {{name: r, abh3_id: 3, velocity_model: motor}}
+  - {{name: watch, abh3_id: 5, velocity_model: motor, role: monitor}}
+robots:
+  - name: bot
+    track_m: 0.5
+    diameter_m: 0.2
+    wheels:
+      - {{unit: l, axis: A, side: left}}
+      - {{unit: r, axis: A, side: right}}
+"""
+
+
+@pytest.mark.parametrize(
+    ("fault", "message", "absent"),
+    [
+        (
+            "{kind: wrong_track}",
+            "missing: wrong_track needs it (the true track over the file's track_m",
+            "pulses",
+        ),
+        (
+            "{kind: wrong_diameter}",
+            "missing: wrong_diameter needs it (the true wheel diameter over the file's",
+            "pulses",
+        ),
+        (
+            "{kind: mirored_wheel, unit: l, axis: A}",
+            "kind: 'mirored_wheel' is not one of: silent,",
+            "at_s",  # no false errors of the kind it is not
+        ),
+        (
+            "{kind: mirrored_wheel, unit: l, axis: B}",
+            "axis B of unit 'l' is no wheel of robot 'bot' (its wheels on l: axis A)",
+            "",
+        ),
+        (
+            "{kind: swapped_drives, unit: l, other: watch}",
+            "other: unit 'watch' is a monitor (never commanded, no robot's wheel)",
+            "",
+        ),
+        (
+            "{kind: wrong_protocol, unit: watch}",
+            "unit: unit 'watch' is a monitor",
+            "",
+        ),
+        (
+            "{kind: mirrored_wheel, unit: l, axis: A, at_s: 5}",
+            "at_s: does not apply to kind mirrored_wheel: how it is built, for ever",
+            "",
+        ),
+    ],
+)
+def test_a_robot_fault_that_cannot_be_is_a_file_line_error(
+    fault: str, message: str, absent: str
+) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse_config(ONE_WHEEL_AND_A_MONITOR.format(fault=fault), "bot.yaml")
+    text = str(err.value)
+    assert "bot.yaml:8: buses.b.simulate.faults[0]." in text and message in text, text
+    assert len(err.value.problems) == 1, text
+    if absent:
+        assert absent not in text
+    if "mirored" in fault:
+        assert text.endswith("; did you mean 'mirrored_wheel'?")
+
+
+def test_a_mirrored_wheel_on_a_wheel_of_the_robot_is_accepted() -> None:
+    config = parse_config(
+        ONE_WHEEL_AND_A_MONITOR.format(fault="{kind: mirrored_wheel, unit: r, axis: A}"), "bot.yaml"
+    )
+    assert config.robots["bot"].wheel("r", 0) is not None

@@ -122,15 +122,7 @@ def run(args: argparse.Namespace) -> int:
         step_s=args.step_s,
         scale_tolerance=args.scale_tolerance,
     ).check()
-    units = list(dict.fromkeys(args.units)) or list(config.units)  # each once, in order
-    unknown = [u for u in units if u not in config.units]
-    if unknown:
-        raise ConfigError(
-            [
-                f"{config.file}: no unit named {u!r} (units: {', '.join(config.units)})"
-                for u in unknown
-            ]
-        )
+    units = _units(config, args.units)
     slow = [
         f"{config.file}: {why}"
         for u in units
@@ -153,6 +145,33 @@ def run(args: argparse.Namespace) -> int:
     with bus_priority(Priority.AUTO) as priority:
         log.debug("%s", priority)  # -v; the figures in the report are what it shows
         return asyncio.run(_session(config, units, settings, args))
+
+
+def _units(config: Config, named: Sequence[str]) -> list[str]:
+    """The units to commission, each once in order (all when none is named); a robot's
+    name stands for its units."""
+    out: list[str] = []
+    unknown = []
+    for name in dict.fromkeys(named):  # each once
+        robot = config.robots.get(name) if name not in config.units else None
+        if name in config.units:
+            out.append(name)
+        elif robot is not None:
+            print(f"robot {name}: its units {', '.join(robot.units)}", flush=True)
+            out += robot.units
+        else:
+            unknown.append(name)
+    if unknown:
+        robots = [r for r, robot in config.robots.items() if not robot.implicit]
+        what = "unit or robot" if robots else "unit"
+        also = f"; robots: {', '.join(robots)}" if robots else ""
+        raise ConfigError(
+            [
+                f"{config.file}: no {what} named {u!r} (units: {', '.join(config.units)}{also})"
+                for u in unknown
+            ]
+        )
+    return list(dict.fromkeys(out)) or list(config.units)
 
 
 def _writable(option: str, path: Path) -> None:
@@ -515,10 +534,10 @@ def _summary(s: Session) -> None:
     for name, robot in (s.robots or {}).items():
         fails = [c for c in robot.checks if c.verdict is Verdict.FAIL]
         print(f"  robot {name}: {robot.verdict.value.upper()}")
-        if robot.ended:
-            print(f"    {robot.ended}")
         for c in fails:
             print(f"    {c.name}: {c.measured}" + (f"\n    fix: {c.fix}" if c.fix else ""))
+        if robot.ended:  # after the fails it may refer to ("fix the wheels above first")
+            print(f"    {robot.ended}")
     if s.ended:
         print(f"  ended early: {s.ended}")
 

@@ -234,16 +234,34 @@ def measured_pulses_per_rev(trace: Trace, axis: int) -> float | None:
     return best[0] / best[1]
 
 
-def judge_scale(trace: Trace, axis: int, yaml_ppr: float, settings: Settings) -> Check:
+# where the file sets a motor's pulses per revolution (its name; set to a value: "{}"
+# the value) and its gear ratio: here a unit's geometry, else its robot's wheel
+GEOMETRY_KEYS = (
+    "geometry.pulses_per_rev",
+    "geometry.pulses_per_rev: {}",
+    "the gear ratio geometry.rate_num/rate_den",
+)
+
+
+def judge_scale(
+    trace: Trace,
+    axis: int,
+    yaml_ppr: float,
+    settings: Settings,
+    keys: tuple[str, str, str] = GEOMETRY_KEYS,
+) -> Check:
+    """``keys``: where the file sets the pulses per revolution and the gear ratio of this
+    motor (a unit's geometry, or its robot's wheel)."""
     name = AXES[axis]
+    ppr_key, ppr_set, gear_key = keys
     if yaml_ppr <= 0:
         return Check(
             trace.title,
             f"gear/geometry scale of motor {name}",
             Verdict.WARN,
             "not checked",
-            "geometry.pulses_per_rev in the YAML",
-            "give geometry.pulses_per_rev (the encoder's pulses per motor revolution) to check "
+            f"{ppr_key} in the YAML",
+            f"give {ppr_key} (the encoder's pulses per motor revolution) to check "
             "the gear and geometry against the pulse counts",
         )
     measured = measured_pulses_per_rev(trace, axis)
@@ -267,28 +285,34 @@ def judge_scale(trace: Trace, axis: int, yaml_ppr: float, settings: Settings) ->
         Verdict.FAIL,
         text,
         limit,
-        f"geometry.pulses_per_rev: {measured:.0f} if the encoder is right (YAML {yaml_ppr:g}); "
-        f"else the gear ratio geometry.rate_num/rate_den or the drive's sensor setting of axis "
+        f"{ppr_set.format(f'{measured:.0f}')} if the encoder is right (YAML {yaml_ppr:g}); "
+        f"else {gear_key} or the drive's sensor setting of axis "
         f"{name} (0x{0x0002 + 0x2000 * axis:04X}–0x{0x001D + 0x2000 * axis:04X})",
     )
 
 
-def judge_pair(step: str, a: float | None, b: float | None, settings: Settings) -> Check:
+def judge_pair(
+    step: str,
+    a: float | None,
+    b: float | None,
+    settings: Settings,
+    ppr_key: str = GEOMETRY_KEYS[0],
+) -> Check:
     """Without ``geometry.pulses_per_rev`` the two motors are held against each other: a
     robot's wheels share a motor, gear and encoder type, so they count alike. Agreeing is
     a pass (the file asks no more); the measured text says the YAML could give the key."""
     name = "gear/geometry scale of motors A and B"
     fix = (
-        "give geometry.pulses_per_rev (the encoder's pulses per motor revolution) to check "
+        f"give {ppr_key} (the encoder's pulses per motor revolution) to check "
         "the gear and geometry against the YAML"
     )
     if a is None or b is None or not a:
-        return Check(step, name, Verdict.WARN, "not checked", "geometry.pulses_per_rev", fix)
+        return Check(step, name, Verdict.WARN, "not checked", ppr_key, fix)
     ratio = b / a
     measured = f"A {a:.0f}, B {b:.0f} pulses/rev (B ×{ratio:.3f} of A)"
-    limit = f"A = B ±{settings.scale_tolerance:.0%} (no geometry.pulses_per_rev)"
+    limit = f"A = B ±{settings.scale_tolerance:.0%} (no {ppr_key})"
     if abs(ratio - 1) <= settings.scale_tolerance:
-        note = "; geometry.pulses_per_rev in the YAML would check them against the encoder"
+        note = f"; {ppr_key} in the YAML would check them against the encoder"
         return Check(step, name, Verdict.PASS, measured + note, limit)
     return Check(
         step,
@@ -297,7 +321,7 @@ def judge_pair(step: str, a: float | None, b: float | None, settings: Settings) 
         measured,
         limit,
         "one motor's encoder, gear or sensor setting differs from the other's (axis A "
-        "0x0002–0x001D, B 0x2002–0x201D); then give geometry.pulses_per_rev",
+        f"0x0002–0x001D, B 0x2002–0x201D); then give {ppr_key}",
     )
 
 

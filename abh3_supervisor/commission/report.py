@@ -86,7 +86,9 @@ def _turned(r: RobotResult, unit: str, axis: int) -> str | None:
     if seen.place is None or not seen.direction:
         return "none"
     way = "forward" if seen.direction > 0 else "backward"
-    return f"{places(r.robot)[seen.place]}, {way}"
+    names = {**r.elsewhere, **places(r.robot)}
+    unit, axis = seen.place
+    return f"{names.get(seen.place, f'{unit}.{AXES[axis]}')}, {way}"
 
 
 def to_json(s: Session) -> dict[str, Any]:

@@ -9,6 +9,7 @@ within its unit's jog speed; the commands lapse as the units' do (the same input
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from abh3_supervisor.scheduler.core import FeedbackEvent
 REFRESH_S = 0.05
 SETTLE_S = 0.5  # after a move, until the wheels stand
 TURNED = 0.2  # of the travel asked: a wheel that rolled less did not turn
+MOTOR_TURNED = 0.5  # of the speed asked, by its drive's feedback: the motor turned
 RUN_S = 1.5  # the straight run and the turn, each
 
 
@@ -33,11 +35,14 @@ class RobotResult:
     checks: list[Check] = field(default_factory=list)
     seen: dict[Place, Seen] = field(default_factory=dict)
     source: str = ""  # who told which wheel turned: "the simulated robot", "the operator"
+    # the other robots' wheel places a wheel of this one may have turned, by name
+    elsewhere: dict[Place, str] = field(default_factory=dict)
     ended: str | None = None
+    not_run: bool = False  # never began: a unit of it failed or was not commissioned
 
     @property
     def verdict(self) -> Verdict:
-        return overall(self.checks)
+        return Verdict.SKIPPED if self.not_run else overall(self.checks)
 
 
 class Odometer:
@@ -86,13 +91,14 @@ class RobotSequence:
         self.names = wheels.places(robot)
         # the other simulated robots: a drive may sit on one of their wheels (swapped)
         self.others: dict[str, RobotView] = {}
-        self.elsewhere: dict[Place, str] = {}
+        self.other_robots: list[RobotConfig] = []
         for other in self.sup.config.robots.values():
             view = bench.sim_robot(other.name)
             if other.name != robot.name and view is not None and self.view is not None:
                 self.others[other.name] = view
-                for place, name in wheels.places(other).items():
-                    self.elsewhere[place] = f"{name} of robot {other.name}"
+                self.other_robots.append(other)
+        self.result.elsewhere = wheels.elsewhere(robot, self.other_robots)
+        self.peak: dict[Place, float] = {}  # each motor's fastest in the move, by feedback
         self.jog = {
             u: settings.jog_speed(self.sup.units[u].cfg.limits.velocity) for u in robot.units
         }
@@ -154,7 +160,7 @@ class RobotSequence:
             return
         for w in r.wheels:
             self.result.seen[w.unit, w.axis] = await self._one_wheel(w)
-        found = wheels.judge_wheels(r, self.result.seen, self.elsewhere)
+        found = wheels.judge_wheels(r, self.result.seen, self.other_robots)
         for c in found:
             self._check(c)
         if any(c.verdict is Verdict.FAIL for c in found):
@@ -187,10 +193,16 @@ class RobotSequence:
         return lambda: self.bench.twist(unit, linear_x, angular_z)
 
     def _watch(self) -> None:
-        """A motor beyond twice its jog speed: every unit of the robot stopped at once."""
+        """A motor beyond twice its jog speed: every unit of the robot stopped at once.
+        Each motor's fastest by its drive's feedback is noted (:attr:`peak`)."""
         for unit in self.robot.units:
             fb = self.sup.units[unit].feedback
-            if fb is not None and max(abs(fb.vel_a), abs(fb.vel_b)) > 2 * self.jog[unit]:
+            if fb is None:
+                continue
+            for axis, vel in enumerate((fb.vel_a, fb.vel_b)):
+                if abs(vel) > abs(self.peak.get((unit, axis), 0.0)):
+                    self.peak[unit, axis] = vel
+            if max(abs(fb.vel_a), abs(fb.vel_b)) > 2 * self.jog[unit]:
                 for u in self.robot.units:
                     halt(self.bench, u)
                 raise Aborted(f"robot {self.robot.name}: unit {unit} beyond twice its jog speed")
@@ -198,10 +210,18 @@ class RobotSequence:
     async def _one_wheel(self, w: Wheel) -> Seen:
         place = (w.unit, w.axis)
         before = self._travel()
+        self.peak.clear()
         await self._move(self._wheel(w), self.settings.jog_s)
+        # the drive's own word on its motor: turning while no wheel does says where it is
+        asked, fastest = w.motor_speed(self.creep), self.peak.get(place, 0.0)
+        motor = (
+            fastest if fastest * asked > 0 and abs(fastest) >= MOTOR_TURNED * abs(asked) else None
+        )
         if self.view is not None:
-            return _turned(before, self._travel(), self.creep * self.settings.jog_s)
-        return await self._ask(w, place)
+            seen = _turned(before, self._travel(), self.creep * self.settings.jog_s)
+        else:
+            seen = await self._ask(w, place)
+        return dataclasses.replace(seen, motor_min=motor)
 
     def _travel(self) -> dict[Place, float]:
         """Every simulated wheel's travel: this robot's, then the others'."""
@@ -245,15 +265,19 @@ class RobotSequence:
         finally:
             self.sup.unsubscribe(odo)
 
-    async def _straight(self, odo: Odometer, run_s: float) -> float:
-        """The diameters' ratio found (true/file's); 1 when not measured."""
+    async def _straight(self, odo: Odometer, run_s: float) -> tuple[float, float]:
+        """Each side's diameters' ratio found (true/file's); 1 where not measured."""
         start = self.view.distance if self.view is not None else 0.0
+        heading = self.view.heading if self.view is not None else 0.0
         before = odo.sides()
         await self._move(self._twist(self.creep, 0.0), run_s)
         after = odo.sides()
-        expected = sum(a - b for a, b in zip(after, before, strict=True)) / 2
+        sides = (after[0] - before[0], after[1] - before[1])
+        expected = sum(sides) / 2
+        drift: float | None = None
         if self.view is not None:
             measured: float | None = self.view.distance - start
+            drift = self.view.heading - heading
         else:
             measured = await self.op.measure(
                 f"robot {self.robot.name}: how far did it go, in metres (the file's wheels "
@@ -261,17 +285,26 @@ class RobotSequence:
             )
         if measured is None:
             self._skip("wheel diameter (straight run)", "not measured: the operator skipped it")
-            return 1.0
+            return 1.0, 1.0
+        curved = None if drift is None else wheels.judge_sides(self.robot, sides, measured, drift)
+        if curved is not None:
+            self._check(curved)
+            half = drift * self.robot.track_m / 2 if drift is not None else 0.0
+            return (
+                (measured - half) / sides[0] if sides[0] else 1.0,
+                (measured + half) / sides[1] if sides[1] else 1.0,
+            )
         check = wheels.judge_diameter(self.robot, expected, measured)
         self._check(check)
-        return measured / expected if expected and check.verdict is Verdict.FAIL else 1.0
+        ratio = measured / expected if expected and check.verdict is Verdict.FAIL else 1.0
+        return ratio, ratio
 
-    async def _turn(self, odo: Odometer, run_s: float, ratio: float) -> None:
+    async def _turn(self, odo: Odometer, run_s: float, ratio: tuple[float, float]) -> None:
         start = self.view.heading if self.view is not None else 0.0
         before = odo.sides()
         await self._move(self._twist(0.0, 2 * self.creep / self.robot.track_m), run_s)
         after = odo.sides()
-        left, right = (ratio * (a - b) for a, b in zip(after, before, strict=True))
+        left, right = (k * (a - b) for k, a, b in zip(ratio, after, before, strict=True))
         expected = (right - left) / self.robot.track_m
         if self.view is not None:
             measured: float | None = self.view.heading - start

@@ -226,16 +226,32 @@ class UnitSequence(IdentitySteps):
             self._skip(["motion"], f"the remaining jogs and steps: {why}")
             self.result.ended = f"{step}: {guard.tripped or 'failed'}"
             return False
-        ppr = self.cfg.geometry.pulses_per_rev
+        ppr, keys = self._scale_keys(axis)
         self.counted[axis] = analysis.measured_pulses_per_rev(trace, axis)
         if ppr > 0:
-            c = analysis.judge_scale(trace, axis, ppr, s)
+            c = analysis.judge_scale(trace, axis, ppr, s, keys)
         elif axis == 1:  # nothing to hold them against but each other
-            c = analysis.judge_pair(step, self.counted[0], self.counted[1], s)
+            c = analysis.judge_pair(step, self.counted[0], self.counted[1], s, keys[0])
         else:
             return True
         self._check(c.step, c.name, c.verdict, c.measured, c.limit, c.fix)
         return True
+
+    def _scale_keys(self, axis: int) -> tuple[float, tuple[str, str, str]]:
+        """The pulses per motor revolution the file gives this motor, and where it and the
+        gear ratio are set: the wheel of a declared robot (a robot's unit has no
+        ``geometry``), else the unit's geometry."""
+        robot = self.sup.config.robot_of(self.unit)
+        wheel = robot.wheel(self.unit, axis) if robot is not None else None
+        if robot is None or robot.implicit or wheel is None:
+            return self.cfg.geometry.pulses_per_rev, analysis.GEOMETRY_KEYS
+        at = f"robots.{robot.name}.wheels[{robot.wheels.index(wheel)}]"
+        return wheel.pulses_per_rev, (
+            f"pulses_per_rev in robots: {robot.name} (or its wheel's)",
+            f"pulses_per_rev: {{}} for {at} ({wheel.name}), or robots.{robot.name}."
+            "pulses_per_rev for every wheel,",
+            f"gear_ratio for {at} (or robots.{robot.name}.gear_ratio)",
+        )
 
     async def _step(self, axis: int) -> bool:
         name, s = AXES[axis], self.settings
@@ -321,22 +337,22 @@ async def _robots(
     robots: dict[str, RobotResult],
 ) -> None:
     for robot in bench.sup.config.robots.values():
-        if not set(robot.units) <= set(units):
-            continue  # a robot not commissioned here
+        if not set(robot.units) & set(units):
+            continue  # none of its units commissioned here: not asked for
+        missing = [u for u in robot.units if u not in units]
+        failed = [u for u in robot.units if u in units and not _moved_well(results[u])]
         sequence = RobotSequence(bench, operator, robot, settings)
         robots[robot.name] = sequence.result
-        failed = [u for u in robot.units if not _moved_well(results[u])]
-        if failed:
-            sequence.result.checks.append(
-                Check(
-                    "robot",
-                    "not run",
-                    Verdict.SKIPPED,
-                    f"unit {', '.join(failed)} did not pass its own steps",
-                )
+        if missing or failed:
+            why = (
+                f"{', '.join(missing)} not commissioned"
+                if missing
+                else f"unit {', '.join(failed)} did not pass its own steps"
             )
-            sequence.result.ended = "not run: its units' own steps did not pass"
-            operator.say(f"robot {robot.name}: not run: unit {', '.join(failed)} did not pass")
+            sequence.result.checks.append(Check("robot", "not run", Verdict.SKIPPED, why))
+            sequence.result.ended = f"not run: {why}"
+            sequence.result.not_run = True
+            operator.say(f"robot {robot.name}: not run: {why}")
             continue
         await sequence.run()
 

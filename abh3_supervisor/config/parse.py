@@ -7,7 +7,7 @@ import re
 from pathlib import Path as FsPath
 from typing import Any
 
-from abh3_supervisor.config.faults import check_fault_units, parse_faults
+from abh3_supervisor.config.faults import check_fault_units, check_fault_wheels, parse_faults
 from abh3_supervisor.config.interfaces import unknown_interface
 from abh3_supervisor.config.model import (
     BroadcastConfig,
@@ -108,6 +108,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     check_sim_units(top, buses, units)
     units = _with_simulated_startup(buses, units)
     robots = parse_robots(top, units, NAME)
+    check_fault_wheels(top, buses, units, robots)
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     src.raise_if_problems()
