@@ -47,15 +47,14 @@ SYNONYMS = {
 def section(src: Source, path: Path, data: Any, allowed: set[str], diameter: str) -> Section:
     """A mapping checked against ``allowed``: a radius-like key points at ``diameter``, a
     synonym at our key, each said once; the rest as every section's unknown keys."""
-    raw = Section(src, path, data, None)
-    radius_keys(raw, diameter)
-    for key in set(raw.data) & set(SYNONYMS) - allowed:
+    checked = Section(src, path, data, None)
+    radius_keys(checked, diameter)
+    said = set(RADIUS_KEYS)
+    for key in set(checked.data) & set(SYNONYMS) - allowed:
         if SYNONYMS[key] in allowed:
-            raw.error(key, f"unknown key; did you mean '{SYNONYMS[key]}'?")
-    known = RADIUS_KEYS | {k for k in SYNONYMS if SYNONYMS[k] in allowed}
-    rest = {k: v for k, v in raw.data.items() if k in allowed or k not in known}
-    checked = Section(src, path, rest, allowed)
-    checked.data = raw.data  # values are read from the whole mapping
+            checked.error(key, f"unknown key; did you mean '{SYNONYMS[key]}'?")
+            said.add(key)
+    checked.only(allowed, said)
     return checked
 
 

@@ -243,10 +243,11 @@ class Section:
         if allowed is not None:
             self.only(allowed)
 
-    def only(self, allowed: set[str]) -> None:
-        """Report every key not in ``allowed``, with a did-you-mean when one is close."""
+    def only(self, allowed: set[str], said: Collection[str] = ()) -> None:
+        """Report every key not in ``allowed``, with a did-you-mean when one is close;
+        keys in ``said`` were reported already, with a message of their own."""
         for key in self.data:
-            if key not in allowed:
+            if key not in allowed and key not in said:
                 hint = difflib.get_close_matches(str(key), sorted(allowed), n=1)
                 did = f"; did you mean '{hint[0]}'?" if hint else ""
                 self.src.error(
