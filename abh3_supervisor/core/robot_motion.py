@@ -11,10 +11,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from abh3_supervisor.config.model import UnitConfig, VelocityModel
-from abh3_supervisor.core.kinematics import ab_to_yx
-from abh3_supervisor.core.robot import RobotConfig, motor_speeds, ramp, within_robot_limits
-from abh3_supervisor.protocol.scaling import VELOCITY
+from abh3_supervisor.config.model import UnitConfig
+from abh3_supervisor.core.robot import RobotConfig, ramp, within_robot_limits
+from abh3_supervisor.core.twist_limits import fields, headroom
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,7 +66,12 @@ class RobotMotion:
                 f"{twist[0]:.4g} {twist[1]:.4g} ({'; '.join(notes)})"
             )
         self.last = Plan(
-            (linear_x, angular_z), now, twist, self._fields(*twist), note, ramped != limited
+            (linear_x, angular_z),
+            now,
+            twist,
+            fields(self.robot, self.units, *twist),
+            note,
+            ramped != limited,
         )
         return self.last
 
@@ -80,29 +84,8 @@ class RobotMotion:
     def preview(self, linear_x: float, angular_z: float) -> dict[str, tuple[float, float]]:
         """Each unit's fields for a twist as asked, no limit, no ramp, nothing kept: what
         a check before submitting needs (the sign and whether it moves)."""
-        return self._fields(linear_x, angular_z)
-
-    def _fields(self, linear_x: float, angular_z: float) -> dict[str, tuple[float, float]]:
-        out = {}
-        for name, (a, b) in motor_speeds(self.robot, linear_x, angular_z).items():
-            model = self.units[name].velocity_model
-            out[name] = (a, b) if model is VelocityModel.MOTOR else ab_to_yx(a, b)
-        return out
+        return fields(self.robot, self.units, linear_x, angular_z)
 
     def _axis_scale(self, linear_x: float, angular_z: float) -> float:
-        """The one factor (≤ 1) that keeps every unit's fields within its limits and the
-        wire's range, and every wheel's motor within the robot's own axis limit."""
-        scale = 1.0
-        motors = motor_speeds(self.robot, linear_x, angular_z)
-        for name, values in self._fields(linear_x, angular_z).items():
-            limit = self.units[name].limits.velocity
-            for v in values:
-                if v:
-                    bound = min(limit, VELOCITY.maximum if v > 0 else -VELOCITY.minimum)
-                    scale = min(scale, bound / abs(v))
-        for wheel in self.robot.wheels:
-            axis_limit = self.robot.axis_limit(wheel)
-            speed = motors[wheel.unit][wheel.axis]
-            if axis_limit is not None and speed:
-                scale = min(scale, axis_limit / abs(speed))
-        return scale
+        """The one factor (≤ 1) that keeps every axis within its bounds."""
+        return min(1.0, headroom(self.robot, self.units, linear_x, angular_z))

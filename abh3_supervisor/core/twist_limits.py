@@ -21,28 +21,39 @@ from abh3_supervisor.protocol.scaling import VELOCITY
 
 def fastest_twist(robot: RobotConfig, units: Mapping[str, UnitConfig]) -> tuple[float, float]:
     """(linear.x [m/s] going straight, angular.z [rad/s] turning on the spot)."""
+    lim = robot.limits
+    straight = headroom(robot, units, 1.0, 0.0)
+    turning = headroom(robot, units, 0.0, 1.0)
     return (
-        _along(robot, units, (1.0, 0.0), robot.limits.linear_mps),
-        _along(robot, units, (0.0, 1.0), robot.limits.angular_radps),
+        straight if lim.linear_mps is None else min(straight, lim.linear_mps),
+        turning if lim.angular_radps is None else min(turning, lim.angular_radps),
     )
 
 
-def _along(
-    robot: RobotConfig,
-    units: Mapping[str, UnitConfig],
-    twist: tuple[float, float],
-    own: float | None,
+def fields(
+    robot: RobotConfig, units: Mapping[str, UnitConfig], linear_x: float, angular_z: float
+) -> dict[str, tuple[float, float]]:
+    """Each unit's AY/BX for a twist, in its velocity model [min⁻¹]."""
+    out = {}
+    for name, (a, b) in motor_speeds(robot, linear_x, angular_z).items():
+        motor = units[name].velocity_model is VelocityModel.MOTOR
+        out[name] = (a, b) if motor else ab_to_yx(a, b)
+    return out
+
+
+def headroom(
+    robot: RobotConfig, units: Mapping[str, UnitConfig], linear_x: float, angular_z: float
 ) -> float:
-    """How many times ``twist`` (a unit twist) the robot may go: the tightest bound."""
-    scale = math.inf if own is None else own
-    motors = motor_speeds(robot, *twist)
-    for name, (a, b) in motors.items():
-        cfg = units[name]
-        fields = (a, b) if cfg.velocity_model is VelocityModel.MOTOR else ab_to_yx(a, b)
-        for value in fields:
+    """How many times the twist the robot's axes allow (∞: none binds): every unit's
+    ``limits.velocity`` and the wire's range on the fields it reads, and every wheel's
+    axis limit that follows from the robot's limits."""
+    scale = math.inf
+    for name, values in fields(robot, units, linear_x, angular_z).items():
+        for value in values:
             if value:
                 wire = VELOCITY.maximum if value > 0 else -VELOCITY.minimum
-                scale = min(scale, min(cfg.limits.velocity, wire) / abs(value))
+                scale = min(scale, min(units[name].limits.velocity, wire) / abs(value))
+    motors = motor_speeds(robot, linear_x, angular_z)
     for wheel in robot.wheels:
         limit, speed = robot.axis_limit(wheel), motors[wheel.unit][wheel.axis]
         if limit is not None and speed:
