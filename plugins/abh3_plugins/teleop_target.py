@@ -31,7 +31,7 @@ def robots(section: Section, config: Config, what: str) -> tuple[RobotConfig, ..
         )
     found: dict[str, RobotConfig] = {}
     for name, where in named:
-        robot = config.robots.get(name) or config.robot_of(name)
+        robot = config.robot(name)
         if robot is not None:
             found[robot.name] = robot
         elif name:
