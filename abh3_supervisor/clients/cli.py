@@ -1,4 +1,4 @@
-"""The ``abh3`` command: ``run``, ``tui``, ``check``, ``status``, ``send``, ``estop``,
+"""The ``abh3`` command: ``run``, ``tui``, ``simulate``, ``check``, ``status``, ``send``, ``estop``,
 ``verify``, ``scan``, ``param``, ``commission``, ``decode``, ``schema``, ``plugins``,
 ``plugin new``.
 
@@ -158,6 +158,19 @@ def _parser() -> argparse.ArgumentParser:
     _connecting(verify)
     verify.add_argument("--json", action="store_true", help="the results as JSON")
 
+    sim = sub.add_parser(
+        "simulate",
+        help="run a file's simulated drives as a process of their own on its shared bus",
+        description="Run the simulated drives of CONFIG's `simulate:` buses on the bus the "
+        "file names (udp_multicast or a SocketCAN vcan), where `abh3 run`, `tui`, "
+        "`commission`, `param` and `scan` reach them as real drives. Standard input takes "
+        "`power off|on UNIT`, `unplug|plug UNIT`, `status`, `help` (docs/simulator.md).",
+    )
+    sim.add_argument("config", type=Path)
+    sim.add_argument("--bus", action="append", default=[], help="only this bus (repeatable)")
+    sim.add_argument("--trace", type=Path, help="what the drives do, as JSON lines")
+    sim.add_argument("--record", type=Path, help="the frames they hear and send (.log, .asc…)")
+    sim.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
     check = sub.add_parser("check", help="validate a configuration and print the bus-load plan")
     check.add_argument("config", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
@@ -327,6 +340,8 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
             return check_drives(config, args.json)
         _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
+    if args.cmd == "simulate":
+        return _simulate(args, release)
     if args.cmd == "scan":
         from abh3_supervisor.clients.scan import scan_command
 
@@ -382,6 +397,25 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
             print(out)
         return EXIT_OK
     return _run(args, release)
+
+
+def _simulate(args: argparse.Namespace, release: Callable[[], None]) -> int:
+    import asyncio
+
+    from abh3_supervisor.config import load_config
+    from abh3_supervisor.runtime.simulating import simulate, simulated_buses
+
+    if args.record is not None:
+        from abh3_supervisor.runtime.recorder import check_format
+
+        check_format(args.record)
+    config = load_config(args.config)
+    buses = simulated_buses(config, args.bus)
+    running = simulate(config, buses, trace=args.trace, record=args.record, duration=args.duration)
+    try:
+        return asyncio.run(running)
+    finally:
+        running.close()
 
 
 def report(problems: Sequence[str]) -> None:

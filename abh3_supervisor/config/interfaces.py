@@ -10,6 +10,8 @@ meant for the robot too.
 from __future__ import annotations
 
 import difflib
+from collections.abc import Mapping
+from typing import Any
 
 import can.util
 
@@ -29,3 +31,24 @@ def unknown_interface(name: str) -> str | None:
     hint = difflib.get_close_matches(name.lower(), sorted(known), n=1)
     did = f"; did you mean '{hint[0]}'?" if hint else ""
     return f"python-can has no interface '{name}'{did} (its interfaces: {', '.join(sorted(known))})"
+
+
+# python-can interfaces that several processes share with no hardware at all: a
+# `simulate:` bus on one has its drives in `abh3 simulate` by default (docs/simulator.md)
+SHARED_BY_PROCESSES = frozenset({"udp_multicast"})
+# interfaces that hand a process its own sent frames back: every member of a multicast
+# group receives a datagram, its sender too, and python-can cannot turn that off
+ECHOING = frozenset({"udp_multicast"})
+
+
+def echoes_own_frames(interface: str, options: Mapping[str, Any]) -> bool:
+    """Whether a bus opened so returns the frames its own process sent."""
+    return interface in ECHOING or bool(options.get("receive_own_messages"))
+
+
+def shared_bus(interface: str, channel: str) -> bool:
+    """A bus other processes can share and no real drive can be on: where `abh3 simulate`
+    may put its drives (a multicast group, or a SocketCAN virtual ``vcan`` device)."""
+    return interface in SHARED_BY_PROCESSES or (
+        interface == "socketcan" and channel.startswith("vcan")
+    )

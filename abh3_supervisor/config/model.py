@@ -128,6 +128,9 @@ class SimConfig:
     # per unit, commands run at start after its own ``startup:``, only while simulated (a
     # demo's motion: the same file on a real bus waits): ((unit, (command, ...)), ...)
     startup: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    # the drives run in `abh3 simulate` (a process of their own, on the bus's interface);
+    # `run`, `commission`, `param` open the bus as a real one (docs/simulator.md)
+    external: bool = False
 
     def params_of(self, unit: str) -> dict[int, int]:
         return dict(next((words for name, words in self.params if name == unit), ()))

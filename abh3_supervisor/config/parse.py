@@ -8,7 +8,7 @@ from pathlib import Path as FsPath
 from typing import Any
 
 from abh3_supervisor.config.faults import check_fault_units, check_fault_wheels, parse_faults
-from abh3_supervisor.config.interfaces import unknown_interface
+from abh3_supervisor.config.interfaces import SHARED_BY_PROCESSES, unknown_interface
 from abh3_supervisor.config.model import (
     BroadcastConfig,
     BusConfig,
@@ -46,6 +46,7 @@ TOP_KEYS = {"buses", "units", "robots", "plugins"}
 BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options"}
 BUS_ARGUMENTS = {"interface", "channel", "bitrate"}  # can.Bus(...) takes them from the bus
 SIM_KEYS = {
+    "external",
     "command_zero_timeout_ms",
     "error_timeout_ms",
     "accel",
@@ -212,7 +213,7 @@ def _buses(top: Section) -> dict[str, BusConfig]:
             interface=interface,
             channel=_channel(b),
             bitrate=bitrate,
-            simulate=_simulate(b),
+            simulate=_simulate(b, interface),
             options=dict(options.items()),
         )
     if not buses:
@@ -229,12 +230,14 @@ def _channel(b: Section) -> str:
     return str(value)
 
 
-def _simulate(b: Section) -> SimConfig | None:
+def _simulate(b: Section, interface: str) -> SimConfig | None:
+    # on an interface made for processes to share, the drives are another process's
+    external = interface in SHARED_BY_PROCESSES
     value = b.data.get("simulate", False)
     if value is False:
         return None
     if value is True:
-        return SimConfig()
+        return SimConfig(external=external)
     if not isinstance(value, dict):  # `simulate:` with no value is a mistake, never "on"
         b.error(
             "simulate", f"expected true, false or a mapping of simulator options, got {value!r}"
@@ -263,6 +266,7 @@ def _simulate(b: Section) -> SimConfig | None:
         params=parse_params(s),
         telabh3_forms=parse_forms(s),
         startup=parse_startup(s),
+        external=s.boolean("external", external),
     )
 
 

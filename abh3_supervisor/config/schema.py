@@ -128,6 +128,11 @@ def _bus() -> Schema:
                 "while this bus is simulated (a real bus never runs them)",
                 "additionalProperties": {"type": "array", "items": {"type": "string"}},
             },
+            "external": boolean(
+                "the drives run in `abh3 simulate`, a process of their own on this bus's "
+                "interface; every other command opens the bus as a real one (default: true "
+                "on udp_multicast, false elsewhere)"
+            ),
             "reply_latency_ms": number(0, 10_000, default=0.2),
             "dp0_period_ms": integer(0, 1000, "> 0: DP0 replies also periodically", 0),
             "broadcast_period_ms": integer(0, 1000, "> 0: broadcasts also periodically", 0),

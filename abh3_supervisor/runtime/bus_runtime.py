@@ -24,13 +24,14 @@ from typing import Any
 
 import can
 
-from abh3_supervisor.config.interfaces import unknown_interface
+from abh3_supervisor.config.interfaces import echoes_own_frames, unknown_interface
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
 from abh3_supervisor.core import verify, verifying
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import priority
+from abh3_supervisor.runtime.echo import EchoFilter
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.scheduler.core import BusScheduler
@@ -50,10 +51,13 @@ def open_bus(cfg: BusConfig, *, from_file: bool = True) -> can.BusABC:
         raise BusOpenError(_cannot_open(cfg, problem))
     kwargs: dict[str, Any] = {"bitrate": cfg.bitrate, **cfg.options}
     try:
-        return can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
+        bus = can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
         hint = _socketcan_hint(cfg, exc, from_file) if cfg.interface == "socketcan" else ""
         raise BusOpenError(_cannot_open(cfg, f"{exc}{hint}")) from exc
+    # no code of ours may see its own frames: on udp_multicast it would take its own
+    # commands for another host's (runtime/echo.py)
+    return EchoFilter(bus) if echoes_own_frames(cfg.interface, cfg.options) else bus
 
 
 def _cannot_open(cfg: BusConfig, why: str) -> str:
@@ -176,7 +180,15 @@ class Runtime:
             attach(self.supervisor, loop.time)
             self.supervisor.subscribe(self._recorder.observe)
         for name, cfg in self.config.buses.items():
-            if (sim_cfg := cfg.simulate) is not None:
+            if (sim_cfg := cfg.simulate) is not None and sim_cfg.external:
+                log.info(
+                    "bus %s: its drives are simulated in another process (`abh3 simulate`): "
+                    "opening %s %s as a real bus",
+                    name,
+                    cfg.interface,
+                    cfg.channel,
+                )
+            elif sim_cfg is not None:
                 cfg = simulated(cfg)
                 sim_bus = open_bus(cfg)
                 self._buses.append(sim_bus)

@@ -51,6 +51,7 @@ PULSES_PER_REV = 4096  # when the file gives no geometry.pulses_per_rev
 TORQUE_ACCEL_PER_PERCENT = 50.0  # min⁻¹/s per % of current command, torque mode
 STALL_RATE = 400.0  # %/s: how fast the current rises on a motor without encoder feedback
 STALL_MAX = 250.0  # % (the drive's current limit, roughly)
+BOOT_S = 1.0  # power back on → first answer (a real drive takes about a second)
 
 
 class SimDrive:
@@ -92,7 +93,13 @@ class SimDrive:
         self.servo_tripped = [False, False]
         self.last_command: float | None = None
         self.t = now
-        self.started = now
+        self.started = now  # scripted faults count from here
+        self.booted = now  # the drive's own timeouts count from here until a command
+        # power and the CAN cable (`abh3 simulate`'s commands): without either the drive
+        # neither hears nor is heard; without power its motors run down, servo off
+        self.powered = True
+        self.plugged = True
+        self.awake_at = now  # powered again: answers from here (it boots)
         self.host = 2  # where periodic frames go until a host speaks
         # fault injection
         self.silent = False
@@ -107,6 +114,10 @@ class SimDrive:
         self.tel = TelResponder(abh3_id, self, self._fault_value, accepts)
         self.tel.params.update(self._set_up())
         self.tel.params.update(params or {})
+        self._stored = dict(self.tel.params)  # what a power cycle reloads
+        self._timeouts_from_table()
+
+    def _timeouts_from_table(self) -> None:
         self.command_zero_ms = ms_of(self.tel.params[COMMAND_ZERO])
         self.error_timeout_ms = ms_of(self.tel.params[ERROR_TIMEOUT])
 
@@ -131,9 +142,46 @@ class SimDrive:
     def inject_alarm(self, bits: int) -> None:
         self.alarms |= bits
 
+    # ------------------------------------------------------------ power and cable
+
+    def power_off(self, now: float) -> None:
+        """Its power cut: it hears and sends nothing, its servo drops, its motors run
+        down (at its ramp, braked), and whatever it was doing is gone."""
+        self.advance(now)
+        self.powered = False
+        self.inputs, self.cmd_raw = 0, (0, 0)
+        self._out.clear()
+
+    def power_on(self, now: float, *, keep_writes: bool = False) -> None:
+        """Power back: it boots for ``BOOT_S`` (silent), then answers as a drive just
+        switched on — servo and start off, no command heard (the command-zero timeout's
+        alarm stands until one comes), counters at zero, errors cleared, its parameter
+        table reloaded: as set up, or ``keep_writes`` with what was written meanwhile
+        (whether an ABH3 keeps parameters written over CAN is in no public source)."""
+        self.advance(now)
+        if self.powered:
+            return
+        self.powered = True
+        self.awake_at = now + BOOT_S
+        self.booted = self.awake_at
+        self.last_command = None
+        self.pulses, self.errors, self.alarms = [0.0, 0.0], 0, 0
+        self.servo_tripped = [False, False]
+        self.vel = [0.0, 0.0]  # it ran down while off
+        if not keep_writes:
+            self.tel.params.clear()
+            self.tel.params.update(self._stored)
+        self._timeouts_from_table()
+
+    def hears(self, now: float) -> bool:
+        """Whether a frame on the bus reaches it now (powered, booted, cable in)."""
+        return self.powered and self.plugged and now >= self.awake_at
+
     # ------------------------------------------------------------ bus side
 
     def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        if not self.hears(now):
+            return
         cid = CanId.from_int(arbitration_id)
         if cid.pf == PF_SINGLE and cid.ps == self.abh3_id and len(data) == 8:
             self.advance(now)
@@ -194,7 +242,7 @@ class SimDrive:
         return -self.vel[axis] if reversed_ else self.vel[axis]
 
     def _queue(self, now: float, arbitration_id: int, data: bytes) -> None:
-        if self.silent or self._fault(FaultKind.SILENT, now):
+        if self.silent or not self.hears(now) or self._fault(FaultKind.SILENT, now):
             return
         if self._fault(FaultKind.MALFORMED_REPLIES, now):
             data = b""
@@ -246,7 +294,7 @@ class SimDrive:
 
     def _timeout_deadline(self) -> float:
         # wake up when a drive-side timeout is about to fire, so bit 22 appears on time
-        last = self.last_command if self.last_command is not None else self.started
+        last = self.last_command if self.last_command is not None else self.booted
         deadline = math.inf
         for ms in (self.command_zero_ms, self.error_timeout_ms):
             if ms and self.t < last + ms / 1000 < deadline:
@@ -282,9 +330,13 @@ class SimDrive:
     def _silence(self, timeout_ms: int) -> bool:
         if not timeout_ms:
             return False
-        last = self.last_command if self.last_command is not None else self.started
+        last = self.last_command if self.last_command is not None else self.booted
         # the same sum as in _timeout_deadline, so waking at it always sees the timeout
         return self.t >= last + timeout_ms / 1000 or self.last_command is None
+
+    def command_zero_fired(self) -> bool:
+        """Commanded once, then silent for its command-zero timeout: it stopped itself."""
+        return self.last_command is not None and self._silence(self.command_zero_ms)
 
     def error_word(self) -> int:
         scripted = self._fault(FaultKind.ERROR_BITS, self.t)
