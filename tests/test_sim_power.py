@@ -36,7 +36,7 @@ def stream(drive: SimDrive, start: float, end: float, ay: int = 1500) -> float: 
 
 
 def moving(rig: Rig, unit: str) -> bool:
-    return max(abs(v) for v in rig.drive(unit).vel) > 1.0
+    return bool(max(abs(v) for v in rig.drive(unit).vel) > 1.0)
 
 
 def start_both(rig: Rig) -> None:
