@@ -508,3 +508,42 @@ def test_abh3_verify_asks_a_running_supervisor_and_releases_a_held_unit(tmp_path
     finally:
         run.terminate()
         run.communicate(timeout=30)
+
+
+def test_a_drive_without_its_command_zero_timeout_is_held_even_under_warn(
+    wire: WireMonitor,
+) -> None:
+    """0x4117 = 0: nothing would stop its motors were this host to die. Under the default
+    ``verify: warn`` its start-up commands wait for the check, which holds it."""
+    config = parse_config(text("{params: {left: {0x4117: 0}}}", channel="v-unsafe"), "v.yaml")
+    notices: list[str] = []
+
+    def keep(event: SupervisorEvent) -> None:
+        if isinstance(event, Notice) and event.unit == "left":
+            notices.append(event.message)
+
+    async def scenario() -> None:
+        async with Runtime(config) as rt:
+            sup = rt.supervisor
+            sup.subscribe(keep)
+            drive = rt.sims["b"].drives[1]
+            assert sup.units["left"].cfg.verify is VerifyMode.WARN
+            assert rt.verifying is not None
+            await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
+            verify = sup.units["left"].verify
+            assert verify.state is State.MISMATCH
+            assert verify.holds() is not None and "command-zero timeout is off" in verify.holds()
+            with wire.held(1, "0x4117 off"):
+                assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
+                for _ in range(5):
+                    assert await sup.wait_exchange("left", sup.clock(), 1.0)
+            assert not drive.inputs & sup.units["left"].layout.servo.both  # start-up never ran
+            assert sup.units["right"].verify.holds() is None  # the other drive runs
+            drive.tel.params[0x4117] = pack_float(500)  # set as it must be, verified again
+            again = (await verifying.verify_units(sup, ["left"]))["left"]
+            assert again.state is State.OK and again.holds() is None
+            await sup.command("left", "VEL 0 0")
+            assert drive.inputs & sup.units["left"].layout.servo.both  # start-up ran now
+
+    asyncio.run(scenario())
+    assert any("held at its idle word (SERVO, START, brake, torque refused)" in n for n in notices)

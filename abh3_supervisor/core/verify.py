@@ -22,7 +22,10 @@ until a verification finds its drive agreeing: it fails closed, so a drive that 
 does not answer, or has not been checked yet keeps it held (:meth:`Verification.holds`)
 until ``abh3 verify`` (``verifying.verify_units``) succeeds. A unit already verified
 runs on while it is checked again; if the new check does not agree it is held. With
-``verify: warn`` a drive that differs or does not answer is reported, never held.
+``verify: warn`` a drive that differs or does not answer is reported and runs — except a
+drive whose command-zero timeout reads 0 (off): nothing would stop its motors were this
+host to die, so it is held in either mode. The start-up commands of both modes wait for
+the check (at most ``VERIFY_DEADLINE``).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from abh3_supervisor.params.telabh3 import Command, Request, form_name, pin
 
 log = logging.getLogger(__name__)
 VERIFY_DEADLINE = 2.0  # s: the whole check of a bus (its units' channels run side by side)
+COMMAND_ZERO = 0x4117  # the drive's own stop when its host falls silent
 KBITS_BELOW = 10_000  # 0x4101 below this is kbit/s (the table's 500), else bit/s (250000)
 
 
@@ -61,6 +65,9 @@ class Row:
     yaml: str  # "drive_timeout_ms: 500 (robot.yaml:31)", or "must be 2 (control over CAN)"
     ok: bool
     why: str | None = None  # not read: why
+    # the drive would run on were its host to die (its command-zero timeout off): held
+    # whatever ``verify`` says, but off (then nothing is read)
+    unsafe: bool = False
 
     @property
     def name(self) -> str:
@@ -124,7 +131,15 @@ class Verification:
         return tuple(r for r in self.rows if r.mismatch)
 
     def holds(self) -> str | None:
-        """Why the unit is held at its idle word now (``verify: refuse``), or None."""
+        """Why the unit is held at its idle word now (``verify: refuse``, or a drive that
+        would run on without its host: :attr:`Row.unsafe`), or None."""
+        unsafe = next((r for r in self.rows if r.unsafe), None)
+        if unsafe is not None and self.mode is VerifyMode.WARN:
+            return (
+                f"its drive's command-zero timeout is off ({unsafe.line()}): were this host "
+                "to die its motors would run on, so it is held whatever `verify` says; set "
+                "0x4117 (`abh3 param set UNIT 0x4117 MS`), then `abh3 verify` it"
+            )
         if self.mode is not VerifyMode.REFUSE:
             return None
         if self.state is State.PENDING and not self.prior_ok:
@@ -224,7 +239,7 @@ CHECKS = (
     Check(0x4103, "host_id", _host),
     Check(0x4105, None, _reply_mode),
     Check(0x4107, "brd_group", _group),
-    Check(0x4117, "drive_timeout_ms", _zero_timeout),
+    Check(COMMAND_ZERO, "drive_timeout_ms", _zero_timeout),
 )
 
 
@@ -249,7 +264,8 @@ def compare(config: Config, unit: UnitConfig, check: Check, word: int) -> Row:
     ok, drive, yaml = check.judge(value, unit, config.buses[unit.bus].bitrate)
     if check.address == 0x4101:
         yaml = f"buses.{unit.bus}.{yaml}"
-    return Row(check.address, drive, yaml + where(config, unit, check), ok)
+    unsafe = check.address == COMMAND_ZERO and value == 0
+    return Row(check.address, drive, yaml + where(config, unit, check), ok, unsafe=unsafe)
 
 
 def form_of(channel: ParamChannel) -> str | None:

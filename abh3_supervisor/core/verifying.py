@@ -31,13 +31,15 @@ Checks = dict[str, tuple[DriveCheck, "asyncio.Future[Verification]"]]
 def begin(sup: Supervisor) -> tuple[set[str], asyncio.Task[dict[str, Verification]] | None]:
     """At start (on the loop): check every commanded unit whose ``verify`` is not off, in
     the background; they are pending from now. Returns the units whose start-up commands
-    must wait for it (``refuse``) and the task (the runtime cancels it when it stops)."""
+    must wait for it (all of them) and the task (the runtime cancels it when it stops)."""
     names = [
         u.name
         for u in sup.units.values()
         if u.cfg.role is Role.COMMAND and u.cfg.verify is not VerifyMode.OFF
     ]
-    waiting = {n for n in names if sup.units[n].cfg.verify is VerifyMode.REFUSE}
+    # every checked unit's start-up waits for its check: no motion before the drive says
+    # it would stop by itself were this host to die (its 0x4117: Row.unsafe)
+    waiting = set(names)
     for name in waiting:
         unit = sup.units[name]
         unit.verify = replace(unit.verify, startup_due=True)
@@ -133,7 +135,7 @@ def _act(sup: Supervisor, name: str) -> None:
         what = (
             "held at its idle word (SERVO, START, brake, torque refused) until they agree and "
             "the unit is verified again"
-            if refuse
+            if v.holds() is not None
             else "running as the file says (verify: warn)"
         )
         count = f"{len(v.mismatches)} of {len(v.rows)}"
