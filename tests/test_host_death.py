@@ -10,6 +10,7 @@ pulled): the listener's last command and the drive's stop are ``drive_timeout_ms
 
 from __future__ import annotations
 
+import importlib.util
 import signal
 import time
 from collections.abc import Iterator
@@ -169,3 +170,21 @@ def test_a_drive_without_its_command_zero_timeout_is_refused_end_to_end(
         assert not sim.events("left", "moving")  # never moved
         sup.proc.send_signal(signal.SIGTERM)
         assert sup.proc.wait(15) == 0
+
+
+def test_the_documented_demo_shows_the_stop_300_ms_after_the_last_command(
+    tmp_path: Path,
+) -> None:
+    """docs/simulator.md's demo, as a user runs it: its summary's lines."""
+    shared.namespace_or_skip()
+    path = Path(__file__).parents[1] / "docs" / "examples" / "host-death" / "demo.py"
+    spec = importlib.util.spec_from_file_location("host_death_demo", path)
+    assert spec is not None and spec.loader is not None
+    demo = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(demo)
+    lines = demo.demo(signal.SIGKILL, tmp_path)
+    for unit in DRIVES:
+        own = [line for line in lines if line.startswith(f"{unit}: its own timeout (0x4117)")]
+        assert len(own) == 1, lines
+        late = int(own[0].rsplit("+", 1)[1].removesuffix(" ms"))
+        assert abs(late - TIMEOUT_S * 1000) <= PERIOD_S * 1000, lines

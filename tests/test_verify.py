@@ -532,7 +532,8 @@ def test_a_drive_without_its_command_zero_timeout_is_held_even_under_warn(
             await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
             verify = sup.units["left"].verify
             assert verify.state is State.MISMATCH
-            assert verify.holds() is not None and "command-zero timeout is off" in verify.holds()
+            held = verify.holds()
+            assert held is not None and "command-zero timeout is off" in held
             with wire.held(1, "0x4117 off"):
                 assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
                 for _ in range(5):
