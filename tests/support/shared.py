@@ -129,10 +129,10 @@ class SharedBus:
     config: Path
     procs: list[subprocess.Popen[str]] = field(default_factory=list)
 
-    def simulator(self, config: Path | None = None) -> Simulator:
+    def simulator(self, config: Path | None = None, extra: tuple[str, ...] = ()) -> Simulator:
         trace = self.tmp / "trace.jsonl"
         proc = self.ns.popen(
-            [*ABH3, "simulate", str(config or self.config), "--trace", str(trace)],
+            [*ABH3, "simulate", str(config or self.config), "--trace", str(trace), *extra],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=(self.tmp / "simulate.err").open("w"),
