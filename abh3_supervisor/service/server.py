@@ -681,9 +681,10 @@ class ControlServer:
         return {"ok": True}
 
     async def _clear_estop(self, client: _Client, params: dict[str, Any]) -> Any:
-        self.rt.supervisor.clear_emergency_stop(client.name)
+        # the stops other hosts caused are cleared with it, once that host is quiet
+        standing = self.rt.supervisor.clear_emergency_stop(client.name)
         log.warning("control %s: emergency stop cleared", client.name)
-        return {"ok": True}
+        return {"ok": True, "standing": standing}
 
     async def _audit(self, client: _Client, params: dict[str, Any]) -> Any:
         """An operator's action at the client, into the audit trail (and every event log)."""

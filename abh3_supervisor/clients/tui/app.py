@@ -519,7 +519,8 @@ class SupervisorApp(App[None]):
     def action_clear_estop(self) -> None:
         if not self.connected():
             return
-        if not self.sup.estop:
+        foreign = any((u.foreign or {}).get("stopped") for u in self.sup.units.values())
+        if not self.sup.estop and not foreign:
             self.say("no emergency stop is latched")
             return
 
