@@ -252,3 +252,18 @@ def test_a_reader_is_reported_and_stops_nothing() -> None:
     said = [e for e in rig.events if isinstance(e, Notice) and "another host" in e.message]
     assert len(said) == 1 and said[0].level == logging.WARNING
     assert "another host (0x09) reads drive 0x01" in said[0].message
+
+
+def test_a_parameter_session_of_another_host_stops_the_unit() -> None:
+    """A tool writing the drive's parameters (J1939 transport) from its own address."""
+    rig = Rig(parse_config(TWO_UNITS, "two.yaml"))
+    rig.run(0.5)
+    _moving(rig, "left")
+    rig.run(0.1)
+    rig.scheduler.on_frame(ids.CanId(7, ids.PF_TP_CM, 1, 0x21).to_int(), TP_RTS, rig.timeline.now)
+    rig.sup.dispatch("b")
+    assert rig.sup.gate.foreign["left"] == "another host (0x21) commands drive 0x01 (unit left)"
+    assert rig.sup.units["left"].setpoint.ay == 0
+    rig.run(0.1)
+    assert rig.drive("left").cmd_raw == (0, 0)
+    assert is_safe_word(rig.drive("left").inputs, rig.sup.units["left"].layout)

@@ -30,8 +30,12 @@ def listen_time(units: Iterable[UnitConfig]) -> float:
 
 
 def _as_opened(cfg: BusConfig) -> BusConfig:
-    """The bus the runtime opens for ``cfg`` (a simulated one runs on the virtual bus)."""
-    return simulated(cfg) if cfg.simulate is not None else cfg
+    """The bus the runtime opens for ``cfg``: an in-process simulated one runs on the
+    virtual bus; drives simulated in another process (``simulate.external``) are reached
+    as a real bus is, on the file's interface."""
+    if cfg.simulate is None or getattr(cfg.simulate, "external", None):
+        return cfg
+    return simulated(cfg)
 
 
 class _Hear(can.Listener):
