@@ -14,7 +14,9 @@ from pathlib import Path
 import can
 import pytest
 
+from abh3_supervisor.clients import control
 from abh3_supervisor.clients.cli import main
+from abh3_supervisor.clients.control import ControlClient
 from abh3_supervisor.clients.scan import Findings
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core import commands
@@ -22,12 +24,13 @@ from abh3_supervisor.core.diagnostics import Health, Level
 from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.foreign import QUIET_S
 from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
-from abh3_supervisor.errors import CommandError
+from abh3_supervisor.errors import CommandError, RunError
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.support.foreign_host import BusHost, moving_word
+from tests.support.foreign_host import BusHost, moving_word, safe_word
 from tests.support.safe_word import is_safe_word
+from tests.support.served import Served
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes and buses
 
@@ -213,3 +216,33 @@ def test_commission_refuses_a_bus_where_another_host_commands_the_drive(
     assert "abh3 commission: refused: another host already commands a drive" in err
     assert "another host (0x02) commands drive 0x01 (unit front)" in err
     assert "heard in 0.30 s of listening" in err and "Traceback" not in err
+
+
+def test_the_socket_names_the_host_to_the_client_that_lost_its_motion(served: Served) -> None:
+    """A client holding motion is told it was lost to another host; `state` carries the
+    host; `clear_estop` (and `abh3 estop --clear`) say the stop stands while it is heard."""
+    setup = ControlClient(served.path)
+    holder = ControlClient(served.path)
+    foreign = can.Bus(interface="virtual", channel="t")  # TWO_UNITS' channel
+    try:
+        for text in ("SERVO ON ON", "START ON ON"):
+            assert setup.call("command", unit="left", text=text)["response"] == ""
+        assert holder.call("command", unit="left", text="VEL 100 0")["held"]
+        for data in (moving_word(), safe_word()):  # one command, then it leaves politely
+            foreign.send(can.Message(arbitration_id=OURS, data=data, is_extended_id=True))
+        why = "stopped: another host (0x02) commands drive 0x01 (unit left)"
+        deadline = time.monotonic() + 5.0
+        while (reply := holder.call("alive"))["holds"]:
+            assert time.monotonic() < deadline, "the motion was not dropped"
+        assert reply["lost"] == {"left": why}
+        state = setup.call("state")["units"]["left"]["foreign"]
+        assert state["stopped"] == "another host (0x02) commands drive 0x01 (unit left)"
+        assert state["hosts"][0]["frames"][0]["count"] == 2
+        answer = setup.call("clear_estop")
+        assert answer["ok"] and "heard" in answer["standing"][0]
+        with pytest.raises(RunError, match="not every stop: unit 'left': another host"):
+            control.estop(served.path, clear=True)
+    finally:
+        foreign.shutdown()
+        holder.close()
+        setup.close()

@@ -420,6 +420,9 @@ class ControlServer:
             return "the supervisor is stopping"
         if self.rt.supervisor.estop:
             return "the emergency stop is latched"
+        stops = self.rt.supervisor.gate.foreign  # another host on its drives (core/foreign.py)
+        if (why := next((stops[u] for u in source.robot.units if u in stops), None)) is not None:
+            return f"stopped: {why}"
         # the robot's one owner: another source's VEL on the robot's other drive leaves
         # this source's units with none (zero), so every unit of the robot is asked
         robot = source.robot.units
