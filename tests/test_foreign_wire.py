@@ -29,7 +29,7 @@ from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.snapshot import supervisor_state
 from tests.support.foreign_host import BusHost, moving_word, safe_word
-from tests.support.safe_word import is_safe_word
+from tests.support.safe_word import assert_drive_stopped, is_safe_word
 from tests.support.served import Served
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes and buses
@@ -108,6 +108,9 @@ def test_a_second_host_is_stopped_at_once_kept_stopped_and_named(
             await hosting
             gone = sup.clock()
             await until(lambda: sup.clock() - gone > QUIET_S + 0.05, QUIET_S + 2)
+            # the host gone, the drive is left with our safe word: stopped, servo off
+            assert_drive_stopped(sim.drives[1])
+            assert not sim.drives[1].control_word() & flags.LAYOUT_2021.servo.both
             standing = sup.clear_emergency_stop("test")
             right = sim.drives[3].inputs
             return {
