@@ -267,3 +267,22 @@ def test_a_parameter_session_of_another_host_stops_the_unit() -> None:
     rig.run(0.1)
     assert rig.drive("left").cmd_raw == (0, 0)
     assert is_safe_word(rig.drive("left").inputs, rig.sup.units["left"].layout)
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.03, 0.15, 0.4])
+def test_a_supervisor_alone_hears_no_other_host_however_late_its_drives_answer(
+    delay: float,
+) -> None:
+    """Replies later than the reply timeout (0.1 s), later than a period, or on time,
+    through motion and an e-stop: every one is accounted for by an exchange of ours (the
+    stop frames sent at once: test_a_late_reply_after_a_stop_frame_sent_at_once_is_ours)."""
+    rig = Rig(parse_config(TWO_UNITS, "two.yaml"))
+    for unit in ("left", "right"):
+        rig.drive(unit).extra_delay = delay
+    rig.run(0.5)
+    _moving(rig, "left")
+    rig.run(2.0)
+    rig.sup.emergency_stop("test")
+    rig.run(2.0)
+    assert not [e for e in rig.events if isinstance(e, ForeignEvent)]
+    assert rig.scheduler.slots["left"].stats.replies > 10
