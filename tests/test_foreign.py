@@ -112,6 +112,7 @@ def test_a_reply_with_no_exchange_of_ours_is_reported_not_commanding() -> None:
     (event,) = _foreign(s)
     assert (event.unit, event.host.source, event.host.commanding) == ("left", 2, False)
     assert list(event.host.heard) == [Evidence.UNASKED_REPLY]
+    assert event.host.who().startswith("drive 0x01 answers 0x02 unasked (another host")
 
 
 def test_our_own_late_replies_after_a_reply_timeout_are_not_counted() -> None:

@@ -112,8 +112,13 @@ class Foreign:
         return any(kind in COMMANDING for kind in self.heard)
 
     def who(self) -> str:
-        verb = "commands" if self.commanding else "reads"
-        return f"another host (0x{self.source:02X}) {verb} drive 0x{self.drive:02X}"
+        if self.commanding or Evidence.REQUEST in self.heard:
+            verb = "commands" if self.commanding else "reads"
+            return f"another host (0x{self.source:02X}) {verb} drive 0x{self.drive:02X}"
+        return (  # replies alone: they name no sender
+            f"drive 0x{self.drive:02X} answers 0x{self.source:02X} unasked (another host "
+            "asking in our name, or the drive's periodic DP0 replies: 0x4105)"
+        )
 
     def text(self) -> str:
         """``another host (0x02) commands drive 0x01 (unit left): 12 × DP0 command (…)``."""

@@ -292,7 +292,8 @@ class Supervisor:
         and keeps it stopped until the operator clears it (:meth:`clear_foreign`)."""
         host = event.host
         if not host.commanding:
-            self.notice(unit.name, logging.WARNING, f"{host.text()}: reported; reads stop nothing")
+            why = "reported (reads and unasked replies stop nothing)"
+            self.notice(unit.name, logging.WARNING, f"{host.text()}: {why}")
             return
         robot = self.config.robot(unit.name)
         stopped = []
