@@ -23,6 +23,11 @@ class CommandError(Abh3Error):
     """A supervisor command was refused (unknown unit, wrong mode, e-stop latched)."""
 
 
+class BusInUse(Abh3Error):
+    """Another host already commands a drive this tool would touch (core/foreign.py):
+    exit 2, before anything is sent."""
+
+
 class RunError(Abh3Error):
     """What only the run itself can find out failed (a device, an output, a plugin's start):
     exit 1, and before any drive is commanded where it is found at start-up."""

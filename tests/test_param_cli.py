@@ -149,36 +149,46 @@ def test_set_needs_a_confirmation_off_a_terminal(
 
 
 @pytest.mark.wallclock
-@pytest.mark.wire_allow(
-    "servo_write", reason="`param set --force` writes with the servo on, as the user asked"
-)
-def test_set_is_refused_while_the_running_service_has_the_servo_on(
+def test_a_bus_a_running_service_commands_is_refused_naming_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A supervisor runs the drives (servo on); `abh3 param` joins the same bus."""
+    """A supervisor runs the drives (servo on); `abh3 param -c` on the same bus listens
+    first, hears it command the drive and refuses (exit 2) before sending anything — so
+    the service, which would take a parameter session for another host's, runs on.
+    (Through the service, `--connect`, is the way: test_through_the_service.)"""
     service = parse_config(
-        SIM.format(channel="p-servo", simulate="true", extra=", startup: ['SERVO ON ON']"), "s.yaml"
+        SIM.format(
+            channel="p-servo",
+            simulate="true",
+            extra=", drive_timeout_ms: 200, startup: ['SERVO ON ON']",
+        ),
+        "s.yaml",
     )
-    tool = str(config(tmp_path, "p-servo", simulate="false"))
+    tool = str(config(tmp_path, "p-servo", simulate="false", extra=", drive_timeout_ms: 200"))
 
-    async def scenario() -> tuple[int, int, int]:
+    async def scenario() -> list[int]:
         async with Runtime(service) as rt:
             await started(rt)  # its start-up check of the drives is done (core/verify.py)
             await rt.supervisor.wait_exchange("left", rt.supervisor.clock(), 2.0)
-            refused = await asyncio.to_thread(
-                main, ["param", "-c", tool, "set", "left", "SPEED_AY_0", "900", "--yes"]
-            )
-            forced = await asyncio.to_thread(
-                main, ["param", "-c", tool, "set", "left", "SPEED_AY_0", "900", "--yes", "--force"]
-            )
-            read = await asyncio.to_thread(main, ["param", "-c", tool, "get", "left", "SPEED_AY_0"])
-            assert rt.sims["b"].drives[1].tel.params[0x5000] == 0x00400009
-            return refused, forced, read
+            codes = [
+                await asyncio.to_thread(main, ["param", "-c", tool, *argv])
+                for argv in (
+                    ["set", "left", "SPEED_AY_0", "900", "--yes", "--force"],
+                    ["get", "left", "SPEED_AY_0"],
+                )
+            ]
+            assert rt.sims["b"].drives[1].tel.params[0x5000] == 0x00400008  # untouched
+            assert not rt.supervisor.gate.foreign  # nothing of the tool's reached the bus
+            return codes
 
-    assert asyncio.run(scenario()) == (1, 0, 0)
+    assert asyncio.run(scenario()) == [2, 2]
     captured = capsys.readouterr()
-    assert "unit left reports its servo ON: not writing (--force to write anyway)" in captured.err
-    assert captured.out.splitlines()[-1].split()[2] == "900"
+    assert captured.out == ""
+    assert "abh3 param: refused: another host already commands a drive" in captured.err
+    assert "another host (0x02) commands drive 0x01 (unit left):" in captured.err
+    assert "× DP0 command (last 00EF0102 [" in captured.err
+    assert "heard in 0.30 s of listening, nothing sent" in captured.err
+    assert "Traceback" not in captured.err
 
 
 @pytest.mark.wallclock

@@ -2,8 +2,9 @@
 moment of the write (a 2023 DP0 reply after the question, a 2021 broadcast 1 asked for
 then), whatever the broadcast mask polls; an old word never decides.
 
-Two supervisors share one virtual bus, as `abh3 run` and `abh3 param -c` do: one commands
-the simulated drives, the other (every unit a monitor) writes parameters.
+Two supervisors share one virtual bus, as `abh3 run` and `abh3 param -c` did before a
+second host was detected (core/foreign.py): one commands the simulated drives, the other
+(every unit a monitor) writes parameters.
 """
 
 from __future__ import annotations
@@ -55,6 +56,10 @@ def test_servo_on_then_an_immediate_write_is_refused_and_off_then_write_succeeds
         async with Runtime(driving) as drive_rt, Runtime(writing) as write_rt:
             await started(drive_rt)  # its start-up check of the drives is done (core/verify.py)
             sup = drive_rt.supervisor
+            # the writer's parameter sessions are another host's to the commanding one, which
+            # would stop its drives (core/foreign.py; `abh3 param -c` now refuses such a
+            # bus): here it is told to watch no drive, to test the servo question alone
+            sup.schedulers["b"].foreign.drives.clear()
             ops = ParamOps(write_rt.supervisor, lambda bus: write_rt.pumps[bus].wake())
             for unit in ("old", "new"):
                 refused = written = 0

@@ -49,6 +49,7 @@ from abh3_supervisor.params.telabh3 import Command
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import signals
 from abh3_supervisor.runtime.bus_runtime import Runtime
+from abh3_supervisor.runtime.listening import refuse_if_commanded
 from abh3_supervisor.runtime.priority import Priority, bus_priority
 from abh3_supervisor.runtime.recorder import check_format
 from abh3_supervisor.runtime.recording import recorded, recording
@@ -444,6 +445,8 @@ async def _commissioning(
     began = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     used = for_commissioning(config, units)
     plugins = PluginHost(used, available={})
+    # two hosts commanding one drive fight over it: refused before anything is sent
+    await refuse_if_commanded(used, units, "abh3 commission")
     if args.record is not None:
         print(recording(args.record), flush=True)
     rt = Runtime(used, record=args.record, plugins=plugins)

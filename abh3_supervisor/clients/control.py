@@ -126,7 +126,8 @@ def status(path: Endpoint, as_json: bool) -> int:
         for line in status_lines(snapshot):
             print(line)
     units = snapshot["units"].values()
-    return 0 if all(u["online"] for u in units) and not snapshot["estop"] else 1
+    stopped = any((u.get("foreign") or {}).get("stopped") for u in units)
+    return 0 if all(u["online"] for u in units) and not snapshot["estop"] and not stopped else 1
 
 
 def estop(path: Endpoint, *, clear: bool) -> int:
@@ -140,6 +141,10 @@ def estop(path: Endpoint, *, clear: bool) -> int:
         client.close()
     if not isinstance(result, dict) or result.get("ok") is not True or latched == clear:
         raise RunError(f"{path}: the supervisor did not confirm it: {result!r}")
+    if standing := result.get("standing"):  # stops another host caused, still heard
+        raise RunError(
+            f"{path}: emergency stop cleared, but not every stop: " + "; ".join(standing)
+        )
     if clear:
         print(f"{path}: emergency stop cleared (nothing moves until START and motion are given)")
     else:
@@ -212,9 +217,19 @@ def status_lines(snapshot: dict[str, Any]) -> list[str]:
             _switches(u["reported"], model, snapshot["t"]) if "reported" in u else None,
             _faults(u),
             _verify(u.get("verify")),
+            _foreign(u.get("foreign")),
         ]
         lines.append(" · ".join(p for p in parts if p is not None))
     return lines
+
+
+def _foreign(f: dict[str, Any] | None) -> str | None:
+    """Another host on the unit's drive (core/foreign.py): ``STOPPED: another host (0x02)
+    commands drive 0x01 (unit left) — 120 × DP0 command (last …)``, readers after."""
+    if not f or not (f["stopped"] or f["hosts"]):
+        return None
+    heard = " | ".join(h["text"] for h in f["hosts"])
+    return f"STOPPED: {f['stopped']} — {heard}" if f["stopped"] else heard
 
 
 def _verify(v: dict[str, Any] | None) -> str | None:

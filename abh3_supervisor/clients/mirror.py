@@ -57,6 +57,7 @@ class UnitView:
     words: dict[str, int] = field(default_factory=dict)
     stats: Stats = field(default_factory=Stats)
     verify: dict[str, Any] | None = None  # the drive's settings against the YAML, as sent
+    foreign: dict[str, Any] | None = None  # other hosts on its drive (core/foreign.py)
 
     @property
     def name(self) -> str:
@@ -138,6 +139,7 @@ def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:
     unit.status = status
     _take(unit.stats, data["stats"])
     unit.verify = data.get("verify")  # absent from an older service
+    unit.foreign = data.get("foreign")
 
 
 def _take(record: Stats | BusView, data: dict[str, Any]) -> None:

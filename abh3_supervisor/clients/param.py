@@ -157,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
 
     config = monitor_only(load_config(args.config))
     known_unit(args.unit, config.units)  # before any bus opens
-    return asyncio.run(_on_own_bus(config, lambda backend: op(backend, args)))
+    return asyncio.run(_on_own_bus(config, lambda backend: op(backend, args), args.unit))
 
 
 class _Stop:
@@ -219,13 +219,19 @@ def known_unit(name: str, units: Iterable[str]) -> None:
         raise CommandError(f"no unit named '{name}' (units: {', '.join(units)})")
 
 
-async def _on_own_bus(config: Config, op: Callable[[Backend], Coroutine[Any, Any, int]]) -> int:
+async def _on_own_bus(
+    config: Config, op: Callable[[Backend], Coroutine[Any, Any, int]], unit: str
+) -> int:
     from abh3_supervisor.core.eventlog import EventLog
     from abh3_supervisor.core.supervisor import OperatorAction, SupervisorEvent
     from abh3_supervisor.runtime.bus_runtime import Runtime
+    from abh3_supervisor.runtime.listening import refuse_if_commanded
     from abh3_supervisor.service.param_ops import ParamOps
 
     with _Stop() as stop:
+        # a host commanding the drive would see our parameter session as another host's
+        # (and stop), and we would fight it: refused before anything is sent (exit 2)
+        await refuse_if_commanded(config, [unit], "abh3 param")
         async with Runtime(config) as rt:
             events = EventLog(rt.supervisor)
 

@@ -26,11 +26,13 @@ from dataclasses import dataclass, field
 
 import can
 
+from abh3_supervisor.core.foreign import Evidence
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.frames import Generation
 
 log = logging.getLogger(__name__)
 LISTEN_S = 0.3
+COMMAND, SESSION = Evidence.COMMAND.value, Evidence.SESSION.value  # the commanding kinds
 REPLY_WAIT_S = 0.15  # a drive answers a request within ~1 ms; slack for a loaded bus
 PACE_S = 0.002  # between our requests: 500 frames/s at most, a few % of any ABH3 bitrate
 GROUPS = range(32)
@@ -78,7 +80,11 @@ class Findings:
         self.host = host
         self.drives: dict[int, Drive] = {}
         self.other_hosts: set[int] = set()  # nodes that sent requests: some host's
-        self._dp0_pairs: dict[tuple[int, int], bytes] = {}  # (source, destination): data
+        # (source, destination) → (last data, frames since it was last settled)
+        self._dp0_pairs: dict[tuple[int, int], tuple[bytes, int]] = {}
+        self._tp_pairs: dict[tuple[int, int], int] = {}  # (source, destination) → frames
+        # host → drive → frame kind → count: every host heard commanding a drive
+        self.commanders: dict[int, dict[int, dict[str, int]]] = {}
         self.frames = 0
 
     def drive(self, address: int) -> Drive:
@@ -104,22 +110,30 @@ class Findings:
                 control = record.control or 0  # 2021: the control word comes first
                 drive.travel_model = bool(control & flags.layout(Generation.G2021).travel_model)
         elif cid.pf == ids.PF_SINGLE and len(data) == 8:
-            self._dp0_pairs[cid.sa, cid.ps] = data
+            _, count = self._dp0_pairs.get((cid.sa, cid.ps), (data, 0))
+            self._dp0_pairs[cid.sa, cid.ps] = (data, count + 1)
             self._resolve()
+        elif cid.pf in (ids.PF_TP_CM, ids.PF_TP_DT):  # a parameter session, either way
+            self._tp_pairs[cid.sa, cid.ps] = self._tp_pairs.get((cid.sa, cid.ps), 0) + 1
 
     def _resolve(self) -> None:
         """A DP0 frame goes host → drive (a command) or drive → host (a reply): the host is
         us, a node that sent requests, or the one that is not a known drive."""
         hosts = self.other_hosts | {self.host}
         pending = {}
-        for (source, destination), data in self._dp0_pairs.items():
+        for (source, destination), (data, count) in self._dp0_pairs.items():
             if destination in hosts or (source in self.drives and source not in hosts):
                 self._reply(source, destination, data)
             elif source in hosts or destination in self.drives:
                 self.drive(destination).seen.add(f"DP0 command from {source}")
+                self._commanded(source, destination, COMMAND, count)
             else:
-                pending[source, destination] = data
+                pending[source, destination] = (data, count)
         self._dp0_pairs = pending
+
+    def _commanded(self, host: int, drive: int, kind: str, count: int) -> None:
+        kinds = self.commanders.setdefault(host, {}).setdefault(drive, {})
+        kinds[kind] = kinds.get(kind, 0) + count
 
     def _reply(self, address: int, host: int, data: bytes) -> None:
         drive = self.drive(address)
@@ -135,6 +149,21 @@ class Findings:
 
     def finish(self) -> None:
         self._resolve()  # a node learnt to be a drive late settles its earlier DP0 frames
+        # a session's frames go both ways: the host's are those to a drive, not from one
+        for (source, destination), count in self._tp_pairs.items():
+            if destination in self.drives and source not in self.drives:
+                self._commanded(source, destination, SESSION, count)
+        self._tp_pairs = {}
+
+    def commanding(self) -> list[str]:
+        """``host 2 commands drive 1: 25 × DP0 command, 3 × parameter session (TP)``, one
+        line per host and drive (after :meth:`finish`)."""
+        return [
+            f"host {host} commands drive {drive}: "
+            + ", ".join(f"{n} × {kind}" for kind, n in sorted(kinds.items()))
+            for host, drives in sorted(self.commanders.items())
+            for drive, kinds in sorted(drives.items())
+        ]
 
     @property
     def unresolved(self) -> list[tuple[int, int]]:
@@ -222,6 +251,10 @@ def report(findings: Findings, *, listen_only: bool) -> list[str]:
             "protocol '2021?': an idle drive's reply reads the same in both generations; "
             "check the drive's CAN specification (or scan again while it reports a state)"
         )
+    commanding = findings.commanding()
+    if commanding:  # every host heard keeping a drive under command (core/foreign.py)
+        lines.append("hosts commanding drives (another host: stop it before driving them):")
+        lines += [f"  {line}" for line in commanding]
     for a, b in findings.unresolved:
         lines.append(f"DP0 frames between nodes {a} and {b}: one of them is a drive")
     others = findings.other_hosts - {findings.host}

@@ -5,6 +5,8 @@ ERROR or STALE (the levels of ``diagnostic_msgs/DiagnosticStatus``) with a messa
 key/value pairs. The ROS 2 bridge publishes it on ``/diagnostics``; MCAP recordings keep
 it. Rules, first that applies:
 
+- ERROR: another host commands the unit's drive (or a drive of its robot), or it did and
+  the stop it caused stands (core/foreign.py): key/values name the host and its frames;
 - STALE: the unit never answered, or is offline (silent for its ``timeout_ms``);
 - ERROR: error bits are set (by name);
 - WARN: alarm bits are set, the drive's CAN settings differ from the file
@@ -24,6 +26,7 @@ from enum import IntEnum
 
 from abh3_supervisor.config.model import Role
 from abh3_supervisor.core import readouts
+from abh3_supervisor.core.foreign import QUIET_S
 from abh3_supervisor.core.planner import plan
 from abh3_supervisor.core.state import UnitState
 from abh3_supervisor.core.supervisor import Supervisor
@@ -64,7 +67,10 @@ def _hex(value: int | None) -> str:
     return "" if value is None else f"0x{value:08X}"
 
 
-def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
+def unit_status(
+    unit: UnitState, scheduler: BusScheduler, now: float, stopped: str | None = None
+) -> Status:
+    """``stopped``: why the unit stands stopped for another host (the gate's reason)."""
     cfg = unit.cfg
     stats = scheduler.slots[cfg.name].stats
     error, error_bits = _word(unit, "error")
@@ -78,7 +84,12 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
     verification = unit.verify
     mismatches = "; ".join(r.line() for r in verification.mismatches)
     brd5 = supplies[1] if supplies is not None else None
-    if unit.online is None:
+    heard = [h for h in scheduler.foreign.of(cfg.name) if now - h.last <= QUIET_S]
+    commanders = [h for h in heard if h.commanding]
+    if stopped is not None or commanders:
+        why = stopped or commanders[0].who()
+        level, message = Level.ERROR, f"stopped: {why}"
+    elif unit.online is None:
         level, message = Level.STALE, "no answer yet"
     elif unit.online is False:
         level, message = Level.STALE, f"offline: silent for {cfg.timeout_ms} ms or more"
@@ -121,6 +132,8 @@ def unit_status(unit: UnitState, scheduler: BusScheduler, now: float) -> Status:
         ("drive settings", verification.state.value),
         ("drive settings differ", mismatches),
     ]
+    for host in heard:  # every other host heard lately, commanding first
+        values += [("foreign host", f"0x{host.source:02X}"), ("foreign frames", host.text())]
     if isinstance(brd5, frames.Brd5):
         values += [
             ("main supply [V]", f"{brd5.main_volt:.1f}"),
@@ -213,7 +226,8 @@ class Health:
             health = self.sup.bus_health[bus]
             load = self._load.get(bus)
             out.append(bus_status(bus, units, scheduler, p.load_percent, load, health))
-            out += [unit_status(u, scheduler, now) for u in units]
+            stops = self.sup.gate.foreign
+            out += [unit_status(u, scheduler, now, stops.get(u.name)) for u in units]
         return out
 
     def _measure(self, bus: str, frames: int, now: float) -> None:

@@ -5,6 +5,8 @@ else (the rest of the program asks for switches and motion; the gate decides wha
 reaches the wire). The state it decides from, most restrictive first:
 
 - **stopping** — the way out (normal end, signal, fatal error): the safe word, final;
+- **another host** commands the unit's drive, or a drive of its robot (core/foreign.py):
+  the safe word, until the operator clears it once that host has been quiet;
 - **a parameter write** in flight on the unit (a lock, taken before the write and held
   until it ends): the safe word;
 - **held** by ``verify: refuse`` until the drive is verified: the safe word;
@@ -85,6 +87,8 @@ class MotionGate:
         self.estop: EStop | None = None
         self.stopping = False
         self._writes: dict[str, int] = {}  # unit → parameter writes in flight
+        # unit → why another host stops it (core/foreign.py); cleared by the operator only
+        self.foreign: dict[str, str] = {}
 
     # ------------------------------------------------------------ state
 
@@ -127,6 +131,8 @@ class MotionGate:
             return "the supervisor is stopping: commands are refused"
         if unit.cfg.role is not Role.COMMAND:
             return f"unit '{unit.name}' is configured role: monitor and takes no commands"
+        if (why := self.foreign.get(unit.name)) is not None:
+            return f"unit '{unit.name}' is stopped: {why}"
         if unit.name in self._writes:
             return (
                 f"a parameter write is in flight on unit '{unit.name}': SERVO, START and "
@@ -161,9 +167,11 @@ class MotionGate:
             raise CommandError("emergency stop is latched: clear it before commanding motion")
 
     def restricted(self, unit: UnitState) -> bool:
-        """The unit sends the safe word whatever it was asked (stopping, write, held)."""
+        """The unit sends the safe word whatever it was asked (stopping, another host, a
+        write, held)."""
         return (
             self.stopping
+            or unit.name in self.foreign
             or unit.name in self._writes
             or unit.verify.holds() is not None
             or (self.estop is not None and unit.name in self.estop.powered_off)

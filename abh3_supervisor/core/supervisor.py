@@ -24,6 +24,7 @@ from abh3_supervisor.core.commands import (
     SwitchCommand,
     VelocityCommand,
 )
+from abh3_supervisor.core.foreign import QUIET_S, Foreign
 from abh3_supervisor.core.gate import ESTOP_POWER_OFF_S, STOPPED_BELOW, MotionGate, moving_switches
 from abh3_supervisor.core.inputs import (
     DEFAULT_TIMEOUT,
@@ -49,6 +50,7 @@ from abh3_supervisor.scheduler.core import (
     BusScheduler,
     Event,
     FeedbackEvent,
+    ForeignEvent,
     GapEvent,
     HealthEvent,
     MalformedEvent,
@@ -273,6 +275,8 @@ class Supervisor:
                 self._zero(unit)
         elif isinstance(event, GapEvent):
             self._gap(unit, event)
+        elif isinstance(event, ForeignEvent):
+            self._foreign(unit, event)
         elif isinstance(event, MalformedEvent):
             held = self._throttle.allow((unit.name, event.kind), event.t)
             if held is not None:
@@ -281,6 +285,75 @@ class Supervisor:
                     logging.WARNING,
                     f"malformed {event.kind} ignored: {event.reason}{held_note(held)}",
                 )
+
+    def _foreign(self, unit: UnitState, event: ForeignEvent) -> None:
+        """Another host on ``unit``'s drive (core/foreign.py), once per episode: a reader
+        is reported; a commander stops the unit's robot with the safe word, sent at once,
+        and keeps it stopped until the operator clears it (:meth:`clear_foreign`)."""
+        host = event.host
+        if not host.commanding:
+            why = "reported (reads and unasked replies stop nothing)"
+            self.notice(unit.name, logging.WARNING, f"{host.text()}: {why}")
+            return
+        robot = self.config.robot(unit.name)
+        stopped = []
+        for name in robot.units if robot is not None else (unit.name,):
+            target = self.units[name]
+            if target.cfg.role is not Role.COMMAND or self.stopping:
+                continue
+            self.gate.foreign.setdefault(name, f"{host.who()} (unit {unit.name})")
+            self.restrict(name)  # consumed: nothing comes back when it is cleared
+            self._send_at_once(target)
+            stopped.append(name)
+        self.notice(
+            unit.name,
+            logging.ERROR,
+            f"{host.text()}: stopped {', '.join(stopped) or 'nothing (stopping)'} with the "
+            f"safe word; clear it (clear_estop: TUI E, abh3 estop --clear) once that host has "
+            f"been quiet for {QUIET_S:g} s",
+        )
+
+    def foreign_hosts(self, name: str) -> list[Foreign]:
+        """Every other host heard on ``name``'s drive (core/foreign.py), commanding first."""
+        unit = self.unit(name)
+        return self.schedulers[unit.cfg.bus].foreign.of(name)
+
+    def clear_foreign(self, source: str = "api") -> list[str]:
+        """Lift the stops other hosts caused, where every such host on the unit's robot has
+        been quiet for :data:`QUIET_S`; the arbitration is voided (nothing comes back by
+        itself). The stops still standing, each with why."""
+        now = self.clock()
+        standing, cleared = [], []
+        for name in list(self.gate.foreign):
+            robot = self.config.robot(name)
+            heard = [
+                host
+                for member in (robot.units if robot is not None else (name,))
+                for host in self.schedulers[self.units[member].cfg.bus].foreign.commanding(
+                    member, now
+                )
+            ]
+            if heard:
+                ago = now - max(h.last_commanding for h in heard)
+                standing.append(
+                    f"unit '{name}': {heard[0].who()} was heard {ago:.2f} s ago: not cleared "
+                    f"until it has been quiet for {QUIET_S:g} s"
+                )
+                continue
+            del self.gate.foreign[name]
+            self.arbiter.hold(name)
+            self._push(self.units[name])
+            cleared.append(name)
+        if cleared:
+            self.notice(
+                None,
+                logging.WARNING,
+                f"stop by another host cleared ({clean(source)}) on {', '.join(cleared)}; "
+                "SERVO, START and motion must be given again",
+            )
+        for line in standing:
+            self.notice(None, logging.WARNING, line)
+        return standing
 
     def _gap(self, unit: UnitState, event: GapEvent) -> None:
         """The drive stopped itself for want of commands: it must not restart on its own."""
@@ -761,12 +834,14 @@ class Supervisor:
         if first:
             self._emit(EstopChange(now, True, clean(source)))
 
-    def clear_emergency_stop(self, source: str = "api") -> None:
+    def clear_emergency_stop(self, source: str = "api") -> list[str]:
         """Unlatch: nothing heard before this moment moves anything (the arbitration is
         voided again); START, SERVO and motion must be given anew. ``source``: who cleared
-        it (the :class:`EstopChange` event says)."""
+        it (the :class:`EstopChange` event says). The stops other hosts caused are cleared
+        too where that host has gone quiet (:meth:`clear_foreign`): those still standing."""
+        standing = self.clear_foreign(source) if self.gate.foreign else []
         if self.gate.estop is None:
-            return
+            return standing
         for unit in self._commanded():  # not powered off yet: SERVO and brake go now too
             self._power_off(unit)
         self.gate.clear()
@@ -775,6 +850,7 @@ class Supervisor:
             self._push(unit)
         self.notice(None, logging.WARNING, "emergency stop cleared; START must be given again")
         self._emit(EstopChange(self.clock(), False, clean(source)))
+        return standing
 
     def _power_off(self, unit: UnitState) -> None:
         """The e-stop's second step: SERVO and brake release off (forgotten, not masked),

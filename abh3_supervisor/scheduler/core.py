@@ -14,6 +14,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from abh3_supervisor.config.model import Role, UnitConfig
+from abh3_supervisor.core.foreign import Foreign, ForeignWatch
 from abh3_supervisor.core.timing import next_on_grid
 from abh3_supervisor.params.session import ParamChannel
 from abh3_supervisor.protocol import frames
@@ -78,7 +79,17 @@ class MalformedEvent:
     reason: str
 
 
-Event = FeedbackEvent | StatusEvent | HealthEvent | GapEvent | MalformedEvent
+@dataclass(frozen=True, slots=True)
+class ForeignEvent:
+    """Another host's frames on the unit's drive began an episode (core/foreign.py): the
+    record, updated in place as more of its frames come."""
+
+    unit: str
+    t: float
+    host: Foreign
+
+
+Event = FeedbackEvent | StatusEvent | HealthEvent | GapEvent | MalformedEvent | ForeignEvent
 VALID_LENGTH = 8  # every DP0 reply and broadcast 0-6 carries 8 bytes (doc §3)
 # a gap is declared this much before the drive's own timeout would fire, so a frame on its
 # way when the timeout passes cannot reach a drive that has already stopped itself
@@ -127,6 +138,26 @@ class UnitSlot:
         self.gap = False
         self.since = start
         self.stats = UnitStats(cfg.command_rate_hz)
+        # when each DP0 exchange of ours ended without its reply (timed out, or replaced by
+        # a stop frame sent at once): its reply may still come, late; see unasked()
+        self.orphans: list[float] = []
+
+    def orphan(self, now: float) -> None:
+        """The exchange in flight ends unanswered (its reply may yet come)."""
+        if self.dp0_sent_at is not None:
+            self.orphans.append(now)
+
+    def unasked(self, now: float) -> bool:
+        """A DP0 reply came with no exchange of ours in flight: True if none of ours can
+        explain it. Replies carry no sequence number, so a late reply answers whichever
+        exchange is in flight when it comes, and the one after it then arrives with none:
+        each exchange that ended unanswered within ``timeout`` (the seed's offline timeout,
+        well beyond any reply's delay) accounts for one such reply."""
+        self.orphans = [t for t in self.orphans if now - t <= self.timeout]
+        if self.orphans:
+            self.orphans.pop(0)
+            return False
+        return True
 
     def poll_due(self) -> float:
         """When the next status request may go: one in flight per unit, until it expires."""
@@ -179,6 +210,8 @@ class BusScheduler:
         self._tp_routes: dict[int, tuple[ParamChannel, bool]] = {}  # drive's id → (ch, is DT)
         self._params_active = False  # some channel has a request queued or open
         self._tp_senders: dict[int, ParamChannel] = {}
+        # other hosts on the drives we command (core/foreign.py), from unrouted frames
+        self.foreign = ForeignWatch({c.abh3_id: c.name for c in cfgs if c.role is Role.COMMAND})
         for cfg in cfgs:
             # stagger first sends so the units do not all hit the bus at one instant
             i = groups.index((together or {}).get(cfg.name, cfg.name))
@@ -211,8 +244,12 @@ class BusScheduler:
         route = self._routes.get(arbitration_id & MATCH_MASK)  # inline: the hot path
         if route is None:
             tp = self._tp_routes.get(arbitration_id & MATCH_MASK)
-            if tp is not None and data:
-                tp[0].on_frame(tp[1], data, now)
+            if tp is not None:
+                if data:
+                    tp[0].on_frame(tp[1], data, now)
+            else:
+                for host in self.foreign.frame(arbitration_id, data, now):
+                    self.events.append(ForeignEvent(host.unit, now, host))
             return
         slot, packet = route
         cfg = slot.cfg
@@ -234,6 +271,12 @@ class BusScheduler:
             else:
                 slot.stats.unsolicited += 1
                 slot.stats.last_seen = now
+                if slot.commanding and slot.unasked(now):
+                    unasked = self.foreign.unasked_reply(
+                        cfg.abh3_id, cfg.host_id, arbitration_id, data, now
+                    )
+                    if unasked is not None:
+                        self.events.append(ForeignEvent(cfg.name, now, unasked))
             reply = frames.decode_dp0_reply(data, cfg.protocol)
             self.events.append(FeedbackEvent(cfg.name, now, reply, sent_at))
         else:
@@ -288,6 +331,7 @@ class BusScheduler:
             if now >= slot.command_due():
                 if slot.dp0_sent_at is not None:
                     slot.stats.timeouts += 1  # the previous exchange got no reply in time
+                    slot.orphan(now)
                 out.append((slot.command_id, slot.payload))
                 slot.dp0_sent_at = slot.last_sent = now
                 slot.stats.commands_sent += 1
@@ -331,6 +375,7 @@ class BusScheduler:
         """The unit's DP0 frame, due now regardless of schedule (stop frames); in flight
         from now, so its reply confirms it."""
         slot = self.slots[unit]
+        slot.orphan(now)  # the exchange in flight, if any, is replaced unanswered
         slot.dp0_sent_at = slot.last_sent = now
         slot.stats.commands_sent += 1
         slot.next_command = now + slot.command_interval()

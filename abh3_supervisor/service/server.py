@@ -420,6 +420,9 @@ class ControlServer:
             return "the supervisor is stopping"
         if self.rt.supervisor.estop:
             return "the emergency stop is latched"
+        stops = self.rt.supervisor.gate.foreign  # another host on its drives (core/foreign.py)
+        if (why := next((stops[u] for u in source.robot.units if u in stops), None)) is not None:
+            return f"stopped: {why}"
         # the robot's one owner: another source's VEL on the robot's other drive leaves
         # this source's units with none (zero), so every unit of the robot is asked
         robot = source.robot.units
@@ -681,9 +684,10 @@ class ControlServer:
         return {"ok": True}
 
     async def _clear_estop(self, client: _Client, params: dict[str, Any]) -> Any:
-        self.rt.supervisor.clear_emergency_stop(client.name)
+        # the stops other hosts caused are cleared with it, once that host is quiet
+        standing = self.rt.supervisor.clear_emergency_stop(client.name)
         log.warning("control %s: emergency stop cleared", client.name)
-        return {"ok": True}
+        return {"ok": True, "standing": standing}
 
     async def _audit(self, client: _Client, params: dict[str, Any]) -> Any:
         """An operator's action at the client, into the audit trail (and every event log)."""

@@ -108,6 +108,11 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
         "reported": _reported(unit, words.get("control")),
         # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
         "verify": _verify_json(unit.verify),
+        # other hosts on the unit's drive (core/foreign.py) and the stop they caused
+        "foreign": {
+            "stopped": sup.gate.foreign.get(unit.name),
+            "hosts": [host.to_json() for host in sup.foreign_hosts(unit.name)],
+        },
         "status": status,
         "stats": {
             "rate_hz": st.achieved_rate_hz(now),

@@ -519,17 +519,23 @@ class SupervisorApp(App[None]):
     def action_clear_estop(self) -> None:
         if not self.connected():
             return
-        if not self.sup.estop:
+        foreign = any((u.foreign or {}).get("stopped") for u in self.sup.units.values())
+        if not self.sup.estop and not foreign:
             self.say("no emergency stop is latched")
             return
 
+        # the stop another host caused (core/foreign.py) is cleared the same way, by the
+        # service only once that host has been quiet: what stands is said in the notices
+        what = "the emergency stop" if self.sup.estop else "the stop by another host"
+
         def answer(yes: bool | None) -> None:
-            self.audit(f"clear the emergency stop? {'yes' if yes else 'no'}")
+            self.audit(f"clear {what}? {'yes' if yes else 'no'}")
             if yes:
                 self.send("clear_estop")
-                self.say("e-stop cleared: give START again to move")
+                done = "e-stop cleared" if self.sup.estop else "asked to clear (see the notices)"
+                self.say(f"{done}: give START again to move")
 
-        self.push_screen(ConfirmScreen("Clear the emergency stop?"), answer)
+        self.push_screen(ConfirmScreen(f"Clear {what}?"), answer)
 
     def action_drive(self, linear: int, angular: int) -> None:
         """An arrow's press or auto-repeat holds its twist (re-sent by :meth:`drive_tick`

@@ -213,6 +213,15 @@ def verify_fields(verify: dict[str, Any] | None) -> list[str]:
     return shown
 
 
+def foreign_fields(foreign: dict[str, Any] | None) -> list[str]:
+    """Other hosts on the unit's drive (core/foreign.py), as the service sent them: the
+    stop they caused, and each host with its frames."""
+    if not foreign:
+        return []
+    shown = [f"STOPPED: {foreign['stopped']}"] if foreign.get("stopped") else []
+    return shown + [host["text"] for host in foreign.get("hosts", ())]
+
+
 def detail_fields(
     sup: Mirror, name: str, firmware: str | None = None, stale: float | None = None
 ) -> list[str]:
@@ -247,6 +256,7 @@ def detail_fields(
         f"malformed {st.malformed}",
         f"gaps {st.gaps}",
         *verify_fields(unit.verify),
+        *foreign_fields(unit.foreign),
     ]
     b3, b4, b5 = status_record(unit, 3), status_record(unit, 4), status_record(unit, 5)
     b6 = status_record(unit, 6)

@@ -135,6 +135,11 @@ def render(
             style = _style(column.key, row[column.key], i == selected)
             text.append(_cell(column, row[column.key]), "dim" if stale is not None else style)
         text.append("\n")
+        stopped = (sup.units[name].foreign or {}).get("stopped")
+        if stopped:  # another host commands its drive (core/foreign.py): E clears, once quiet
+            text.append(
+                f"    STOPPED: {stopped} (E clears it once that host is quiet)\n", "bold red"
+            )
         faults = fault_names(sup, name)
         if faults:
             text.append("    ")
