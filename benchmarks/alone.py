@@ -44,7 +44,7 @@ import can
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime import netns
 from abh3_supervisor.scheduler.stats import percentile
-from benchmarks.report import Row
+from benchmarks.report import Row, machine, print_rows
 
 ROOT = Path(__file__).resolve().parent.parent  # where `benchmarks` imports
 CHANNEL = "239.74.163.2"
@@ -372,8 +372,12 @@ def bare(units: int, rate: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.alone")
-    sub = p.add_subparsers(dest="role", required=True)
+    """``python -m benchmarks.alone [--seconds S] [--runs N]``: this section only (a
+    board's figures); the roles below are what it starts inside the namespace."""
+    p = argparse.ArgumentParser(prog="python -m benchmarks.alone", description=__doc__)
+    p.add_argument("--seconds", type=float, default=10.0, help="each measuring window")
+    p.add_argument("--runs", type=int, default=3, help="repetitions; the median is printed")
+    sub = p.add_subparsers(dest="role")
     sub.add_parser("listen", help="print the DP0 frames heard, at SIGTERM")
     b = sub.add_parser("bare", help="a bare python-can host, until SIGTERM")
     b.add_argument("--units", type=int, default=UNITS)
@@ -381,8 +385,11 @@ def main(argv: list[str] | None = None) -> None:
     a = p.parse_args(argv)
     if a.role == "listen":
         listen()
-    else:
+    elif a.role == "bare":
         bare(a.units, a.rate)
+    else:
+        print(f"machine: {machine()}")
+        print_rows(rows(a.seconds, a.runs))
 
 
 if __name__ == "__main__":
