@@ -398,7 +398,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # 10. the supervisor alone, its drives in `abh3 simulate` (issue 32 item 4); skipped,
     # with the reason, where no network namespace can be made
-    rows += alone.rows(2.0 if a.quick else 10.0, runs)
+    rows += alone.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]

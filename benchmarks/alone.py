@@ -10,7 +10,9 @@ bus never leaves the machine: runtime/netns.py), and each process is timed on it
   build a DP0 message, ``send``, ``recv`` until its reply (its own frames come back on
   this interface and are skipped, as any host here must) — the least a Python host does;
 * **the simulator process**, during the supervisor's window (no target: its share is what
-  the in-process figures used to include).
+  the in-process figures used to include);
+* with ``sizing`` (not ``--quick``), the supervisor's CPU for 16 units — section 4's
+  sizing row, the one a small computer is chosen by — without the simulator's.
 
 CPU is each process's run time (the scheduler's, per thread) over a fixed window; exchanges
 (DP0 replies), rates and the command period's jitter are read off the wire by a
@@ -64,7 +66,8 @@ def config(units: int, rate: float, interface: str) -> str:
         for i in range(units)
     )
     channel = CHANNEL if interface == "udp_multicast" else f"alone-{os.getpid()}"
-    bus = f"b: {{interface: {interface}, channel: {channel}, simulate: true}}"
+    bitrate = 500_000 if units <= 8 else 1_000_000  # 16 at 100 Hz: 102 % of 500 kbit/s at worst
+    bus = f"b: {{interface: {interface}, channel: {channel}, bitrate: {bitrate}, simulate: true}}"
     return f"buses:\n  {bus}\nunits:\n{listed}"
 
 
@@ -84,11 +87,13 @@ def cpu_between(before: dict[str, int], after: dict[str, int]) -> float:
     return sum(ns - before.get(tid, 0) for tid, ns in after.items()) / 1e9
 
 
-def _wait_for(what: str, ready: Callable[[], bool], proc: subprocess.Popen[str]) -> None:
+def _wait_for(
+    what: str, ready: Callable[[], bool], proc: subprocess.Popen[str], said: Callable[[], str]
+) -> None:
     deadline = time.monotonic() + START_TIMEOUT_S
     while not ready():
         if proc.poll() is not None:
-            raise RuntimeError(f"{what}: the process ended (exit {proc.returncode})")
+            raise RuntimeError(f"{what}: the process ended (exit {proc.returncode}){said()}")
         if time.monotonic() > deadline:
             raise RuntimeError(f"{what}: not within {START_TIMEOUT_S:g} s")
         time.sleep(0.02)
@@ -142,7 +147,12 @@ def _supervisor_window(
             text=True, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err,
         )  # fmt: skip
     try:
-        _wait_for("abh3 run started its units", lambda: "running " in log.read_text(), sup)
+        _wait_for(
+            "abh3 run started its units",
+            lambda: "running " in log.read_text(),
+            sup,
+            lambda: f":\n{log.read_text()}",
+        )
         time.sleep(WARMUP_S)
         pids = {"supervisor": sup.pid} | ({"simulator": sim_pid} if sim_pid else {})
         window = _measure(pids, seconds)
@@ -173,21 +183,22 @@ class Wire:
     """DP0 frames the listener heard: (timestamp, id), in order."""
 
     frames: list[tuple[float, int]]
+    units: int = UNITS
 
     def exchanges(self, w: Window) -> int:
-        replies = {ids.dp0_reply_id(i + 1, HOST) for i in range(UNITS)}
+        replies = {ids.dp0_reply_id(i + 1, HOST) for i in range(self.units)}
         return sum(1 for t, i in self.frames if w.start <= t <= w.end and i in replies)
 
     def timing(self, w: Window) -> dict[str, float]:
         by_unit: dict[int, list[float]] = defaultdict(list)
-        commands = {ids.dp0_command_id(i + 1, HOST): i for i in range(UNITS)}
+        commands = {ids.dp0_command_id(i + 1, HOST): i for i in range(self.units)}
         for t, i in self.frames:
             if w.start <= t <= w.end and i in commands:
                 by_unit[commands[i]].append(t)
-        return timing(by_unit, RATE)
+        return timing(by_unit, RATE, self.units)
 
 
-def timing(by_unit: dict[int, list[float]], rate: float) -> dict[str, float]:
+def timing(by_unit: dict[int, list[float]], rate: float, units: int) -> dict[str, float]:
     """Worst unit's rate error and the command period's jitter, from send times."""
     period = 1.0 / rate
     jitter: list[float] = []
@@ -196,20 +207,21 @@ def timing(by_unit: dict[int, list[float]], rate: float) -> dict[str, float]:
         jitter += [abs((b - a) - period) for a, b in itertools.pairwise(times)]
         if len(times) > 1:
             rates.append((len(times) - 1) / (times[-1] - times[0]))
-    if len(rates) < UNITS:
-        raise RuntimeError(f"commands to only {len(rates)} of {UNITS} units were seen")
+    if len(rates) < units:
+        raise RuntimeError(f"commands to only {len(rates)} of {units} units were seen")
     return {
         "rate_error_percent": 100 * max(abs(r - rate) / rate for r in rates),
         "jitter_p99_ms": 1000 * (percentile(jitter, 99) or 0.0),
     }
 
 
-def alone(seconds: float) -> dict[str, float]:
-    """One run in a fresh namespace: the supervisor, then the bare host, on one simulator."""
+def alone(seconds: float, units: int = UNITS, bare: bool = True) -> dict[str, float]:
+    """One run in a fresh namespace: the supervisor, then (``bare``) the bare host, on one
+    simulator."""
     with tempfile.TemporaryDirectory(dir="/tmp") as name, netns.Namespace() as ns:
         tmp = Path(name)
         cfg = tmp / "alone.yaml"
-        cfg.write_text(config(UNITS, RATE, "udp_multicast"))
+        cfg.write_text(config(units, RATE, "udp_multicast"))
         listener = ns.popen(
             [sys.executable, "-m", "benchmarks.alone", "listen"], cwd=ROOT, stdout=subprocess.PIPE
         )
@@ -224,49 +236,53 @@ def alone(seconds: float) -> dict[str, float]:
             if not _line(sim, "abh3 simulate").startswith("ready: bus b"):
                 raise RuntimeError("abh3 simulate did not get its drives ready")
             ours = _supervisor_window(ns, cfg, sim.pid, seconds, tmp / "run.log")
-            bare = _bare_window(ns, sim.pid, seconds)
+            host = _bare_window(ns, sim.pid, seconds) if bare else None
         finally:
             _stop(sim)
             listener.send_signal(signal.SIGTERM)  # it prints what it heard, then ends
             out, _ = listener.communicate(timeout=30)
-        wire = Wire([(t, i) for t, i in json.loads(out.splitlines()[-1])])
-    n_ours, n_bare = wire.exchanges(ours), wire.exchanges(bare)
-    if not n_ours or not n_bare:
+        wire = Wire([(t, i) for t, i in json.loads(out.splitlines()[-1])], units)
+    n_ours = wire.exchanges(ours)
+    n_bare = wire.exchanges(host) if host is not None else None
+    if not n_ours or n_bare == 0:
         raise RuntimeError(f"no exchanges heard (supervisor {n_ours}, bare host {n_bare})")
-    return {
+    figures = {
         "ours_us": 1e6 * ours.cpu["supervisor"] / n_ours,
-        "bare_us": 1e6 * bare.cpu["bare"] / n_bare,
         "simulator_us": 1e6 * ours.cpu["simulator"] / n_ours,
         "ours_cpu_percent": 100 * ours.cpu["supervisor"] / (ours.end - ours.start),
         **wire.timing(ours),
     }
+    if host is not None and n_bare:
+        figures["bare_us"] = 1e6 * host.cpu["bare"] / n_bare
+    return figures
 
 
-def in_process(seconds: float) -> dict[str, float]:
+def in_process(seconds: float, units: int = UNITS, timed: bool = True) -> dict[str, float]:
     """The same ``abh3 run`` with its drives in-process: its CPU without a recording, then
-    its timing from a second run's ``--record`` (as section 3 times the pump's sends)."""
+    (``timed``) its timing from a second run's ``--record`` (as section 3 times the pump's
+    sends)."""
     with tempfile.TemporaryDirectory(dir="/tmp") as name:
         tmp = Path(name)
         cfg = tmp / "inproc.yaml"
-        cfg.write_text(config(UNITS, RATE, "virtual"))
+        cfg.write_text(config(units, RATE, "virtual"))
         window = _supervisor_window(None, cfg, None, seconds, tmp / "cpu.log")
+        cpu = {"cpu_percent": 100 * window.cpu["supervisor"] / (window.end - window.start)}
+        if not timed:
+            return cpu
         rec = tmp / "timing.log"
         argv = [sys.executable, "-m", "abh3_supervisor", "run", str(cfg), "--headless",
                 "--no-socket", "--status-interval", "0", "--record", str(rec),
                 "--duration", f"{WARMUP_S + seconds + 1:g}"]  # fmt: skip
         subprocess.run(argv, cwd=ROOT, check=True, capture_output=True)
         by_unit: dict[int, list[float]] = defaultdict(list)
-        commands = {ids.dp0_command_id(i + 1, HOST): i for i in range(UNITS)}
+        commands = {ids.dp0_command_id(i + 1, HOST): i for i in range(units)}
         sent = [m for m in can.LogReader(str(rec)) if m.arbitration_id in commands]
         start = sent[0].timestamp + WARMUP_S if sent else 0.0
         end = start + seconds  # well before the stop frames
         for msg in sent:
             if start <= msg.timestamp <= end:
                 by_unit[commands[msg.arbitration_id]].append(msg.timestamp)
-    return {
-        "cpu_percent": 100 * window.cpu["supervisor"] / (window.end - window.start),
-        **timing(by_unit, RATE),
-    }
+    return cpu | timing(by_unit, RATE, units)
 
 
 def _spread(values: list[float], unit: str) -> str:
@@ -275,8 +291,12 @@ def _spread(values: list[float], unit: str) -> str:
     return f"runs {min(values):.3g}–{max(values):.3g} {unit}".rstrip()
 
 
-def rows(seconds: float, runs: int) -> list[Row]:
-    """The section's rows; none (and a line saying why) where no namespace can be made."""
+SIZING_UNITS = 16  # section 4's sizing row, with the drives elsewhere
+
+
+def rows(seconds: float, runs: int, sizing: bool = True) -> list[Row]:
+    """The section's rows; none (and a line saying why) where no namespace can be made.
+    ``sizing``: also the CPU of 16 units, the row a small computer is chosen by."""
     if (why := netns.unavailable()) is not None:
         print(f"section 10 skipped: {why}")
         return []
@@ -312,6 +332,21 @@ def rows(seconds: float, runs: int) -> list[Row]:
             "rate_error_percent", "<=1%", lambda v: v <= 1),
         row("DP0 period jitter p99 vs drives in-process", "jitter_p99_ms", "ms",
             "jitter_p99_ms"),
+    ] + (_sizing(seconds, runs) if sizing else [])  # fmt: skip
+
+
+def _sizing(seconds: float, runs: int) -> list[Row]:
+    ran = [alone(seconds, SIZING_UNITS, bare=False) for _ in range(runs)]
+    base = [in_process(seconds, SIZING_UNITS, timed=False) for _ in range(runs)]
+    ours, of_base = [r["ours_cpu_percent"] for r in ran], [r["cpu_percent"] for r in base]
+    said = _spread(ours, "%") + (f"; baseline {_spread(of_base, '%')}" if runs > 1 else "")
+    errors = [r["rate_error_percent"] for r in ran]
+    error = statistics.median(errors)
+    return [
+        Row(SECTION, f"{SIZING_UNITS} units: supervisor CPU % vs drives in-process",
+            statistics.median(ours), statistics.median(of_base), "%", said),
+        Row(SECTION, f"{SIZING_UNITS} units: worst unit's rate error", error, None, "%",
+            f"<=1%; {_spread(errors, '%')}", error <= 1),
     ]  # fmt: skip
 
 
