@@ -30,6 +30,7 @@ import contextlib
 import itertools
 import json
 import os
+import select
 import signal
 import statistics
 import subprocess
@@ -102,6 +103,9 @@ def _wait_for(
 def _line(proc: subprocess.Popen[str], what: str) -> str:
     """The next line the process prints: it says so when it is ready."""
     assert proc.stdout is not None
+    ready, _, _ = select.select([proc.stdout], [], [], START_TIMEOUT_S)
+    if not ready:
+        raise RuntimeError(f"{what}: not ready within {START_TIMEOUT_S:g} s")
     line = proc.stdout.readline()
     if not line:
         raise RuntimeError(f"{what}: ended before it was ready (exit {proc.wait(10)})")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import can
 import pytest
 
@@ -129,3 +132,21 @@ def test_supervisor_alone_reads_exchanges_and_timing_off_the_wire() -> None:
     figures = wire.timing(window)
     assert figures["rate_error_percent"] == pytest.approx(0.0, abs=0.01)
     assert figures["jitter_p99_ms"] == pytest.approx(1.0, abs=0.01)  # 20 of 396 periods
+
+
+@pytest.mark.wallclock
+def test_supervisor_alone_gives_up_on_a_process_that_never_says_ready(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A simulator, listener or bare host that never prints its ready line ends the run
+    with the reason, instead of hanging the benchmark."""
+    monkeypatch.setattr(alone, "START_TIMEOUT_S", 0.2)
+    silent = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(60)"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        with pytest.raises(RuntimeError, match=r"the listener: not ready within 0\.2 s"):
+            alone._line(silent, "the listener")
+    finally:
+        silent.kill()
+        silent.communicate()
