@@ -12,6 +12,7 @@ import logging
 import statistics
 
 from benchmarks import (
+    alone,
     attached,
     bursts,
     bus_model,
@@ -394,6 +395,10 @@ def main(argv: list[str] | None = None) -> int:
 
     # 9. a robot's twist, decided once for all its drives (issue 30)
     rows += robot.rows(2_000 if a.quick else 20_000, runs)
+
+    # 10. the supervisor alone, its drives in `abh3 simulate` (issue 32 item 4); skipped,
+    # with the reason, where no network namespace can be made
+    rows += alone.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import can
 import pytest
 
 from abh3_supervisor.protocol import frames, ids
-from benchmarks import attached, bus_model, cycle_timing, estop, host_cpu, scale
+from abh3_supervisor.runtime import netns
+from benchmarks import alone, attached, bus_model, cycle_timing, estop, host_cpu, scale
 
 
 def test_bus_model_reaches_the_physical_limit_deterministically() -> None:
@@ -86,3 +90,63 @@ def test_estop_row_times_the_first_stop_frame_after_the_request() -> None:
     ]
     found, unarmed = estop.latencies(wire, [2.0, 3.0], start)
     assert found == [pytest.approx(0.003)] and unarmed == 1
+
+
+@pytest.mark.wallclock
+def test_supervisor_alone_runs() -> None:
+    """Section 10: the supervisor, a bare python-can host and the simulator each timed as a
+    process of its own on udp_multicast, in a namespace with only lo (skipped where none
+    can be made, as the benchmark itself says)."""
+    if (why := netns.unavailable()) is not None:
+        pytest.skip(f"section 10 needs a network namespace: {why}")
+    figures = alone.alone(1.0)
+    assert figures["ours_us"] > 0 and figures["bare_us"] > 0 and figures["simulator_us"] > 0
+    assert figures["rate_error_percent"] < 50  # every unit's commands were heard on the wire
+    baseline = alone.in_process(1.0)
+    assert baseline["cpu_percent"] > 0 and baseline["rate_error_percent"] < 50
+
+
+def test_supervisor_alone_is_skipped_with_the_reason(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(netns, "unavailable", lambda: "not installed: unshare")
+    assert alone.rows(1.0, 1) == []
+    assert "section 10 skipped: not installed: unshare" in capsys.readouterr().out
+
+
+def test_supervisor_alone_reads_exchanges_and_timing_off_the_wire() -> None:
+    """On made-up frames: replies in the window are the exchanges; the commands give each
+    unit's rate and the period's jitter."""
+    period = 1 / alone.RATE
+    heard = []
+    for unit in range(alone.UNITS):
+        cmd = ids.dp0_command_id(unit + 1, alone.HOST)
+        reply = ids.dp0_reply_id(unit + 1, alone.HOST)
+        for k in range(101):
+            late = 0.001 if unit == 0 and k % 10 == 5 else 0.0  # 1 in 10 of u0's: 1 ms late
+            heard += [(k * period + late, cmd), (k * period + 0.0005, reply)]
+    heard.append((0.5, ids.dp0_reply_id(9, alone.HOST)))  # another unit's: not counted
+    wire = alone.Wire(sorted(heard))
+    window = alone.Window(0.0, 0.999, {})
+    assert wire.exchanges(window) == alone.UNITS * 100
+    figures = wire.timing(window)
+    assert figures["rate_error_percent"] == pytest.approx(0.0, abs=0.01)
+    assert figures["jitter_p99_ms"] == pytest.approx(1.0, abs=0.01)  # 20 of 396 periods
+
+
+@pytest.mark.wallclock
+def test_supervisor_alone_gives_up_on_a_process_that_never_says_ready(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A simulator, listener or bare host that never prints its ready line ends the run
+    with the reason, instead of hanging the benchmark."""
+    monkeypatch.setattr(alone, "START_TIMEOUT_S", 0.2)
+    silent = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(60)"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        with pytest.raises(RuntimeError, match=r"the listener: not ready within 0\.2 s"):
+            alone._line(silent, "the listener")
+    finally:
+        silent.kill()
+        silent.communicate()
