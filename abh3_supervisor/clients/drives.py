@@ -57,7 +57,11 @@ def _report(results: dict[str, dict[str, Any]], where: dict[str, str], as_json: 
 async def _read(config: Config) -> dict[str, Verification]:
     from abh3_supervisor.core.verifying import verify_units
     from abh3_supervisor.runtime.bus_runtime import Runtime
+    from abh3_supervisor.runtime.listening import refuse_if_commanded
 
+    # its parameter sessions would be another host's to a supervisor commanding these
+    # drives, which would stop its robot: refused before anything is sent (exit 2)
+    await refuse_if_commanded(config, list(config.units), "abh3 check --drives")
     async with Runtime(config) as rt:
         return await verify_units(rt.supervisor, list(config.units), act=False)
 

@@ -96,6 +96,17 @@ def _socketcan_hint(cfg: BusConfig, exc: BaseException, from_file: bool) -> str:
     )
 
 
+def in_process(cfg: BusConfig) -> bool:
+    """Whether the runtime simulates this bus's drives itself (on the virtual bus), not
+    ``abh3 simulate`` in another process (``simulate.external``) or real drives."""
+    return cfg.simulate is not None and not cfg.simulate.external
+
+
+def as_opened(cfg: BusConfig) -> BusConfig:
+    """The bus the runtime really opens for ``cfg`` (see :func:`simulated`)."""
+    return simulated(cfg) if in_process(cfg) else cfg
+
+
 def simulated(cfg: BusConfig) -> BusConfig:
     """The bus a simulated one really runs on: python-can's in-process ``virtual`` bus,
     whatever the file's interface — ``simulate: true`` means "instead of real drives", so
@@ -180,7 +191,7 @@ class Runtime:
             attach(self.supervisor, loop.time)
             self.supervisor.subscribe(self._recorder.observe)
         for name, cfg in self.config.buses.items():
-            if (sim_cfg := cfg.simulate) is not None and sim_cfg.external:
+            if (sim_cfg := cfg.simulate) is not None and not in_process(cfg):
                 log.info(
                     "bus %s: its drives are simulated in another process (`abh3 simulate`): "
                     "opening %s %s as a real bus",

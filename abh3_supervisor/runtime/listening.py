@@ -17,25 +17,16 @@ from collections.abc import Iterable, Mapping
 
 import can
 
-from abh3_supervisor.config.model import BusConfig, Config, UnitConfig
+from abh3_supervisor.config.model import Config, UnitConfig
 from abh3_supervisor.core.foreign import LISTEN_MARGIN_S, Foreign, ForeignWatch
 from abh3_supervisor.errors import BusInUse
-from abh3_supervisor.runtime.bus_runtime import open_bus, simulated
+from abh3_supervisor.runtime.bus_runtime import as_opened, open_bus
 
 
 def listen_time(units: Iterable[UnitConfig]) -> float:
     """How long to listen [s]: the longest command-zero timeout of the drives, plus the
     margin (a host keeping a drive under command sends at least that often)."""
     return max((u.drive_timeout_ms for u in units), default=0) / 1000 + LISTEN_MARGIN_S
-
-
-def _as_opened(cfg: BusConfig) -> BusConfig:
-    """The bus the runtime opens for ``cfg``: an in-process simulated one runs on the
-    virtual bus; drives simulated in another process (``simulate.external``) are reached
-    as a real bus is, on the file's interface."""
-    if cfg.simulate is None or getattr(cfg.simulate, "external", None):
-        return cfg
-    return simulated(cfg)
 
 
 class _Hear(can.Listener):
@@ -56,7 +47,7 @@ async def commanders(
     watches = {bus: ForeignWatch(addresses) for bus, addresses in drives.items()}
     with contextlib.ExitStack() as stack:
         for bus, watch in watches.items():
-            opened = open_bus(_as_opened(config.buses[bus]))
+            opened = open_bus(as_opened(config.buses[bus]))
             stack.callback(opened.shutdown)
             notifier = can.Notifier(opened, [_Hear(watch, loop)], timeout=0.05, loop=loop)
             stack.callback(notifier.stop)
