@@ -28,19 +28,7 @@ TIMEOUT_S = 0.3  # drive_timeout_ms: the drives' 0x4117 as the file sets it
 PERIOD_S = 0.02  # command_rate_hz 50
 RAMP_S = 0.1  # 300 min⁻¹ at the simulator's 3000 min⁻¹/s
 DRIVES = {"left": 1, "right": 3}
-CONFIG = f"""
-buses:
-  main:
-    interface: udp_multicast
-    channel: {shared.GROUP}
-    simulate:
-      startup:
-        left: ["SERVO ON ON", "START ON ON", "VEL 300 0"]
-        right: ["SERVO ON ON", "START ON ON", "VEL 300 0"]
-units:
-  - {{name: left, bus: main, abh3_id: 1, command_rate_hz: 50, drive_timeout_ms: 300}}
-  - {{name: right, bus: main, abh3_id: 3, command_rate_hz: 50, drive_timeout_ms: 300}}
-"""
+CONFIG = shared.MOVING_PAIR
 
 
 @pytest.fixture
@@ -80,10 +68,7 @@ def the_drive_stopped_itself(
 
 
 def test_killed_with_minus_9_the_drives_stop_by_their_own_timeout(bus: SharedBus) -> None:
-    sim = bus.simulator()
-    listener = bus.listener()
-    listener.wait_started()
-    sup = bus.supervisor("sup", "--no-socket")
+    sim, listener, sup = bus.running()
     moving_for_a_while(sim, "left", "right")
     killed = time.time()
     sup.proc.send_signal(signal.SIGKILL)
@@ -102,10 +87,7 @@ def test_killed_with_minus_9_the_drives_stop_by_their_own_timeout(bus: SharedBus
 
 
 def test_frozen_the_drives_stop_and_stay_stopped_when_it_wakes(bus: SharedBus) -> None:
-    sim = bus.simulator()
-    listener = bus.listener()
-    listener.wait_started()
-    sup = bus.supervisor("sup", "--no-socket")
+    sim, listener, sup = bus.running()
     moving_for_a_while(sim, "left", "right")
     frozen = time.time()
     sup.proc.send_signal(signal.SIGSTOP)
@@ -129,10 +111,7 @@ def test_frozen_the_drives_stop_and_stay_stopped_when_it_wakes(bus: SharedBus) -
 def test_the_cable_pulled_the_drive_stops_and_stays_stopped_when_it_is_back(
     bus: SharedBus,
 ) -> None:
-    sim = bus.simulator()
-    listener = bus.listener()
-    listener.wait_started()
-    sup = bus.supervisor("sup", "--no-socket")
+    sim, listener, sup = bus.running()
     moving_for_a_while(sim, "left", "right")
     assert sim.tell("unplug left") == "ok unplugged left"
     pulled = time.time()

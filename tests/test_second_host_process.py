@@ -19,19 +19,7 @@ from tests.support.shared import SharedBus, Simulator, commands_to, wait_for
 
 pytestmark = pytest.mark.wallclock
 
-CONFIG = f"""
-buses:
-  main:
-    interface: udp_multicast
-    channel: {shared.GROUP}
-    simulate:
-      startup:
-        left: ["SERVO ON ON", "START ON ON", "VEL 300 0"]
-        right: ["SERVO ON ON", "START ON ON", "VEL 300 0"]
-units:
-  - {{name: left, bus: main, abh3_id: 1, command_rate_hz: 50, drive_timeout_ms: 300}}
-  - {{name: right, bus: main, abh3_id: 3, command_rate_hz: 50, drive_timeout_ms: 300}}
-"""
+CONFIG = shared.MOVING_PAIR
 # the hand-made host's word: SERVO on, START off, zero — neither ours moving nor our safe word
 FOREIGN = frames.encode_dp0_command(0, 0, flags.LAYOUT_2021.servo.both)
 HOST_SCRIPT = f"""
@@ -91,10 +79,7 @@ def test_two_supervisors_stop_each_other_and_say_who(bus: SharedBus, tmp_path: P
 
 
 def test_a_hand_made_host_is_met_with_our_safe_word_within_100_ms(bus: SharedBus) -> None:
-    sim = bus.simulator()
-    listener = bus.listener()
-    listener.wait_started()
-    sup = bus.supervisor("sup", "--no-socket")
+    sim, listener, sup = bus.running()
     turning(sim, "left")
     host = bus.ns.run([sys.executable, "-c", HOST_SCRIPT], capture_output=True, timeout=30)
     assert host.returncode == 0, host.stderr

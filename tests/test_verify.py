@@ -58,6 +58,18 @@ def rig(simulate: str = "true", left: str = "", bitrate: int | None = None) -> R
     return Rig(parse_config(text(simulate, left), "v.yaml"), bitrate=bitrate)
 
 
+class Notices(list[str]):
+    """A supervisor subscriber keeping ``unit``'s notices' messages."""
+
+    def __init__(self, unit: str) -> None:
+        super().__init__()
+        self.unit = unit
+
+    def __call__(self, event: SupervisorEvent) -> None:
+        if isinstance(event, Notice) and event.unit == self.unit:
+            self.append(event.message)
+
+
 def check(r: Rig, unit: str) -> list[Verification]:
     """One :class:`DriveCheck` of ``unit`` on the fake clock; its outcome when it ends."""
     out: list[Verification] = []
@@ -329,16 +341,12 @@ def test_check_drives_usage_errors_exit_2(
 @pytest.mark.wallclock
 def test_refuse_keeps_the_unit_idle_until_it_is_verified_again(wire: WireMonitor) -> None:
     config = parse_config(text(MISMATCHES, left=", verify: refuse", channel="v-refuse"), "v.yaml")
-    notices: list[str] = []
-
-    def keep(event: SupervisorEvent) -> None:
-        if isinstance(event, Notice) and event.unit == "left":
-            notices.append(event.message)
+    notices = Notices("left")
 
     async def scenario() -> None:
         async with Runtime(config) as rt:
             sup = rt.supervisor
-            sup.subscribe(keep)
+            sup.subscribe(notices)
             drive = rt.sims["b"].drives[1]
             seen: list[int] = []
             received = drive.on_frame
@@ -510,22 +518,19 @@ def test_abh3_verify_asks_a_running_supervisor_and_releases_a_held_unit(tmp_path
         run.communicate(timeout=30)
 
 
+@pytest.mark.wallclock
 def test_a_drive_without_its_command_zero_timeout_is_held_even_under_warn(
     wire: WireMonitor,
 ) -> None:
     """0x4117 = 0: nothing would stop its motors were this host to die. Under the default
     ``verify: warn`` its start-up commands wait for the check, which holds it."""
     config = parse_config(text("{params: {left: {0x4117: 0}}}", channel="v-unsafe"), "v.yaml")
-    notices: list[str] = []
-
-    def keep(event: SupervisorEvent) -> None:
-        if isinstance(event, Notice) and event.unit == "left":
-            notices.append(event.message)
+    notices = Notices("left")
 
     async def scenario() -> None:
         async with Runtime(config) as rt:
             sup = rt.supervisor
-            sup.subscribe(keep)
+            sup.subscribe(notices)
             drive = rt.sims["b"].drives[1]
             assert sup.units["left"].cfg.verify is VerifyMode.WARN
             assert rt.verifying is not None

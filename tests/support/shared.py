@@ -29,6 +29,20 @@ from abh3_supervisor.protocol import ids
 from abh3_supervisor.runtime.netns import Namespace, unavailable
 
 GROUP = "239.74.163.2"
+# two drives turning at 300 min⁻¹ from the start, 50 Hz commands, 0x4117 = 300 ms
+MOVING_PAIR = f"""
+buses:
+  main:
+    interface: udp_multicast
+    channel: {GROUP}
+    simulate:
+      startup:
+        left: ["SERVO ON ON", "START ON ON", "VEL 300 0"]
+        right: ["SERVO ON ON", "START ON ON", "VEL 300 0"]
+units:
+  - {{name: left, bus: main, abh3_id: 1, command_rate_hz: 50, drive_timeout_ms: 300}}
+  - {{name: right, bus: main, abh3_id: 3, command_rate_hz: 50, drive_timeout_ms: 300}}
+"""
 ABH3 = [sys.executable, "-m", "abh3_supervisor"]
 
 
@@ -153,6 +167,13 @@ class SharedBus:
         )
         self.procs.append(proc)
         return Supervisor(proc, log_path)
+
+    def running(self, name: str = "sup") -> tuple[Simulator, Listener, Supervisor]:
+        """The drives, a listener, and a supervisor driving them (``--no-socket``)."""
+        sim = self.simulator()
+        listener = self.listener()
+        listener.wait_started()
+        return sim, listener, self.supervisor(name, "--no-socket")
 
     def listener(self) -> Listener:
         path = self.tmp / "listener.log"
