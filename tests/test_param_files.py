@@ -283,8 +283,11 @@ SERVICE = """
 buses:
   b: {{interface: virtual, channel: {channel}, simulate: {simulate}}}
 units:
-  - {{name: left, abh3_id: 1}}
+  - {{name: left, abh3_id: 1{role}}}
 """
+# the service only hosts the simulated drive: a monitor, which commands nothing — beside a
+# supervisor commanding the drive, `param -c` refuses the bus (docs/safety.md)
+HOSTING, TOOL = ", role: monitor", ""
 
 
 @pytest.mark.wallclock
@@ -294,9 +297,11 @@ def test_a_refused_file_or_value_writes_nothing_to_the_drive(
     """Every bad file above through `restore --yes` (and `diff`), and `set` with NaN, inf
     and out-of-range values: exit 2, one line naming the mistake, and the simulated drive
     hears no request at all (nothing read, nothing written)."""
-    service = parse_config(SERVICE.format(channel="pf-nothing", simulate="true"), "s.yaml")
+    service = parse_config(
+        SERVICE.format(channel="pf-nothing", simulate="true", role=HOSTING), "s.yaml"
+    )
     tool = tmp_path / "tool.yaml"
-    tool.write_text(SERVICE.format(channel="pf-nothing", simulate="false"))
+    tool.write_text(SERVICE.format(channel="pf-nothing", simulate="false", role=TOOL))
     bad = [write(tmp_path, f"bad{i}.csv", text) for i, (text, _) in enumerate(BAD_ROWS)]
     bad.append(write(tmp_path, "deep.json", "[" * 200_000 + "]" * 200_000))
     bad.append(write(tmp_path, "deep.yaml", "[" * 200_000 + "]" * 200_000))
@@ -347,9 +352,11 @@ def test_restore_with_allow_unknown_writes_exactly_the_files_values(
 ) -> None:
     """The maker's header, names and units; an address the table does not have (the
     simulated drive NAKs it: exit 1 after the known one is written)."""
-    service = parse_config(SERVICE.format(channel="pf-maker", simulate="true"), "s.yaml")
+    service = parse_config(
+        SERVICE.format(channel="pf-maker", simulate="true", role=HOSTING), "s.yaml"
+    )
     tool = tmp_path / "tool.yaml"
-    tool.write_text(SERVICE.format(channel="pf-maker", simulate="false"))
+    tool.write_text(SERVICE.format(channel="pf-maker", simulate="false", role=TOOL))
     maker = write(
         tmp_path,
         "maker.csv",
