@@ -11,6 +11,7 @@ pulled): the listener's last command and the drive's stop are ``drive_timeout_ms
 from __future__ import annotations
 
 import importlib.util
+import json
 import signal
 import time
 from collections.abc import Iterator
@@ -167,3 +168,22 @@ def test_the_documented_demo_shows_the_stop_300_ms_after_the_last_command(
         assert len(own) == 1, lines
         late = int(own[0].rsplit("+", 1)[1].removesuffix(" ms"))
         assert abs(late - TIMEOUT_S * 1000) <= PERIOD_S * 1000, lines
+
+
+def test_a_drive_whose_power_is_cycled_comes_back_standing(bus: SharedBus) -> None:
+    sim, _, sup = bus.running()
+    moving_for_a_while(sim, "left", "right")
+    assert sim.tell("power off left") == "ok power off left"
+    cut = time.time()
+    sim.wait_event("left", "standing", after=cut)  # ran down without power
+    sup.wait_log("unit left: OFFLINE")
+    assert sim.tell("power on left") == "ok power on left"
+    back = time.time()
+    sup.wait_log("unit left: online", timeout=15)  # answers again after booting …
+    assert sim.tell("status") == "ok status"
+    left, right = json.loads(sim.out.next()), json.loads(sim.out.next())
+    assert (left["unit"], left["powered"], left["plugged"]) == ("left", True, True)
+    assert right["unit"] == "right"
+    shared.window(1.0)  # … and stands: its old setpoint was dropped, its servo is off
+    assert not [e for e in sim.events("left", "moving") if e["t"] > back]
+    assert not [e for e in sim.events("right", "standing")]  # the other drive ran on
