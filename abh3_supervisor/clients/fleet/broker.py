@@ -163,12 +163,23 @@ class FleetClient:
         self._client = client
         try:
             client.connect(o.host, o.port, keepalive=o.keepalive_s)
+        except ssl.SSLCertVerificationError as exc:
+            raise RunError(
+                f"TLS failure with {o.where()}: certificate verify failed: {exc.verify_message}"
+                " (--ca: the CA that signed the broker's certificate)"
+            ) from None
         except ssl.SSLError as exc:
             raise RunError(f"TLS failure with {o.where()}: {exc.reason or exc}") from None
         except socket.gaierror as exc:
             raise RunError(f"broker {o.where()}: cannot resolve {o.host}: {exc.strerror}") from None
         except (OSError, TimeoutError) as exc:
             why = exc.strerror or str(exc) or type(exc).__name__
+            if o.tls and not isinstance(exc, ConnectionRefusedError | TimeoutError):
+                # reached, then dropped in the handshake: a plain listener, or TLS refused
+                raise RunError(
+                    f"TLS failure with {o.where()}: {why} during the handshake (is it a TLS "
+                    "listener? does it want a client certificate?)"
+                ) from None
             raise RunError(f"broker {o.where()} unreachable: {why}") from None
         client.loop_start()
         if not self._first.wait(timeout):
