@@ -111,7 +111,7 @@ class FleetModel:
             return
         self.robots[robot.fleet_id] = robot
         if not retained:
-            robot.last_seen = now
+            robot.last_seen = max(now, robot.last_seen or now)
 
     def _count(self, robot: Robot, where: contract.Topic, exc: Malformed) -> None:
         wrong = isinstance(exc, WrongVersion)
