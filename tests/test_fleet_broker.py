@@ -8,13 +8,18 @@ Skipped, with the reason, where Mosquitto or paho-mqtt is not installed."""
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import getpass
 import json
 import os
+import select
 import shutil
+import signal
 import socket
+import struct
 import subprocess
 import sys
+import termios
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -28,6 +33,7 @@ from abh3_supervisor.clients.fleet.broker import BrokerOptions, FleetClient
 from abh3_supervisor.clients.fleet.commands import Commander
 from abh3_supervisor.clients.fleet.model import FleetModel
 from tests.support.fleet_payloads import PREFIX, state_topic, status, status_topic, unit_state
+from tests.support.terminal import ended, spawn
 
 mqtt = pytest.importorskip("paho.mqtt.client", reason="paho-mqtt: pip install -e '.[mqtt]'")
 MOSQUITTO = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin")
@@ -346,3 +352,47 @@ def test_what_a_user_gets_wrong_is_said_without_a_traceback(broker: Broker, tmp_
     tls_url = f"mqtts://127.0.0.1:{broker.tls_port}"
     tls = abh3_fleet("--broker", tls_url, "--ca", str(broker.ca), *as_fleet, env=right)
     assert tls.returncode == 1 and "not a terminal" in tls.stderr, tls.stderr  # TLS: through
+
+
+def read_until(fd: int, wanted: Callable[[bytes], bool], what: str) -> bytes:
+    screen = b""
+    deadline = time.monotonic() + 30
+    while not wanted(screen):
+        assert time.monotonic() < deadline, f"not on the screen: {what}: {screen[-800:]!r}"
+        ready, _, _ = select.select([fd], [], [], 1)
+        if ready:
+            screen += os.read(fd, 65536)
+    return screen
+
+
+def test_abh3_fleet_on_a_terminal_shows_the_robots_e_stops_all_attaches_and_quits(
+    broker: Broker, robots: dict[str, Robot], tmp_path: Path
+) -> None:
+    """The whole command on a pseudo-terminal: connect, show, `E` `y`, `a` (the robot's
+    TUI run and the view back when it ends), `q` exit 0."""
+    unreachable = f"ssh://nobody@127.0.0.1:{free_port()}/nonexistent.sock"  # fails at once
+    robots["plant-a"].client.publish(
+        status_topic("plant-a"), status("plant-a", time=time.time(), attach=unreachable), 1, True
+    )
+    secret = tmp_path / "pw"
+    secret.write_text(PASSWORDS["fleet"] + "\n")
+    url = f"mqtt://127.0.0.1:{broker.port}"
+    pid, fd = spawn(["fleet", "--broker", url, "--username", "fleet", "--password-file", str(secret)])  # fmt: skip
+    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 160, 0, 0))
+    try:
+        read_until(fd, lambda s: s.count(b"ONLINE") >= 2 and b"attach: a" in s, "both robots")
+        os.write(fd, b"E")
+        read_until(fd, lambda s: b"E-STOP ALL" in s, "the question")
+        os.write(fd, b"y")
+        wait_for(lambda: all(r.commands for r in robots.values()), "the e-stop at both robots")
+        assert {r.commands[0][0] for r in robots.values()} == {f"{PREFIX}/all/cmd/estop"}
+        os.write(fd, b"a")  # plant-a is selected: its TUI cannot reach it and ends with 1
+        read_until(fd, lambda s: b"ended with 1" in s, "the view back after the TUI ended")
+        os.write(fd, b"q")
+        end = ended(pid, fd)
+    except BaseException:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        raise
+    assert end.code == 0, end.screen[-800:]
+    assert PASSWORDS["fleet"].encode() not in end.screen
