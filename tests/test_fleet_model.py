@@ -218,6 +218,35 @@ def test_events_are_kept_and_bounded() -> None:
     assert len(events) == EVENTS_KEPT and events[-1].text == f"e{EVENTS_KEPT + 9}"
 
 
+def test_the_selected_robots_events_and_its_health_trouble_are_shown() -> None:
+    model = fleet()
+    online(model)
+    topic = f"{PREFIX}/{A}/events"
+    model.feed(topic, event(A, "estop", "latched by tui:operator", time=T0), False, T0)
+    health = {
+        "v": 1,
+        "time": T0,
+        "seq": 1,
+        "fleet_id": A,
+        "robot": "a",
+        "buses": {
+            "can0": {
+                "frames_sent": 9,
+                "frames_received": 9,
+                "send_errors": 3,
+                "state": "error_passive",
+            }
+        },
+        "mqtt": {"queued": 0, "dropped": 12, "reconnects": 1},
+    }
+    model.feed(f"{PREFIX}/{A}/health", json.dumps(health).encode(), False, T0)
+    text = shown(model, T0 + 1)
+    assert "recent events of plant-a" in text and "latched by tui:operator" in text
+    assert "bus can0: error_passive" in text and "12 messages dropped" in text
+    assert "recent events" not in shown(model, T0 + 1, selected=None)
+    assert "bus can0" not in shown(model, T0 + 16)  # health is every 5 s: 15 s old is stale
+
+
 # -- the commands ------------------------------------------------------------------------
 
 

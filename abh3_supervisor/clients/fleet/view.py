@@ -13,6 +13,7 @@ from rich.text import Text
 from abh3_supervisor.clients.fleet.model import FleetModel, Robot, Unit
 
 ERROR_MARK, ALARM_MARK = "✖", "▲"
+EVENTS_SHOWN = 8
 STATE_STYLE = {"online": "bold green", "offline": "bold", "connection_broken": "bold red"}
 STATE_TEXT = {"online": "ONLINE", "offline": "offline", "connection_broken": "CONNECTION BROKEN"}
 COLUMNS = (  # header, width
@@ -62,7 +63,7 @@ def unit_cells(unit: Unit) -> list[str]:
     ]
 
 
-def why_not_live(model: FleetModel, robot: Robot, unit: Unit, now: float) -> str:
+def why_not_live(robot: Robot, unit: Unit) -> str:
     if not robot.online:
         return "robot not online"
     if unit.retained:
@@ -93,7 +94,35 @@ def render(
     text.append("\n    " + header + "\n", "bold")
     for robot in model.sorted_robots():
         _robot(text, model, robot, now, robot.fleet_id == selected)
+    if selected in model.robots:
+        _events(text, model.robots[selected], now)
     return text
+
+
+def _events(text: Text, robot: Robot, now: float) -> None:
+    """The selected robot's recent events, newest last, aged by our clock."""
+    if not robot.events:
+        return
+    text.append(f"\nrecent events of {robot.fleet_id}:\n", "bold")
+    for event in list(robot.events)[-EVENTS_SHOWN:]:
+        unit = f"{event.unit}: " if event.unit else ""
+        text.append(f"  {age(now - event.received):>7} ago  {event.kind:<22} {unit}{event.text}\n")
+
+
+def _health(robot: Robot, model: FleetModel, now: float) -> list[tuple[str, str]]:
+    """Trouble in its last health (a bus not ok, messages its plugin dropped)."""
+    if robot.health is None or not model.health_live(robot, now):
+        return []
+    notes: list[tuple[str, str]] = []
+    buses = robot.health.get("buses", {})
+    for name, bus in sorted(buses.items()):
+        state = bus.get("state") if isinstance(bus, dict) else None
+        if state != "ok":
+            notes.append((f"bus {name}: {state}", "bold red"))
+    dropped = robot.health.get("mqtt", {}).get("dropped")
+    if isinstance(dropped, int) and dropped:
+        notes.append((f"{dropped} messages dropped by its plugin", "yellow"))
+    return notes
 
 
 def _robot(text: Text, model: FleetModel, robot: Robot, now: float, selected: bool) -> None:
@@ -107,6 +136,8 @@ def _robot(text: Text, model: FleetModel, robot: Robot, now: float, selected: bo
     seen = "never live" if robot.last_seen is None else f"{age(now - robot.last_seen)} ago"
     details += [f"seen {seen}", "attach: a" if robot.attach else ""]
     text.append("  " + "  ".join(d for d in details if d), "dim" if not robot.online else "")
+    for note, note_style in _health(robot, model, now):
+        text.append("  " + note, note_style)
     if robot.malformed or robot.wrong_version:
         text.append(f"  {robot.malformed} malformed, {robot.wrong_version} wrong version", "yellow")
     text.append("\n")
@@ -124,7 +155,7 @@ def _robot(text: Text, model: FleetModel, robot: Robot, now: float, selected: bo
         if live:
             text.append(shown + "\n")
         else:
-            text.append(f"{shown} ({why_not_live(model, robot, unit, now)})\n", "dim")
+            text.append(f"{shown} ({why_not_live(robot, unit)})\n", "dim")
         _faults(text, unit, live)
 
 
