@@ -75,10 +75,31 @@ def free_port() -> int:
 
 @dataclass
 class Broker:
+    """Mosquitto on its configuration; ``stop`` and ``start`` again on the same ports."""
+
+    conf: Path
     port: int
     tls_port: int
     ca: Path
     log: Path
+    proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        with self.log.open("a") as out:
+            proc = subprocess.Popen([str(MOSQUITTO), "-c", str(self.conf)], stdout=out, stderr=out)
+        self.proc = proc
+
+        def up() -> bool:
+            return proc.poll() is not None or (_listening(self.port) and _listening(self.tls_port))
+
+        wait_for(up, "mosquitto listening")
+        assert proc.poll() is None, self.log.read_text()
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.terminate()
+            self.proc.wait(10)
+            self.proc = None
 
 
 def make_certificates(where: Path) -> None:
@@ -114,20 +135,12 @@ def broker(tmp_path: Path) -> Iterator[Broker]:
         f"listener {tls_port} 127.0.0.1\ncafile {tmp_path / 'ca.crt'}\n"
         f"certfile {tmp_path / 'server.crt'}\nkeyfile {tmp_path / 'server.key'}\n"
     )
-    log = tmp_path / "mosquitto.log"
-    with log.open("w") as out:
-        proc = subprocess.Popen([str(MOSQUITTO), "-c", str(conf)], stdout=out, stderr=out)
+    broker = Broker(conf, port, tls_port, tmp_path / "ca.crt", tmp_path / "mosquitto.log")
     try:
-
-        def up() -> bool:
-            return proc.poll() is not None or (_listening(port) and _listening(tls_port))
-
-        wait_for(up, "mosquitto listening")
-        assert proc.poll() is None, log.read_text()
-        yield Broker(port, tls_port, tmp_path / "ca.crt", log)
+        broker.start()
+        yield broker
     finally:
-        proc.terminate()
-        proc.wait(10)
+        broker.stop()
 
 
 def _listening(port: int) -> bool:
@@ -164,14 +177,19 @@ def robot(port: int, fid: str) -> Robot:
         props = getattr(message.properties, "UserProperty", [])
         me.commands.append((message.topic, json.loads(message.payload), props))
 
+    def on_connect(c: Any, u: Any, flags: Any, rc: Any, props: Any) -> None:
+        """As the plugin does: (again) its subscriptions, its status, its units' state."""
+        c.subscribe([(f"{PREFIX}/{fid}/cmd/#", 1), (f"{PREFIX}/all/cmd/#", 1)])
+        c.publish(status_topic(fid), status(fid, time=time.time()), qos=1, retain=True)
+        me.publish_units()
+
+    client.on_connect = on_connect
     client.on_message = on_message
     client.on_subscribe = lambda c, u, mid, codes, props: subscribed.append(mid)
     client.connect("127.0.0.1", port, keepalive=10)
+    client.reconnect_delay_set(0.1, 1)
     client.loop_start()
-    client.subscribe([(f"{PREFIX}/{fid}/cmd/#", 1), (f"{PREFIX}/all/cmd/#", 1)])
     wait_for(lambda: subscribed, f"{fid} subscribed")
-    client.publish(status_topic(fid), status(fid, time=time.time()), qos=1, retain=True)
-    me.publish_units()
     return me
 
 
@@ -303,6 +321,31 @@ def test_a_robot_whose_connection_dies_shows_its_last_will(
         assert model.robots["plant-a"].online
         dead = model.robots["plant-b"]
         assert not model.live(dead, dead.units["left"], time.time())
+    finally:
+        client.close()
+
+
+def test_a_broker_restart_is_said_and_the_view_comes_back_with_the_robots(
+    broker: Broker, robots: dict[str, Robot]
+) -> None:
+    client = fleet_client(broker.port, "fleet")
+    model = FleetModel(PREFIX)
+    try:
+        wait_for(lambda: seen_all(model, client, time.time()), "both robots")
+        before = model.robots["plant-a"].status_time
+        broker.stop()
+        wait_for(lambda: not client.connected, "the loss noticed")
+        assert "LOST" in client.describe(time.time())
+        broker.start()  # empty (no persistence): the robots publish again on reconnecting
+        wait_for(lambda: client.connected, "reconnected", timeout=15)
+        assert client.reconnects == 1 and "LOST" not in client.describe(time.time())
+        wait_for(
+            lambda: (
+                seen_all(model, client, time.time())
+                and model.robots["plant-a"].status_time > before
+            ),
+            "the robots' status again, through the new subscription",
+        )
     finally:
         client.close()
 
