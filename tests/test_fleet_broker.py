@@ -439,3 +439,22 @@ def test_abh3_fleet_on_a_terminal_shows_the_robots_e_stops_all_attaches_and_quit
         raise
     assert end.code == 0, end.screen[-800:]
     assert PASSWORDS["fleet"].encode() not in end.screen
+
+
+def test_a_signal_ends_abh3_fleet_at_once_with_the_terminal_given_back(
+    broker: Broker, robots: dict[str, Robot], tmp_path: Path
+) -> None:
+    secret = tmp_path / "pw"
+    secret.write_text(PASSWORDS["viewer"])
+    url = f"mqtt://127.0.0.1:{broker.port}"
+    pid, fd = spawn(["fleet", "--broker", url, "--username", "viewer", "--password-file", str(secret)])  # fmt: skip
+    try:
+        read_until(fd, lambda s: s.count(b"ONLINE") >= 2, "both robots")
+        os.kill(pid, signal.SIGTERM)
+        end = ended(pid, fd)
+    except BaseException:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        raise
+    assert end.code == 0, end.screen[-800:]
+    assert b"\x1b[?1049l" in end.screen  # the alternate screen left: the terminal is back

@@ -607,9 +607,9 @@ def _tui_attached(args: argparse.Namespace, release: Callable[[], None]) -> int:
 def _fleet(args: argparse.Namespace, release: Callable[[], None]) -> int:
     from abh3_supervisor.clients.fleet.run import options, run
 
-    options(args)  # a mistake in the options is said (exit 2) before anything else
+    opts = options(args)  # a mistake in the options is said (exit 2) before anything else
     release()  # the view handles its own keys and signals
-    return run(args, _not_terminals)
+    return run(args, opts, _not_terminals)
 
 
 def _service(args: argparse.Namespace) -> ServiceOptions | None:

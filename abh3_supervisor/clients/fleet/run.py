@@ -4,10 +4,12 @@ view until the user quits (exit 0)."""
 from __future__ import annotations
 
 import argparse
+import asyncio
 import getpass
 import socket
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from abh3_supervisor.clients.fleet import contract
 from abh3_supervisor.clients.fleet.broker import (
@@ -20,6 +22,9 @@ from abh3_supervisor.clients.fleet.broker import (
 )
 from abh3_supervisor.clients.fleet.model import STALE_S
 from abh3_supervisor.errors import Abh3Error, RunError
+
+if TYPE_CHECKING:
+    from abh3_supervisor.clients.fleet.app import FleetApp
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -91,14 +96,15 @@ def options(args: argparse.Namespace) -> BrokerOptions:
     return opts
 
 
-def run(args: argparse.Namespace, not_terminals: Callable[[], list[str]]) -> int:
+def run(
+    args: argparse.Namespace, opts: BrokerOptions, not_terminals: Callable[[], list[str]]
+) -> int:
     """Connect (the broker's trouble said first: it is what a user came to find out), then
     the view on this terminal."""
     from abh3_supervisor.clients.fleet.app import FleetApp
     from abh3_supervisor.clients.fleet.commands import Commander
     from abh3_supervisor.clients.fleet.model import FleetModel
 
-    opts = options(args)
     prefix = args.prefix.rstrip("/")
     client = FleetClient(opts, prefix)
     client.connect()  # RunError (exit 1) when it cannot, said
@@ -112,6 +118,19 @@ def run(args: argparse.Namespace, not_terminals: Callable[[], list[str]]) -> int
             client,
             reason,
         )
-        return app.run() or 0
+        return asyncio.run(_view(app))
     finally:
         client.close()
+
+
+async def _view(app: FleetApp) -> int:
+    """The app until the user quits, or a signal or the terminal going away ends it (it
+    holds nothing: leaving is always safe; the TUI's Departure bounds how long it takes)."""
+    from abh3_supervisor.clients.tui.run import DETACH_S, Departure
+
+    loop = asyncio.get_running_loop()
+    with Departure(DETACH_S, forced_code=0) as leaving:
+        leaving.on_leave(lambda: loop.call_soon_threadsafe(app.exit))
+        if leaving.why is None:
+            await app.run_async()
+    return app.return_code or 0
