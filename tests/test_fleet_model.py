@@ -306,11 +306,43 @@ def test_a_robots_refusal_event_is_said() -> None:
     commander = Commander("me", PREFIX)
     sent = commander.build(model, A, clear=True, reason="r", now=T0 + 1)
     commander.acknowledged(sent, 0, "Success")
-    other = event(A, "fleet_command_refused", "not yours", time=T0 + 1, sender="else", seq=1)
+    other = event(A, "fleet_command_refused", "not yours", time=T0 + 1, data={"sender": "else"})
     model.feed(f"{PREFIX}/{A}/events", other, False, T0 + 1.1)
     commander.observe(model)
     assert sent.robot_said == {}
-    ours = event(A, "fleet_command_refused", "estop_clear not allowed", time=T0 + 1, sender="me", seq=1)  # fmt: skip
+    ours = event(A, "fleet_command_refused", "estop_clear not allowed", data={"sender": "me"})
     model.feed(f"{PREFIX}/{A}/events", ours, False, T0 + 1.1)
     commander.observe(model)
     assert f"{A} refused: estop_clear not allowed" in sent.summary()
+
+
+def test_the_robots_obeyed_event_then_its_state_and_a_partial_fleet_are_said() -> None:
+    model = fleet()
+    online(model)
+    online(model, B)
+    commander = Commander("me", PREFIX)
+    sent = commander.build(model, None, clear=False, reason="r", now=T0 + 1)
+    commander.acknowledged(sent, 0, "Success")
+    topic_a, topic_b = f"{PREFIX}/{A}/events", f"{PREFIX}/{B}/events"
+
+    def obeyed(seq: int) -> bytes:
+        return event(A, "fleet_command", "estop by me", data={"sender": "me", "seq": seq, "kind": "estop"})  # fmt: skip
+
+    model.feed(topic_a, obeyed(7), False, T0 + 1.1)
+    commander.observe(model)
+    assert A not in sent.robot_said  # its seq is 7, not ours (1)
+    model.feed(topic_a, obeyed(1), False, T0 + 1.1)
+    commander.observe(model)
+    assert sent.summary() == "e-stop all (seq 1): taken by the broker; obeyed by 1 of 2"
+    refusal = event(B, "fleet_command_refused", "allow_estop is false", data={"sender": "me"})
+    model.feed(topic_b, refusal, False, T0 + 1.1)
+    commander.observe(model)
+    assert sent.summary().endswith(f"obeyed by 1 of 2; {B} refused: allow_estop is false")
+    for unit in ("left", "right"):
+        model.feed(state_topic(A, unit), unit_state(A, unit, estop=True), False, T0 + 1.2)
+    commander.observe(model)
+    assert f"latched on 1 of 2; {B} refused" in sent.summary()
+    alone = commander.build(model, A, clear=False, reason="r", now=T0 + 2)
+    model.feed(topic_a, obeyed(2), False, T0 + 2)
+    commander.observe(model)
+    assert alone.summary() == f"e-stop {A} (seq 2): obeyed by {A} (not yet seen latched)"

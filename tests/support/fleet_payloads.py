@@ -68,7 +68,15 @@ def unit_state(fid: str, unit: str, *, time: float = T0, seq: int = 1, **fields:
     return json.dumps(body | fields).encode()
 
 
-def event(fid: str, kind: str, text: str, *, time: float = T0, seq: int = 1, **data: Any) -> bytes:
+def event(
+    fid: str,
+    kind: str,
+    text: str,
+    *,
+    time: float = T0,
+    seq: int = 1,
+    data: dict[str, Any] | None = None,
+) -> bytes:
     body = {
         "v": 1,
         "time": time,
@@ -78,6 +86,6 @@ def event(fid: str, kind: str, text: str, *, time: float = T0, seq: int = 1, **d
         "unit": None,
         "kind": kind,
         "text": text,
-        "data": data,
+        "data": data or {},
     }
     return json.dumps(body).encode()

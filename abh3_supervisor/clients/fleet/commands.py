@@ -1,11 +1,12 @@
 """The fleet's e-stop and clear: the payloads sent, and what became of each, said only as
 far as it was seen.
 
-Three witnesses, weakest first: the broker took it (MQTT 5: PUBACK reason code under
-0x80; under 3.1.1 a refusal is silent, so it stays "sent, not confirmed"); the broker
-refused it (MQTT 5 reason code, e.g. "Not authorized": the ACL); the robot's own word —
-every unit of it publishing, live, the e-stop latched (or cleared) after we sent it, or its
-``fleet_command_refused`` event. Pure: the view feeds it acknowledgements and the model.
+Witnesses, weakest first: the broker took it (MQTT 5: PUBACK reason code under 0x80;
+under 3.1.1 a refusal is silent, so it stays "sent, not confirmed"); the broker refused
+it (MQTT 5 reason code, e.g. "Not authorized": the ACL); the robot's own word — its
+``fleet_command`` event naming this sender and seq (obeyed) or its
+``fleet_command_refused`` event, and every unit of it publishing, live, the e-stop
+latched (or cleared) after we sent it. Pure: the view feeds it acknowledgements and the model.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from abh3_supervisor.clients.fleet import contract
 from abh3_supervisor.clients.fleet.model import FleetModel
 
 REFUSED_KIND = "fleet_command_refused"
+OBEYED_KIND, OBEYED = "fleet_command", "obeyed"  # the robot's event: it obeyed this one
 NO_SUBSCRIBERS = 0x10  # MQTT 5: taken, but nobody subscribes to the topic
 SENDING, TAKEN, UNCONFIRMED = "sending", "taken by the broker", "sent, not confirmed"
 
@@ -50,16 +52,20 @@ class Sent:
         """One line: what is known of it, and no more."""
         if self.refused is not None:
             return f"{self.what}: REFUSED by the broker: {self.refused}"
-        done = [f for f, said in self.robot_said.items() if said == self.done]
-        refused = {f: s for f, s in self.robot_said.items() if s != self.done}
-        if self.robots and len(done) == len(self.robots):
-            return f"{self.what}: {self.done} on {_count(done)}"
+        held = [f for f, said in self.robot_said.items() if said == self.done]
+        obeyed = [f for f, said in self.robot_said.items() if said == OBEYED]
+        refused = {f: s for f, s in self.robot_said.items() if s not in (self.done, OBEYED)}
+        if self.robots and len(held) + len(obeyed) == len(self.robots):
+            parts = [f"{self.done} on {_count(held)}"] if held else []
+            parts += [f"obeyed by {_count(obeyed)} (not yet seen {self.done})"] if obeyed else []
+            return f"{self.what}: " + "; ".join(parts)
         parts = [self.broker]
-        if done:
-            parts.append(f"{self.done} on {len(done)} of {len(self.robots)}")
+        total = len(self.robots)
+        parts += [f"{self.done} on {len(held)} of {total}"] if held else []
+        parts += [f"obeyed by {len(obeyed)} of {total}"] if obeyed else []
         parts += [f"{f} refused: {s}" for f, s in refused.items()]
         waiting = [f for f in self.robots if f not in self.robot_said]
-        if waiting and not refused and not done and self.broker != SENDING:
+        if waiting and not self.robot_said and self.broker != SENDING:
             parts.append(f"no word yet from {_count(waiting)}")
         return f"{self.what}: " + "; ".join(parts)
 
@@ -112,12 +118,12 @@ class Commander:
                 if robot is None or sent.robot_said.get(fid) == sent.done:
                     continue
                 for event in robot.events:
-                    if (
-                        event.kind == REFUSED_KIND
-                        and event.received >= sent.time
-                        and _ours(event.data, self.sender, sent.seq)
-                    ):
+                    if event.received < sent.time:
+                        continue
+                    if event.kind == REFUSED_KIND and _ours(event.data, self.sender, sent.seq):
                         sent.robot_said[fid] = event.text or "refused"
+                    elif event.kind == OBEYED_KIND and _obeyed(event.data, self.sender, sent):
+                        sent.robot_said[fid] = OBEYED
                 units = [robot.units[n] for n in model.unit_names(robot) if n in robot.units]
                 if (
                     units
@@ -138,3 +144,9 @@ def _ours(data: dict[str, object], sender: str, seq: int) -> bool:
     if "sender" in data and data["sender"] != sender:
         return False
     return "seq" not in data or data["seq"] == seq
+
+
+def _obeyed(data: dict[str, object], sender: str, sent: Sent) -> bool:
+    """An obeyed event says whose command and which: only an exact match counts."""
+    kind = "estop_clear" if sent.clear else "estop"
+    return data.get("sender") == sender and data.get("seq") == sent.seq and data.get("kind") == kind
