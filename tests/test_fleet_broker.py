@@ -350,6 +350,53 @@ def test_a_broker_restart_is_said_and_the_view_comes_back_with_the_robots(
         client.close()
 
 
+def test_twenty_robots_of_two_units_are_all_shown_live_within_2_s(broker: Broker) -> None:
+    """The view's half of issue 33's scale check: 40 units through one broker. Their
+    retained state arrives with the subscription (shown, greyed: not seen live); the
+    next state each robot publishes (2 Hz in the plugin, once here) makes it live."""
+    fleet_ids = [f"agv-{n:02d}" for n in range(20)]
+    many = [robot(broker.port, fid) for fid in fleet_ids]
+    try:
+        client = fleet_client(broker.port, "fleet")
+        model = FleetModel(PREFIX)
+
+        def shown() -> bool:
+            for m in client.drain():
+                model.feed(m.topic, m.payload, m.retained, m.time)
+            return sum(len(model.robots[f].units) for f in fleet_ids if f in model.robots) == 40
+
+        wait_for(shown, "40 units shown", timeout=2.0)
+        for r in many:
+            r.publish_units()
+
+        def live() -> bool:
+            shown()
+            now = time.time()
+            return all(model.live(model.robots[f], u, now) for f in fleet_ids for u in model.robots[f].units.values())  # fmt: skip
+
+        wait_for(live, "40 units live", timeout=2.0)
+        client.close()
+    finally:
+        for r in many:
+            r.client.disconnect()
+            r.client.loop_stop()
+
+
+def test_a_10_mb_message_is_counted_as_malformed_and_nothing_else_changes(
+    broker: Broker, robots: dict[str, Robot]
+) -> None:
+    client = fleet_client(broker.port, "fleet")
+    model = FleetModel(PREFIX)
+    try:
+        wait_for(lambda: seen_all(model, client, time.time()), "both robots")
+        robots["plant-a"].client.publish(state_topic("plant-a", "left"), b"{" * 10_000_000, qos=1)
+        wait_for(lambda: seen_all(model, client, time.time()) and model.malformed, "counted")
+        assert "larger than any payload" in model.problem
+        assert model.robots["plant-a"].units["left"].verify == "ok"  # what was shown stays
+    finally:
+        client.close()
+
+
 def abh3_fleet(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "abh3_supervisor", "fleet", *args],

@@ -346,3 +346,33 @@ def test_the_robots_obeyed_event_then_its_state_and_a_partial_fleet_are_said() -
     model.feed(topic_a, obeyed(2), False, T0 + 2)
     commander.observe(model)
     assert alone.summary() == f"e-stop {A} (seq 2): obeyed by {A} (not yet seen latched)"
+
+
+def test_the_network_threads_queue_is_bounded_in_messages_and_bytes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """paho's callback, called as paho would: a 10 MB message is held as its first 64 KiB
+    (enough to say it is too large), and beyond the bounds the oldest are dropped, counted."""
+    from types import SimpleNamespace
+
+    from abh3_supervisor.clients.fleet import broker
+    from abh3_supervisor.clients.fleet.broker import BrokerOptions, FleetClient
+
+    client = FleetClient(BrokerOptions("127.0.0.1", 1883, tls=False), PREFIX, clock=lambda: T0)
+    huge = SimpleNamespace(topic=state_topic(A, "left"), payload=b"x" * 10_000_000, retain=False)
+    client._on_message(None, None, huge)
+    (held,) = client.drain()
+    assert len(held.payload) == contract.MAX_PAYLOAD + 1
+    model = fleet()
+    model.feed(*held)
+    assert model.malformed == 1 and "larger than any payload" in model.problem
+    monkeypatch.setattr(broker, "QUEUED", 3)
+    for seq in range(1, 6):
+        small = SimpleNamespace(topic=state_topic(A, "left"), payload=unit_state(A, "left", seq=seq), retain=False)  # fmt: skip
+        client._on_message(None, None, small)
+    assert client.dropped == 2
+    assert [json.loads(m.payload)["seq"] for m in client.drain()] == [3, 4, 5]
+    monkeypatch.setattr(broker, "QUEUED_BYTES", 3 * (contract.MAX_PAYLOAD + 1))
+    for _ in range(5):
+        client._on_message(None, None, huge)
+    assert client.dropped == 4 and len(client.drain()) == 3

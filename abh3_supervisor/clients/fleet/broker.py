@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 from urllib.parse import urlsplit
 
+from abh3_supervisor.clients.fleet.contract import MAX_PAYLOAD
 from abh3_supervisor.errors import Abh3Error, RunError
 
 if TYPE_CHECKING:
@@ -31,6 +32,7 @@ PORTS = {"mqtt": 1883, "mqtts": 8883}
 KEEPALIVE_S = 10
 CONNECT_TIMEOUT_S = 10.0  # the TCP/TLS connect and the broker's CONNACK
 QUEUED = 20_000  # messages waiting for the UI thread; beyond, the oldest are dropped, counted
+QUEUED_BYTES = 32 * 1024 * 1024  # and their bytes: a flood of big ones cannot grow memory
 INSTALL = "paho-mqtt is not installed: pip install 'abh3-supervisor[mqtt]'"
 
 
@@ -121,9 +123,11 @@ class FleetClient:
         self, options: BrokerOptions, prefix: str, clock: Callable[[], float] = time.time
     ) -> None:
         self.options, self.prefix, self.clock = options, prefix.rstrip("/"), clock
-        self.received: deque[Received] = deque(maxlen=QUEUED)
+        self.received: deque[Received] = deque()  # bounded in _on_message
         self.acks: deque[tuple[int, int, str]] = deque()  # mid, reason code, its name
         self.dropped = 0
+        self._bytes = 0
+        self._lock = threading.Lock()
         self.connected = False
         self.changed = clock()  # when it connected or was lost
         self.lost_why = ""
@@ -212,9 +216,9 @@ class FleetClient:
         return info.mid, None
 
     def drain(self) -> list[Received]:
-        out: list[Received] = []
-        while self.received:
-            out.append(self.received.popleft())
+        with self._lock:
+            out, self._bytes = list(self.received), 0
+            self.received.clear()
         return out
 
     def take_acks(self) -> list[tuple[int, int, str]]:
@@ -259,11 +263,19 @@ class FleetClient:
         self.connected, self.lost_why = False, str(rc)
 
     def _on_message(self, client: Any, userdata: Any, message: Any) -> None:
-        if len(self.received) == QUEUED:
-            self.dropped += 1
-        self.received.append(
-            Received(message.topic, bytes(message.payload), bool(message.retain), self.clock())
-        )
+        # one bigger than any payload of the contract is only counted (as too large): its
+        # start is enough to say so, and all of it is never held
+        payload = bytes(message.payload[: MAX_PAYLOAD + 1])
+        with self._lock:
+            while self.received and (
+                len(self.received) >= QUEUED or self._bytes + len(payload) > QUEUED_BYTES
+            ):
+                self._bytes -= len(self.received.popleft().payload)
+                self.dropped += 1
+            self.received.append(
+                Received(message.topic, payload, bool(message.retain), self.clock())
+            )
+            self._bytes += len(payload)
 
     def _on_publish(self, client: Any, userdata: Any, mid: int, rc: Any, props: Any) -> None:
         self.acks.append((mid, int(rc.value), str(rc)))

@@ -60,7 +60,7 @@ def parse_topic(topic: str, prefix: str = PREFIX) -> Topic | None:
 def decode(payload: bytes) -> dict[str, Any]:
     """A payload's JSON object, checked for what every payload carries (v, time, seq)."""
     if len(payload) > MAX_PAYLOAD:
-        raise Malformed(f"{len(payload)} bytes: larger than any payload of the contract")
+        raise Malformed(f"over {MAX_PAYLOAD} bytes: larger than any payload of the contract")
     try:
         obj = json.loads(payload.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
