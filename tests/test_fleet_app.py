@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 from collections.abc import Awaitable, Callable
 
 import pytest
@@ -190,3 +191,16 @@ def test_only_an_ssh_address_is_attached() -> None:
     assert attach_argv("--exec=rm -rf /") is None
     assert attach_argv("ssh://a@b/x.sock --evil") is None
     assert attach_argv("/run/abh3.sock") is None
+
+
+def test_without_paho_it_says_how_to_install_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from abh3_supervisor.clients import cli
+
+    for name in ("paho", "paho.mqtt", "paho.mqtt.client", "paho.mqtt.enums"):
+        monkeypatch.setitem(sys.modules, name, None)  # an import of it fails
+    assert cli.main(["fleet", "--broker", "mqtt://127.0.0.1:1883"]) == 1
+    assert capsys.readouterr().err == (
+        "error: paho-mqtt is not installed: pip install 'abh3-supervisor[mqtt]'\n"
+    )
