@@ -80,6 +80,7 @@ class Broker:
     conf: Path
     port: int
     tls_port: int
+    cert_port: int  # TLS with a client certificate required
     ca: Path
     log: Path
     proc: subprocess.Popen[bytes] | None = None
@@ -90,7 +91,8 @@ class Broker:
         self.proc = proc
 
         def up() -> bool:
-            return proc.poll() is not None or (_listening(self.port) and _listening(self.tls_port))
+            ports = (self.port, self.tls_port, self.cert_port)
+            return proc.poll() is not None or all(_listening(p) for p in ports)
 
         wait_for(up, "mosquitto listening")
         assert proc.poll() is None, self.log.read_text()
@@ -115,6 +117,10 @@ def make_certificates(where: Path) -> None:
     (where / "san.cnf").write_text("subjectAltName=IP:127.0.0.1\n")
     openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.crt", "-CAkey", "ca.key",
             "-CAcreateserial", "-days", "2", "-extfile", "san.cnf", "-out", "server.crt")  # fmt: skip
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=fleet", "-keyout",
+            "client.key", "-out", "client.csr")  # fmt: skip
+    openssl("x509", "-req", "-in", "client.csr", "-CA", "ca.crt", "-CAkey", "ca.key",
+            "-CAcreateserial", "-days", "2", "-out", "client.crt")  # fmt: skip
 
 
 @pytest.fixture
@@ -125,7 +131,7 @@ def broker(tmp_path: Path) -> Iterator[Broker]:
         subprocess.run(["mosquitto_passwd", "-b", str(passwd), user, password], check=True)
     (tmp_path / "acl").write_text(ACL)
     make_certificates(tmp_path)
-    port, tls_port = free_port(), free_port()
+    port, tls_port, cert_port = free_port(), free_port(), free_port()
     conf = tmp_path / "mosquitto.conf"
     conf.write_text(
         f"per_listener_settings false\nallow_anonymous false\npassword_file {passwd}\n"
@@ -134,8 +140,12 @@ def broker(tmp_path: Path) -> Iterator[Broker]:
         f"listener {port} 127.0.0.1\n"
         f"listener {tls_port} 127.0.0.1\ncafile {tmp_path / 'ca.crt'}\n"
         f"certfile {tmp_path / 'server.crt'}\nkeyfile {tmp_path / 'server.key'}\n"
+        f"listener {cert_port} 127.0.0.1\ncafile {tmp_path / 'ca.crt'}\n"
+        f"certfile {tmp_path / 'server.crt'}\nkeyfile {tmp_path / 'server.key'}\n"
+        "require_certificate true\n"
     )
-    broker = Broker(conf, port, tls_port, tmp_path / "ca.crt", tmp_path / "mosquitto.log")
+    where = tmp_path / "ca.crt", tmp_path / "mosquitto.log"
+    broker = Broker(conf, port, tls_port, cert_port, *where)
     try:
         broker.start()
         yield broker
@@ -442,6 +452,12 @@ def test_what_a_user_gets_wrong_is_said_without_a_traceback(broker: Broker, tmp_
     tls_url = f"mqtts://127.0.0.1:{broker.tls_port}"
     tls = abh3_fleet("--broker", tls_url, "--ca", str(broker.ca), *as_fleet, env=right)
     assert tls.returncode == 1 and "not a terminal" in tls.stderr, tls.stderr  # TLS: through
+    mutual = ["--broker", f"mqtts://127.0.0.1:{broker.cert_port}", "--ca", str(broker.ca)]
+    no_cert = abh3_fleet(*mutual, *as_fleet, env=right)
+    assert no_cert.returncode == 1 and "TLS failure" in no_cert.stderr, no_cert.stderr
+    pair = ["--cert", str(broker.ca.parent / "client.crt"), "--key", str(broker.ca.parent / "client.key")]  # fmt: skip
+    with_cert = abh3_fleet(*mutual, *pair, *as_fleet, env=right)
+    assert with_cert.returncode == 1 and "not a terminal" in with_cert.stderr, with_cert.stderr
 
 
 def read_until(fd: int, wanted: Callable[[bytes], bool], what: str) -> bytes:

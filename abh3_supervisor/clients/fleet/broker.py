@@ -191,7 +191,7 @@ class FleetClient:
             raise RunError(f"broker {o.where()}: no answer to the connection in {timeout:.0f} s")
         if self._refused is not None:
             self.close()
-            raise RunError(f"broker {o.where()} refused the connection: {self._refused}")
+            raise RunError(self._refused)
 
     def close(self) -> None:
         if self._client is not None:
@@ -248,7 +248,7 @@ class FleetClient:
             if self._first.is_set():
                 self.lost_why = f"the broker refused the reconnection: {rc}"
             else:
-                self._refused = str(rc)
+                self._refused = f"broker {self.options.where()} refused the connection: {rc}"
                 self._first.set()
             return
         if self._first.is_set():
@@ -258,6 +258,15 @@ class FleetClient:
         self._first.set()
 
     def _on_disconnect(self, client: Any, userdata: Any, flags: Any, rc: Any, props: Any) -> None:
+        if not self._first.is_set():  # closed before the broker answered: say it now
+            o = self.options
+            self._refused = (
+                f"TLS failure with {o.where()}: the broker closed the connection after the "
+                "handshake — does it want a client certificate (--cert, --key)?"
+                if o.tls  # TLS 1.3: the broker checks the client's certificate after it
+                else f"broker {o.where()} closed the connection before answering"
+            )
+            self._first.set()
         if self.connected:
             self.changed = self.clock()
         self.connected, self.lost_why = False, str(rc)
