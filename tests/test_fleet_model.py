@@ -128,8 +128,16 @@ def test_a_retained_replay_older_than_what_is_shown_is_ignored() -> None:
     model.feed(state_topic(A, "left"), stale_copy, True, T0 + 0.1)
     robot = model.robots[A]
     assert not robot.units["left"].estop and model.live(robot, robot.units["left"], T0 + 0.2)
-    model.feed(status_topic(A), status(A, "offline", time=T0 - 120), True, T0 + 0.1)
-    assert robot.state == "online"
+
+
+def test_the_brokers_status_is_taken_whatever_its_time() -> None:
+    """A will is built when its robot connects: older than the birth. Seen retained after
+    a resubscribe (the robot died while this view was away), it is the truth."""
+    model = fleet()
+    online(model, at=T0)
+    will = status(A, "connection_broken", time=T0 - 61)
+    model.feed(status_topic(A), will, True, T0 + 30)
+    assert model.robots[A].state == "connection_broken"
 
 
 def test_errors_alarms_foreign_host_and_e_stop_by_name() -> None:

@@ -131,7 +131,7 @@ class FleetModel:
         if obj.get("fleet_id") != robot.fleet_id:
             raise Malformed(f"fleet_id {obj.get('fleet_id')!r} is not its topic's")
         if where.kind == "status":
-            self._status(robot, obj, retained)
+            self._status(robot, obj)
         elif where.kind == "state":
             self._unit(robot, str(where.unit), obj, retained, now)
         elif where.kind == "events":
@@ -141,7 +141,10 @@ class FleetModel:
                 raise Malformed("health without buses and mqtt objects")
             robot.health, robot.health_received = obj, now
 
-    def _status(self, robot: Robot, obj: dict[str, Any], retained: bool) -> None:
+    def _status(self, robot: Robot, obj: dict[str, Any]) -> None:
+        """The broker's status, taken as it comes, retained or not: its retained one is
+        the current one by definition. (Not by time: a last will is built when its robot
+        connects, so it is older than the birth it follows.)"""
         state = contract.text(obj, "state")
         if state not in contract.STATES:
             raise Malformed(f"state {state!r} is not one of {', '.join(contract.STATES)}")
@@ -149,8 +152,6 @@ class FleetModel:
         attach = contract.text(obj, "attach", none=True)
         units = contract.names(obj, "units")
         pid = obj.get("pid")
-        if retained and sent < robot.status_time:
-            return  # the broker replaying an older copy than the one shown (a resubscribe)
         robot.state, robot.status_time, robot.declared, robot.attach = state, sent, units, attach
         robot.name = str(obj.get("robot", ""))
         robot.host, robot.version = str(obj.get("host", "")), str(obj.get("version", ""))
