@@ -26,6 +26,7 @@ ATTACH = "ssh://agv@plant-b/run/abh3/robot.sock"
 
 class FakeLink:
     def __init__(self) -> None:
+        self.connected = True
         self.inbox: list[Received] = []
         self.published: list[tuple[str, dict[str, object]]] = []
         self.acks: list[tuple[int, int, str]] = []
@@ -43,6 +44,8 @@ class FakeLink:
         return len(self.published), None
 
     def describe(self, now: float) -> str:
+        if not self.connected:
+            return "broker: LOST 5 s ago (Unspecified error); reconnecting"
         return "broker: connected to mqtt://127.0.0.1:1883 (MQTT 5) as me"
 
 
@@ -101,6 +104,10 @@ def test_every_unit_grouped_by_robot_and_greyed_once_stale() -> None:
         link.inbox.append(Received(status_topic(A), status(A, "connection_broken"), False, clock.now))  # fmt: skip
         app.tick()
         assert "CONNECTION BROKEN" in screen_text(app)
+        link.connected = False
+        app.tick()
+        text = screen_text(app)
+        assert "broker: LOST" in text and "ONLINE (last known: broker lost)" in text
 
     run(check)
 

@@ -28,6 +28,8 @@ TICK_S = 0.1
 
 
 class Link(Protocol):
+    connected: bool
+
     def drain(self) -> list[Received]: ...
     def take_acks(self) -> list[tuple[int, int, str]]: ...
     def publish(self, topic: str, payload: bytes) -> tuple[int, str | None]: ...
@@ -98,6 +100,7 @@ class FleetApp(App[int]):
             self.selected,
             self.link.describe(now),
             latest.summary() if latest else None,
+            connected=self.link.connected,
         )
         self.query_one("#fleet", Static).update(text)
 

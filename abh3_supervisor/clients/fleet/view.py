@@ -72,11 +72,18 @@ def why_not_live(robot: Robot, unit: Unit) -> str:
 
 
 def render(
-    model: FleetModel, now: float, selected: str | None, broker: str, last_command: str | None
+    model: FleetModel,
+    now: float,
+    selected: str | None,
+    broker: str,
+    last_command: str | None,
+    *,
+    connected: bool = True,
 ) -> Text:
-    """The whole view; ``selected`` the fleet_id the robot keys act on."""
+    """The whole view; ``selected`` the fleet_id the robot keys act on; ``connected``
+    False: the broker is lost, so no robot's status is current (each says so)."""
     text = Text(no_wrap=True, overflow="crop")
-    text.append(broker + "\n", "bold" if broker.startswith("broker: connected") else "bold red")
+    text.append(broker + "\n", "bold" if connected else "bold red")
     if last_command:
         style = "bold red" if "REFUSED" in last_command or "refused" in last_command else "bold"
         text.append(last_command + "\n", style)
@@ -93,7 +100,7 @@ def render(
     header = " ".join(f"{h:<{w}}" if w else h for h, w in COLUMNS)
     text.append("\n    " + header + "\n", "bold")
     for robot in model.sorted_robots():
-        _robot(text, model, robot, now, robot.fleet_id == selected)
+        _robot(text, model, robot, now, robot.fleet_id == selected, connected)
     if selected in model.robots:
         _events(text, model.robots[selected], now)
     return text
@@ -125,12 +132,17 @@ def _health(robot: Robot, model: FleetModel, now: float) -> list[tuple[str, str]
     return notes
 
 
-def _robot(text: Text, model: FleetModel, robot: Robot, now: float, selected: bool) -> None:
+def _robot(
+    text: Text, model: FleetModel, robot: Robot, now: float, selected: bool, connected: bool
+) -> None:
     label, style = robot_state(robot)
     text.append("▶ " if selected else "  ")
     text.append(robot.fleet_id, "reverse" if selected else "bold")
     text.append("  ")
-    text.append(label, style)
+    if connected:
+        text.append(label, style)
+    else:  # what the broker last said: it may have published a will since
+        text.append(f"{label} (last known: broker lost)", "dim")
     details = [f"host {robot.host}" if robot.host else "", f"pid {robot.pid}" if robot.pid else ""]
     details.append(f"v{robot.version}" if robot.version else "")
     seen = "never live" if robot.last_seen is None else f"{age(now - robot.last_seen)} ago"
