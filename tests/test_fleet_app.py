@@ -156,6 +156,9 @@ def test_e_stop_all_and_clear_are_asked_first() -> None:
         press = pilot.press  # type: ignore[attr-defined]
         await press("E")
         assert isinstance(app.screen, ConfirmScreen) and link.published == []
+        link.inbox.append(Received(status_topic(A), status(A, "offline"), False, clock.now))
+        app.tick()  # the view keeps up under the question
+        assert "offline" in screen_text(app)
         await press("n")
         assert link.published == []
         await press("E", "y")

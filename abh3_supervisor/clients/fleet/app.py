@@ -71,11 +71,11 @@ class FleetApp(App[int]):
         self.reason, self.clock = reason, clock
         self.selected: str | None = None
         self.pending: dict[int, Sent] = {}  # mid: the command awaiting its PUBACK
-        self.attached: list[list[str]] = []  # each attach run (the tests read it)
+        self.shown = Static(id="fleet")  # one text, repainted: whatever screen is on top
 
     def compose(self) -> ComposeResult:
         with VerticalScroll():
-            yield Static(id="fleet")
+            yield self.shown
         yield Footer()
 
     def on_mount(self) -> None:
@@ -102,7 +102,7 @@ class FleetApp(App[int]):
             latest.summary() if latest else None,
             connected=self.link.connected,
         )
-        self.query_one("#fleet", Static).update(text)
+        self.shown.update(text)
 
     # -- keys ------------------------------------------------------------------------
 
@@ -181,7 +181,6 @@ class FleetApp(App[int]):
                 f"{robot.fleet_id}: attach {robot.attach!r} is not ssh://…", severity="error"
             )
             return
-        self.attached.append(argv)
         code = self.run_attached(argv)
         if code:
             self.notify(f"abh3 tui --connect {robot.attach} ended with {code}", severity="warning")
