@@ -1,6 +1,6 @@
-"""The ``abh3`` command: ``run``, ``tui``, ``simulate``, ``check``, ``status``, ``send``, ``estop``,
-``verify``, ``scan``, ``param``, ``commission``, ``decode``, ``schema``, ``plugins``,
-``plugin new``.
+"""The ``abh3`` command: ``run``, ``tui``, ``fleet``, ``simulate``, ``check``, ``status``,
+``send``, ``estop``, ``verify``, ``scan``, ``param``, ``commission``, ``decode``, ``schema``,
+``plugins``, ``plugin new``.
 
 Exit codes: 0 success, 1 runtime failure (bus cannot open, internal error, overloaded
 plan), 2 a user's mistake in the configuration or the command line, 3 a stop the drives did
@@ -214,6 +214,9 @@ def _parser() -> argparse.ArgumentParser:
     from abh3_supervisor.clients.commission import add_parser as add_commission_parser
 
     add_commission_parser(sub)
+    from abh3_supervisor.clients.fleet.run import add_parser as add_fleet_parser
+
+    add_fleet_parser(sub)
     plugins = sub.add_parser(
         "plugins",
         help="the installed plugins: version, API version, hooks; with CONFIG, which it enables",
@@ -318,6 +321,8 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
 
     if args.cmd == "tui":
         return _tui_attached(args, release)
+    if args.cmd == "fleet":
+        return _fleet(args, release)
     if args.cmd == "verify":
         from abh3_supervisor.clients import control
         from abh3_supervisor.clients.drives import verify_running
@@ -597,6 +602,14 @@ def _tui_attached(args: argparse.Namespace, release: Callable[[], None]) -> int:
     path = find_socket(args.connect)
     release()
     return asyncio.run(attach(path, owner=False))
+
+
+def _fleet(args: argparse.Namespace, release: Callable[[], None]) -> int:
+    from abh3_supervisor.clients.fleet.run import options, run
+
+    opts = options(args)  # a mistake in the options is said (exit 2) before anything else
+    release()  # the view handles its own keys and signals
+    return run(args, opts, _not_terminals)
 
 
 def _service(args: argparse.Namespace) -> ServiceOptions | None:

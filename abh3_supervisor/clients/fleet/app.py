@@ -1,0 +1,195 @@
+"""``abh3 fleet``: the Textual view of every robot on the broker, with the fleet e-stop.
+
+The app holds no network: a ``Link`` (the paho client in ``broker.py``, a fake in the
+tests) hands it what arrived and sends what it publishes; the model and the commander
+decide what is shown. Ten times a second it drains the link and repaints.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import ClassVar, Protocol
+
+from textual.app import App, ComposeResult, SuspendNotSupported
+from textual.binding import Binding, BindingType
+from textual.containers import VerticalScroll
+from textual.widgets import Footer, Static
+
+from abh3_supervisor.clients.fleet.broker import Received
+from abh3_supervisor.clients.fleet.commands import Commander, Sent
+from abh3_supervisor.clients.fleet.model import FleetModel
+from abh3_supervisor.clients.fleet.view import render
+from abh3_supervisor.clients.tui.screens import ConfirmScreen
+
+TICK_S = 0.1
+
+
+class Link(Protocol):
+    connected: bool
+
+    def drain(self) -> list[Received]: ...
+    def take_acks(self) -> list[tuple[int, int, str]]: ...
+    def publish(self, topic: str, payload: bytes) -> tuple[int, str | None]: ...
+    def describe(self, now: float) -> str: ...
+
+
+def attach_argv(address: str) -> list[str] | None:
+    """``abh3 tui --connect ADDRESS`` for a robot's ``status.attach``; None unless it is
+    an ``ssh://`` address (what a robot publishes is never a command line of its own)."""
+    if not address.startswith("ssh://") or any(c.isspace() for c in address):
+        return None
+    return [sys.executable, "-m", "abh3_supervisor", "tui", "--connect", address]
+
+
+class FleetApp(App[int]):
+    CSS_PATH = "../tui/abh3.tcss"  # the TUI's dialogs
+    TITLE = "abh3 fleet"
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("up", "move(-1)", "previous robot", show=False),
+        Binding("down", "move(1)", "next robot", show=False),
+        Binding("e", "estop", "e-stop robot"),
+        Binding("E", "estop_all", "e-stop ALL"),
+        Binding("c", "clear", "clear robot"),
+        Binding("C", "clear_all", "clear all"),
+        Binding("a", "attach", "attach TUI"),
+        Binding("q", "quit", "quit"),
+    ]
+
+    def __init__(
+        self,
+        model: FleetModel,
+        commander: Commander,
+        link: Link,
+        reason: str,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        super().__init__()
+        self.model, self.commander, self.link = model, commander, link
+        self.reason, self.clock = reason, clock
+        self.selected: str | None = None
+        self.pending: dict[int, Sent] = {}  # mid: the command awaiting its PUBACK
+        self.shown = Static(id="fleet")  # one text, repainted: whatever screen is on top
+
+    def compose(self) -> ComposeResult:
+        with VerticalScroll():
+            yield self.shown
+        yield Footer()
+
+    def on_mount(self) -> None:
+        self.tick()
+        self.set_interval(TICK_S, self.tick)
+
+    def tick(self) -> None:
+        for message in self.link.drain():
+            self.model.feed(message.topic, message.payload, message.retained, message.time)
+        for mid, code, name in self.link.take_acks():
+            sent = self.pending.pop(mid, None)
+            if sent is not None:
+                self.commander.acknowledged(sent, code, name)
+        self.commander.observe(self.model)
+        if self.selected not in self.model.robots:
+            self.selected = min(self.model.robots, default=None)
+        now = self.clock()
+        latest = self.commander.latest()
+        text = render(
+            self.model,
+            now,
+            self.selected,
+            self.link.describe(now),
+            latest.summary() if latest else None,
+            connected=self.link.connected,
+        )
+        self.shown.update(text)
+
+    # -- keys ------------------------------------------------------------------------
+
+    def action_move(self, step: int) -> None:
+        order = sorted(self.model.robots)
+        if not order:
+            return
+        at = order.index(self.selected) if self.selected in order else 0
+        self.selected = order[max(0, min(len(order) - 1, at + step))]
+        self.tick()
+
+    def action_estop(self) -> None:
+        if self.selected is None:
+            self.notify("no robot to e-stop: none seen yet", severity="warning")
+            return
+        self.send(self.selected, clear=False)  # at once: an e-stop asks nothing
+
+    def action_estop_all(self) -> None:
+        count = len(self.model.robots)
+        question = (
+            f"E-STOP ALL: every robot subscribed to {self.commander.prefix}/all/cmd/estop "
+            f"({count} shown here) latches its e-stop. Send?"
+        )
+        self.push_screen(ConfirmScreen(question), self._then(None, clear=False))
+
+    def action_clear(self) -> None:
+        if self.selected is None:
+            self.notify("no robot to clear: none seen yet", severity="warning")
+            return
+        question = (
+            f"Clear the e-stop of {self.selected}? Nothing moves until START and motion are "
+            "given again, by whoever owns it."
+        )
+        self.push_screen(ConfirmScreen(question), self._then(self.selected, clear=True))
+
+    def action_clear_all(self) -> None:
+        question = (
+            f"Clear the e-stop of ALL robots subscribed to {self.commander.prefix}/all/cmd/"
+            "estop_clear? Nothing moves until START and motion are given again."
+        )
+        self.push_screen(ConfirmScreen(question), self._then(None, clear=True))
+
+    def _then(self, target: str | None, *, clear: bool) -> Callable[[bool | None], None]:
+        def answered(yes: bool | None) -> None:
+            if yes:
+                self.send(target, clear=clear)
+
+        return answered
+
+    def send(self, target: str | None, *, clear: bool) -> Sent:
+        sent = self.commander.build(
+            self.model, target, clear=clear, reason=self.reason, now=self.clock()
+        )
+        mid, trouble = self.link.publish(sent.topic, sent.payload)
+        self.pending[mid] = sent
+        if trouble:
+            sent.broker = trouble
+        self.tick()
+        return sent
+
+    def action_attach(self) -> None:
+        robot = self.model.robots.get(self.selected or "")
+        if robot is None:
+            self.notify("no robot selected", severity="warning")
+            return
+        if robot.attach is None:
+            self.notify(
+                f"{robot.fleet_id} publishes no attach address (its mqtt plugin's `attach` "
+                "setting): no TUI to attach",
+                severity="warning",
+            )
+            return
+        argv = attach_argv(robot.attach)
+        if argv is None:
+            self.notify(
+                f"{robot.fleet_id}: attach {robot.attach!r} is not ssh://…", severity="error"
+            )
+            return
+        code = self.run_attached(argv)
+        if code:
+            self.notify(f"abh3 tui --connect {robot.attach} ended with {code}", severity="warning")
+
+    def run_attached(self, argv: list[str]) -> int:
+        """The robot's TUI on this terminal, this app suspended until it ends."""
+        try:
+            with self.suspend():
+                return subprocess.run(argv, check=False).returncode
+        except SuspendNotSupported:
+            self.notify("this terminal cannot hand itself over: run " + " ".join(argv[3:]))
+            return 0
