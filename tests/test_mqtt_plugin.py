@@ -10,6 +10,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,7 @@ from abh3_supervisor.plugin_api import FlagChange, OwnerChange
 from abh3_supervisor.plugin_testing import running
 from tests.support.mosquitto import FLEET, free_port, password
 from tests.support.mosquitto import running as broker_running
-from tests.support.mqtt_watch import Watcher
+from tests.support.mqtt_watch import Received, Watcher, topic_is
 from tests.support.rig import TWO_UNITS
 
 pytestmark = pytest.mark.wallclock
@@ -119,3 +120,40 @@ def test_a_flooding_fleet_and_a_10_mb_message_block_no_hook(tmp_path: Path) -> N
     assert 1 <= len(refusals) <= 4  # a line per robot and topic per 5 s, not per message
     assert not any("EMERGENCY STOP" in line for line in run.log)
     assert logging.getLogger("abh3_plugins.mqtt").level in (logging.NOTSET, logging.INFO)
+
+
+def kind_of(topic: str, kind: str) -> Callable[[Received], bool]:
+    return lambda m: m.topic == topic and m.body.get("kind") == kind
+
+
+def test_an_e_stop_to_all_is_obeyed_by_every_robot_of_a_supervisor(tmp_path: Path) -> None:
+    """Two robots (two connections) of one supervisor each receive ``all/cmd/estop``: each
+    obeys it (the seq rule is per robot), the one gate latches once."""
+    fids = ["pair-left", "pair-right"]
+    with broker_running(tmp_path / "broker", {"pair": fids}) as broker:
+        secret = tmp_path / "pw"
+        secret.write_text(password("pair"))
+        settings = {
+            "broker": broker.url,
+            "name": "pair",
+            "username": "pair",
+            "password_file": str(secret),
+            "allow_estop": True,
+        }
+        fleet = Watcher(broker, FLEET, client_id="t-pair")
+        assert fleet.connected()
+        fleet.subscribe("abh3/v1/+/events")
+        fleet.subscribe("abh3/v1/+/status")
+        plugin = MqttPlugin()
+        with running(TWO_UNITS, plugin, "mqtt", seconds=3, settings=settings) as run:
+            for fid in fids:
+                fleet.wait_for(topic_is(f"abh3/v1/{fid}/status"))
+            body = payloads.estop_command(1, time.time(), sender="f", reason="all")
+            fleet.publish(Topics("x").command("estop", everyone=True), body)
+            for fid in fids:
+                for kind in ("fleet_command", "estop_latched"):
+                    fleet.wait_for(kind_of(f"abh3/v1/{fid}/events", kind))
+        fleet.close()
+    assert not [m for m in fleet.messages if "refused" in str(m.body)]
+    latched = [m.topic for m in fleet.messages if kind_of(m.topic, "estop_latched")(m)]
+    assert sorted(latched) == [f"abh3/v1/{f}/events" for f in fids]  # the gate latched once

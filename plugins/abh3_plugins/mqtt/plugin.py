@@ -329,7 +329,7 @@ class MqttPlugin:
                 needs = NEEDS[command.kind]
                 if not getattr(self.settings, needs):
                     raise fleet.Refused(f"{command.kind} from {command.sender}: {needs} is false")
-                self.seqs.admit(topic, command)
+                self.seqs.admit(f"{link.fleet_id} {topic}", command)  # per robot: `all` too
                 self._obey(link, topic, command)
         except fleet.Refused as exc:
             self._refuse(link, topic, str(exc), sender)
