@@ -154,6 +154,7 @@ def test_an_e_stop_to_all_is_obeyed_by_every_robot_of_a_supervisor(tmp_path: Pat
                 for kind in ("fleet_command", "estop_latched"):
                     fleet.wait_for(kind_of(f"abh3/v1/{fid}/events", kind))
         fleet.close()
+    assert run.exit_code == 0, run.log
     assert not [m for m in fleet.messages if "refused" in str(m.body)]
     latched = [m.topic for m in fleet.messages if kind_of(m.topic, "estop_latched")(m)]
     assert sorted(latched) == [f"abh3/v1/{f}/events" for f in fids]  # the gate latched once
