@@ -35,6 +35,10 @@ payloads = fleet.payloads
 log = logging.getLogger("abh3_plugins.mqtt")
 MAX_INFLIGHT = 100  # messages handed to paho and not yet written or acknowledged
 MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands are tiny)
+# incoming messages a connection takes per second (a burst of as many): beyond, paho's
+# thread waits before reading the next, so a flooding fleet is held back by TCP and the
+# broker, not by our Python (which shares its interpreter lock with the bus loop)
+INCOMING_PER_S = 100.0
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
 
 OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
@@ -73,6 +77,7 @@ class Link:
         self._on_message, self._on_lost = on_message, on_lost
         self._closing = threading.Event()
         self._inflight: deque[mqtt.MQTTMessageInfo] = deque()
+        self._tokens: dict[int, tuple[float, float]] = {}  # per client: tokens, when
         self._sender = threading.Thread(target=self._send, name=f"mqtt {fleet_id}", daemon=True)
         self.host, self.pid, self.version = socket.gethostname(), os.getpid(), version()
         self.client = self._client(fleet.client_id(fleet_id))
@@ -207,7 +212,18 @@ class Link:
             self._on_lost(self)
 
     def _message(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
+        self._take_token(id(client))
         self._on_message(self, message)
+
+    def _take_token(self, key: int) -> None:
+        """Wait (in paho's thread) until this connection may handle another message."""
+        now = time.monotonic()
+        tokens, then = self._tokens.get(key, (INCOMING_PER_S, now))
+        tokens = min(INCOMING_PER_S, tokens + (now - then) * INCOMING_PER_S)
+        if tokens < 1.0:
+            self._closing.wait((1.0 - tokens) / INCOMING_PER_S)
+            tokens, now = 1.0, time.monotonic()
+        self._tokens[key] = (tokens - 1.0, now)
 
     # ------------------------------------------------------------ our sender thread
 

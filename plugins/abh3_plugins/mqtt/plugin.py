@@ -323,6 +323,11 @@ class MqttPlugin:
         """paho's thread: a command for this robot (or all), judged and, if good, obeyed."""
         topic = message.topic
         sender = _user_property(message, "sender")
+        kind = fleet.command_kind(topic, self.settings.prefix)
+        needs = NEEDS.get(kind[1]) if kind is not None else "allow_estop"  # VDA: estop first
+        if needs is not None and not getattr(self.settings, needs):  # unread: cheap
+            self._refuse(link, topic, f"{needs} is false", sender)
+            return
         try:
             commands = self._parse(link, topic, message, sender)
             for command in commands:
