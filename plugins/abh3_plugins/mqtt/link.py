@@ -25,6 +25,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
+from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from abh3_plugins.mqtt.outbox import Message, Outbox
 from abh3_plugins.mqtt.settings import Settings
@@ -175,11 +176,9 @@ class Link:
             self.topics.status, payloads.encode(self.status("online")), qos["status"], retain=True
         )
         t = self.topics
-        subscriptions = [(t.command(kind), qos["commands"]) for kind in fleet.COMMANDS]
-        subscriptions += [
-            (t.command(k, everyone=True), qos["commands"]) for k in fleet.COMMANDS[:2]
-        ]
-        client.subscribe(subscriptions)
+        topics = [t.command(kind) for kind in fleet.COMMANDS]
+        topics += [t.command(kind, everyone=True) for kind in fleet.COMMANDS[:2]]
+        client.subscribe([(topic, self._options()) for topic in topics])
         if self._ever:
             self.reconnects += 1
             log.info("mqtt %s: connected again to %s", self.fleet_id, self.settings.url)
@@ -195,7 +194,16 @@ class Link:
             return  # said by the main connection, refused alike
         online = payloads.encode(self.connection("online"))
         client.publish(self.topics.connection, online, 1, retain=True)
-        client.subscribe(self.topics.instant_actions, self.settings.qos["commands"])
+        client.subscribe([(self.topics.instant_actions, self._options())])
+
+    def _options(self) -> Any:
+        """A command subscription's QoS; under MQTT 5 with "retain as published", so that a
+        command published retained keeps its flag even live and is refused as well (3.1.1
+        flags only the broker's replays)."""
+        qos = self.settings.qos["commands"]
+        if self.settings.protocol != "5":
+            return qos
+        return SubscribeOptions(qos=qos, retainAsPublished=True)
 
     def _disconnected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
