@@ -21,6 +21,7 @@ from tests.support.mqtt_watch import Received, Watcher, config, supervisor
 
 pytestmark = pytest.mark.wallclock
 Match = Callable[[Received], bool]
+KEEP = 1  # [s] the frozen supervisor's keep-alive
 ROBOTS = {f"sup{i}": [f"sup{i}-rover"] for i in range(1, 13)}
 
 
@@ -123,6 +124,30 @@ def test_kill_9_shows_connection_broken_within_the_keep_alive(
         assert broken.at - killed <= 1.5 * 1 + 0.5
         assert vda.at - killed <= 1.5 * 1 + 0.5
         run.proc.wait(5)
+    assert not w.invalid
+
+
+def test_a_frozen_supervisor_shows_connection_broken_within_the_keep_alive_then_returns(
+    broker: Broker, tmp_path: Path
+) -> None:
+    """SIGSTOP: the connection stays open but says nothing, as a host whose network went;
+    the broker gives up after 1.5 keep-alives. SIGCONT: paho finds out and reconnects."""
+    w = watch(broker, OBSERVER)
+    fid = "sup12-rover"
+    with supervisor(config(tmp_path, "sup12", broker, keepalive_s=KEEP)) as run:
+        w.wait_for(status("online", fid), 30)
+        os.kill(run.proc.pid, signal.SIGSTOP)
+        stopped = time.monotonic()
+        try:
+            broken = w.wait_for(status("connection_broken", fid), 1.5 * KEEP + 10)
+            # 1.5 keep-alives, and Mosquitto 2.0.11's own checking on top: up to ~5 s
+            # (measured: keep-alive 1 → 5.7 s, 4 → 10.9 s, 8 → 16.8 s)
+            assert broken.at - stopped <= 1.5 * KEEP + 5.5
+        finally:
+            mark = w.mark()
+            os.kill(run.proc.pid, signal.SIGCONT)
+        w.wait_for(status("online", fid), 15, since=mark)
+    assert run.proc.returncode == 0, run.log()
     assert not w.invalid
 
 

@@ -109,6 +109,7 @@ class Link:
         if s.tls is not None:
             client.tls_set(ca_certs=s.tls.ca, certfile=s.tls.cert, keyfile=s.tls.key)
         client.reconnect_delay_set(*RECONNECT_S)
+        client.suppress_exceptions = True  # a raising callback would end paho's thread
         return client
 
     def start(self) -> None:
@@ -221,7 +222,12 @@ class Link:
 
     def _message(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
         self._take_token(id(client))
-        self._on_message(self, message)
+        try:
+            self._on_message(self, message)
+        except Exception:  # a bug of ours must not end paho's thread (and its reconnects)
+            log.exception(
+                "mqtt %s: a message on %s could not be handled", self.fleet_id, message.topic
+            )
 
     def _take_token(self, key: int) -> None:
         """Wait (in paho's thread) until this connection may handle another message."""
