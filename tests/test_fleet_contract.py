@@ -273,3 +273,14 @@ def test_abh3_check_never_prints_the_password(tmp_path: Path) -> None:
         )
         assert out.returncode == 0, out.stderr
         assert "s3cr3t" not in out.stdout + out.stderr
+
+
+def test_without_paho_check_says_which_extra_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "paho" else real(name, *a)
+    )
+    found = problems("    broker: mqtt://127.0.0.1:1883\n")
+    assert any("needs paho-mqtt: pip install 'abh3-supervisor[mqtt]'" in p for p in found), found

@@ -12,16 +12,14 @@ plugin's input source, under the owner rule of every input.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import paho.mqtt.client as mqtt
-
-from abh3_plugins.mqtt.link import Link
 from abh3_plugins.mqtt.settings import Settings, parse, schema
 from abh3_supervisor.plugin_api import (
     VELOCITY,
@@ -43,6 +41,11 @@ from abh3_supervisor.plugin_api import (
 )
 
 payloads = fleet.payloads
+
+if TYPE_CHECKING:  # paho is the mqtt extra's: imported when a run starts, not to check
+    import paho.mqtt.client as mqtt
+
+    from abh3_plugins.mqtt.link import Link
 
 log = logging.getLogger("abh3_plugins.mqtt")
 ABH3_API_VERSION = "1.1"  # the plugin API this is written for (clear_emergency_stop)
@@ -137,11 +140,19 @@ class MqttPlugin:
     def abh3_configure(self, section: Section, config: Config) -> None:
         self.settings = parse(section, config)
         self.seqs = fleet.SeqGuard(self.settings.command_timeout_s)
+        if importlib.util.find_spec("paho") is None:
+            section.error(
+                "broker",
+                "the mqtt plugin needs paho-mqtt: pip install 'abh3-supervisor[mqtt]' "
+                "(or pip install paho-mqtt)",
+            )
 
     # ------------------------------------------------------------ start
 
     @hookimpl
     def abh3_start(self, supervisor: SupervisorView) -> None:
+        from abh3_plugins.mqtt.link import Link  # paho: only now
+
         self.view = s = supervisor
         settings = self.settings
         for robot in s.config.robots.values():
