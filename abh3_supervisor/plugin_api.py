@@ -16,6 +16,7 @@ imported from another abh3_supervisor module may change in any release.
 
 from __future__ import annotations
 
+from abh3_supervisor import fleet
 from abh3_supervisor.config import schema
 from abh3_supervisor.config.model import Config, ControlMode, Role, UnitConfig, VelocityModel
 from abh3_supervisor.config.source import Section
@@ -37,7 +38,7 @@ from abh3_supervisor.core.twist_limits import fastest_twist
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.plugin_host.hookspecs import PROJECT, hookimpl
-from abh3_supervisor.plugin_host.view import SupervisorView, UnitView, word_of
+from abh3_supervisor.plugin_host.view import BusCounters, SupervisorView, UnitView, word_of
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.frames import (
     Brd0,
@@ -52,7 +53,7 @@ from abh3_supervisor.protocol.frames import (
 )
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 
-API_VERSION = "1.0"
+API_VERSION = "1.1"  # 1.1: fleet; SupervisorView.clear_emergency_stop, .bus_counters
 """``MAJOR.MINOR`` of this module's promise; a plugin may check the major it was written for."""
 
 # the entry-point group a plugin registers under: [project.entry-points.abh3_supervisor]
@@ -75,6 +76,7 @@ __all__ = [
     "Brd6",
     "Brd7",
     "Broadcast",
+    "BusCounters",
     "CommandError",
     "Config",
     "ControlMode",
@@ -103,6 +105,7 @@ __all__ = [
     "VelocityModel",
     "fastest_twist",
     "flags",
+    "fleet",
     "frames",
     "from_geometry",
     "hookimpl",

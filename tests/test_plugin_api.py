@@ -20,7 +20,12 @@ from abh3_supervisor import plugin_api
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.state import UnitState
-from abh3_supervisor.core.supervisor import EstopChange, OwnerChange, SupervisorEvent
+from abh3_supervisor.core.supervisor import (
+    EstopChange,
+    OperatorAction,
+    OwnerChange,
+    SupervisorEvent,
+)
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.plugin_api import (
     FlagChange,
@@ -60,7 +65,7 @@ def test_the_builtins_import_nothing_of_ours_but_the_plugin_api() -> None:
 
 
 def test_every_public_name_is_there_at_runtime_and_says_where_it_comes_from() -> None:
-    assert plugin_api.API_VERSION == "1.0"
+    assert plugin_api.API_VERSION == "1.1"
     missing = [n for n in plugin_api.__all__ if not hasattr(plugin_api, n)]
     assert not missing
     for name in ("hookimpl", "InputSource", "Feedback", "Setpoint", "Notice", "FlagChange"):
@@ -104,7 +109,7 @@ def test_the_view_reads_and_never_writes() -> None:
             left.inputs = 0  # type: ignore[misc]
         with pytest.raises(TypeError):
             view.units["x"] = left  # type: ignore[index]
-        for motion in ("set_velocity", "set_twist", "apply", "clear_emergency_stop", "zero"):
+        for motion in ("set_velocity", "set_twist", "apply", "zero"):
             assert not hasattr(view, motion)
         rig.sup.set_velocity("left", 0.0, 0.0, source=present(rig.sup, "left"))
         assert view.owner("left") == "test:left"  # live, not a copy taken at start
@@ -118,6 +123,38 @@ def test_the_view_reads_and_never_writes() -> None:
             view.notice(5, "x")
     finally:
         loop.close()
+
+
+def test_the_views_e_stop_and_its_clearing_are_the_operators_audited() -> None:
+    """API 1.1: a plugin its user allows (the mqtt plugin's allow_estop_clear) clears the
+    e-stop as an operator does, through the supervisor's own clear, audited."""
+    rig = Rig(parse_config(TWO_UNITS, "c.yaml"))
+    seen: list[SupervisorEvent] = []
+    rig.sup.subscribe(seen.append)
+    loop = asyncio.new_event_loop()
+    try:
+        view = SupervisorView(rig.sup, loop, "fleet")
+        view.emergency_stop("scada says stop")
+        loop.run_until_complete(asyncio.sleep(0))  # what call_soon_threadsafe handed over
+        assert rig.sup.estop
+        view.clear_emergency_stop("scada says go")
+        loop.run_until_complete(asyncio.sleep(0))
+        assert not rig.sup.estop
+        counters = view.bus_counters()
+        assert list(counters) == list(rig.sup.config.buses)
+        assert all(c.send_errors == 0 and c.state == "ok" for c in counters.values())
+    finally:
+        loop.close()
+    audit = [(e.source, e.action) for e in seen if isinstance(e, OperatorAction)]
+    assert audit == [
+        ("plugin fleet", "emergency stop: scada says stop"),
+        ("plugin fleet", "clear the emergency stop: scada says go"),
+    ]
+    estops = [(e.latched, e.source) for e in seen if isinstance(e, EstopChange)]
+    assert estops == [
+        (True, "plugin fleet: scada says stop"),
+        (False, "plugin fleet: scada says go"),
+    ]
 
 
 def test_the_estop_and_owner_changes_are_events() -> None:

@@ -4,8 +4,9 @@ The Supervisor is only to be touched on the event loop, and whatever sets a setp
 there bypasses the arbitration's owner. A plugin gets a :class:`SupervisorView` instead
 (its hooks' ``supervisor`` argument): the configuration, each unit's state through
 read-only accessors, and the few actions that are safe from any thread — ask for a status
-packet, latch the e-stop (audited as an operator's is), say something to the operator,
-end the run. Motion is only ever an input source's (``abh3_input_sources``).
+packet, latch the e-stop (audited as an operator's is) and, for a plugin its user allowed
+to, clear it; say something to the operator, end the run. Motion is only ever an input
+source's (``abh3_input_sources``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
 
 from abh3_supervisor.config.model import Config, UnitConfig
@@ -26,6 +28,18 @@ from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames
 
 LEVELS = {logging.DEBUG, logging.INFO, logging.WARNING, logging.ERROR, logging.CRITICAL}
+
+
+@dataclass(frozen=True, slots=True)
+class BusCounters:
+    """One bus's counters since the start (API 1.1): frames sent (commands and polls),
+    frames received (replies and broadcasts), sends that failed, the interface's state
+    (``ok``, ``error-warning``, ``error-passive``, ``bus-off``, …)."""
+
+    frames_sent: int
+    frames_received: int
+    send_errors: int
+    state: str
 
 
 class UnitView:
@@ -178,6 +192,20 @@ class SupervisorView:
         (``health().statuses(now)``); keep the object: bus loads are measured between calls."""
         return Health(self._sup)
 
+    def bus_counters(self) -> Mapping[str, BusCounters]:
+        """Every bus's counters now, by name (API 1.1); each a whole record, read from any
+        thread (two buses' may straddle an exchange)."""
+        out: dict[str, BusCounters] = {}
+        for bus, scheduler in self._sup.schedulers.items():
+            stats = [scheduler.slots[u].stats for u in list(scheduler.slots)]
+            out[bus] = BusCounters(
+                frames_sent=sum(s.commands_sent + s.polls_sent for s in stats),
+                frames_received=sum(s.replies + s.broadcasts for s in stats),
+                send_errors=sum(s.send_errors for s in stats),
+                state=str(self._sup.bus_health[bus].state),
+            )
+        return MappingProxyType(out)
+
     # ------------------------------------------------------------ actions (any thread)
 
     def request_status(self, unit: str, packet: int) -> None:
@@ -191,7 +219,8 @@ class SupervisorView:
     def emergency_stop(self, reason: str) -> None:
         """Latch the e-stop on every unit, from any thread, exactly as an operator's: each
         commanded unit's stop frame goes out at once; audited as this plugin's action with
-        ``reason``. Only an operator clears it. Honoured even once the inputs stopped."""
+        ``reason``. Honoured even once the inputs stopped. Clearing is an operator's, or
+        :meth:`clear_emergency_stop`'s where the user allowed a plugin to."""
         who = f"plugin {self._plugin}"
         why = clean(str(reason))
 
@@ -200,6 +229,21 @@ class SupervisorView:
             self._sup.emergency_stop(f"{who}: {why}")
 
         self._on_loop(latch)
+
+    def clear_emergency_stop(self, reason: str) -> None:
+        """Clear the e-stop exactly as an operator does (API 1.1), from any thread: START,
+        SERVO and motion must be given anew; audited as this plugin's action with
+        ``reason`` (say who asked). Only for a plugin whose user said so in its section
+        (the ``mqtt`` plugin's ``allow_estop_clear``): a watchdog never clears what it
+        latched."""
+        who = f"plugin {self._plugin}"
+        why = clean(str(reason))
+
+        def clear() -> None:
+            self._sup.audit(who, None, f"clear the emergency stop: {why}")
+            self._sup.clear_emergency_stop(f"{who}: {why}")
+
+        self._on_loop(clear)
 
     def notice(self, level: int, text: str) -> None:
         """Say ``text`` to the operator (the TUI's and headless log, other plugins'

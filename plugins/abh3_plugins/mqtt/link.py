@@ -1,0 +1,306 @@
+"""One robot's connections to the broker: its own client id, its own last will.
+
+Two paho clients per robot, because one MQTT connection carries one last will: the main
+one (``abh3-{fleet_id}``: status, states, events, health, the fleet's commands; its will
+the retained ``status`` ``connection_broken``) and, with ``vda5050`` on, the VDA 5050 one
+(``abh3-{fleet_id}.vda``: ``connection``, its will ``CONNECTIONBROKEN``, and
+``instantActions``). paho's own thread reads, writes, pings and reconnects each; a sender
+thread of ours moves the outbox into the main client only while it is connected, with at
+most ``MAX_INFLIGHT`` messages paho has not written yet: whatever the broker does, nothing
+but the bounded outbox grows, and the hooks never wait for it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+from paho.mqtt.subscribeoptions import SubscribeOptions
+
+from abh3_plugins.mqtt.outbox import Message, Outbox
+from abh3_plugins.mqtt.settings import Settings
+from abh3_supervisor.plugin_api import fleet
+
+payloads = fleet.payloads
+
+log = logging.getLogger("abh3_plugins.mqtt")
+MAX_INFLIGHT = 100  # messages handed to paho and not yet written or acknowledged
+MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands are tiny)
+# incoming messages a connection takes per second (a burst of as many): beyond, paho's
+# thread waits before reading the next, so a flooding fleet is held back by TCP and the
+# broker, not by our Python (which shares its interpreter lock with the bus loop)
+INCOMING_PER_S = 100.0
+RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
+
+OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("abh3-supervisor")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+class Link:
+    """A robot's broker connection(s), started by :meth:`start`, ended by :meth:`close`."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        fleet_id: str,
+        robot: str,
+        units: list[str],
+        *,
+        on_message: OnMessage,
+        on_lost: Callable[[Link], None],
+    ) -> None:
+        self.settings, self.fleet_id, self.robot, self.units = settings, fleet_id, robot, units
+        self.topics = fleet.Topics(fleet_id, settings.prefix, settings.manufacturer)
+        self.outbox = Outbox(settings.queue, fleet_id)
+        self.seq = payloads.Sequence()
+        self.reconnects = 0
+        self.connected = threading.Event()
+        self._ever = False
+        self._on_message, self._on_lost = on_message, on_lost
+        self._closing = threading.Event()
+        self._inflight: deque[mqtt.MQTTMessageInfo] = deque()
+        self._tokens: dict[int, tuple[float, float]] = {}  # per client: tokens, when
+        self._sender = threading.Thread(target=self._send, name=f"mqtt {fleet_id}", daemon=True)
+        self.host, self.pid, self.version = socket.gethostname(), os.getpid(), version()
+        self.client = self._client(fleet.client_id(fleet_id))
+        self.client.on_pre_connect = self._pre_connect
+        self.client.on_connect = self._connected
+        self.client.on_disconnect = self._disconnected
+        self.client.on_message = self._message
+        self.vda: mqtt.Client | None = None
+        if settings.vda5050:
+            self.vda = self._client(fleet.vda_client_id(fleet_id))
+            self.vda.on_pre_connect = self._vda_pre_connect
+            self.vda.on_connect = self._vda_connected
+            self.vda.on_message = self._message
+
+    # ------------------------------------------------------------ set-up
+
+    def _client(self, cid: str) -> mqtt.Client:
+        s = self.settings
+        v5 = s.protocol == "5"
+        client = mqtt.Client(
+            CallbackAPIVersion.VERSION2,
+            client_id=cid,
+            protocol=mqtt.MQTTv5 if v5 else mqtt.MQTTv311,
+            clean_session=None if v5 else True,
+        )
+        if s.username is not None:
+            client.username_pw_set(s.username, s.password())
+        if s.tls is not None:
+            client.tls_set(ca_certs=s.tls.ca, certfile=s.tls.cert, keyfile=s.tls.key)
+        client.reconnect_delay_set(*RECONNECT_S)
+        client.suppress_exceptions = True  # a raising callback would end paho's thread
+        return client
+
+    def start(self) -> None:
+        """Connect in the background: nothing here waits for the broker."""
+        properties = None
+        if self.settings.protocol == "5":
+            properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
+            properties.MaximumPacketSize = MAX_PACKET
+        for client in (self.client, self.vda):
+            if client is not None:
+                client.connect_async(
+                    self.settings.host,
+                    self.settings.port,
+                    self.settings.keepalive_s,
+                    properties=properties,
+                )
+                client.loop_start()
+        self._sender.start()
+
+    def status(self, state: str) -> dict[str, Any]:
+        return payloads.status(
+            self.seq(self.topics.status),
+            time.time(),
+            fleet_id=self.fleet_id,
+            robot=self.robot,
+            state=state,
+            host=self.host,
+            pid=self.pid,
+            version=self.version,
+            units=self.units,
+            attach=self.settings.attach,
+        )
+
+    def connection(self, state: str) -> dict[str, Any]:
+        return payloads.vda_connection(
+            self.seq(self.topics.connection),
+            time.time(),
+            manufacturer=self.settings.manufacturer,
+            fleet_id=self.fleet_id,
+            state=state,
+        )
+
+    # ------------------------------------------------------------ paho's thread
+
+    def _pre_connect(self, client: mqtt.Client, userdata: Any) -> None:
+        # the will carries the time and seq of this attempt: the broker sends it later
+        will = payloads.encode(self.status("connection_broken"))
+        client.will_set(self.topics.status, will, self.settings.qos["status"], retain=True)
+
+    def _vda_pre_connect(self, client: mqtt.Client, userdata: Any) -> None:
+        will = payloads.encode(self.connection("connection_broken"))
+        client.will_set(self.topics.connection, will, 1, retain=True)
+
+    def _connected(
+        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        if reason.is_failure:
+            log.warning(
+                "mqtt %s: %s refused the connection: %s", self.fleet_id, self.settings.url, reason
+            )
+            return
+        qos = self.settings.qos
+        # the birth first: the retained status says online before anything else
+        client.publish(
+            self.topics.status, payloads.encode(self.status("online")), qos["status"], retain=True
+        )
+        t = self.topics
+        topics = [t.command(kind) for kind in fleet.COMMANDS]
+        topics += [t.command(kind, everyone=True) for kind in fleet.COMMANDS[:2]]
+        client.subscribe([(topic, self._options()) for topic in topics])
+        if self._ever:
+            self.reconnects += 1
+            log.info("mqtt %s: connected again to %s", self.fleet_id, self.settings.url)
+        else:
+            log.info("mqtt %s: connected to %s", self.fleet_id, self.settings.url)
+        self._ever = True
+        self.connected.set()
+
+    def _vda_connected(
+        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        if reason.is_failure:
+            return  # said by the main connection, refused alike
+        online = payloads.encode(self.connection("online"))
+        client.publish(self.topics.connection, online, 1, retain=True)
+        client.subscribe([(self.topics.instant_actions, self._options())])
+
+    def _options(self) -> Any:
+        """A command subscription's QoS; under MQTT 5 with "retain as published", so that a
+        command published retained keeps its flag even live and is refused as well (3.1.1
+        flags only the broker's replays)."""
+        qos = self.settings.qos["commands"]
+        if self.settings.protocol != "5":
+            return qos
+        return SubscribeOptions(qos=qos, retainAsPublished=True)
+
+    def _disconnected(
+        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        was = self.connected.is_set()
+        self.connected.clear()
+        if was and not self._closing.is_set():
+            log.warning(
+                "mqtt %s: lost the broker %s (%s); reconnecting",
+                self.fleet_id,
+                self.settings.url,
+                reason,
+            )
+            self._on_lost(self)
+
+    def _message(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
+        self._take_token(id(client))
+        try:
+            self._on_message(self, message)
+        except Exception:  # a bug of ours must not end paho's thread (and its reconnects)
+            log.exception(
+                "mqtt %s: a message on %s could not be handled", self.fleet_id, message.topic
+            )
+
+    def _take_token(self, key: int) -> None:
+        """Wait (in paho's thread) until this connection may handle another message."""
+        now = time.monotonic()
+        tokens, then = self._tokens.get(key, (INCOMING_PER_S, now))
+        tokens = min(INCOMING_PER_S, tokens + (now - then) * INCOMING_PER_S)
+        if tokens < 1.0:
+            self._closing.wait((1.0 - tokens) / INCOMING_PER_S)
+            tokens, now = 1.0, time.monotonic()
+        self._tokens[key] = (tokens - 1.0, now)
+
+    # ------------------------------------------------------------ our sender thread
+
+    def put(
+        self, topic: str, payload: dict[str, Any], qos: int, *, retain: bool, lossy: bool
+    ) -> None:
+        """Queue a message for the broker; returns at once (any thread)."""
+        self.outbox.put(Message(topic, payloads.encode(payload), qos, retain), lossy=lossy)
+
+    def _send(self) -> None:
+        while not (self._closing.is_set() and not len(self.outbox)):
+            if not self.connected.wait(0.2):
+                self._inflight.clear()  # paho drops or resends these itself
+                if self._closing.is_set():
+                    return
+                continue
+            while self._inflight and self._inflight[0].is_published():
+                self._inflight.popleft()
+            if len(self._inflight) >= MAX_INFLIGHT:
+                self._closing.wait(0.02)  # the broker is slow: the outbox holds the rest
+                continue
+            message = self.outbox.take(0.2)
+            if message is None:
+                continue
+            info = self.client.publish(message.topic, message.payload, message.qos, message.retain)
+            if info.rc is MQTTErrorCode.MQTT_ERR_SUCCESS:
+                self._inflight.append(info)
+            else:
+                self.outbox.dropped += 1  # lost between our check and paho's: counted
+
+    def drained(self) -> bool:
+        """Everything queued was written (or there is no broker to write it to)."""
+        if not self.connected.is_set():
+            return True
+        return not len(self.outbox) and all(i.is_published() for i in list(self._inflight))
+
+    # ------------------------------------------------------------ the way out
+
+    def say_offline(self) -> None:
+        """The orderly death: ``offline`` after everything queued."""
+        self.put(
+            self.topics.status,
+            self.status("offline"),
+            self.settings.qos["status"],
+            retain=True,
+            lossy=False,
+        )
+
+    def close(self) -> None:
+        """Disconnect in order (no last will), once the sender is done or given up."""
+        self._closing.set()
+        self.outbox.close()
+        self._sender.join(0.5)
+        if self.vda is not None:
+            if self.vda.is_connected():
+                info = self.vda.publish(
+                    self.topics.connection,
+                    payloads.encode(self.connection("offline")),
+                    1,
+                    retain=True,
+                )
+                info.wait_for_publish(0.3)
+            self.vda.disconnect()
+            self.vda.loop_stop()
+        self.client.disconnect()
+        self.client.loop_stop()
