@@ -59,7 +59,19 @@ def test_frames_of_our_drives_and_to_other_nodes_are_no_evidence() -> None:
     assert evidence(ids.broadcast_id(1, 5, 0), DRIVES) is None
     assert evidence(ids.CanId(7, ids.PF_TP_CM, 2, 1).to_int(), DRIVES) is None  # drive → us
     assert evidence(ids.dp0_command_id(7, 2), DRIVES) is None  # a drive not ours
-    assert evidence(ids.dp0_command_id(1, 3), DRIVES) is None  # from our drive 3: not a host
+    dp1 = ids.dp0_command_id(1, 2) | 1 << 24  # data page 1: no ABH3 frame
+    assert evidence(dp1, DRIVES) is None
+
+
+def test_a_host_using_one_of_our_drives_addresses_is_still_another_host() -> None:
+    """Drives never address each other: a command to drive 1 from "3" is a host's (a
+    second supervisor set up with host_id 3, a script that picked a drive's address)."""
+    assert evidence(ids.dp0_command_id(1, 3), DRIVES) == (Evidence.COMMAND, 1, 3)
+    assert evidence(ids.CanId(7, ids.PF_TP_CM, 3, 1).to_int(), DRIVES) == (
+        Evidence.SESSION,
+        3,
+        1,
+    )
 
 
 def test_one_report_per_episode_and_a_new_one_after_quiet() -> None:

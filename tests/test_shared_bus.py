@@ -12,11 +12,12 @@ import can
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.config.interfaces import shared_bus
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.runtime import echo
 from abh3_supervisor.runtime.bus_runtime import open_bus
 from abh3_supervisor.runtime.echo import EchoFilter
-from abh3_supervisor.runtime.simulating import simulated_buses
+from abh3_supervisor.runtime.simulating import Trace, simulated_buses
 
 
 class Clock:
@@ -160,3 +161,19 @@ def test_abh3_simulate_on_a_virtual_bus_is_a_usage_error(tmp_path: Path) -> None
     )
     assert done.returncode == 2
     assert "does not leave a process" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_trace_on_a_full_disk_ends_the_trace_not_the_drives(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    trace = Trace(Path("/dev/full"), 0.0)
+    event = {"t": 1.0, "unit": "left", "event": "moving", "velocity": [1.0, 1.0]}
+    trace.write([event] * 10_000)  # more than a buffer's worth: the write fails …
+    trace.write([event])  # … once said, then nothing more is tried
+    trace.close()
+    assert sum("the trace ends here" in r.message for r in caplog.records) == 1
+
+
+def test_only_a_vcan_device_counts_as_a_virtual_socketcan_bus() -> None:
+    assert shared_bus("socketcan", "vcan0") and shared_bus("socketcan", "vcan12")
+    assert not shared_bus("socketcan", "vcanx") and not shared_bus("socketcan", "vcan-real")

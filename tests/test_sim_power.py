@@ -153,9 +153,15 @@ def test_the_supervisor_keeps_a_drive_that_lost_its_power_stopped_when_it_return
     drive.power_on(rig.timeline.now)
     rig.run(BOOT_S + 1.0)
     assert rig.sup.units["left"].online is True  # back, answering …
-    assert not moving(rig, "left")  # … and standing: its old setpoint was dropped
+    assert not moving(rig, "left")  # … and standing: its old setpoint was dropped …
+    servo = L21.servo.both | L21.start.both
+    assert not drive.control_word() & servo  # … and it was not switched on again
     assert moving(rig, "right")  # the other drive was never touched
-    assert rig.sup.apply_text("left", "VEL 200 0") == ""  # a new command moves it
+    assert rig.sup.apply_text("left", "VEL 200 0") == ""  # a velocity alone moves nothing
+    rig.run(0.5)
+    assert not moving(rig, "left")
+    for text in ("SERVO ON ON", "START ON ON", "VEL 200 0"):  # switched on anew: it moves
+        assert rig.sup.apply_text("left", text) == ""
     rig.run(0.5)
     assert moving(rig, "left")
 
@@ -171,3 +177,34 @@ def test_the_supervisor_keeps_a_drive_whose_cable_came_back_stopped(rig: Rig) ->
     rig.run(1.0)
     assert rig.sup.units["left"].online is True
     assert not moving(rig, "left")
+
+
+def test_a_data_page_1_frame_is_no_command_to_the_drive() -> None:
+    drive = SimDrive(1, now=0.0)
+    dp1 = ids.dp0_command_id(1, 2) | 1 << 24
+    drive.on_frame(dp1, frames.encode_dp0_command(1500, 0, MOVE), 0.0)
+    assert drive.poll(0.01) == [] and drive.last_command is None
+
+
+def test_a_drive_powered_on_is_not_commanded_until_a_host_speaks() -> None:
+    drive = SimDrive(1, now=0.0)
+    watch = Watch({"left": drive})
+    stream(drive, 0.0, 1.0)
+    list(watch.sample(1.0))
+    drive.power_off(1.0)
+    list(watch.sample(1.6))  # its own timeout, standing
+    drive.power_on(2.0)
+    events = [e for t in range(200, 400) for e in watch.sample(t / 100)]
+    assert "commanded" not in [e["event"] for e in events]  # nobody spoke to it
+
+
+def test_control_answers_say_the_form_and_cut_a_long_line() -> None:
+    drives = {"left": SimDrive(1, now=0.0)}
+    assert obey("power off left keep", drives, 0.0).text == (
+        "error: power off UNIT|all, not 'power off left keep'"
+    )
+    garbage = obey("x" * 200_000, drives, 0.0).text
+    assert len(garbage) < 120 and garbage.endswith("…'; try help")
+    assert obey("", drives, 0.0).text == ""  # no command, no answer
+    status = json.loads(obey("status", drives, 0.0).text.splitlines()[1])
+    assert status["host"] is None  # never commanded

@@ -553,3 +553,30 @@ def test_a_drive_without_its_command_zero_timeout_is_held_even_under_warn(
 
     asyncio.run(scenario())
     assert any("held at its idle word (SERVO, START, brake, torque refused)" in n for n in notices)
+
+
+@pytest.mark.wallclock
+def test_writing_0x4117_off_on_a_running_supervisor_holds_the_unit(wire: WireMonitor) -> None:
+    """A parameter write to a setting the start-up check compares is checked again at once,
+    under the write's lock: 0x4117 = 0 leaves the unit held before it can move."""
+    from abh3_supervisor.service.param_ops import ParamOps
+
+    config = parse_config(text(channel="v-write-off"), "v.yaml")
+
+    async def scenario() -> None:
+        async with Runtime(config) as rt:
+            sup = rt.supervisor
+            assert rt.verifying is not None
+            await asyncio.wait_for(asyncio.shield(rt.verifying), 5)
+            assert sup.units["left"].verify.holds() is None
+            await sup.command("left", "SERVO OFF OFF")  # its start-up switched it on
+            ops = ParamOps(sup, lambda unit: rt.pumps["b"].wake())
+            await ops.write("left", 0x4117, pack_float(0), force=True, source="test")
+            held = sup.units["left"].verify.holds()
+            assert held is not None and "command-zero timeout is off" in held
+            with wire.held(1, "0x4117 written off"):
+                assert sup.apply_text("left", "SERVO ON ON") == RESPONSE_INVALID
+                for _ in range(3):
+                    assert await sup.wait_exchange("left", sup.clock(), 1.0)
+
+    asyncio.run(scenario())

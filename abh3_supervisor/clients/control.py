@@ -307,7 +307,10 @@ def _hold(client: ControlClient, text: str, units: list[str]) -> int:
             try:
                 answer = client.call("alive")
             except RunError:
-                print("the supervisor went away: the motion stopped with it", file=sys.stderr)
+                print(
+                    "the supervisor went away: its drives stop on their own command-zero timeout",
+                    file=sys.stderr,
+                )
                 return 1
             holds, lost = answer.get("holds", units), answer.get("lost", {})
             gone = [u for u in units if u not in holds]

@@ -10,6 +10,7 @@ meant for the robot too.
 from __future__ import annotations
 
 import difflib
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -50,5 +51,5 @@ def shared_bus(interface: str, channel: str) -> bool:
     """A bus other processes can share and no real drive can be on: where `abh3 simulate`
     may put its drives (a multicast group, or a SocketCAN virtual ``vcan`` device)."""
     return interface in SHARED_BY_PROCESSES or (
-        interface == "socketcan" and channel.startswith("vcan")
+        interface == "socketcan" and re.fullmatch(r"vcan\d+", channel) is not None
     )

@@ -55,9 +55,11 @@ COMMANDING = frozenset({Evidence.COMMAND, Evidence.SESSION})
 def evidence(arbitration_id: int, drives: Container[int]) -> tuple[Evidence, int, int] | None:
     """``(kind, drive, source)`` if a frame we received is another host's to one of
     ``drives`` (``drive`` is :data:`ADDR_ALL` for a request to all); None otherwise. A
-    frame from one of ``drives`` is never a host's."""
+    frame addressed to one of our drives is a host's whatever its source: drives never
+    address each other, and no host of ours has a drive's address (the file's check), so
+    a source that is one of our drives' addresses is another host using it."""
     pf, ps, sa = arbitration_id >> 16 & 0xFF, arbitration_id >> 8 & 0xFF, arbitration_id & 0xFF
-    if sa in drives or arbitration_id >> 24 & 1:  # a drive's own, or data page 1
+    if arbitration_id >> 24 & 1:  # data page 1: no ABH3 frame (the drive ignores it too)
         return None
     if ps not in drives and not (pf == PF_REQUEST and ps == ADDR_ALL):
         return None

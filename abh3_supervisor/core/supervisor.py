@@ -268,11 +268,11 @@ class Supervisor:
         elif isinstance(event, HealthEvent):
             unit.online = event.online
             if not event.online and unit.cfg.role is Role.COMMAND:
-                # a lost drive stops itself (command-zero timeout); do not resume it moving
-                # on return with a stale setpoint: its command drops to zero, and only a
-                # command heard after this may move it again
-                self.arbiter.hold(unit.name)
-                self._zero(unit)
+                # a lost drive stops itself (command-zero timeout); on return it must not be
+                # moved by a stale setpoint, nor switched on by a stale SERVO (it may have
+                # lost its power: no automatic restart): zero, SERVO/START/brake forgotten,
+                # and only a command heard after this may switch it on and move it again
+                self.restrict(unit.name)
         elif isinstance(event, GapEvent):
             self._gap(unit, event)
         elif isinstance(event, ForeignEvent):

@@ -159,11 +159,13 @@ def _act(sup: Supervisor, name: str) -> None:
                 f"the drive's CAN settings are not verified: {v.reason}; held at its idle "
                 "word (verify: refuse) until `abh3 verify` finds them agreeing",
             )
-        else:
+        else:  # its command-zero timeout unread: the fail-safe on host death unconfirmed
             sup.notice(
                 name,
-                logging.INFO,
-                f"the drive's CAN settings are not verified: {v.reason}; the unit runs",
+                logging.WARNING,
+                f"the drive's CAN settings are not verified: {v.reason}; the unit runs, but "
+                "nothing confirms the drive would stop were this host to die (its 0x4117 "
+                "is unread): `verify: refuse` holds such a unit",
             )
     if v.startup_due and v.holds() is None:
         unit.verify = replace(v, startup_due=False)

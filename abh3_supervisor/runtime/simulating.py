@@ -24,7 +24,7 @@ from typing import IO, Any
 
 from abh3_supervisor.config.interfaces import shared_bus
 from abh3_supervisor.config.model import Config
-from abh3_supervisor.errors import Abh3Error, RunError
+from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.runtime import signals
 from abh3_supervisor.runtime.bus_runtime import open_bus
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
@@ -70,11 +70,12 @@ class Trace:
     def __init__(self, path: Path | None, offset: float) -> None:
         self.offset = offset  # wall clock − loop clock
         self._file: IO[str] | None = None
+        self.path = path
         if path is not None:
             try:
                 self._file = path.open("w", encoding="utf-8", buffering=1)
             except OSError as exc:
-                raise RunError(f"--trace {path}: cannot write: {exc.strerror}") from exc
+                raise Abh3Error(f"--trace {path}: cannot write: {exc.strerror}") from exc
 
     def write(self, events: Iterable[dict[str, Any]]) -> None:
         for event in events:
@@ -85,14 +86,28 @@ class Trace:
             if event["event"] != "state":
                 log.info("%s", _said(wall))
             if self._file is not None:
-                self._file.write(json.dumps(wall) + "\n")
+                try:
+                    self._file.write(json.dumps(wall) + "\n")
+                except OSError as exc:  # a full disk: the trace ends, the drives go on
+                    log.error("--trace %s: %s: the trace ends here", self.path, exc.strerror)
+                    self._close_quietly()
 
     def _wall(self, t: object) -> object:
         return round(t + self.offset, 6) if isinstance(t, float) else t
 
     def close(self) -> None:
         if self._file is not None:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError as exc:
+                log.error("--trace %s: %s", self.path, exc.strerror)
+            self._file = None
+
+    def _close_quietly(self) -> None:
+        file, self._file = self._file, None
+        if file is not None:
+            with contextlib.suppress(OSError):
+                file.close()
 
 
 def _said(event: dict[str, Any]) -> str:

@@ -15,6 +15,8 @@ import asyncio
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from abh3_supervisor.core.verify import CHECKS, State
+from abh3_supervisor.core.verifying import verify_units
 from abh3_supervisor.errors import Abh3Error, CommandError, RunError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.session import Result
@@ -25,6 +27,7 @@ if TYPE_CHECKING:
     from abh3_supervisor.core.supervisor import Supervisor
 
 CALL_DEADLINE = 10.0  # s: a transport session always ends within ~4 s; never hang past this
+CHECKED = frozenset(c.address for c in CHECKS)  # the settings the start-up check compares
 
 
 class ParamFailed(RunError):
@@ -111,6 +114,11 @@ class ParamOps:
                     unit, await self.call(unit, Request(Command.PARAM, address, word)), word=False
                 )
                 new = await self.read(unit, Command.PARAM, address)
+                if address in CHECKED and self.sup.unit(unit).verify.state is not State.OFF:
+                    # a setting the start-up check compares (0x4117 among them): checked
+                    # again now, still under the lock — a drive left without its
+                    # command-zero timeout is held before it can move (core/verify.py)
+                    await verify_units(self.sup, [unit])
         except CommandError as exc:
             raise ParamFailed(f"unit {unit}: {exc}: not writing") from None  # the lock refused
         name = table.label(address)

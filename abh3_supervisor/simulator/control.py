@@ -10,7 +10,8 @@
     status                    each drive's state, one JSON object per line
     help
 
-Each line is answered with one line (``ok …`` or ``error: …``), then the events it caused.
+Each command is answered with one line (``ok …`` or ``error: …``; ``status`` and ``help``
+then their lines); an empty line is no command and gets no answer.
 Sans-I/O: :func:`obey` is given the time and returns the answer.
 """
 
@@ -47,13 +48,20 @@ def obey(line: str, drives: Mapping[str, SimDrive], now: float) -> Answer:
         lines = [json.dumps({"unit": name, **state(d)}) for name, d in drives.items()]
         return Answer("ok status\n" + "\n".join(lines))
     if verb == "power" and len(args) >= 2 and args[0] in ("on", "off"):
-        keep = args[2:] == ["keep"]
+        keep = args[2:] == ["keep"] and args[0] == "on"
         if args[2:] and not keep:
-            return Answer(f"error: power {args[0]} UNIT [keep], not {line.strip()!r}")
+            form = "power on UNIT|all [keep]" if args[0] == "on" else "power off UNIT|all"
+            return Answer(f"error: {form}, not {_shown(line)}")
         return _each(drives, args[1], f"power_{args[0]}", now, keep=keep)
     if verb in ("unplug", "plug") and len(args) == 1:
         return _each(drives, args[0], f"{verb}ged", now)
-    return Answer(f"error: unknown command {line.strip()!r}; try help")
+    return Answer(f"error: unknown command {_shown(line)}; try help")
+
+
+def _shown(line: str) -> str:
+    """The line as said back: quoted, and cut short (a garbage line may be long)."""
+    text = line.strip()
+    return repr(text if len(text) <= 60 else text[:60] + "…")
 
 
 def _each(

@@ -180,7 +180,7 @@ class SimDrive:
     # ------------------------------------------------------------ bus side
 
     def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
-        if not self.hears(now):
+        if not self.hears(now) or arbitration_id >> 24 & 1:  # data page 1: no PGN of its
             return
         cid = CanId.from_int(arbitration_id)
         if cid.pf == PF_SINGLE and cid.ps == self.abh3_id and len(data) == 8:

@@ -43,7 +43,7 @@ def state(drive: SimDrive) -> dict[str, Any]:
         "powered": drive.powered,
         "plugged": drive.plugged,
         "command_zero_timeout_ms": drive.command_zero_ms,
-        "host": drive.host,
+        "host": drive.host if drive.last_command is not None else None,  # who commanded it
     }
 
 
@@ -72,7 +72,7 @@ class Watch:
                 "last_command": last,
                 "timeout_ms": drive.command_zero_ms,
             }
-        elif seen.timed_out and not timed_out and last != seen.last_command:
+        elif seen.timed_out and not timed_out and last is not None and last != seen.last_command:
             yield {**base, "event": "commanded", "host": drive.host}
         seen.timed_out, seen.last_command = timed_out, last
         moving = any(abs(v) >= STILL for v in drive.vel)
