@@ -8,10 +8,11 @@ import json
 
 import pytest
 
-from abh3_supervisor.clients.fleet import contract
+from abh3_supervisor.clients.fleet import reading
 from abh3_supervisor.clients.fleet.commands import Commander
 from abh3_supervisor.clients.fleet.model import EVENTS_KEPT, FleetModel
 from abh3_supervisor.clients.fleet.view import render
+from abh3_supervisor.fleet import payloads
 from tests.support.fleet_payloads import (
     PREFIX,
     T0,
@@ -21,6 +22,7 @@ from tests.support.fleet_payloads import (
     status_topic,
     unit_state,
 )
+from tests.support.mqtt_watch import VALIDATORS
 
 A, B = "plant-a", "plant-b"
 
@@ -62,6 +64,19 @@ def test_a_live_robot_is_online_with_every_field_as_published() -> None:
     text = shown(model, T0 + 1)
     assert "ONLINE" in text and "298.5" in text and "?" in text  # b never measured: "?"
     assert "stale" not in text
+
+
+def test_the_payloads_these_tests_feed_are_the_contracts() -> None:
+    """Built by the plugin's own builders (tests/support/fleet_payloads.py): each one
+    validates against its schema, so the view is tested on what the plugin publishes."""
+    for name, payload in (
+        ("status", status(A, attach="ssh://agv@host/run/abh3.sock")),
+        ("status", status(A, "connection_broken")),
+        ("unit_state", unit_state(A, "left")),
+        ("unit_state", unit_state(A, "left", foreign_host={"address": 5, "frames": 12})),
+        ("event", event(A, "fleet_command_refused", "r", data={"sender": None})),
+    ):
+        VALIDATORS[name].validate(json.loads(payload))
 
 
 def test_values_age_and_grey_after_stale_s_on_a_fake_clock() -> None:
@@ -210,7 +225,12 @@ def test_another_version_is_counted_apart() -> None:
 
 def test_commands_other_prefixes_and_unknown_topics_are_not_state() -> None:
     model = fleet()
-    model.feed(f"{PREFIX}/all/cmd/estop", contract.estop_command("x", 1, "r", T0), False, T0)
+    model.feed(
+        f"{PREFIX}/all/cmd/estop",
+        payloads.encode(payloads.estop_command(1, T0, sender="x", reason="r")),
+        False,
+        T0,
+    )
     model.feed(f"{PREFIX}/{A}/cmd/estop", b"{}", False, T0)
     model.feed("abh3/v2/plant-a/status", status(A), True, T0)
     model.feed(f"{PREFIX}/{A}/something/new", b"{}", False, T0)
@@ -370,7 +390,7 @@ def test_the_network_threads_queue_is_bounded_in_messages_and_bytes(
     huge = SimpleNamespace(topic=state_topic(A, "left"), payload=b"x" * 10_000_000, retain=False)
     client._on_message(None, None, huge)
     (held,) = client.drain()
-    assert len(held.payload) == contract.MAX_PAYLOAD + 1
+    assert len(held.payload) == reading.MAX_PAYLOAD + 1
     model = fleet()
     model.feed(*held)
     assert model.malformed == 1 and "larger than any payload" in model.problem
@@ -380,7 +400,7 @@ def test_the_network_threads_queue_is_bounded_in_messages_and_bytes(
         client._on_message(None, None, small)
     assert client.dropped == 2
     assert [json.loads(m.payload)["seq"] for m in client.drain()] == [3, 4, 5]
-    monkeypatch.setattr(broker, "QUEUED_BYTES", 3 * (contract.MAX_PAYLOAD + 1))
+    monkeypatch.setattr(broker, "QUEUED_BYTES", 3 * (reading.MAX_PAYLOAD + 1))
     for _ in range(5):
         client._on_message(None, None, huge)
     assert client.dropped == 4 and len(client.drain()) == 3

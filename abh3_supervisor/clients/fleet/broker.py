@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 from urllib.parse import urlsplit
 
-from abh3_supervisor.clients.fleet.contract import MAX_PAYLOAD
+from abh3_supervisor.clients.fleet.reading import MAX_PAYLOAD
 from abh3_supervisor.errors import Abh3Error, RunError
 
 if TYPE_CHECKING:

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from abh3_supervisor.clients.fleet import contract
 from abh3_supervisor.clients.fleet.model import FleetModel
+from abh3_supervisor.fleet import ALL, PREFIX, Topics, payloads
 
 REFUSED_KIND = "fleet_command_refused"
 OBEYED_KIND, OBEYED = "fleet_command", "obeyed"  # the robot's event: it obeyed this one
@@ -77,7 +77,7 @@ def _count(fleet_ids: list[str]) -> str:
 class Commander:
     """Builds commands with one ``sender`` and a rising ``seq``, and follows them."""
 
-    def __init__(self, sender: str, prefix: str = contract.PREFIX, *, v5: bool = True) -> None:
+    def __init__(self, sender: str, prefix: str = PREFIX, *, v5: bool = True) -> None:
         self.sender, self.prefix, self.v5 = sender, prefix, v5
         self.seq = 0
         self.sent: list[Sent] = []
@@ -93,8 +93,12 @@ class Commander:
             target=target,
             seq=self.seq,
             time=now,
-            topic=contract.command_topic(self.prefix, target, clear),
-            payload=contract.estop_command(self.sender, self.seq, reason, now),
+            topic=Topics(target or ALL, self.prefix).command(
+                "estop_clear" if clear else "estop", everyone=target is None
+            ),
+            payload=payloads.encode(
+                payloads.estop_command(self.seq, now, sender=self.sender, reason=reason)
+            ),
             robots=robots,
         )
         self.sent.append(sent)
