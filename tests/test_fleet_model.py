@@ -328,20 +328,44 @@ def test_what_is_said_of_a_command_is_what_was_seen() -> None:
     assert "no robot subscribes" in nobody.summary()
 
 
+def refused(sent_topic: str, reason: str, sender: str | None, **more: object) -> bytes:
+    """A refusal as the plugin says it: the topic, the reason, the MQTT 5 sender (null
+    under 3.1.1), no seq."""
+    data = {"topic": sent_topic, "reason": reason, "sender": sender, **more}
+    return event(A, "fleet_command_refused", f"refused on {sent_topic}: {reason}", data=data)
+
+
 def test_a_robots_refusal_event_is_said() -> None:
     model = fleet()
     online(model)
     commander = Commander("me", PREFIX)
     sent = commander.build(model, A, clear=True, reason="r", now=T0 + 1)
     commander.acknowledged(sent, 0, "Success")
-    other = event(A, "fleet_command_refused", "not yours", time=T0 + 1, data={"sender": "else"})
-    model.feed(f"{PREFIX}/{A}/events", other, False, T0 + 1.1)
-    commander.observe(model)
-    assert sent.robot_said == {}
-    ours = event(A, "fleet_command_refused", "estop_clear not allowed", data={"sender": "me"})
+    for not_ours in (
+        refused(sent.topic, "stale", "else"),  # another sender's
+        refused(f"{PREFIX}/all/cmd/estop_clear", "allow_estop_clear is false", "me"),
+        event(A, "fleet_command_refused", "3 more", data={"refused_unsaid": 3}),
+    ):
+        model.feed(f"{PREFIX}/{A}/events", not_ours, False, T0 + 1.1)
+        commander.observe(model)
+        assert sent.robot_said == {}
+    ours = refused(sent.topic, "allow_estop_clear is false", "me")
     model.feed(f"{PREFIX}/{A}/events", ours, False, T0 + 1.1)
     commander.observe(model)
-    assert f"{A} refused: estop_clear not allowed" in sent.summary()
+    assert sent.summary().endswith(f"{A} refused: allow_estop_clear is false")
+
+
+def test_under_3_1_1_a_refusal_on_the_commands_topic_is_taken_as_its() -> None:
+    model = fleet()
+    online(model)
+    commander = Commander("me", PREFIX, v5=False)
+    sent = commander.build(model, A, clear=False, reason="r", now=T0 + 1)
+    model.feed(f"{PREFIX}/{A}/events", refused(sent.topic, "stale: 3.1 s old", None), False, T0)
+    commander.observe(model)
+    assert sent.robot_said == {}  # received before it was sent: not its
+    model.feed(f"{PREFIX}/{A}/events", refused(sent.topic, "allow_estop is false", None), False, T0 + 1.1)  # fmt: skip
+    commander.observe(model)
+    assert sent.robot_said == {A: "allow_estop is false"}
 
 
 def test_the_robots_obeyed_event_then_its_state_and_a_partial_fleet_are_said() -> None:
@@ -362,7 +386,8 @@ def test_the_robots_obeyed_event_then_its_state_and_a_partial_fleet_are_said() -
     model.feed(topic_a, obeyed(1), False, T0 + 1.1)
     commander.observe(model)
     assert sent.summary() == "e-stop all (seq 1): taken by the broker; obeyed by 1 of 2"
-    refusal = event(B, "fleet_command_refused", "allow_estop is false", data={"sender": "me"})
+    reason = {"topic": sent.topic, "reason": "allow_estop is false", "sender": "me"}
+    refusal = event(B, "fleet_command_refused", "refused", data=reason)
     model.feed(topic_b, refusal, False, T0 + 1.1)
     commander.observe(model)
     assert sent.summary().endswith(f"obeyed by 1 of 2; {B} refused: allow_estop is false")

@@ -124,8 +124,9 @@ class Commander:
                 for event in robot.events:
                     if event.received < sent.time:
                         continue
-                    if event.kind == REFUSED_KIND and _ours(event.data, self.sender, sent.seq):
-                        sent.robot_said[fid] = event.text or "refused"
+                    if event.kind == REFUSED_KIND and _ours(event.data, self.sender, sent):
+                        reason = event.data.get("reason")
+                        sent.robot_said[fid] = reason if isinstance(reason, str) else event.text
                     elif event.kind == OBEYED_KIND and _obeyed(event.data, self.sender, sent):
                         sent.robot_said[fid] = OBEYED
                 units = [robot.units[n] for n in model.unit_names(robot) if n in robot.units]
@@ -143,11 +144,15 @@ class Commander:
         return self.sent[-1] if self.sent else None
 
 
-def _ours(data: dict[str, object], sender: str, seq: int) -> bool:
-    """A refusal event names the command when it can; one that does not is taken as ours."""
-    if "sender" in data and data["sender"] != sender:
+def _ours(data: dict[str, object], sender: str, sent: Sent) -> bool:
+    """The plugin's refusal names the topic and, under MQTT 5, the sender (our user
+    property); it has no ``seq``. Under 3.1.1 its ``sender`` is null: a refusal on this
+    command's topic after it was sent is taken as this one's. A count of refusals beyond
+    the robot's event rate (``refused_unsaid`` alone) names no command."""
+    if data.get("topic") != sent.topic:
         return False
-    return "seq" not in data or data["seq"] == seq
+    said = data.get("sender")
+    return said is None or said == sender
 
 
 def _obeyed(data: dict[str, object], sender: str, sent: Sent) -> bool:
