@@ -103,7 +103,7 @@ def read_password(env: str | None, file: Path | None) -> str | None:
 def default_client_id() -> str:
     """``abh3-fleet-{user}-{host}-{pid}``: the ``sender`` of its commands, one per run —
     a robot obeys a sender's ``seq`` only above the last it obeyed, and each run counts
-    from 1 (docs/fleet-view.md)."""
+    from 1 (docs/fleet.md, "The fleet view")."""
     raw = f"abh3-fleet-{getpass.getuser()}-{socket.gethostname()}-{os.getpid()}"
     return re.sub(r"[^A-Za-z0-9_.-]", "_", raw)
 

@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "(published by the supervisors' mqtt plugin): online/offline/connection broken, "
         "errors and alarms by name, speeds, owner, age (greyed when stale). Keys: e e-stop "
         "the selected robot, E e-stop all, c / C clear (asked), a attach its TUI over SSH. "
-        "docs/fleet-view.md",
+        "docs/fleet.md (The fleet view).",
     )
     p.add_argument(
         "--broker", required=True, metavar="URL", help="mqtt://host:1883 or mqtts://host:8883"
