@@ -429,3 +429,16 @@ def test_the_network_threads_queue_is_bounded_in_messages_and_bytes(
     for _ in range(5):
         client._on_message(None, None, huge)
     assert client.dropped == 4 and len(client.drain()) == 3
+
+
+def test_the_default_client_id_is_a_safe_one_per_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    import getpass
+    import os
+    import socket
+
+    from abh3_supervisor.clients.fleet import broker
+
+    monkeypatch.setattr(getpass, "getuser", lambda: "op erator")
+    monkeypatch.setattr(socket, "gethostname", lambda: "line3/#pc")
+    monkeypatch.setattr(os, "getpid", lambda: 4242)
+    assert broker.default_client_id() == "abh3-fleet-op_erator-line3__pc-4242"
