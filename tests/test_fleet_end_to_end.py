@@ -1,6 +1,7 @@
-"""``abh3 fleet``'s client code — its broker client, model and commands, no terminal — and
-a real ``abh3 run --headless`` supervisor with the ``mqtt`` plugin (two simulated drives
-on its own virtual bus), on the suite's Mosquitto (tests/support/mosquitto.py). The view
+"""``abh3 fleet``'s client code — its broker client and session (model, commands), no
+screen — and a real ``abh3 run --headless`` supervisor with the ``mqtt`` plugin (two
+simulated drives on its own virtual bus), on the suite's Mosquitto
+(tests/support/mosquitto.py). The view
 sees the robot online and its units' states as the plugin publishes them; its e-stop to
 all latches the supervisor's e-stop (said on the robot's state topics, and each drive's
 stop frame read back from the bus recording); a clear it may not give is refused and
@@ -18,9 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from abh3_supervisor.clients.fleet.broker import BrokerOptions, FleetClient
-from abh3_supervisor.clients.fleet.commands import Commander, Sent
+from abh3_supervisor.clients.fleet.broker import BrokerOptions, FleetClient, Received
+from abh3_supervisor.clients.fleet.commands import SENDING, Commander, Sent
 from abh3_supervisor.clients.fleet.model import FleetModel
+from abh3_supervisor.clients.fleet.session import Session
 from abh3_supervisor.clients.fleet.view import render
 from abh3_supervisor.fleet import PREFIX
 
@@ -44,9 +46,8 @@ def wait_for(condition: Callable[[], object], what: str, timeout: float = 10.0) 
 
 
 class View:
-    """What ``abh3 fleet`` runs under its terminal (FleetApp.tick and .send without the
-    screen): the client, the model, the commander; every payload received is checked
-    against its schema on the way in."""
+    """What ``abh3 fleet`` runs under its screen: its paho client and its ``Session`` (the
+    app's tick and send); every payload received is checked against its schema first."""
 
     def __init__(self, port: int) -> None:
         options = BrokerOptions(
@@ -58,33 +59,39 @@ class View:
             client_id="abh3-fleet-e2e",
         )
         self.client = FleetClient(options, PREFIX)
-        self.model = FleetModel(PREFIX)
-        self.commander = Commander(options.client_id, PREFIX)
-        self.pending: dict[int, Sent] = {}
+        self.session = Session(
+            FleetModel(PREFIX), Commander(options.client_id, PREFIX), self, "e2e"
+        )
+        self.model, self.commander = self.session.model, self.session.commander
         self.invalid: list[str] = []
+        self.connected = True  # (the Link's; the render below asks the client itself)
 
-    def tick(self) -> None:
-        for m in self.client.drain():
-            validator = schema_of(m.topic)
-            if validator is not None:
+    # the Link the session reads: the client's, with the schemas checked on the way
+    def drain(self) -> list[Received]:
+        arrived = self.client.drain()
+        for m in arrived:
+            if (validator := schema_of(m.topic)) is not None:
                 body = json.loads(m.payload)
                 self.invalid += [f"{m.topic}: {e.message}" for e in validator.iter_errors(body)]
-            self.model.feed(m.topic, m.payload, m.retained, m.time)
-        for mid, code, name in self.client.take_acks():
-            if (sent := self.pending.pop(mid, None)) is not None:
-                self.commander.acknowledged(sent, code, name)
-        self.commander.observe(self.model)
+        return arrived
+
+    def take_acks(self) -> list[tuple[int, int, str]]:
+        return self.client.take_acks()
+
+    def publish(self, topic: str, payload: bytes) -> tuple[int, str | None]:
+        return self.client.publish(topic, payload)
+
+    def describe(self, now: float) -> str:
+        return self.client.describe(now)
 
     def send(self, target: str | None, *, clear: bool) -> Sent:
-        sent = self.commander.build(self.model, target, clear=clear, reason="e2e", now=time.time())
-        mid, trouble = self.client.publish(sent.topic, sent.payload)
-        assert trouble is None, trouble
-        self.pending[mid] = sent
+        sent = self.session.send(target, clear=clear)
+        assert sent.broker == SENDING, sent.broker  # published, not queued for later
         return sent
 
     def until(self, condition: Callable[[], object], what: str, timeout: float = 10.0) -> None:
         def ticked() -> object:
-            self.tick()
+            self.session.tick()
             return condition()
 
         wait_for(ticked, what, timeout)
