@@ -38,7 +38,13 @@ from abh3_supervisor.core.twist_limits import fastest_twist
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.plugin_host.hookspecs import PROJECT, hookimpl
-from abh3_supervisor.plugin_host.view import BusCounters, SupervisorView, UnitView, word_of
+from abh3_supervisor.plugin_host.view import (
+    BusCounters,
+    ForeignHost,
+    SupervisorView,
+    UnitView,
+    word_of,
+)
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.frames import (
     Brd0,
@@ -53,7 +59,8 @@ from abh3_supervisor.protocol.frames import (
 )
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 
-API_VERSION = "1.1"  # 1.1: fleet; SupervisorView.clear_emergency_stop, .bus_counters
+# 1.1: fleet; SupervisorView.clear_emergency_stop, .bus_counters, .foreign_hosts
+API_VERSION = "1.1"
 """``MAJOR.MINOR`` of this module's promise; a plugin may check the major it was written for."""
 
 # the entry-point group a plugin registers under: [project.entry-points.abh3_supervisor]
@@ -84,6 +91,7 @@ __all__ = [
     "Feed",
     "Feedback",
     "FlagChange",
+    "ForeignHost",
     "Health",
     "InputFeed",
     "InputSource",

@@ -1,5 +1,5 @@
-"""``abh3 fleet`` against a real Mosquitto on 127.0.0.1 (a generated configuration, users
-and ACLs, a free port): a hand-made publisher (paho) plays two robots; the fleet's client
+"""``abh3 fleet`` against the suite's real Mosquitto on 127.0.0.1 (tests/support/mosquitto.py:
+a generated configuration, users, ACLs, a TLS CA): a hand-made publisher (paho) plays two robots; the fleet's client
 sees them, its e-stop-all reaches the robots' subscription, a user without the right is
 refused by the broker and told so, a robot whose connection dies shows its last will, and
 what a user gets wrong (URL, credentials, TLS, the broker gone) is said, exit 1 or 2.
@@ -9,13 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import fcntl
-import getpass
 import json
 import os
 import select
-import shutil
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -32,31 +29,17 @@ from abh3_supervisor.clients.fleet.app import FleetApp
 from abh3_supervisor.clients.fleet.broker import BrokerOptions, FleetClient
 from abh3_supervisor.clients.fleet.commands import Commander
 from abh3_supervisor.clients.fleet.model import FleetModel
+from tests.support import mosquitto
 from tests.support.fleet_payloads import PREFIX, state_topic, status, status_topic, unit_state
+from tests.support.mosquitto import FLEET, OBSERVER, Broker, free_port, password
 from tests.support.terminal import ended, spawn
 
 mqtt = pytest.importorskip("paho.mqtt.client", reason="paho-mqtt: pip install -e '.[mqtt]'")
-MOSQUITTO = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin")
-pytestmark = [
-    pytest.mark.wallclock,
-    pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto is not installed (apt mosquitto)"),
-]
+pytestmark = pytest.mark.wallclock
 ROBOTS = ("plant-a", "plant-b")
+MANY = tuple(f"agv-{n:02d}" for n in range(20))
 UNITS = ("left", "right")
-PASSWORDS = {"robot": "r0b0t-pw", "fleet": "fl33t-pw", "viewer": "v1ewer-pw"}
-ACL = f"""
-user robot
-topic write {PREFIX}/#
-topic read {PREFIX}/+/cmd/#
-
-user fleet
-topic read {PREFIX}/#
-topic write {PREFIX}/+/cmd/estop
-topic write {PREFIX}/+/cmd/estop_clear
-
-user viewer
-topic read {PREFIX}/#
-"""
+ROBOT_USER = "robot"  # the hand-made robots' user: it may speak for ROBOTS and MANY
 DEADLINE_S = 10.0
 
 
@@ -67,95 +50,11 @@ def wait_for(condition: Callable[[], object], what: str, timeout: float = DEADLI
         time.sleep(0.01)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@dataclass
-class Broker:
-    """Mosquitto on its configuration; ``stop`` and ``start`` again on the same ports."""
-
-    conf: Path
-    port: int
-    tls_port: int
-    cert_port: int  # TLS with a client certificate required
-    ca: Path
-    log: Path
-    proc: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> None:
-        with self.log.open("a") as out:
-            proc = subprocess.Popen([str(MOSQUITTO), "-c", str(self.conf)], stdout=out, stderr=out)
-        self.proc = proc
-
-        def up() -> bool:
-            ports = (self.port, self.tls_port, self.cert_port)
-            return proc.poll() is not None or all(_listening(p) for p in ports)
-
-        wait_for(up, "mosquitto listening")
-        assert proc.poll() is None, self.log.read_text()
-
-    def stop(self) -> None:
-        if self.proc is not None:
-            self.proc.terminate()
-            self.proc.wait(10)
-            self.proc = None
-
-
-def make_certificates(where: Path) -> None:
-    """A CA of the test's own and the broker's certificate for 127.0.0.1, signed by it."""
-
-    def openssl(*args: str) -> None:
-        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=where)
-
-    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=test CA",
-            "-keyout", "ca.key", "-out", "ca.crt")  # fmt: skip
-    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=127.0.0.1", "-keyout",
-            "server.key", "-out", "server.csr")  # fmt: skip
-    (where / "san.cnf").write_text("subjectAltName=IP:127.0.0.1\n")
-    openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.crt", "-CAkey", "ca.key",
-            "-CAcreateserial", "-days", "2", "-extfile", "san.cnf", "-out", "server.crt")  # fmt: skip
-    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=fleet", "-keyout",
-            "client.key", "-out", "client.csr")  # fmt: skip
-    openssl("x509", "-req", "-in", "client.csr", "-CA", "ca.crt", "-CAkey", "ca.key",
-            "-CAcreateserial", "-days", "2", "-out", "client.crt")  # fmt: skip
-
-
 @pytest.fixture
 def broker(tmp_path: Path) -> Iterator[Broker]:
-    passwd = tmp_path / "passwd"
-    passwd.touch()
-    for user, password in PASSWORDS.items():
-        subprocess.run(["mosquitto_passwd", "-b", str(passwd), user, password], check=True)
-    (tmp_path / "acl").write_text(ACL)
-    make_certificates(tmp_path)
-    port, tls_port, cert_port = free_port(), free_port(), free_port()
-    conf = tmp_path / "mosquitto.conf"
-    conf.write_text(
-        f"per_listener_settings false\nallow_anonymous false\npassword_file {passwd}\n"
-        f"acl_file {tmp_path / 'acl'}\npersistence false\n"
-        f"user {getpass.getuser()}\n"  # as root it would switch to `mosquitto`: keep ours
-        f"listener {port} 127.0.0.1\n"
-        f"listener {tls_port} 127.0.0.1\ncafile {tmp_path / 'ca.crt'}\n"
-        f"certfile {tmp_path / 'server.crt'}\nkeyfile {tmp_path / 'server.key'}\n"
-        f"listener {cert_port} 127.0.0.1\ncafile {tmp_path / 'ca.crt'}\n"
-        f"certfile {tmp_path / 'server.crt'}\nkeyfile {tmp_path / 'server.key'}\n"
-        "require_certificate true\n"
-    )
-    where = tmp_path / "ca.crt", tmp_path / "mosquitto.log"
-    broker = Broker(conf, port, tls_port, cert_port, *where)
-    try:
-        broker.start()
-        yield broker
-    finally:
-        broker.stop()
-
-
-def _listening(port: int) -> bool:
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) == 0
+    """The suite's Mosquitto (tests/support/mosquitto.py): its users, ACL and TLS CA."""
+    with mosquitto.running(tmp_path / "broker", {ROBOT_USER: [*ROBOTS, *MANY]}) as running:
+        yield running
 
 
 @dataclass
@@ -177,7 +76,7 @@ def robot(port: int, fid: str) -> Robot:
     from paho.mqtt.enums import CallbackAPIVersion
 
     client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"abh3-{fid}", protocol=mqtt.MQTTv5)
-    client.username_pw_set("robot", PASSWORDS["robot"])
+    client.username_pw_set(ROBOT_USER, password(ROBOT_USER))
     will = status(fid, "connection_broken", time=time.time())
     client.will_set(status_topic(fid), will, qos=1, retain=True)
     me = Robot(fid, client)
@@ -219,7 +118,7 @@ def fleet_client(port: int, user: str, protocol: str = "5") -> FleetClient:
         tls=False,
         protocol=protocol,
         username=user,
-        password=PASSWORDS[user],
+        password=password(user),
         client_id=f"abh3-fleet-{user}-test",
     )
     client = FleetClient(opts, PREFIX)
@@ -241,7 +140,7 @@ def seen_all(model: FleetModel, client: FleetClient, now: float) -> bool:
 def test_the_fleet_sees_both_robots_and_its_e_stop_all_reaches_them(
     broker: Broker, robots: dict[str, Robot]
 ) -> None:
-    client = fleet_client(broker.port, "fleet")
+    client = fleet_client(broker.port, FLEET)
     model = FleetModel(PREFIX)
     try:
         wait_for(lambda: seen_all(model, client, time.time()), "both robots and their units")
@@ -286,7 +185,7 @@ async def _until(pilot: Any, condition: Callable[[], object], what: str) -> None
 def test_a_user_without_the_right_is_refused_by_the_broker_and_told(
     broker: Broker, robots: dict[str, Robot], protocol: str
 ) -> None:
-    client = fleet_client(broker.port, "viewer", protocol)
+    client = fleet_client(broker.port, OBSERVER, protocol)
     model = FleetModel(PREFIX)
     commander = Commander(client.options.client_id, PREFIX, v5=protocol == "5")
     try:
@@ -314,7 +213,7 @@ def test_a_user_without_the_right_is_refused_by_the_broker_and_told(
 def test_a_robot_whose_connection_dies_shows_its_last_will(
     broker: Broker, robots: dict[str, Robot]
 ) -> None:
-    client = fleet_client(broker.port, "fleet")
+    client = fleet_client(broker.port, FLEET)
     model = FleetModel(PREFIX)
     try:
         wait_for(lambda: seen_all(model, client, time.time()), "both robots")
@@ -338,7 +237,7 @@ def test_a_robot_whose_connection_dies_shows_its_last_will(
 def test_a_broker_restart_is_said_and_the_view_comes_back_with_the_robots(
     broker: Broker, robots: dict[str, Robot]
 ) -> None:
-    client = fleet_client(broker.port, "fleet")
+    client = fleet_client(broker.port, FLEET)
     model = FleetModel(PREFIX)
     try:
         wait_for(lambda: seen_all(model, client, time.time()), "both robots")
@@ -364,10 +263,10 @@ def test_twenty_robots_of_two_units_are_all_shown_live_within_2_s(broker: Broker
     """The view's half of issue 33's scale check: 40 units through one broker. Their
     retained state arrives with the subscription (shown, greyed: not seen live); the
     next state each robot publishes (2 Hz in the plugin, once here) makes it live."""
-    fleet_ids = [f"agv-{n:02d}" for n in range(20)]
+    fleet_ids = list(MANY)
     many = [robot(broker.port, fid) for fid in fleet_ids]
     try:
-        client = fleet_client(broker.port, "fleet")
+        client = fleet_client(broker.port, FLEET)
         model = FleetModel(PREFIX)
 
         def shown() -> bool:
@@ -395,7 +294,7 @@ def test_twenty_robots_of_two_units_are_all_shown_live_within_2_s(broker: Broker
 def test_a_10_mb_message_is_counted_as_malformed_and_nothing_else_changes(
     broker: Broker, robots: dict[str, Robot]
 ) -> None:
-    client = fleet_client(broker.port, "fleet")
+    client = fleet_client(broker.port, FLEET)
     model = FleetModel(PREFIX)
     try:
         wait_for(lambda: seen_all(model, client, time.time()), "both robots")
@@ -428,12 +327,16 @@ def test_what_a_user_gets_wrong_is_said_without_a_traceback(broker: Broker, tmp_
         (["--broker", url, "--password-env", "NO_SUCH_VAR_X"], 2, "the environment has no"),
         (["--broker", url, "--username", "u", "--ca", "/nonexistent"], 2, "need an mqtts://"),
         (
-            ["--broker", url, "--username", "fleet", "--password-file", str(secret)],
+            ["--broker", url, "--username", FLEET, "--password-file", str(secret)],
             1,
             "refused the connection",
         ),
         (["--broker", f"mqtts://127.0.0.1:{broker.port}"], 1, "TLS failure"),  # plain port
-        (["--broker", f"mqtts://127.0.0.1:{broker.tls_port}"], 1, "certificate verify failed"),
+        (
+            ["--broker", f"mqtts://127.0.0.1:{broker.tls_server_port}"],
+            1,
+            "certificate verify failed",
+        ),
         (["--broker", f"mqtt://127.0.0.1:{free_port()}"], 1, "unreachable"),
     ]
     for args, code, said in cases:
@@ -441,21 +344,22 @@ def test_what_a_user_gets_wrong_is_said_without_a_traceback(broker: Broker, tmp_
         assert (out.returncode, out.stdout) == (code, ""), (args, out.stderr)
         assert said in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)
         assert "wrong-password" not in out.stderr
-    as_fleet = ["--username", "fleet", "--password-env", "FLEET_PW"]
+    as_fleet = ["--username", FLEET, "--password-env", "FLEET_PW"]
     env_case = abh3_fleet("--broker", url, *as_fleet, env={"FLEET_PW": "bad-pw-xyz"})
     assert env_case.returncode == 1 and "bad-pw-xyz" not in env_case.stderr
     # the right credentials connect; then it wants a terminal (here there is none)
-    right = {"FLEET_PW": PASSWORDS["fleet"]}
+    right = {"FLEET_PW": password(FLEET)}
     good = abh3_fleet("--broker", url, *as_fleet, env=right)
     assert good.returncode == 1 and "not a terminal" in good.stderr, good.stderr
-    assert PASSWORDS["fleet"] not in good.stderr
-    tls_url = f"mqtts://127.0.0.1:{broker.tls_port}"
-    tls = abh3_fleet("--broker", tls_url, "--ca", str(broker.ca), *as_fleet, env=right)
+    assert password(FLEET) not in good.stderr
+    ca = broker.certs("ca.crt")
+    tls_url = f"mqtts://127.0.0.1:{broker.tls_server_port}"
+    tls = abh3_fleet("--broker", tls_url, "--ca", ca, *as_fleet, env=right)
     assert tls.returncode == 1 and "not a terminal" in tls.stderr, tls.stderr  # TLS: through
-    mutual = ["--broker", f"mqtts://127.0.0.1:{broker.cert_port}", "--ca", str(broker.ca)]
+    mutual = ["--broker", broker.tls_url, "--ca", ca]
     no_cert = abh3_fleet(*mutual, *as_fleet, env=right)
     assert no_cert.returncode == 1 and "TLS failure" in no_cert.stderr, no_cert.stderr
-    pair = ["--cert", str(broker.ca.parent / "client.crt"), "--key", str(broker.ca.parent / "client.key")]  # fmt: skip
+    pair = ["--cert", broker.certs("client.crt"), "--key", broker.certs("client.key")]
     with_cert = abh3_fleet(*mutual, *pair, *as_fleet, env=right)
     assert with_cert.returncode == 1 and "not a terminal" in with_cert.stderr, with_cert.stderr
 
@@ -481,9 +385,9 @@ def test_abh3_fleet_on_a_terminal_shows_the_robots_e_stops_all_attaches_and_quit
         status_topic("plant-a"), status("plant-a", time=time.time(), attach=unreachable), 1, True
     )
     secret = tmp_path / "pw"
-    secret.write_text(PASSWORDS["fleet"] + "\n")
+    secret.write_text(password(FLEET) + "\n")
     url = f"mqtt://127.0.0.1:{broker.port}"
-    pid, fd = spawn(["fleet", "--broker", url, "--username", "fleet", "--password-file", str(secret)])  # fmt: skip
+    pid, fd = spawn(["fleet", "--broker", url, "--username", FLEET, "--password-file", str(secret)])  # fmt: skip
     fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 160, 0, 0))
     try:
         read_until(fd, lambda s: s.count(b"ONLINE") >= 2 and b"attach: a" in s, "both robots")
@@ -501,16 +405,16 @@ def test_abh3_fleet_on_a_terminal_shows_the_robots_e_stops_all_attaches_and_quit
         os.waitpid(pid, 0)
         raise
     assert end.code == 0, end.screen[-800:]
-    assert PASSWORDS["fleet"].encode() not in end.screen
+    assert password(FLEET).encode() not in end.screen
 
 
 def test_a_signal_ends_abh3_fleet_at_once_with_the_terminal_given_back(
     broker: Broker, robots: dict[str, Robot], tmp_path: Path
 ) -> None:
     secret = tmp_path / "pw"
-    secret.write_text(PASSWORDS["viewer"])
+    secret.write_text(password(OBSERVER))
     url = f"mqtt://127.0.0.1:{broker.port}"
-    pid, fd = spawn(["fleet", "--broker", url, "--username", "viewer", "--password-file", str(secret)])  # fmt: skip
+    pid, fd = spawn(["fleet", "--broker", url, "--username", OBSERVER, "--password-file", str(secret)])  # fmt: skip
     try:
         read_until(fd, lambda s: s.count(b"ONLINE") >= 2, "both robots")
         os.kill(pid, signal.SIGTERM)

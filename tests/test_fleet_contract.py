@@ -20,7 +20,7 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.fleet import payloads, schemas
 from abh3_supervisor.fleet.ids import client_id, fleet_id
 from abh3_supervisor.fleet.payloads import Refused, SeqGuard, UnitReport
-from abh3_supervisor.fleet.topics import Topics, command_kind, robot_of
+from abh3_supervisor.fleet.topics import Topics, Where, command_kind, robot_of, where
 from abh3_supervisor.plugin_host.host import PluginHost
 from tests.support.mqtt_watch import VALIDATORS, VDA_VALIDATORS
 from tests.support.rig import TWO_UNITS
@@ -54,6 +54,20 @@ def test_fleet_ids_client_ids_and_topics() -> None:
     assert robot_of(t.state("front")) == (fid, "units/front/state")
     with pytest.raises(ValueError, match="no command"):
         t.command("reboot")
+
+
+def test_a_reader_sorts_every_topic_back() -> None:
+    t = Topics("plant-a")
+    assert where(t.status) == Where("plant-a", "status")
+    assert where(t.state("left")) == Where("plant-a", "state", "left")
+    assert (where(t.events), where(t.health)) == (Where("plant-a", "events"), Where("plant-a", "health"))  # fmt: skip
+    assert where(t.command("estop", everyone=True)) == Where("all", "command")
+    assert where(t.command("twist")) == Where("plant-a", "command")
+    for other in ("abh3/v1/plant-a/cmd/reboot", "abh3/v1/plant-a/units//state", "abh3/v1//status"):
+        place = where(other)
+        assert place is not None and place.kind == "unknown", other
+    assert where(t.connection) is None and where("abh3/v2/plant-a/status") is None
+    assert where("site/abh3/v1/x/status", "site/abh3/v1") == Where("x", "status")
 
 
 def test_every_payload_we_build_validates() -> None:

@@ -8,10 +8,11 @@ import json
 
 import pytest
 
-from abh3_supervisor.clients.fleet import contract
+from abh3_supervisor.clients.fleet import reading
 from abh3_supervisor.clients.fleet.commands import Commander
 from abh3_supervisor.clients.fleet.model import EVENTS_KEPT, FleetModel
 from abh3_supervisor.clients.fleet.view import render
+from abh3_supervisor.fleet import payloads
 from tests.support.fleet_payloads import (
     PREFIX,
     T0,
@@ -21,6 +22,7 @@ from tests.support.fleet_payloads import (
     status_topic,
     unit_state,
 )
+from tests.support.mqtt_watch import VALIDATORS
 
 A, B = "plant-a", "plant-b"
 
@@ -62,6 +64,19 @@ def test_a_live_robot_is_online_with_every_field_as_published() -> None:
     text = shown(model, T0 + 1)
     assert "ONLINE" in text and "298.5" in text and "?" in text  # b never measured: "?"
     assert "stale" not in text
+
+
+def test_the_payloads_these_tests_feed_are_the_contracts() -> None:
+    """Built by the plugin's own builders (tests/support/fleet_payloads.py): each one
+    validates against its schema, so the view is tested on what the plugin publishes."""
+    for name, payload in (
+        ("status", status(A, attach="ssh://agv@host/run/abh3.sock")),
+        ("status", status(A, "connection_broken")),
+        ("unit_state", unit_state(A, "left")),
+        ("unit_state", unit_state(A, "left", foreign_host={"address": 5, "frames": 12})),
+        ("event", event(A, "fleet_command_refused", "r", data={"sender": None})),
+    ):
+        VALIDATORS[name].validate(json.loads(payload))
 
 
 def test_values_age_and_grey_after_stale_s_on_a_fake_clock() -> None:
@@ -210,7 +225,12 @@ def test_another_version_is_counted_apart() -> None:
 
 def test_commands_other_prefixes_and_unknown_topics_are_not_state() -> None:
     model = fleet()
-    model.feed(f"{PREFIX}/all/cmd/estop", contract.estop_command("x", 1, "r", T0), False, T0)
+    model.feed(
+        f"{PREFIX}/all/cmd/estop",
+        payloads.encode(payloads.estop_command(1, T0, sender="x", reason="r")),
+        False,
+        T0,
+    )
     model.feed(f"{PREFIX}/{A}/cmd/estop", b"{}", False, T0)
     model.feed("abh3/v2/plant-a/status", status(A), True, T0)
     model.feed(f"{PREFIX}/{A}/something/new", b"{}", False, T0)
@@ -308,20 +328,44 @@ def test_what_is_said_of_a_command_is_what_was_seen() -> None:
     assert "no robot subscribes" in nobody.summary()
 
 
+def refused(sent_topic: str, reason: str, sender: str | None, **more: object) -> bytes:
+    """A refusal as the plugin says it: the topic, the reason, the MQTT 5 sender (null
+    under 3.1.1), no seq."""
+    data = {"topic": sent_topic, "reason": reason, "sender": sender, **more}
+    return event(A, "fleet_command_refused", f"refused on {sent_topic}: {reason}", data=data)
+
+
 def test_a_robots_refusal_event_is_said() -> None:
     model = fleet()
     online(model)
     commander = Commander("me", PREFIX)
     sent = commander.build(model, A, clear=True, reason="r", now=T0 + 1)
     commander.acknowledged(sent, 0, "Success")
-    other = event(A, "fleet_command_refused", "not yours", time=T0 + 1, data={"sender": "else"})
-    model.feed(f"{PREFIX}/{A}/events", other, False, T0 + 1.1)
-    commander.observe(model)
-    assert sent.robot_said == {}
-    ours = event(A, "fleet_command_refused", "estop_clear not allowed", data={"sender": "me"})
+    for not_ours in (
+        refused(sent.topic, "stale", "else"),  # another sender's
+        refused(f"{PREFIX}/all/cmd/estop_clear", "allow_estop_clear is false", "me"),
+        event(A, "fleet_command_refused", "3 more", data={"refused_unsaid": 3}),
+    ):
+        model.feed(f"{PREFIX}/{A}/events", not_ours, False, T0 + 1.1)
+        commander.observe(model)
+        assert sent.robot_said == {}
+    ours = refused(sent.topic, "allow_estop_clear is false", "me")
     model.feed(f"{PREFIX}/{A}/events", ours, False, T0 + 1.1)
     commander.observe(model)
-    assert f"{A} refused: estop_clear not allowed" in sent.summary()
+    assert sent.summary().endswith(f"{A} refused: allow_estop_clear is false")
+
+
+def test_under_3_1_1_a_refusal_on_the_commands_topic_is_taken_as_its() -> None:
+    model = fleet()
+    online(model)
+    commander = Commander("me", PREFIX, v5=False)
+    sent = commander.build(model, A, clear=False, reason="r", now=T0 + 1)
+    model.feed(f"{PREFIX}/{A}/events", refused(sent.topic, "stale: 3.1 s old", None), False, T0)
+    commander.observe(model)
+    assert sent.robot_said == {}  # received before it was sent: not its
+    model.feed(f"{PREFIX}/{A}/events", refused(sent.topic, "allow_estop is false", None), False, T0 + 1.1)  # fmt: skip
+    commander.observe(model)
+    assert sent.robot_said == {A: "allow_estop is false"}
 
 
 def test_the_robots_obeyed_event_then_its_state_and_a_partial_fleet_are_said() -> None:
@@ -342,7 +386,8 @@ def test_the_robots_obeyed_event_then_its_state_and_a_partial_fleet_are_said() -
     model.feed(topic_a, obeyed(1), False, T0 + 1.1)
     commander.observe(model)
     assert sent.summary() == "e-stop all (seq 1): taken by the broker; obeyed by 1 of 2"
-    refusal = event(B, "fleet_command_refused", "allow_estop is false", data={"sender": "me"})
+    reason = {"topic": sent.topic, "reason": "allow_estop is false", "sender": "me"}
+    refusal = event(B, "fleet_command_refused", "refused", data=reason)
     model.feed(topic_b, refusal, False, T0 + 1.1)
     commander.observe(model)
     assert sent.summary().endswith(f"obeyed by 1 of 2; {B} refused: allow_estop is false")
@@ -370,7 +415,7 @@ def test_the_network_threads_queue_is_bounded_in_messages_and_bytes(
     huge = SimpleNamespace(topic=state_topic(A, "left"), payload=b"x" * 10_000_000, retain=False)
     client._on_message(None, None, huge)
     (held,) = client.drain()
-    assert len(held.payload) == contract.MAX_PAYLOAD + 1
+    assert len(held.payload) == reading.MAX_PAYLOAD + 1
     model = fleet()
     model.feed(*held)
     assert model.malformed == 1 and "larger than any payload" in model.problem
@@ -380,7 +425,20 @@ def test_the_network_threads_queue_is_bounded_in_messages_and_bytes(
         client._on_message(None, None, small)
     assert client.dropped == 2
     assert [json.loads(m.payload)["seq"] for m in client.drain()] == [3, 4, 5]
-    monkeypatch.setattr(broker, "QUEUED_BYTES", 3 * (contract.MAX_PAYLOAD + 1))
+    monkeypatch.setattr(broker, "QUEUED_BYTES", 3 * (reading.MAX_PAYLOAD + 1))
     for _ in range(5):
         client._on_message(None, None, huge)
     assert client.dropped == 4 and len(client.drain()) == 3
+
+
+def test_the_default_client_id_is_a_safe_one_per_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    import getpass
+    import os
+    import socket
+
+    from abh3_supervisor.clients.fleet import broker
+
+    monkeypatch.setattr(getpass, "getuser", lambda: "op erator")
+    monkeypatch.setattr(socket, "gethostname", lambda: "line3/#pc")
+    monkeypatch.setattr(os, "getpid", lambda: 4242)
+    assert broker.default_client_id() == "abh3-fleet-op_erator-line3__pc-4242"

@@ -6,6 +6,7 @@ and said once, and the drives' exchanges go on."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import threading
 import time
@@ -19,6 +20,7 @@ from abh3_supervisor.fleet import payloads
 from abh3_supervisor.fleet.topics import Topics
 from abh3_supervisor.plugin_api import FlagChange, OwnerChange
 from abh3_supervisor.plugin_testing import running
+from tests.support.foreign_host import BusHost
 from tests.support.mosquitto import FLEET, free_port, password
 from tests.support.mosquitto import running as broker_running
 from tests.support.mqtt_watch import Received, Watcher, topic_is
@@ -156,3 +158,56 @@ def test_an_e_stop_to_all_is_obeyed_by_every_robot_of_a_supervisor(tmp_path: Pat
     assert not [m for m in fleet.messages if "refused" in str(m.body)]
     latched = [m.topic for m in fleet.messages if kind_of(m.topic, "estop_latched")(m)]
     assert sorted(latched) == [f"abh3/v1/{f}/events" for f in fids]  # the gate latched once
+
+
+def test_another_host_on_a_drive_is_in_its_units_state_at_once(tmp_path: Path) -> None:
+    """A hand-made second host commands left's drive on the simulator's virtual bus: the
+    unit's state names it (address, frames) at once — not at the state rate, here one
+    per 5 s — with a ``foreign_host`` event, and goes back to null once it is quiet."""
+    fids = ["second-left", "second-right"]
+    with broker_running(tmp_path / "broker", {"second": fids}) as broker:
+        secret = tmp_path / "pw"
+        secret.write_text(password("second"))
+        settings = {
+            "broker": broker.url,
+            "name": "second",
+            "username": "second",
+            "password_file": str(secret),
+            "state_rate_hz": 0.2,
+        }
+        fleet = Watcher(broker, FLEET, client_id="t-second")
+        assert fleet.connected()
+        fleet.subscribe("abh3/v1/+/units/+/state")
+        fleet.subscribe("abh3/v1/second-left/events")
+        left = Topics("second-left").state("left")
+        plugin = MqttPlugin()
+        with running(TWO_UNITS, plugin, "mqtt", seconds=10, settings=settings) as run:
+            fleet.wait_for(lambda m: m.topic == left and m.body["online"] is True, 8)
+            assert plugin.view is not None
+            host = BusHost(plugin.view.config.buses["b"].channel, drive=1)
+            loop = asyncio.new_event_loop()
+            sending = threading.Thread(target=loop.run_until_complete, args=(host.run(),))
+            mark, started = fleet.mark(), time.monotonic()
+            sending.start()
+            try:
+                named = fleet.wait_for(
+                    lambda m: m.topic == left and m.body["foreign_host"] is not None, 3, mark
+                )
+            finally:
+                loop.call_soon_threadsafe(host.leave)
+                sending.join(5)
+                loop.close()
+            assert named.body["foreign_host"]["address"] == 2  # the seed's host: a copy of us
+            assert named.body["foreign_host"]["frames"] >= 1
+            assert named.at - started < 1.0  # at once: the state's rate is one per 5 s
+            heard = fleet.wait_for(kind_of(Topics("second-left").events, "foreign_host"), 3, mark)
+            assert heard.body["data"]["address"] == 2
+            quiet = fleet.wait_for(
+                lambda m: m.topic == left and m.body["foreign_host"] is None, 8, fleet.mark()
+            )
+            assert quiet.body["estop"] is False  # a second host stops the robot, not the gate
+        fleet.close()
+    assert run.exit_code == 0, run.log
+    right = [m for m in fleet.messages if m.topic == Topics("second-right").state("right")]
+    assert right and all(m.body["foreign_host"] is None for m in right)
+    assert not fleet.invalid

@@ -23,7 +23,7 @@ import pytest
 from abh3_supervisor.fleet import payloads
 from abh3_supervisor.fleet.topics import Topics
 from tests.support.mosquitto import FLEET, running
-from tests.support.mqtt_watch import Received, Watcher, config, supervisor
+from tests.support.mqtt_watch import Received, Watcher, config, stop_frames, supervisor
 
 pytestmark = [
     pytest.mark.wallclock,
@@ -32,8 +32,6 @@ pytestmark = [
     ),
 ]
 N = int(os.environ.get("ABH3_FLEET_SCALE_N", "20"))
-HOST = 2  # the units' host_id: a DP0 command is 0x00EF<drive><host>
-START_BITS = (1 << 1) | (1 << 9)  # AY_START, BX_START of the 2023 input word
 
 
 def names() -> list[str]:
@@ -48,24 +46,6 @@ def fresh(broker: object, tag: str) -> Watcher:
 
 def states_seen(w: Watcher) -> set[str]:
     return {m.topic for m in w.messages if m.topic.endswith("/state")}
-
-
-def stop_frames(recording: Path, since: float) -> dict[int, float]:
-    """Each drive's first DP0 command after ``since`` with START off on both axes."""
-    first: dict[int, float] = {}
-    for line in recording.read_text().splitlines():  # candump: (t) channel ID#DATA T|R
-        stamp, _, frame, *_ = line.split()
-        t = float(stamp.strip("()"))
-        ident, data = frame.split("#")
-        arbitration_id, payload = int(ident, 16), bytes.fromhex(data)
-        ours = arbitration_id & 0xFF == HOST  # sent by the supervisor, not a drive's reply
-        if t < since or arbitration_id >> 16 & 0xFF != 0xEF or not ours or len(payload) != 8:
-            continue
-        drive = arbitration_id >> 8 & 0xFF
-        inputs = int.from_bytes(payload[4:8], "little")
-        if drive not in first and not inputs & START_BITS:
-            first[drive] = t
-    return first
 
 
 def test_twenty_supervisors_forty_units_one_broker(tmp_path: Path) -> None:

@@ -39,6 +39,7 @@ from abh3_supervisor.plugin_api import (
 from abh3_supervisor.plugin_host import hookspecs, tick
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.headless import run_headless
+from tests.support.foreign_host import TimelineHost
 from tests.support.rig import TWO_UNITS, Rig, present
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -155,6 +156,30 @@ def test_the_views_e_stop_and_its_clearing_are_the_operators_audited() -> None:
         (True, "plugin fleet: scada says stop"),
         (False, "plugin fleet: scada says go"),
     ]
+
+
+def test_the_view_says_which_other_hosts_are_heard_on_a_units_drive() -> None:
+    """API 1.1: another host commanding drive 1 (left's), on the fake clock: its record,
+    ``lately`` while heard and for foreign.QUIET_S after; right's drive has none."""
+    rig = Rig(parse_config(TWO_UNITS, "f.yaml"))
+    rig.timeline.add(TimelineHost(1, start=1.0, end=2.0))
+    loop = asyncio.new_event_loop()
+    try:
+        view = SupervisorView(rig.sup, loop, "fleet")
+        rig.run(0.9)
+        assert view.foreign_hosts("left") == []
+        rig.run(0.2)  # its first frames at 1.0, 1.02, …
+        (host,) = view.foreign_hosts("left")
+        assert (host.source, host.drive, host.commanding, host.lately) == (2, 1, True, True)
+        assert host.frames >= 5 and "another host (0x02) commands drive 0x01" in host.text
+        assert view.foreign_hosts("right") == []
+        rig.run(2.5)  # it left at 2.0, the replies to it with it: quiet over QUIET_S by 3.6
+        (gone,) = view.foreign_hosts("left")
+        assert not gone.lately and gone.frames > host.frames
+        with pytest.raises(CommandError, match="no unit named 'x'"):
+            view.foreign_hosts("x")
+    finally:
+        loop.close()
 
 
 def test_the_estop_and_owner_changes_are_events() -> None:

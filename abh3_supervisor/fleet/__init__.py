@@ -13,8 +13,10 @@ from abh3_supervisor.fleet.topics import (
     MANUFACTURER,
     PREFIX,
     Topics,
+    Where,
     command_kind,
     robot_of,
+    where,
 )
 
 __all__ = [
@@ -28,6 +30,7 @@ __all__ = [
     "Sequence",
     "Topics",
     "UnitReport",
+    "Where",
     "client_id",
     "command_kind",
     "default_name",
@@ -39,4 +42,5 @@ __all__ = [
     "schemas",
     "topics",
     "vda_client_id",
+    "where",
 ]

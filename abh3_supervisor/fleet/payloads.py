@@ -99,7 +99,8 @@ class UnitReport:
     age_s: float | None = None
 
     def safety(self) -> tuple[Any, ...]:
-        """What a change of publishes the state at once (docs/fleet.md)."""
+        """What a change of publishes the state at once (docs/fleet.md): another host's
+        address, not its count of frames (that goes out at the state's rate)."""
         return (
             self.online,
             self.servo,
@@ -109,7 +110,7 @@ class UnitReport:
             self.owner,
             self.estop,
             self.verify,
-            self.foreign_host,
+            None if self.foreign_host is None else self.foreign_host[0],
         )
 
 

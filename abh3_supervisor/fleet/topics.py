@@ -79,3 +79,32 @@ def robot_of(topic: str, prefix: str = PREFIX) -> tuple[str, str] | None:
         return None
     fid, _, rest = topic[len(head) :].partition("/")
     return fid, rest
+
+
+@dataclass(frozen=True)
+class Where:
+    """What a topic under the prefix is, as a reader sorts it: ``kind`` one of status,
+    state (of ``unit``), events, health, command (to a robot or ``all``), unknown."""
+
+    fleet_id: str
+    kind: str
+    unit: str | None = None
+
+
+def where(topic: str, prefix: str = PREFIX) -> Where | None:
+    """The inverse of :class:`Topics` for a reader (``abh3 fleet``); None: not under
+    ``prefix``."""
+    found = robot_of(topic, prefix)
+    if found is None:
+        return None
+    fid, rest = found
+    if not fid:
+        return Where(fid, "unknown")
+    if command_kind(topic, prefix) is not None:
+        return Where(fid, "command")
+    if rest in ("status", "events", "health"):
+        return Where(fid, rest)
+    parts = rest.split("/")
+    if len(parts) == 3 and parts[0] == "units" and parts[2] == "state" and parts[1]:
+        return Where(fid, "state", parts[1])
+    return Where(fid, "unknown")

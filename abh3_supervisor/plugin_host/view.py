@@ -3,10 +3,10 @@
 The Supervisor is only to be touched on the event loop, and whatever sets a setpoint
 there bypasses the arbitration's owner. A plugin gets a :class:`SupervisorView` instead
 (its hooks' ``supervisor`` argument): the configuration, each unit's state through
-read-only accessors, and the few actions that are safe from any thread — ask for a status
-packet, latch the e-stop (audited as an operator's is) and, for a plugin its user allowed
-to, clear it; say something to the operator, end the run. Motion is only ever an input
-source's (``abh3_input_sources``).
+read-only accessors (other hosts heard on its drive too), and the few actions that are
+safe from any thread — ask for a status packet, latch the e-stop (audited as an
+operator's is) and, for a plugin its user allowed to, clear it; say something to the
+operator, end the run. Motion is only ever an input source's (``abh3_input_sources``).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from types import MappingProxyType
 
 from abh3_supervisor.config.model import Config, UnitConfig
 from abh3_supervisor.core.diagnostics import Health
+from abh3_supervisor.core.foreign import QUIET_S
 from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
@@ -40,6 +41,19 @@ class BusCounters:
     frames_received: int
     send_errors: int
     state: str
+
+
+@dataclass(frozen=True, slots=True)
+class ForeignHost:
+    """Another host heard on a unit's drive (API 1.1; core/foreign.py, docs/safety.md "A
+    second host on the bus"), copied when read: safe from any thread."""
+
+    source: int  # its source address (ours too: a second copy of us uses it)
+    drive: int
+    commanding: bool  # it commanded the drive or opened a session on it: the robot stopped
+    frames: int  # the frames of it heard in its present episode (every kind)
+    lately: bool  # heard within QUIET_S (1 s) of now: still there, as /diagnostics says
+    text: str  # who and what, as the notice said it: ``another host (0x02) commands …``
 
 
 class UnitView:
@@ -205,6 +219,27 @@ class SupervisorView:
                 state=str(self._sup.bus_health[bus].state),
             )
         return MappingProxyType(out)
+
+    def foreign_hosts(self, unit: str) -> list[ForeignHost]:
+        """Every other host heard on ``unit``'s drive, commanding first (API 1.1); empty
+        for none (and for a monitor unit, whose drive is not ours to defend)."""
+        cfg = self._unit(unit).cfg
+        watch = self._sup.schedulers[cfg.bus].foreign
+        now = self._sup.clock()
+        # the loop adds to these as frames come: iterate copies (a C-level copy is whole)
+        records = sorted(
+            (r for r in list(watch.hosts.values()) if r.unit == unit),
+            key=lambda r: (not r.commanding, r.source),
+        )
+        out = []
+        for r in records:
+            heard = list(r.heard.values())
+            text = f"{r.who()} (unit {r.unit}): " + "; ".join(h.text() for h in heard)
+            frames = sum(h.count for h in heard)
+            out.append(
+                ForeignHost(r.source, r.drive, r.commanding, frames, now - r.last <= QUIET_S, text)
+            )
+        return out
 
     # ------------------------------------------------------------ actions (any thread)
 

@@ -1,21 +1,31 @@
-"""Hand-made payloads of the fleet contract (docs/fleet.md), as the mqtt plugin publishes
-them: for the model's, the view's and the end-to-end tests of ``abh3 fleet``."""
+"""Payloads of the fleet contract (docs/fleet.md) for the model's, the view's and the
+end-to-end tests of ``abh3 fleet``: built by the very builders the mqtt plugin uses
+(``abh3_supervisor.fleet.payloads``), then any field overridden — a test may break one
+on purpose."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from typing import Any
 
-PREFIX = "abh3/v1"
+from abh3_supervisor.fleet import PREFIX, Topics, payloads
+
+__all__ = ["PREFIX", "T0", "event", "state_topic", "status", "status_topic", "unit_state"]
+
 T0 = 1_800_000_000.0  # a wall-clock time for the fake clocks
 
 
 def status_topic(fid: str) -> str:
-    return f"{PREFIX}/{fid}/status"
+    return Topics(fid).status
 
 
 def state_topic(fid: str, unit: str) -> str:
-    return f"{PREFIX}/{fid}/units/{unit}/state"
+    return Topics(fid).state(unit)
+
+
+def _robot(fid: str) -> str:
+    return fid.split("-")[-1]
 
 
 def status(
@@ -28,43 +38,37 @@ def status(
     attach: str | None = None,
     **extra: Any,
 ) -> bytes:
-    body: dict[str, Any] = {
-        "v": 1,
-        "time": time,
-        "seq": seq,
-        "fleet_id": fid,
-        "robot": fid.split("-")[-1],
-        "state": state,
-        "host": "agv-host",
-        "pid": 4242,
-        "version": "0.9.0",
-        "units": list(units),
-        "attach": attach,
-    }
-    return json.dumps(body | extra).encode()
+    body = payloads.status(
+        seq,
+        time,
+        fleet_id=fid,
+        robot=_robot(fid),
+        state="online",  # then ``state`` as given: a test may give one the contract has not
+        host="agv-host",
+        pid=4242,
+        version="0.9.0",
+        units=list(units),
+        attach=attach,
+    )
+    return json.dumps(body | {"state": state} | extra).encode()
+
+
+REPORT = payloads.UnitReport(
+    unit="-",
+    online=True,
+    servo=(True, True),
+    start=(True, False),
+    commanded=(300.0, 0.0),
+    measured=(298.5, None),
+    owner="tui:operator",
+    verify="ok",
+    age_s=0.02,
+)
 
 
 def unit_state(fid: str, unit: str, *, time: float = T0, seq: int = 1, **fields: Any) -> bytes:
-    body: dict[str, Any] = {
-        "v": 1,
-        "time": time,
-        "seq": seq,
-        "fleet_id": fid,
-        "robot": fid.split("-")[-1],
-        "unit": unit,
-        "online": True,
-        "servo": [True, True],
-        "start": [True, False],
-        "commanded": {"ay": 300.0, "bx": 0.0},
-        "measured": {"a": 298.5, "b": None},
-        "errors": [],
-        "alarms": [],
-        "owner": "tui:operator",
-        "estop": False,
-        "verify": "ok",
-        "foreign_host": None,
-        "age_s": 0.02,
-    }
+    report = dataclasses.replace(REPORT, unit=unit)
+    body = payloads.unit_state(seq, time, fleet_id=fid, robot=_robot(fid), report=report)
     return json.dumps(body | fields).encode()
 
 
@@ -77,15 +81,7 @@ def event(
     seq: int = 1,
     data: dict[str, Any] | None = None,
 ) -> bytes:
-    body = {
-        "v": 1,
-        "time": time,
-        "seq": seq,
-        "fleet_id": fid,
-        "robot": fid.split("-")[-1],
-        "unit": None,
-        "kind": kind,
-        "text": text,
-        "data": data or {},
-    }
+    body = payloads.event(
+        seq, time, fleet_id=fid, robot=_robot(fid), unit=None, kind=kind, text=text, data=data
+    )
     return json.dumps(body).encode()

@@ -1,6 +1,7 @@
 """A real Mosquitto for the tests, on 127.0.0.1 only, with a configuration generated per
-test: no anonymous clients, a password file (``mosquitto_passwd``), an ACL, and a TLS
-listener with a CA, a server and a client certificate made here (the openssl CLI).
+test: no anonymous clients, a password file (``mosquitto_passwd``), an ACL, and two TLS
+listeners with a CA, a server and a client certificate made here (the openssl CLI): one
+requiring a client certificate, one asking none.
 
 Users (all with password ``pw-<user>``): each robot user may publish only its robots'
 topics and read only their commands; ``fleet`` reads everything and may command;
@@ -111,12 +112,15 @@ def make_ca(where: Path) -> None:
 
 @dataclass
 class Broker:
-    """A running mosquitto: ``port`` plain MQTT, ``tls_port`` TLS with client certificates."""
+    """A running mosquitto: ``port`` plain MQTT, ``tls_port`` TLS with client certificates,
+    ``tls_server_port`` TLS with the server's certificate only. ``stop`` and ``start``
+    again: the same ports, the same configuration, nothing retained (no persistence)."""
 
     dir: Path
     robots: dict[str, list[str]]
     port: int = field(default_factory=free_port)
     tls_port: int = field(default_factory=free_port)
+    tls_server_port: int = field(default_factory=free_port)
     proc: subprocess.Popen[bytes] | None = None
 
     @property
@@ -159,6 +163,11 @@ class Broker:
                     f"certfile {self.certs('server.crt')}",
                     f"keyfile {self.certs('server.key')}",
                     "require_certificate true",
+                    f"listener {self.tls_server_port} 127.0.0.1",
+                    f"cafile {self.certs('ca.crt')}",
+                    f"certfile {self.certs('server.crt')}",
+                    f"keyfile {self.certs('server.key')}",
+                    "require_certificate false",
                     "",
                 ]
             )
@@ -174,7 +183,7 @@ class Broker:
             [MOSQUITTO, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
         )
         deadline = time.monotonic() + 10
-        while not (_listening(self.port) and _listening(self.tls_port)):
+        while not all(_listening(p) for p in (self.port, self.tls_port, self.tls_server_port)):
             if self.proc.poll() is not None:
                 err = self.proc.stderr.read().decode() if self.proc.stderr else ""
                 raise RuntimeError(f"mosquitto exited {self.proc.returncode}: {err}{self.log()}")

@@ -297,3 +297,35 @@ def supervisor(path: Path, *extra: str) -> Iterator[Supervisor]:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5)
+
+
+HOST = 2  # ROVER's units' host_id: a DP0 command is 0x00EF<drive><host>
+START_BITS = (1 << 1) | (1 << 9)  # AY_START, BX_START of the 2023 input word
+
+
+def dp0_commands(recording: Path, since: float) -> list[tuple[float, int, bool]]:
+    """The supervisor's DP0 commands from ``since`` (``time.time()``) in ``--record``'s
+    candump log (flushed as it runs: readable while it does): (time, drive, START on
+    either axis)."""
+    out: list[tuple[float, int, bool]] = []
+    # candump: (t) channel ID#DATA T|R; a last line not yet ended is not read (being written)
+    for line in recording.read_text().split("\n")[:-1]:
+        stamp, _, frame, *_ = line.split()
+        t = float(stamp.strip("()"))
+        ident, data = frame.split("#")
+        arbitration_id, payload = int(ident, 16), bytes.fromhex(data)
+        ours = arbitration_id & 0xFF == HOST  # sent by the supervisor, not a drive's reply
+        if t < since or arbitration_id >> 16 & 0xFF != 0xEF or not ours or len(payload) != 8:
+            continue
+        inputs = int.from_bytes(payload[4:8], "little")
+        out.append((t, arbitration_id >> 8 & 0xFF, bool(inputs & START_BITS)))
+    return out
+
+
+def stop_frames(recording: Path, since: float) -> dict[int, float]:
+    """Each drive's first DP0 command from ``since`` with START off on both axes."""
+    first: dict[int, float] = {}
+    for t, drive, started in dp0_commands(recording, since):
+        if drive not in first and not started:
+            first[drive] = t
+    return first

@@ -1,8 +1,8 @@
 """``abh3 fleet``: the Textual view of every robot on the broker, with the fleet e-stop.
 
-The app holds no network: a ``Link`` (the paho client in ``broker.py``, a fake in the
-tests) hands it what arrived and sends what it publishes; the model and the commander
-decide what is shown. Ten times a second it drains the link and repaints.
+The app holds no network: its ``Session`` (session.py) drains a ``Link`` (the paho client
+in ``broker.py``, a fake in the tests) into the model and the commander, which decide
+what is shown, and sends what it publishes. Ten times a second it ticks and repaints.
 """
 
 from __future__ import annotations
@@ -11,29 +11,20 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from typing import ClassVar, Protocol
+from typing import ClassVar
 
 from textual.app import App, ComposeResult, SuspendNotSupported
 from textual.binding import Binding, BindingType
 from textual.containers import VerticalScroll
 from textual.widgets import Footer, Static
 
-from abh3_supervisor.clients.fleet.broker import Received
 from abh3_supervisor.clients.fleet.commands import Commander, Sent
 from abh3_supervisor.clients.fleet.model import FleetModel
+from abh3_supervisor.clients.fleet.session import Link, Session
 from abh3_supervisor.clients.fleet.view import render
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 
 TICK_S = 0.1
-
-
-class Link(Protocol):
-    connected: bool
-
-    def drain(self) -> list[Received]: ...
-    def take_acks(self) -> list[tuple[int, int, str]]: ...
-    def publish(self, topic: str, payload: bytes) -> tuple[int, str | None]: ...
-    def describe(self, now: float) -> str: ...
 
 
 def attach_argv(address: str) -> list[str] | None:
@@ -67,10 +58,10 @@ class FleetApp(App[int]):
         clock: Callable[[], float] = time.time,
     ) -> None:
         super().__init__()
+        self.session = Session(model, commander, link, reason, clock)
         self.model, self.commander, self.link = model, commander, link
-        self.reason, self.clock = reason, clock
+        self.clock = clock
         self.selected: str | None = None
-        self.pending: dict[int, Sent] = {}  # mid: the command awaiting its PUBACK
         self.shown = Static(id="fleet")  # one text, repainted: whatever screen is on top
 
     def compose(self) -> ComposeResult:
@@ -83,13 +74,7 @@ class FleetApp(App[int]):
         self.set_interval(TICK_S, self.tick)
 
     def tick(self) -> None:
-        for message in self.link.drain():
-            self.model.feed(message.topic, message.payload, message.retained, message.time)
-        for mid, code, name in self.link.take_acks():
-            sent = self.pending.pop(mid, None)
-            if sent is not None:
-                self.commander.acknowledged(sent, code, name)
-        self.commander.observe(self.model)
+        self.session.tick()
         if self.selected not in self.model.robots:
             self.selected = min(self.model.robots, default=None)
         now = self.clock()
@@ -153,13 +138,7 @@ class FleetApp(App[int]):
         return answered
 
     def send(self, target: str | None, *, clear: bool) -> Sent:
-        sent = self.commander.build(
-            self.model, target, clear=clear, reason=self.reason, now=self.clock()
-        )
-        mid, trouble = self.link.publish(sent.topic, sent.payload)
-        self.pending[mid] = sent
-        if trouble:
-            sent.broker = trouble
+        sent = self.session.send(target, clear=clear)
         self.tick()
         return sent
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import getpass
 import os
-import re
 import socket
 import ssl
 import threading
@@ -22,8 +21,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 from urllib.parse import urlsplit
 
-from abh3_supervisor.clients.fleet.contract import MAX_PAYLOAD
+from abh3_supervisor.clients.fleet.reading import MAX_PAYLOAD
 from abh3_supervisor.errors import Abh3Error, RunError
+from abh3_supervisor.fleet import safe
 
 if TYPE_CHECKING:
     import paho.mqtt.client as paho
@@ -103,9 +103,9 @@ def read_password(env: str | None, file: Path | None) -> str | None:
 def default_client_id() -> str:
     """``abh3-fleet-{user}-{host}-{pid}``: the ``sender`` of its commands, one per run —
     a robot obeys a sender's ``seq`` only above the last it obeyed, and each run counts
-    from 1 (docs/fleet-view.md)."""
+    from 1 (docs/fleet.md, "The fleet view")."""
     raw = f"abh3-fleet-{getpass.getuser()}-{socket.gethostname()}-{os.getpid()}"
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", raw)
+    return safe(raw)
 
 
 def check_files(options: BrokerOptions) -> None:

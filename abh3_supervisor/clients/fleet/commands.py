@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from abh3_supervisor.clients.fleet import contract
 from abh3_supervisor.clients.fleet.model import FleetModel
+from abh3_supervisor.fleet import ALL, PREFIX, Topics, payloads
 
 REFUSED_KIND = "fleet_command_refused"
 OBEYED_KIND, OBEYED = "fleet_command", "obeyed"  # the robot's event: it obeyed this one
@@ -77,7 +77,7 @@ def _count(fleet_ids: list[str]) -> str:
 class Commander:
     """Builds commands with one ``sender`` and a rising ``seq``, and follows them."""
 
-    def __init__(self, sender: str, prefix: str = contract.PREFIX, *, v5: bool = True) -> None:
+    def __init__(self, sender: str, prefix: str = PREFIX, *, v5: bool = True) -> None:
         self.sender, self.prefix, self.v5 = sender, prefix, v5
         self.seq = 0
         self.sent: list[Sent] = []
@@ -93,8 +93,12 @@ class Commander:
             target=target,
             seq=self.seq,
             time=now,
-            topic=contract.command_topic(self.prefix, target, clear),
-            payload=contract.estop_command(self.sender, self.seq, reason, now),
+            topic=Topics(target or ALL, self.prefix).command(
+                "estop_clear" if clear else "estop", everyone=target is None
+            ),
+            payload=payloads.encode(
+                payloads.estop_command(self.seq, now, sender=self.sender, reason=reason)
+            ),
             robots=robots,
         )
         self.sent.append(sent)
@@ -120,8 +124,9 @@ class Commander:
                 for event in robot.events:
                     if event.received < sent.time:
                         continue
-                    if event.kind == REFUSED_KIND and _ours(event.data, self.sender, sent.seq):
-                        sent.robot_said[fid] = event.text or "refused"
+                    if event.kind == REFUSED_KIND and _ours(event.data, self.sender, sent):
+                        reason = event.data.get("reason")
+                        sent.robot_said[fid] = reason if isinstance(reason, str) else event.text
                     elif event.kind == OBEYED_KIND and _obeyed(event.data, self.sender, sent):
                         sent.robot_said[fid] = OBEYED
                 units = [robot.units[n] for n in model.unit_names(robot) if n in robot.units]
@@ -139,11 +144,15 @@ class Commander:
         return self.sent[-1] if self.sent else None
 
 
-def _ours(data: dict[str, object], sender: str, seq: int) -> bool:
-    """A refusal event names the command when it can; one that does not is taken as ours."""
-    if "sender" in data and data["sender"] != sender:
+def _ours(data: dict[str, object], sender: str, sent: Sent) -> bool:
+    """The plugin's refusal names the topic and, under MQTT 5, the sender (our user
+    property); it has no ``seq``. Under 3.1.1 its ``sender`` is null: a refusal on this
+    command's topic after it was sent is taken as this one's. A count of refusals beyond
+    the robot's event rate (``refused_unsaid`` alone) names no command."""
+    if data.get("topic") != sent.topic:
         return False
-    return "seq" not in data or data["seq"] == seq
+    said = data.get("sender")
+    return said is None or said == sender
 
 
 def _obeyed(data: dict[str, object], sender: str, sent: Sent) -> bool:

@@ -14,8 +14,10 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from abh3_supervisor.clients.fleet import contract
-from abh3_supervisor.clients.fleet.contract import Malformed, WrongVersion
+from abh3_supervisor.clients.fleet import reading
+from abh3_supervisor.clients.fleet.reading import Malformed, WrongVersion
+from abh3_supervisor.fleet import PREFIX, Where, where
+from abh3_supervisor.fleet.payloads import STATES
 
 EVENTS_KEPT = 30  # per robot: the recent ones the view lists
 STALE_S = 2.0  # 4 periods of the default 2 Hz unit state
@@ -85,7 +87,7 @@ class Robot:
 class FleetModel:
     """Every robot and unit under ``prefix`` the broker has told us about."""
 
-    def __init__(self, prefix: str = contract.PREFIX, stale_s: float = STALE_S) -> None:
+    def __init__(self, prefix: str = PREFIX, stale_s: float = STALE_S) -> None:
         self.prefix, self.stale_s = prefix, stale_s
         self.robots: dict[str, Robot] = {}
         self.malformed = 0  # all robots', and those of topics naming none
@@ -97,25 +99,25 @@ class FleetModel:
     def feed(self, topic: str, payload: bytes, retained: bool, now: float) -> None:
         """One message as received at ``now`` (seconds since the epoch, our clock)."""
         self.messages += 1
-        where = contract.parse_topic(topic, self.prefix)
-        if where is None or where.kind in ("unknown", "command"):
+        place = where(topic, self.prefix)
+        if place is None or place.kind in ("unknown", "command"):
             # commands (ours and others') are not state; other topics are not ours
-            self.unknown_topics += where is not None and where.kind == "unknown"
+            self.unknown_topics += place is not None and place.kind == "unknown"
             return
-        robot = self.robots.get(where.fleet_id) or Robot(where.fleet_id)
+        robot = self.robots.get(place.fleet_id) or Robot(place.fleet_id)
         try:
-            obj = contract.decode(payload)
-            self._apply(robot, where, obj, retained, now)
+            obj = reading.decode(payload)
+            self._apply(robot, place, obj, retained, now)
         except Malformed as exc:
-            self._count(robot, where, exc)
+            self._count(robot, place, exc)
             return
         self.robots[robot.fleet_id] = robot
         if not retained:
             robot.last_seen = max(now, robot.last_seen or now)
 
-    def _count(self, robot: Robot, where: contract.Topic, exc: Malformed) -> None:
+    def _count(self, robot: Robot, place: Where, exc: Malformed) -> None:
         wrong = isinstance(exc, WrongVersion)
-        what = f"{where.kind}{'' if where.unit is None else ' of ' + where.unit}: {exc}"
+        what = f"{place.kind}{'' if place.unit is None else ' of ' + place.unit}: {exc}"
         robot.problem = self.problem = f"{robot.fleet_id} {what}"
         if wrong:
             robot.wrong_version += 1
@@ -126,17 +128,17 @@ class FleetModel:
         self.robots[robot.fleet_id] = robot  # shown, with its count, even if nothing else
 
     def _apply(
-        self, robot: Robot, where: contract.Topic, obj: dict[str, Any], retained: bool, now: float
+        self, robot: Robot, place: Where, obj: dict[str, Any], retained: bool, now: float
     ) -> None:
         if obj.get("fleet_id") != robot.fleet_id:
             raise Malformed(f"fleet_id {obj.get('fleet_id')!r} is not its topic's")
-        if where.kind == "status":
+        if place.kind == "status":
             self._status(robot, obj)
-        elif where.kind == "state":
-            self._unit(robot, str(where.unit), obj, retained, now)
-        elif where.kind == "events":
+        elif place.kind == "state":
+            self._unit(robot, str(place.unit), obj, retained, now)
+        elif place.kind == "events":
             robot.events.append(_event(obj, now))
-        elif where.kind == "health":
+        elif place.kind == "health":
             if not isinstance(obj.get("buses"), dict) or not isinstance(obj.get("mqtt"), dict):
                 raise Malformed("health without buses and mqtt objects")
             robot.health, robot.health_received = obj, now
@@ -145,12 +147,12 @@ class FleetModel:
         """The broker's status, taken as it comes, retained or not: its retained one is
         the current one by definition. (Not by time: a last will is built when its robot
         connects, so it is older than the birth it follows.)"""
-        state = contract.text(obj, "state")
-        if state not in contract.STATES:
-            raise Malformed(f"state {state!r} is not one of {', '.join(contract.STATES)}")
-        sent = contract.number(obj, "time") or 0.0
-        attach = contract.text(obj, "attach", none=True)
-        units = contract.names(obj, "units")
+        state = reading.text(obj, "state")
+        if state not in STATES:
+            raise Malformed(f"state {state!r} is not one of {', '.join(STATES)}")
+        sent = reading.number(obj, "time") or 0.0
+        attach = reading.text(obj, "attach", none=True)
+        units = reading.names(obj, "units")
         pid = obj.get("pid")
         robot.state, robot.status_time, robot.declared, robot.attach = state, sent, units, attach
         robot.name = str(obj.get("robot", ""))
@@ -162,7 +164,7 @@ class FleetModel:
     ) -> None:
         if obj.get("unit") != name:
             raise Malformed(f"unit {obj.get('unit')!r} is not its topic's")
-        sent = contract.number(obj, "time") or 0.0
+        sent = reading.number(obj, "time") or 0.0
         old = robot.units.get(name)
         if retained and old is not None and sent <= old.sent:
             return  # an older (or the same) copy replayed by the broker
@@ -174,18 +176,18 @@ class FleetModel:
             raise Malformed(f"estop {estop!r} is not true or false")
         unit = Unit(
             name,
-            online=contract.flag(obj.get("online"), "online"),
-            servo=contract.pair(obj, "servo"),
-            start=contract.pair(obj, "start"),
-            commanded=contract.axes(obj, "commanded", ("ay", "bx")),
-            measured=contract.axes(obj, "measured", ("a", "b")),
-            errors=contract.names(obj, "errors"),
-            alarms=contract.names(obj, "alarms"),
-            owner=contract.text(obj, "owner", none=True),
+            online=reading.flag(obj.get("online"), "online"),
+            servo=reading.pair(obj, "servo"),
+            start=reading.pair(obj, "start"),
+            commanded=reading.axes(obj, "commanded", ("ay", "bx")),
+            measured=reading.axes(obj, "measured", ("a", "b")),
+            errors=reading.names(obj, "errors"),
+            alarms=reading.names(obj, "alarms"),
+            owner=reading.text(obj, "owner", none=True),
             estop=estop,
-            verify=contract.text(obj, "verify") or "",
+            verify=reading.text(obj, "verify") or "",
             foreign_host=foreign,
-            report_age_s=contract.number(obj, "age_s", none=True),
+            report_age_s=reading.number(obj, "age_s", none=True),
             sent=sent,
             received=now,
             retained=retained,
@@ -217,10 +219,10 @@ def _event(obj: dict[str, Any], now: float) -> Event:
     if not isinstance(data, dict):
         raise Malformed(f"data {data!r} is not an object")
     return Event(
-        time=contract.number(obj, "time") or 0.0,
+        time=reading.number(obj, "time") or 0.0,
         received=now,
-        unit=contract.text(obj, "unit", none=True),
-        kind=contract.text(obj, "kind") or "",
-        text=contract.text(obj, "text") or "",
+        unit=reading.text(obj, "unit", none=True),
+        kind=reading.text(obj, "kind") or "",
+        text=reading.text(obj, "text") or "",
         data=data,
     )

@@ -11,7 +11,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from abh3_supervisor.clients.fleet import contract
 from abh3_supervisor.clients.fleet.broker import (
     BrokerOptions,
     FleetClient,
@@ -22,6 +21,7 @@ from abh3_supervisor.clients.fleet.broker import (
 )
 from abh3_supervisor.clients.fleet.model import STALE_S
 from abh3_supervisor.errors import Abh3Error, RunError
+from abh3_supervisor.fleet import PREFIX
 
 if TYPE_CHECKING:
     from abh3_supervisor.clients.fleet.app import FleetApp
@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "(published by the supervisors' mqtt plugin): online/offline/connection broken, "
         "errors and alarms by name, speeds, owner, age (greyed when stale). Keys: e e-stop "
         "the selected robot, E e-stop all, c / C clear (asked), a attach its TUI over SSH. "
-        "docs/fleet-view.md",
+        "docs/fleet.md (The fleet view).",
     )
     p.add_argument(
         "--broker", required=True, metavar="URL", help="mqtt://host:1883 or mqtts://host:8883"
@@ -51,9 +51,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--ca", type=Path, metavar="F", help="the CA that signed the broker (mqtts)")
     p.add_argument("--cert", type=Path, metavar="F", help="a client certificate (mqtts)")
     p.add_argument("--key", type=Path, metavar="F", help="its private key")
-    p.add_argument(
-        "--prefix", default=contract.PREFIX, help=f"topic prefix (default {contract.PREFIX})"
-    )
+    p.add_argument("--prefix", default=PREFIX, help=f"topic prefix (default {PREFIX})")
     p.add_argument(
         "--protocol", choices=["5", "3.1.1"], default="5", help="MQTT version (default 5)"
     )

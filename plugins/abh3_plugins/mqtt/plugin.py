@@ -84,6 +84,8 @@ def report(view: SupervisorView, unit: UnitView) -> fleet.UnitReport:
     fb = unit.feedback
     setpoint = unit.setpoint
     error, alarm = words.get("error"), words.get("alarm")
+    # another host on the drive while it is heard (as /diagnostics says it), commanding first
+    lately = [h for h in view.foreign_hosts(unit.name) if h.lately]
     return fleet.UnitReport(
         unit=unit.name,
         online=unit.online,
@@ -96,6 +98,7 @@ def report(view: SupervisorView, unit: UnitView) -> fleet.UnitReport:
         owner=view.owner(unit.name),
         estop=view.estop,
         verify=str(unit.verify.state),
+        foreign_host=(lately[0].source, lately[0].frames) if lately else None,
         age_s=None if fb is None else max(0.0, view.now() - fb.t),
     )
 
@@ -216,6 +219,8 @@ class MqttPlugin:
         link.put(topic, payload, self.settings.qos["state"], retain=True, lossy=True)
         if before is not None and before[-2] != r.verify != "pending":  # an outcome
             self.event(link, unit, "verify", f"unit {unit}: verify {before[-2]} → {r.verify}")
+        if before is not None and before[-1] != r.safety()[-1]:
+            self.event(link, unit, "foreign_host", *_foreign_news(unit, r.foreign_host))
 
     def event(
         self, link: Link, unit: str | None, kind: str, text: str, data: dict[str, Any] | None = None
@@ -322,6 +327,8 @@ class MqttPlugin:
         if notice.level >= logging.ERROR:  # what an operator must read, the fleet too
             for link in self._link_of(notice.unit):
                 self.event(link, notice.unit, "notice", notice.message, {"level": notice.level})
+        if notice.unit in self.robot_of:  # another host heard is said so: its state at once
+            self.publish_state(notice.unit, changed_only=True)
 
     # ------------------------------------------------------------ what comes in
 
@@ -457,6 +464,15 @@ class MqttPlugin:
             self._stop.wait(0.02)
         for link in self.links.values():
             link.close()
+
+
+def _foreign_news(unit: str, host: tuple[int, int] | None) -> tuple[str, dict[str, Any]]:
+    """The ``foreign_host`` event's text and data: another host heard, or no longer."""
+    if host is None:
+        return f"unit {unit}: the other host on its drive is no longer heard", {"address": None}
+    address, frames = host
+    text = f"unit {unit}: another host (0x{address:02X}) on its drive ({frames} frames so far)"
+    return text, {"address": address, "frames": frames}
 
 
 def _user_property(message: mqtt.MQTTMessage, key: str) -> str | None:
