@@ -166,7 +166,7 @@ async def _e_stop_all_from_the_view(
                 "e2e",
             )
             assert ("sender", "abh3-fleet-fleet-test") in props  # MQTT 5's user property
-        latest = app.commander.latest()
+        latest = app.session.commander.latest()
         assert latest is not None
         await _until(pilot, lambda: "taken by the broker" in latest.summary(), "the PUBACK")
         for r in robots.values():  # the robots obey: their state says so

@@ -59,8 +59,6 @@ class FleetApp(App[int]):
     ) -> None:
         super().__init__()
         self.session = Session(model, commander, link, reason, clock)
-        self.model, self.commander, self.link = model, commander, link
-        self.clock = clock
         self.selected: str | None = None
         self.shown = Static(id="fleet")  # one text, repainted: whatever screen is on top
 
@@ -75,24 +73,24 @@ class FleetApp(App[int]):
 
     def tick(self) -> None:
         self.session.tick()
-        if self.selected not in self.model.robots:
-            self.selected = min(self.model.robots, default=None)
-        now = self.clock()
-        latest = self.commander.latest()
+        if self.selected not in self.session.model.robots:
+            self.selected = min(self.session.model.robots, default=None)
+        now = self.session.clock()
+        latest = self.session.commander.latest()
         text = render(
-            self.model,
+            self.session.model,
             now,
             self.selected,
-            self.link.describe(now),
+            self.session.link.describe(now),
             latest.summary() if latest else None,
-            connected=self.link.connected,
+            connected=self.session.link.connected,
         )
         self.shown.update(text)
 
     # -- keys ------------------------------------------------------------------------
 
     def action_move(self, step: int) -> None:
-        order = sorted(self.model.robots)
+        order = sorted(self.session.model.robots)
         if not order:
             return
         at = order.index(self.selected) if self.selected in order else 0
@@ -106,9 +104,9 @@ class FleetApp(App[int]):
         self.send(self.selected, clear=False)  # at once: an e-stop asks nothing
 
     def action_estop_all(self) -> None:
-        count = len(self.model.robots)
+        count = len(self.session.model.robots)
         question = (
-            f"E-STOP ALL: every robot subscribed to {self.commander.prefix}/all/cmd/estop "
+            f"E-STOP ALL: every robot subscribed to {self.session.commander.prefix}/all/cmd/estop "
             f"({count} shown here) latches its e-stop. Send?"
         )
         self.push_screen(ConfirmScreen(question), self._then(None, clear=False))
@@ -125,7 +123,7 @@ class FleetApp(App[int]):
 
     def action_clear_all(self) -> None:
         question = (
-            f"Clear the e-stop of ALL robots subscribed to {self.commander.prefix}/all/cmd/"
+            f"Clear the e-stop of ALL robots subscribed to {self.session.commander.prefix}/all/cmd/"
             "estop_clear? Nothing moves until START and motion are given again."
         )
         self.push_screen(ConfirmScreen(question), self._then(None, clear=True))
@@ -143,7 +141,7 @@ class FleetApp(App[int]):
         return sent
 
     def action_attach(self) -> None:
-        robot = self.model.robots.get(self.selected or "")
+        robot = self.session.model.robots.get(self.selected or "")
         if robot is None:
             self.notify("no robot selected", severity="warning")
             return
