@@ -18,7 +18,7 @@ from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
 from tests.support.headless import headless_demo
-from tests.support.rig import Rig, present
+from tests.support.rig import Deaf, Rig, present
 
 PERIOD = 0.02  # 50 Hz: TWO_UNITS' command rate
 
@@ -31,7 +31,7 @@ class Source(InputSource):
         pass
 
 
-class ArbiterNode:
+class ArbiterNode(Deaf):
     """The arbiter as a machine on the timeline: polled at its deadline, as the runtime's
     deadline timer does; ``alive_until`` makes a client prove it is alive every 0.2 s."""
 
@@ -39,15 +39,6 @@ class ArbiterNode:
         self.arbiter = arbiter
         self.alive: dict[str, float] = {}  # source → until when it proves it is alive
         self.next_touch = 0.0
-
-    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
-        pass
-
-    def on_send_failed(self, arbitration_id: int) -> None:
-        pass
-
-    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
-        pass
 
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         if now >= self.next_touch:

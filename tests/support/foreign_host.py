@@ -13,6 +13,7 @@ import can
 
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.generation import Generation
+from tests.support.rig import Deaf
 
 HOST = 2  # the seed's host address: a second copy of the supervisor uses it too
 
@@ -28,7 +29,7 @@ def safe_word() -> bytes:
     return frames.encode_dp0_command(0, 0, 0)
 
 
-class TimelineHost:
+class TimelineHost(Deaf):
     """A Timeline node that commands ``drive`` every ``period`` s from ``start`` to ``end``
     (then once the safe word, as a host that leaves politely does)."""
 
@@ -50,15 +51,6 @@ class TimelineHost:
         self.word = word if word is not None else moving_word()
         self.sent: list[float] = []
         self.left = False
-
-    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
-        pass
-
-    def on_send_failed(self, arbitration_id: int) -> None:
-        pass
-
-    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
-        pass
 
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         if now < self.next:

@@ -71,7 +71,20 @@ class _TestSource(InputSource):
         pass
 
 
-class Clockwork:
+class Deaf:
+    """A Timeline node that hears nothing: it only acts when polled."""
+
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        pass
+
+    def on_send_failed(self, arbitration_id: int) -> None:
+        pass
+
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        pass
+
+
+class Clockwork(Deaf):
     """The runtime's timers on the fake clock: the arbitration expired at its deadline
     (``Runtime._arbitrate``), the supervisor's ``call_at`` calls run when due (the
     e-stop's power-off deadline)."""
@@ -83,15 +96,6 @@ class Clockwork:
 
     def at(self, when: float, fn: Callable[[], None]) -> None:
         self.calls.append((when, fn))
-
-    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
-        pass
-
-    def on_send_failed(self, arbitration_id: int) -> None:
-        pass
-
-    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
-        pass
 
     def poll(self, now: float) -> list[tuple[int, bytes]]:
         due = [fn for when, fn in self.calls if when <= now]
