@@ -127,6 +127,21 @@ def simulated(cfg: BusConfig) -> BusConfig:
     return replace(cfg, interface="virtual", options={})
 
 
+def simulator(
+    config: Config, name: str, bus: can.BusABC, now: float, recorder: can.Listener | None = None
+) -> tuple[SimBus, BusPump]:
+    """Bus ``name``'s simulated drives, set up as the file says (``SimBus.for_units``),
+    and the pump that runs them on ``bus`` — in the supervisor's process or in ``abh3
+    simulate``'s; the caller starts the pump."""
+    cfg = config.buses[name]
+    assert cfg.simulate is not None, f"bus {name} is not simulated"
+    sim = SimBus.for_units(
+        config.units_on(name), cfg.simulate, now, bitrate=cfg.bitrate, robots=config.robots.values()
+    )
+    pump = BusPump(bus, sim, name=f"{name} (simulator)", channel=cfg.channel, recorder=recorder)
+    return sim, pump
+
+
 def _refuse_in_fault_windows(
     bus: can.BusABC, sim: SimConfig | None, loop: asyncio.AbstractEventLoop
 ) -> None:
@@ -203,15 +218,7 @@ class Runtime:
                 cfg = simulated(cfg)
                 sim_bus = open_bus(cfg)
                 self._buses.append(sim_bus)
-                sim = SimBus.for_units(
-                    self.config.units_on(name),
-                    sim_cfg,
-                    loop.time(),
-                    bitrate=cfg.bitrate,
-                    robots=self.config.robots.values(),
-                )
-                self.sims[name] = sim
-                pump = BusPump(sim_bus, sim, name=f"{name} (simulator)", channel=cfg.channel)
+                self.sims[name], pump = simulator(self.config, name, sim_bus, loop.time())
                 self._sim_pumps.append(pump)
                 pump.start()
             bus = open_bus(cfg)

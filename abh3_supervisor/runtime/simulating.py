@@ -26,10 +26,9 @@ from abh3_supervisor.config.interfaces import shared_bus
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.runtime import signals
-from abh3_supervisor.runtime.bus_runtime import open_bus
+from abh3_supervisor.runtime.bus_runtime import open_bus, simulator
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.scheduler.pump import BusPump
-from abh3_supervisor.simulator.bus import SimBus
 from abh3_supervisor.simulator.control import obey
 from abh3_supervisor.simulator.drive import SimDrive
 from abh3_supervisor.simulator.watch import Watch
@@ -144,19 +143,9 @@ async def simulate(
             cfg = config.buses[name]
             bus = open_bus(cfg)
             opened.append(bus)
-            assert cfg.simulate is not None  # simulated_buses() said so
+            sim, pump = simulator(config, name, bus, loop.time(), recorder)
             units = config.units_on(name)
-            sim = SimBus.for_units(
-                units,
-                cfg.simulate,
-                loop.time(),
-                bitrate=cfg.bitrate,
-                robots=config.robots.values(),
-            )
             drives.update({u.name: sim.drives[u.abh3_id] for u in units})
-            pump = BusPump(
-                bus, sim, name=f"{name} (simulator)", channel=cfg.channel, recorder=recorder
-            )
             pumps.append(pump)
             pump.start()
             who = ", ".join(f"{u.name} (abh3_id {u.abh3_id})" for u in units)
