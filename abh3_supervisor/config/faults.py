@@ -8,6 +8,7 @@ from collections.abc import Mapping
 
 from abh3_supervisor.config.model import (
     AXIS_KINDS,
+    BUILT_KINDS,
     WIRING_KINDS,
     BusConfig,
     Fault,
@@ -37,17 +38,6 @@ REQUIRED = {k: KIND_KEYS[k] for k in AXIS_KINDS} | {
     FaultKind.WRONG_TRACK: {"factor"},
     FaultKind.WRONG_DIAMETER: {"factor"},
 }
-# how the robot or the drive is built: the simulator builds them once, untimed
-BUILT_KINDS = frozenset(
-    {
-        FaultKind.MIRRORED_WHEEL,
-        FaultKind.SWAPPED_DRIVES,
-        FaultKind.SWAPPED_AXES_WITH_ENCODERS,
-        FaultKind.WRONG_PROTOCOL,
-        FaultKind.WRONG_TRACK,
-        FaultKind.WRONG_DIAMETER,
-    }
-)
 AXES = ("A", "B")
 MAX_S = 7 * 86400.0
 

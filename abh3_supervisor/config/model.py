@@ -64,14 +64,9 @@ class FaultKind(StrEnum):
     WRONG_DIAMETER = "wrong_diameter"  # the unit's wheels are ``factor`` × the file's diameter
 
 
-# kinds that describe how a drive is wired or set up: from the start, for ever, by default
-WIRING_KINDS = frozenset(
+# how the robot or the drive is built: the simulator builds them once, untimed
+BUILT_KINDS = frozenset(
     {
-        FaultKind.REVERSED_AXIS,
-        FaultKind.SWAPPED_AXES,
-        FaultKind.SCALE,
-        FaultKind.NO_ENCODER,
-        FaultKind.OTHER_VELOCITY_MODEL,
         FaultKind.MIRRORED_WHEEL,
         FaultKind.SWAPPED_DRIVES,
         FaultKind.SWAPPED_AXES_WITH_ENCODERS,
@@ -80,6 +75,14 @@ WIRING_KINDS = frozenset(
         FaultKind.WRONG_DIAMETER,
     }
 )
+# kinds that describe how a drive is wired or set up: from the start, for ever, by default
+WIRING_KINDS = BUILT_KINDS | {
+    FaultKind.REVERSED_AXIS,
+    FaultKind.SWAPPED_AXES,
+    FaultKind.SCALE,
+    FaultKind.NO_ENCODER,
+    FaultKind.OTHER_VELOCITY_MODEL,
+}
 AXIS_KINDS = frozenset(
     {FaultKind.REVERSED_AXIS, FaultKind.SCALE, FaultKind.NO_ENCODER, FaultKind.MIRRORED_WHEEL}
 )
