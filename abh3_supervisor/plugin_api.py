@@ -37,7 +37,7 @@ from abh3_supervisor.core.supervisor import (
 from abh3_supervisor.core.twist_limits import fastest_twist
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.plugin_host import terminal
-from abh3_supervisor.plugin_host.hookspecs import PROJECT, hookimpl
+from abh3_supervisor.plugin_host.hookspecs import PROJECT, THREADS_BELOW_LOOP, hookimpl
 from abh3_supervisor.plugin_host.view import (
     BusCounters,
     ForeignHost,
@@ -60,7 +60,8 @@ from abh3_supervisor.protocol.frames import (
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 
 # 1.1: fleet; SupervisorView.clear_emergency_stop, .bus_counters, .foreign_hosts
-API_VERSION = "1.1"
+# 1.2: the abh3_threads hook, THREADS_BELOW_LOOP
+API_VERSION = "1.2"
 """``MAJOR.MINOR`` of this module's promise; a plugin may check the major it was written for."""
 
 # the entry-point group a plugin registers under: [project.entry-points.abh3_supervisor]
@@ -73,6 +74,7 @@ __all__ = [
     "GROUP",
     "RESPONSE_INVALID",
     "RESPONSE_OK",
+    "THREADS_BELOW_LOOP",
     "VELOCITY",
     "Brd0",
     "Brd1",

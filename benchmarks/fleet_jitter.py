@@ -1,15 +1,17 @@
 """The bus never notices the broker (issue 33): DP0 period jitter with the ``mqtt`` plugin
 against a flooding fleet and against a broker that dies, next to the same run without it.
 
-``python -m benchmarks.fleet_jitter [--seconds S]`` (needs mosquitto and openssl, as the
+``python -m benchmarks.fleet_jitter [--seconds S] [--runs N]`` (needs mosquitto and openssl, as the
 tests do): 2 simulated units at 100 Hz with the bus loop's priority as ``abh3 run`` sets
 it; the jitter is |interval − period| of each unit's DP0 commands as our pump sends them
 (benchmarks/cycle_timing.py's probe). Scenarios: ``none`` (no plugin); ``flood, no
 plugin`` (the flood below on this machine, nobody of ours subscribed: what the machine's
 load alone does); ``flood`` (a fleet client in a process of its own publishes refused
 e-stops as fast as it can and a 10 MB message every second, over MQTT 3.1.1 so that they
-arrive; ``FJ_PROTOCOL=5``, ``FJ_BIG=0`` vary it); ``dead`` (the broker killed at a third
-of the run, back at two thirds: reconnects).
+arrive; ``FJ_PROTOCOL=5``, ``FJ_BIG=0`` vary it); ``flood, plugin threads normal`` (the
+same, the plugin's threads left at normal priority: as before it asked to run below the
+loop); ``dead`` (the broker killed at a third of the run, back at two thirds: reconnects).
+Each scenario's ratio is to its own baseline, the same run without MQTT, within each run.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import itertools
 import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -73,9 +76,15 @@ def jitter(probe: TxProbe) -> tuple[float, float]:
     return 1000 * (percentile(out, 50) or 0.0), 1000 * (percentile(out, 99) or 0.0)
 
 
-def measure(cfg: Config, seconds: float, during: During | None = None) -> tuple[float, float]:
+def measure(
+    cfg: Config, seconds: float, during: During | None = None, below_loop: bool = True
+) -> tuple[float, float]:
+    """``below_loop=False``: the plugin's threads at normal priority, as before it asked
+    (``abh3_threads``), to show what asking changes."""
     probe = TxProbe()
     host = PluginHost(cfg)
+    if not below_loop:
+        host._threads_below_loop = lambda name: False  # type: ignore[method-assign]
 
     async def scenario() -> None:
         async with Runtime(cfg, plugins=host) as rt:
@@ -133,31 +142,57 @@ def dead(broker: Broker) -> During:
     return run
 
 
+SCENARIOS = {  # name → its baseline: the same run without MQTT
+    "none": "none",
+    "flood, no plugin": "none",
+    "flood": "flood, no plugin",
+    "flood, plugin threads normal": "flood, no plugin",
+    "dead": "none",
+}
+
+
+def one_run(broker: Broker, secret: Path, seconds: float) -> dict[str, tuple[float, float]]:
+    return {
+        "none": measure(config("fj-none", None, secret), seconds),
+        # the same flood on this machine (its client and the broker busy), no plugin
+        "flood, no plugin": measure(config("fj-fnone", None, secret), seconds, flood(broker)),
+        "flood": measure(config("fj-flood", broker, secret), seconds, flood(broker)),
+        "flood, plugin threads normal": measure(
+            config("fj-fnorm", broker, secret), seconds, flood(broker), below_loop=False
+        ),
+        "dead": measure(config("fj-dead", broker, secret), seconds, dead(broker)),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--runs", type=int, default=3, help="interleaved; medians printed")
     parser.add_argument("--flood", type=int, help=argparse.SUPPRESS)  # the flooder's port
     args = parser.parse_args()
     if args.flood:
         flood_from_here(args.flood, args.seconds)
         return
+    runs: list[dict[str, tuple[float, float]]] = []
     with tempfile.TemporaryDirectory(dir="/tmp") as tmp:
         secret = Path(tmp) / "pw"
         secret.write_text(password("bench"))
         with running(Path(tmp) / "broker", {"bench": ["bench-u0", "bench-u1"]}) as broker:
-            rows = {
-                "none": measure(config("fj-none", None, secret), args.seconds),
-                # the same flood on this machine (its client and the broker busy), no plugin
-                "flood, no plugin": measure(
-                    config("fj-fnone", None, secret), args.seconds, flood(broker)
-                ),
-                "flood": measure(config("fj-flood", broker, secret), args.seconds, flood(broker)),
-                "dead": measure(config("fj-dead", broker, secret), args.seconds, dead(broker)),
-            }
-    base = rows["none"][1]
-    print(f"DP0 period jitter, {UNITS} units at {RATE:g} Hz, {args.seconds:g} s each")
-    for name, (p50, p99) in rows.items():
-        print(f"  {name:16} p50 {p50:6.3f} ms  p99 {p99:6.3f} ms  ({p99 / base:4.2f}x none)")
+            for _ in range(args.runs):  # every scenario once per run: the machine's drift
+                runs.append(one_run(broker, secret, args.seconds))  # is shared by all
+    print(
+        f"DP0 period jitter, {UNITS} units at {RATE:g} Hz, {args.seconds:g} s each, "
+        f"median of {args.runs} interleaved run(s) [min–max]"
+    )
+    for name, baseline in SCENARIOS.items():
+        p50 = statistics.median(r[name][0] for r in runs)
+        p99s = [r[name][1] for r in runs]
+        ratios = [r[name][1] / r[baseline][1] for r in runs]  # within each run
+        print(
+            f"  {name:28} p50 {p50:6.3f} ms  p99 {statistics.median(p99s):6.3f} ms "
+            f"[{min(p99s):.3f}–{max(p99s):.3f}]  {statistics.median(ratios):5.2f}x "
+            f"[{min(ratios):.2f}–{max(ratios):.2f}] {baseline}"
+        )
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from abh3_supervisor.core.kinematics import ab_to_yx
 from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
 from abh3_supervisor.errors import PluginError, RunError
 from abh3_supervisor.plugin_host import host as plugin_host
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.hookspecs import THREADS_BELOW_LOOP, hookimpl
 from abh3_supervisor.plugin_host.host import GROUP, MAX_FAILURES, PluginHost
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime import priority
@@ -207,7 +207,7 @@ def test_a_hook_that_sticks_is_said_at_once_not_when_the_queue_fills(
 
 STUCK_PLUGIN = """
 import sys, threading
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.hookspecs import THREADS_BELOW_LOOP, hookimpl
 
 class Stuck:
     @hookimpl
@@ -499,6 +499,107 @@ def test_plugin_code_runs_at_normal_priority_whatever_the_bus_loop_runs_at() -> 
     assert set(Priorities.seen.values()) == {os.SCHED_OTHER}, Priorities.seen
 
 
+class BelowLoop:
+    """Asks for its threads below the loop; notes (policy, priority) where its code runs."""
+
+    def __init__(self) -> None:
+        self.seen: dict[str, tuple[int, int]] = {}
+        self.fed, self.ticked = threading.Event(), threading.Event()
+
+    def _note(self, where: str) -> None:
+        self.seen[where] = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+
+    @hookimpl
+    def abh3_threads(self) -> str:
+        return THREADS_BELOW_LOOP
+
+    @hookimpl
+    def abh3_start(self) -> None:
+        self._note("abh3_start")
+        thread = threading.Thread(target=self._note, args=("abh3_start's thread",))
+        thread.start()
+        thread.join()
+
+    @hookimpl
+    def abh3_feedback(self) -> None:
+        self._note("abh3_feedback")
+        self.fed.set()
+
+    @hookimpl
+    def abh3_tick(self) -> None:
+        self._note("abh3_tick")
+        self.ticked.set()
+
+
+class StuckBelowLoop(BelowLoop):
+    """Spins in its first feedback hook, noting its policy, until put back to normal."""
+
+    @hookimpl
+    def abh3_feedback(self) -> None:
+        self._note("stuck, first")
+        while os.sched_getscheduler(0) != os.SCHED_OTHER and not RELEASE.wait(0.01):
+            pass
+        self._note("stuck, last")
+        self.fed.set()
+        RELEASE.wait()
+
+
+def on_a_real_time_loop(scenario: Callable[[], Any]) -> None:
+    """``scenario`` (a coroutine function) on a loop thread at SCHED_FIFO, as abh3 run."""
+    failure: list[BaseException] = []
+
+    def bus_loop() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority.FIFO_PRIORITY))
+            asyncio.run(scenario())
+        except BaseException as exc:
+            failure.append(exc)
+
+    thread = threading.Thread(target=bus_loop)
+    thread.start()
+    thread.join(30)
+    assert not failure, failure
+
+
+@pytest.mark.skipif(not priority._may_realtime(), reason="needs root or RLIMIT_RTPRIO")
+def test_a_plugin_that_asks_runs_every_thread_just_below_the_loop_and_no_other_does() -> None:
+    asking, other = BelowLoop(), ProvidesPriorities()
+    Priorities.seen = {}
+
+    async def scenario() -> None:
+        async with Runtime(CONFIG, plugins=host_with(("asks", asking), ("prio", other))):
+            await until(lambda: asking.fed.is_set() and asking.ticked.is_set())
+            await until(other.fed.is_set)
+
+    on_a_real_time_loop(scenario)
+    below = (os.SCHED_FIFO, priority.BELOW_LOOP_PRIORITY)
+    assert asking.seen == dict.fromkeys(
+        ["abh3_start", "abh3_start's thread", "abh3_feedback", "abh3_tick"], below
+    )
+    assert 0 < priority.BELOW_LOOP_PRIORITY < priority.FIFO_PRIORITY
+    assert set(Priorities.seen.values()) == {os.SCHED_OTHER}, Priorities.seen  # the other's
+
+
+@pytest.mark.skipif(not priority._may_realtime(), reason="needs root or RLIMIT_RTPRIO")
+def test_a_real_time_hook_that_sticks_is_put_back_to_normal_priority(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A spinning real-time thread would keep the machine's programs off a core."""
+    monkeypatch.setattr(plugin_host, "STUCK_S", 0.2)
+    monkeypatch.setattr(plugin_host, "DRAIN_DEADLINE_S", 0.3)  # it stays stuck to the end
+    stuck = StuckBelowLoop()
+
+    async def scenario() -> None:
+        async with Runtime(CONFIG, plugins=host_with(("stuck", stuck))):
+            await until(stuck.fed.is_set)
+
+    with caplog.at_level(logging.INFO):
+        on_a_real_time_loop(scenario)
+    assert stuck.seen["stuck, first"] == (os.SCHED_FIFO, priority.BELOW_LOOP_PRIORITY)
+    assert stuck.seen["stuck, last"] == (os.SCHED_OTHER, 0)
+    assert "plugin stuck is stuck in abh3_feedback" in caplog.text
+
+
 class StartRaises(AB):
     def start(self, feed: InputFeed) -> None:
         raise OSError(19, "No such device", "/dev/input/js0")
@@ -631,7 +732,7 @@ def test_critical_is_a_host_key_checked_like_on_error() -> None:
 
 FOREVER_PLUGIN = """
 import threading
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.hookspecs import THREADS_BELOW_LOOP, hookimpl
 
 class Forever:
     @hookimpl
@@ -714,7 +815,7 @@ def test_a_plugin_left_behind_that_fails_after_the_run_disturbs_nothing(
 
 BAD_START_PLUGIN = """
 from abh3_supervisor.core.inputs import InputSource
-from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.hookspecs import THREADS_BELOW_LOOP, hookimpl
 
 class Device(InputSource):
     def __init__(self):

@@ -46,6 +46,20 @@ def abh3_config_schema() -> dict[str, Any] | None:
     """
 
 
+THREADS_BELOW_LOOP = "below_loop"
+
+
+@hookspec
+def abh3_threads() -> str | None:
+    """Where this plugin's threads run when the bus loop runs real-time: ``None`` or
+    ``"normal"`` (the default: normal priority, as DDS and rclpy need) or
+    ``"below_loop"`` (``SCHED_FIFO`` just below the loop: its start, its hooks, its tick
+    and every thread it starts from them). Only for plugins whose threads do short,
+    bounded work and sleep between: a normal-priority thread preempted while it holds
+    the interpreter lock holds the loop up by milliseconds on a busy machine. Asked once,
+    before ``abh3_start``."""
+
+
 @hookspec
 def abh3_start(supervisor: SupervisorView) -> None:
     """Before the first frame: open files, start threads; raise if you cannot (the run fails)."""

@@ -113,7 +113,7 @@ class _Worker:
                 log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
 
     def _run(self) -> None:
-        self.host.thread_setup()
+        self.host.thread_setup(self.name in self.host.below_loop)
         while (item := self.queue.get()) is not _STOP:
             hook, kwargs = cast(tuple[str, dict[str, Any]], item)
             self.busy = hook, time.monotonic()
@@ -179,7 +179,9 @@ class PluginHost:
         self.tickers: list[tick.Ticker] = []
         # run first on every thread plugins run on (and so inherited by the threads they
         # start); the runtime drops the bus loop's real-time priority there
-        self.thread_setup: Callable[[], None] = lambda: None
+        self.thread_setup: Callable[[bool], None] = lambda below_loop: None
+        self.below_loop: set[str] = set()  # plugins whose threads asked for it (abh3_threads)
+        self.demote: Callable[[int], None] = lambda native_id: None  # one thread to normal
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.outputs: list[tuple[str, str]] = []  # (file, where it is set) plugins write
@@ -351,7 +353,7 @@ class PluginHost:
         before = set(threading.enumerate())
         self._starting_now = name, before
         try:
-            problem = bounded(label, deadline, self._normal(fn))
+            problem = bounded(label, deadline, self._normal(fn, name in self.below_loop))
         finally:
             self._starting_now = None
         for thread in set(threading.enumerate()) - before:
@@ -390,6 +392,16 @@ class PluginHost:
         if self.end_run is not None:
             self.end_run(why)
 
+    def _threads_below_loop(self, name: str) -> bool:
+        """The plugin's ``abh3_threads`` answer; anything but ``"below_loop"`` (a failure
+        included: said) leaves its threads at normal priority."""
+        try:
+            answers = self._caller(name, "abh3_threads")()
+        except Exception as exc:
+            log.warning("plugin %s: abh3_threads failed (%r): normal priority", name, exc)
+            return False
+        return hookspecs.THREADS_BELOW_LOOP in answers
+
     def _has(self, name: str, hook: str) -> bool:
         caller = getattr(self.pm.hook, hook)
         return any(impl.plugin_name == name for impl in caller.get_hookimpls())
@@ -415,6 +427,8 @@ class PluginHost:
             self._modules.setdefault(type(self.pm.get_plugin(name)).__module__, set()).add(name)
             for hook in observing:
                 self._caller(name, hook)
+            if self._threads_below_loop(name):
+                self.below_loop.add(name)
         owners: dict[int, str] = {}  # source (by id) → the plugin that registered it
         for name in self.names:
             self.started.append(name)  # even if it fails half way: it may hold resources
@@ -436,7 +450,8 @@ class PluginHost:
         for name, worker in self.workers.items():
             if self._has(name, tick.HOOK):
                 hz = self.tick_hz.get(name, tick.DEFAULT_HZ)
-                ticker = tick.Ticker(name, hz, sup.clock, worker.post, self.thread_setup)
+                setup = functools.partial(self.thread_setup, name in self.below_loop)
+                ticker = tick.Ticker(name, hz, sup.clock, worker.post, setup)
                 self.tickers.append(ticker)
         sup.subscribe(self._observe)
         self._start_inputs(sup, loop, owners)  # always: service clients may attach later
@@ -470,11 +485,12 @@ class PluginHost:
                     f"plugin {owner} could not start (input {source.name}): {problem}"
                 )
 
-    def _normal(self, fn: Callable[[], object]) -> Callable[[], object]:
-        """``fn`` run at normal priority (plugin code, on a thread of its own)."""
+    def _normal(self, fn: Callable[[], object], below_loop: bool = False) -> Callable[[], object]:
+        """``fn`` run at normal priority, or just below the loop's for a plugin that asked
+        (plugin code, on a thread of its own)."""
 
         def call() -> object:
-            self.thread_setup()
+            self.thread_setup(below_loop)
             return fn()
 
         return call
@@ -504,7 +520,9 @@ class PluginHost:
         return None
 
     def _watch(self) -> None:
-        """A hook that sticks is said while it sticks (the queue fills much later)."""
+        """A hook that sticks is said while it sticks (the queue fills much later), and
+        its thread goes back to normal priority: a real-time thread spinning would keep
+        the machine's other programs off a core."""
         said: dict[str, float] = {}  # plugin → the start of the call already said
         while not self._watching.wait(min(STUCK_S / 4, 0.5)):
             now = time.monotonic()
@@ -519,6 +537,8 @@ class PluginHost:
                 )
                 log.warning("%s", message)
                 self._notice(message, logging.WARNING)
+                if name in self.below_loop and worker.thread.native_id is not None:
+                    self.demote(worker.thread.native_id)
 
     def attach(self, source: InputSource) -> InputFeed | None:
         """A source that comes and goes during the run (a service client), on the loop;

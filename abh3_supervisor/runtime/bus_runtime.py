@@ -248,8 +248,10 @@ class Runtime:
 
             self.plugins.end_run = end_run
             # plugins' threads (DDS, rclpy's executor) at normal priority: at the loop's
-            # real-time one they delayed rclpy's cmd_vel by 150–250 ms (runtime/priority.py)
-            self.plugins.thread_setup = priority.normal
+            # real-time one they delayed rclpy's cmd_vel by 150–250 ms; just below it for
+            # a plugin that asks (runtime/priority.py)
+            self.plugins.thread_setup = priority.plugin_thread
+            self.plugins.demote = priority.demote
             self.plugins.start(self.supervisor, loop)  # fails the run before motion
         for name, pump in self.pumps.items():
             self.supervisor.wakers[name] = pump.wake

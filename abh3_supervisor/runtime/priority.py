@@ -10,8 +10,11 @@ the moment its timer fires. So the supervisor's loop asks for ``SCHED_FIFO`` (pr
 
 Threads started afterwards inherit it, which the bus's own need (python-can's reader of a
 bus without a file descriptor: at a lower priority, holding the GIL, it held the loop up
-by 5 ms). Plugins' threads call :func:`normal` first (``PluginHost.thread_setup``), so
-DDS and rclpy run at normal priority (at the loop's, rclpy delivered ``cmd_vel`` late).
+by 5 ms). Plugins' threads call :func:`plugin_thread` first (``PluginHost.thread_setup``):
+normal priority by default, so DDS and rclpy run there (at the loop's, rclpy delivered
+``cmd_vel`` late); ``BELOW_LOOP_PRIORITY`` for a plugin that asks (``abh3_threads``) —
+the same lock held by a normal thread that a busy machine preempts held the loop up by
+3–5 ms under an MQTT flood (docs/performance.md, "DP0 timing against the broker").
 Linux throttles real-time tasks to 95 % of a CPU by default, so even a loop gone wrong
 leaves the machine usable.
 """
@@ -27,6 +30,7 @@ from collections.abc import Iterator
 from abh3_supervisor.errors import Abh3Error
 
 FIFO_PRIORITY = 20
+BELOW_LOOP_PRIORITY = FIFO_PRIORITY - 10  # plugin threads that asked (plugin_thread)
 # what _may_realtime accepts, and how to give it (the shipped systemd unit does the first)
 HOW_TO_ALLOW = (
     f"it needs root or an RLIMIT_RTPRIO of at least {FIFO_PRIORITY}: LimitRTPRIO={FIFO_PRIORITY} "
@@ -51,6 +55,24 @@ def normal() -> None:
     with contextlib.suppress(OSError, AttributeError):
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def plugin_thread(below_loop: bool) -> None:
+    """The calling thread (a plugin's, started by the loop's) at normal priority, or, for
+    a plugin that asked and while it runs real-time, at ``BELOW_LOOP_PRIORITY``: it
+    preempts the machine's other programs but never the bus loop."""
+    if not below_loop:
+        normal()
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:  # inherited from the real-time loop
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(BELOW_LOOP_PRIORITY))
+
+
+def demote(native_id: int) -> None:
+    """Thread ``native_id`` of this process to normal priority (a plugin's stuck hook)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(native_id, os.SCHED_OTHER, os.sched_param(0))
 
 
 def _may_realtime() -> bool:

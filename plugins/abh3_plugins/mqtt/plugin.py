@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from abh3_plugins.mqtt.settings import Settings, parse, schema
 from abh3_supervisor.plugin_api import (
+    THREADS_BELOW_LOOP,
     VELOCITY,
     CommandError,
     Config,
@@ -48,7 +49,7 @@ if TYPE_CHECKING:  # paho is the mqtt extra's: imported when a run starts, not t
     from abh3_plugins.mqtt.link import Link
 
 log = logging.getLogger("abh3_plugins.mqtt")
-ABH3_API_VERSION = "1.1"  # the plugin API this is written for (clear_emergency_stop)
+ABH3_API_VERSION = "1.2"  # the plugin API this is written for (abh3_threads)
 WARN_EVERY_S = 5.0  # a refusal's log line, per robot and topic
 REFUSAL_EVENTS_PER_S = 10  # beyond, per robot, refusals are counted into the next event
 NEEDS = {"estop": "allow_estop", "estop_clear": "allow_estop_clear", "twist": "allow_commands"}
@@ -151,6 +152,13 @@ class MqttPlugin:
             )
 
     # ------------------------------------------------------------ start
+
+    @hookimpl
+    def abh3_threads(self) -> str:
+        # short work between sleeps (paho's network thread, the sender, the state timer):
+        # at normal priority, preempted while holding the GIL under a flood, they held the
+        # bus loop up by 3–5 ms (docs/performance.md, "DP0 timing against the broker")
+        return THREADS_BELOW_LOOP
 
     @hookimpl
     def abh3_start(self, supervisor: SupervisorView) -> None:
