@@ -35,7 +35,7 @@ from abh3_supervisor.core.supervisor import (
     OwnerChange,
 )
 from abh3_supervisor.core.twist_limits import fastest_twist
-from abh3_supervisor.errors import CommandError
+from abh3_supervisor.errors import CommandError, PluginError
 from abh3_supervisor.plugin_host import terminal
 from abh3_supervisor.plugin_host.hookspecs import PROJECT, THREADS_BELOW_LOOP, hookimpl
 from abh3_supervisor.plugin_host.view import (
@@ -60,7 +60,7 @@ from abh3_supervisor.protocol.frames import (
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 
 # 1.1: fleet; SupervisorView.clear_emergency_stop, .bus_counters, .foreign_hosts
-# 1.2: the abh3_threads hook, THREADS_BELOW_LOOP
+# 1.2: the abh3_threads hook, THREADS_BELOW_LOOP; PluginError (said as written)
 API_VERSION = "1.2"
 """``MAJOR.MINOR`` of this module's promise; a plugin may check the major it was written for."""
 
@@ -102,6 +102,7 @@ __all__ = [
     "Odometer",
     "OperatorAction",
     "OwnerChange",
+    "PluginError",
     "Pose",
     "RobotConfig",
     "Role",

@@ -70,10 +70,14 @@ def fleet_of_two(link: FakeLink, at: float) -> None:
             link.inbox.append(Received(state_topic(fid, unit), unit_state(fid, unit, time=at), False, at))  # fmt: skip
 
 
-def screen_text(app: FleetApp) -> str:
-    content = app.query_one("#fleet", Static).content
-    assert isinstance(content, Text)
-    return content.plain
+def screen_text(app: FleetApp, only: str | None = None) -> str:
+    """The head and the list (or ``only`` one of them, by id)."""
+    shown = []
+    for part in ("fleet-head", "fleet") if only is None else (only,):
+        content = app.query_one(f"#{part}", Static).content
+        assert isinstance(content, Text)
+        shown.append(content.plain)
+    return "".join(shown)
 
 
 def run(check: Check, v5: bool = True) -> None:
@@ -127,6 +131,37 @@ def test_e_stops_the_selected_robot_at_once_and_says_what_came_of_it() -> None:
             link.inbox.append(Received(state_topic(B, unit), unit_state(B, unit, estop=True, time=clock.now), False, clock.now))  # fmt: skip
         app.tick()
         assert f"e-stop {B} (seq 1): latched on {B}" in screen_text(app)
+
+    run(check)
+
+
+def test_the_selection_scrolls_into_sight_and_the_head_stays() -> None:
+    """25 robots of 2 units do not fit in 40 rows: ↓ moves the selection, the list
+    follows it, and the command's outcome stays in sight."""
+
+    async def check(app: FleetApp, pilot: object, link: FakeLink, clock: Clock) -> None:
+        many = [f"r{i:02}" for i in range(25)]
+        for fid in many:
+            link.inbox.append(Received(status_topic(fid), status(fid, time=clock.now), True, clock.now))  # fmt: skip
+            for unit in ("left", "right"):
+                link.inbox.append(Received(state_topic(fid, unit), unit_state(fid, unit, time=clock.now), False, clock.now))  # fmt: skip
+        app.tick()
+        for _ in range(20):
+            await pilot.press("down")  # type: ignore[attr-defined]
+        await pilot.pause()  # type: ignore[attr-defined]
+        order = sorted([A, B, *many])
+        assert app.selected == order[20]
+        await pilot.press("e")  # type: ignore[attr-defined]
+        assert link.published[-1][0] == f"{PREFIX}/{order[20]}/cmd/estop"
+        app.tick()
+        await pilot.pause()  # type: ignore[attr-defined]
+        head = app.query_one("#fleet-head", Static)
+        assert f"e-stop {order[20]} (seq 1)" in str(head.content)
+        assert head.region.y == 0  # above the list, never scrolled
+        lines = screen_text(app, "fleet").splitlines()
+        row = next(i for i, line in enumerate(lines) if line.startswith(f"▶ {order[20]}"))
+        top = round(app.scroller.scroll_y)
+        assert top <= row < top + app.scroller.scrollable_content_region.height
 
     run(check)
 

@@ -16,7 +16,7 @@ import pytest
 
 from abh3_plugins.mqtt.outbox import Message, Outbox
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.errors import ConfigError
+from abh3_supervisor.errors import ConfigError, PluginError
 from abh3_supervisor.fleet import payloads, schemas
 from abh3_supervisor.fleet.ids import client_id, fleet_id
 from abh3_supervisor.fleet.payloads import Refused, SeqGuard, UnitReport
@@ -236,6 +236,16 @@ def test_the_outbox_is_bounded_drops_states_first_and_counts() -> None:
     assert len(box) == 10 and box.dropped == 17
 
 
+def test_the_last_message_goes_after_everything_even_what_is_put_after_it() -> None:
+    """The orderly ``offline`` after the last states (put after it by the way out)."""
+    box = Outbox(10, "t")
+    box.put(Message("event", b"", 0, False), lossy=False)
+    box.put_last(Message("offline", b"", 0, True))
+    box.put(Message("state", b"", 0, False), lossy=True)
+    assert len(box) == 3
+    assert [m.topic for m in iter(lambda: box.take(0), None)] == ["event", "state", "offline"]
+
+
 def problems(section: str) -> list[str]:
     cfg = parse_config(TWO_UNITS + f"plugins:\n  mqtt:\n{section}", "f.yaml")
     try:
@@ -263,10 +273,33 @@ def test_settings_are_checked_with_file_line_and_key(tmp_path: Path) -> None:
         ("    name: a/b\n", "plugins.mqtt.name"),
         ("    topic_prefix: 'abh3/#'\n", "plugins.mqtt.topic_prefix"),
         ("    attach: http://x\n", "plugins.mqtt.attach"),
+        ("    manufacturer: 'acme/#'\n", "plugins.mqtt.manufacturer: 'acme/#': only letters"),
+        ("    allow_commands: true\n    protocol: '3.1.1'\n", "allow_commands: needs protocol: 5"),
+        (
+            "    username: u\n    password_env: X\n    password_file: /etc/hostname\n",
+            "plugins.mqtt.password_file: give password_env or password_file, not both",
+        ),
     ]
     for section, expect in bad:
         found = problems(section)
         assert any(expect in p and p.startswith("f.yaml:") for p in found), (section, found)
+
+
+def test_a_password_that_cannot_be_had_is_said_with_its_setting(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from abh3_plugins.mqtt.settings import Settings
+
+    monkeypatch.delenv("ABH3_NOT_SET", raising=False)
+    unset = Settings(password_env="ABH3_NOT_SET", secret_at="f.yaml:7: plugins.mqtt.password_env")
+    with pytest.raises(PluginError) as env:
+        unset.password()
+    assert str(env.value) == (
+        "f.yaml:7: plugins.mqtt.password_env: the environment variable ABH3_NOT_SET is not set"
+    )
+    missing = Settings(password_file=str(tmp_path / "gone"), secret_at="f.yaml:8: k")
+    with pytest.raises(PluginError, match=r"^f.yaml:8: k: .*gone: No such file or directory$"):
+        missing.password()
 
 
 def test_abh3_check_never_prints_the_password(tmp_path: Path) -> None:

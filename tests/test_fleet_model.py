@@ -355,6 +355,22 @@ def test_a_robots_refusal_event_is_said() -> None:
     assert sent.summary().endswith(f"{A} refused: allow_estop_clear is false")
 
 
+def test_a_refusal_outweighs_a_state_that_shows_what_was_asked() -> None:
+    """A robot never latched shows "cleared" whether it obeyed a clear or refused it."""
+    model = fleet()
+    online(model)
+    commander = Commander("me", PREFIX)
+    sent = commander.build(model, A, clear=True, reason="r", now=T0 + 1)
+    for unit in ("left", "right"):
+        model.feed(state_topic(A, unit), unit_state(A, unit, estop=False), False, T0 + 1.1)
+    commander.observe(model)
+    assert sent.robot_said == {A: "cleared"}
+    ours = refused(sent.topic, "allow_estop is false", "me")
+    model.feed(f"{PREFIX}/{A}/events", ours, False, T0 + 1.2)
+    commander.observe(model)
+    assert sent.summary().endswith(f"{A} refused: allow_estop is false")
+
+
 def test_under_3_1_1_a_refusal_on_the_commands_topic_is_taken_as_its() -> None:
     model = fleet()
     online(model)

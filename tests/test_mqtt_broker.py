@@ -95,6 +95,11 @@ def test_birth_states_health_and_the_orderly_death_are_retained_and_valid(
         assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
     assert run.proc.returncode == 0, run.log()
     w.wait_for(status("offline", fid))
+    topics = [m.topic for m in w.messages]
+    offline = max(i for i, m in enumerate(w.messages) if m.body.get("state") == "offline")
+    for unit in ("front", "rear"):  # the last word on each unit, then offline
+        last = max(i for i, topic in enumerate(topics) if topic.endswith(f"/{unit}/state"))
+        assert last < offline
     w.wait_for(lambda m: m.topic.endswith("/connection") and m.body["connectionState"] == "OFFLINE")
     assert not w.wait_for(status("offline", fid)).retain  # live, and retained for later:
     after = watch(broker, OBSERVER)
@@ -288,6 +293,46 @@ def test_vda5050_start_pause_and_stop_pause(broker: Broker, tmp_path: Path) -> N
     sent = [m for m in fleet.messages if m.topic == t.instant_actions]
     assert len(sent) == 3  # ours too, validated against the official schema on receipt
     assert not fleet.invalid
+
+
+def test_each_action_of_a_vda5050_message_is_judged_on_its_own_and_malformed_is_refused(
+    broker: Broker, tmp_path: Path
+) -> None:
+    fleet = watch(broker)
+    fid, t = "sup10-rover", Topics("sup10-rover")
+    with supervisor(config(tmp_path, "sup10", broker, allow_estop=True)) as run:
+        fleet.wait_for(status("online", fid), 30)
+        actions = payloads.vda_instant_actions(
+            1, time.time(), manufacturer=t.manufacturer, fleet_id=fid,
+            actions=["stopPause", "startPause"],
+        )  # fmt: skip
+        fleet.publish(t.instant_actions, actions)  # the clear not allowed, the stop is
+        fleet.wait_for(event("fleet_command_refused", fid, "allow_estop_clear is false"))
+        fleet.wait_for(event("estop_latched", fid))
+        fleet.wait_for(estop_state(fid, True))
+        for why, body in {
+            "malformed: RecursionError": b"[" * 2040 + b"]" * 2040,
+            "malformed: OverflowError": command(2, time=10**400),
+        }.items():
+            mark = fleet.mark()
+            fleet.publish(t.command("estop"), body)
+            fleet.wait_for(event("fleet_command_refused", fid, why), since=mark)
+    assert "could not be handled" not in run.log()
+
+
+def test_a_flood_of_twists_never_holds_an_e_stop_back(broker: Broker, tmp_path: Path) -> None:
+    """Twists are read at most 100 a second on their connection; e-stops have their own."""
+    fleet = watch(broker)
+    fid, t = "sup11-rover", Topics("sup11-rover")
+    with supervisor(config(tmp_path, "sup11", broker, allow_estop=True)):
+        fleet.wait_for(status("online", fid), 30)
+        body = payloads.twist_command(1, time.time(), sender="flood", linear=0.0, angular=0.0)
+        twist = payloads.encode(body)
+        for _ in range(3000):  # 30 s of reading at the cap, queued at the broker
+            fleet.client.publish(t.command("twist"), twist, 0)
+        mark = fleet.mark()
+        fleet.publish(t.command("estop"), command(1))
+        fleet.wait_for(event("estop_latched", fid), timeout=5, since=mark)
 
 
 def _speed(m: Received) -> float:

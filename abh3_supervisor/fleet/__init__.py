@@ -5,7 +5,14 @@ import): what goes over the wire is built and checked here, sent elsewhere.
 """
 
 from abh3_supervisor.fleet import ids, payloads, schemas, topics
-from abh3_supervisor.fleet.ids import client_id, default_name, fleet_id, safe, vda_client_id
+from abh3_supervisor.fleet.ids import (
+    client_id,
+    default_name,
+    fleet_id,
+    safe,
+    stop_client_id,
+    vda_client_id,
+)
 from abh3_supervisor.fleet.payloads import Command, Refused, SeqGuard, Sequence, UnitReport
 from abh3_supervisor.fleet.topics import (
     ALL,
@@ -40,6 +47,7 @@ __all__ = [
     "robot_of",
     "safe",
     "schemas",
+    "stop_client_id",
     "topics",
     "vda_client_id",
     "where",

@@ -29,6 +29,12 @@ def client_id(fid: str) -> str:
     return f"abh3-{fid}"
 
 
+def stop_client_id(fid: str) -> str:
+    """The client id of a robot's stop connection (e-stop and clear only: never behind
+    another command)."""
+    return f"abh3-{fid}.stop"
+
+
 def vda_client_id(fid: str) -> str:
     """The client id of a robot's VDA 5050 connection (its own last will: one MQTT
     connection carries only one)."""

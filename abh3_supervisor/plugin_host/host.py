@@ -661,7 +661,8 @@ def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None
         try:
             fn()
         except (Exception, SystemExit) as exc:  # sys.exit() is no success either
-            failure.append(repr(exc))
+            # ours (a plugin's PluginError: a user's mistake) as said; anything else, its repr
+            failure.append(str(exc) if isinstance(exc, Abh3Error) else repr(exc))
             log.debug("%s failed", label, exc_info=True)
         finally:
             done.release()

@@ -21,7 +21,7 @@ from textual.widgets import Footer, Static
 from abh3_supervisor.clients.fleet.commands import Commander, Sent
 from abh3_supervisor.clients.fleet.model import FleetModel
 from abh3_supervisor.clients.fleet.session import Link, Session
-from abh3_supervisor.clients.fleet.view import render
+from abh3_supervisor.clients.fleet.view import SELECTED, body, head
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 
 TICK_S = 0.1
@@ -39,8 +39,9 @@ class FleetApp(App[int]):
     CSS_PATH = "../tui/abh3.tcss"  # the TUI's dialogs
     TITLE = "abh3 fleet"
     BINDINGS: ClassVar[list[BindingType]] = [
-        Binding("up", "move(-1)", "previous robot", show=False),
-        Binding("down", "move(1)", "next robot", show=False),
+        # before the list's own scrolling: the selection moves, the list follows it
+        Binding("up", "move(-1)", "previous robot", show=False, priority=True),
+        Binding("down", "move(1)", "next robot", show=False, priority=True),
         Binding("e", "estop", "e-stop robot"),
         Binding("E", "estop_all", "e-stop ALL"),
         Binding("c", "clear", "clear robot"),
@@ -60,10 +61,14 @@ class FleetApp(App[int]):
         super().__init__()
         self.session = Session(model, commander, link, reason, clock)
         self.selected: str | None = None
-        self.shown = Static(id="fleet")  # one text, repainted: whatever screen is on top
+        # two texts, repainted: whatever screen is on top; the head never scrolls away
+        self.head = Static(id="fleet-head")
+        self.shown = Static(id="fleet")
+        self.scroller = VerticalScroll()
 
     def compose(self) -> ComposeResult:
-        with VerticalScroll():
+        yield self.head
+        with self.scroller:
             yield self.shown
         yield Footer()
 
@@ -77,15 +82,25 @@ class FleetApp(App[int]):
             self.selected = min(self.session.model.robots, default=None)
         now = self.session.clock()
         latest = self.session.commander.latest()
-        text = render(
-            self.session.model,
-            now,
-            self.selected,
-            self.session.link.describe(now),
-            latest.summary() if latest else None,
-            connected=self.session.link.connected,
-        )
-        self.shown.update(text)
+        model, connected = self.session.model, self.session.link.connected
+        broker = self.session.link.describe(now)
+        summary = latest.summary() if latest else None
+        self.head.update(head(model, broker, summary, connected=connected))
+        shown = body(model, now, self.selected, connected=connected)
+        self.shown.update(shown)
+        self._follow(shown.plain)
+
+    def _follow(self, plain: str) -> None:
+        """Scroll the list so that the selected robot's line is in sight."""
+        lines = plain.splitlines()
+        row = next((i for i, line in enumerate(lines) if line.startswith(SELECTED)), None)
+        if row is None:
+            return
+        top, height = round(self.scroller.scroll_y), self.scroller.scrollable_content_region.height
+        if row < top:
+            self.scroller.scroll_to(y=row, animate=False)
+        elif height and row >= top + height:
+            self.scroller.scroll_to(y=row - height + 1, animate=False)
 
     # -- keys ------------------------------------------------------------------------
 

@@ -115,20 +115,25 @@ class Commander:
             sent.broker = TAKEN if self.v5 else UNCONFIRMED
 
     def observe(self, model: FleetModel) -> None:
-        """What the robots have said since each command was sent."""
+        """What the robots have said since each command was sent. A robot's refusal is
+        its last word, even after its units showed the state asked for: a robot never
+        latched shows "cleared" whether it obeyed a clear or refused it."""
         for sent in self.sent[-10:]:  # the recent ones are still being watched
             for fid in sent.robots:
                 robot = model.robots.get(fid)
-                if robot is None or sent.robot_said.get(fid) == sent.done:
-                    continue
+                if robot is None or sent.robot_said.get(fid) not in (None, OBEYED, sent.done):
+                    continue  # unseen, or refused
                 for event in robot.events:
                     if event.received < sent.time:
                         continue
                     if event.kind == REFUSED_KIND and _ours(event.data, self.sender, sent):
                         reason = event.data.get("reason")
                         sent.robot_said[fid] = reason if isinstance(reason, str) else event.text
-                    elif event.kind == OBEYED_KIND and _obeyed(event.data, self.sender, sent):
-                        sent.robot_said[fid] = OBEYED
+                        break
+                    if event.kind == OBEYED_KIND and _obeyed(event.data, self.sender, sent):
+                        sent.robot_said.setdefault(fid, OBEYED)
+                if sent.robot_said.get(fid) not in (None, OBEYED):
+                    continue
                 units = [robot.units[n] for n in model.unit_names(robot) if n in robot.units]
                 if (
                     units

@@ -30,6 +30,9 @@ COLUMNS = (  # header, width
 )
 
 
+SELECTED = "▶ "  # the selected robot's line starts with it (the app scrolls to it)
+
+
 def age(seconds: float) -> str:
     return f"{seconds:.1f} s" if seconds < 10 else f"{seconds:.0f} s"
 
@@ -82,6 +85,14 @@ def render(
 ) -> Text:
     """The whole view; ``selected`` the fleet_id the robot keys act on; ``connected``
     False: the broker is lost, so no robot's status is current (each says so)."""
+    text = head(model, broker, last_command, connected=connected)
+    text.append_text(body(model, now, selected, connected=connected))
+    return text
+
+
+def head(model: FleetModel, broker: str, last_command: str | None, *, connected: bool) -> Text:
+    """What stays in sight however long the list: the broker, the last command's outcome,
+    messages ignored."""
     text = Text(no_wrap=True, overflow="crop")
     text.append(broker + "\n", "bold" if connected else "bold red")
     if last_command:
@@ -94,6 +105,12 @@ def render(
             f"(ignored); last: {model.problem}\n",
             "yellow",
         )
+    return text
+
+
+def body(model: FleetModel, now: float, selected: str | None, *, connected: bool) -> Text:
+    """Every robot and its units, then the selected robot's recent events."""
+    text = Text(no_wrap=True, overflow="crop")
     if not model.robots:
         text.append("\nNo robot seen on this broker under this prefix yet.\n", "dim")
         return text
@@ -136,7 +153,7 @@ def _robot(
     text: Text, model: FleetModel, robot: Robot, now: float, selected: bool, connected: bool
 ) -> None:
     label, style = robot_state(robot)
-    text.append("▶ " if selected else "  ")
+    text.append(SELECTED if selected else "  ")
     text.append(robot.fleet_id, "reverse" if selected else "bold")
     text.append("  ")
     if connected:

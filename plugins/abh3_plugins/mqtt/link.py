@@ -1,13 +1,16 @@
 """One robot's connections to the broker: its own client id, its own last will.
 
-Two paho clients per robot, because one MQTT connection carries one last will: the main
-one (``abh3-{fleet_id}``: status, states, events, health, the fleet's commands; its will
-the retained ``status`` ``connection_broken``) and, with ``vda5050`` on, the VDA 5050 one
-(``abh3-{fleet_id}.vda``: ``connection``, its will ``CONNECTIONBROKEN``, and
-``instantActions``). paho's own thread reads, writes, pings and reconnects each; a sender
-thread of ours moves the outbox into the main client only while it is connected, with at
-most ``MAX_INFLIGHT`` messages paho has not written yet: whatever the broker does, nothing
-but the bounded outbox grows, and the hooks never wait for it.
+Up to three paho clients per robot: the main one (``abh3-{fleet_id}``: status, states,
+events, health, the fleet's twists; its will the retained ``status``
+``connection_broken``); the stop one (``abh3-{fleet_id}.stop``: the e-stop and clear
+topics only, so that no flood of other commands, held back by the reading cap below, can
+keep an e-stop waiting behind it); and, with ``vda5050`` on, the VDA 5050 one
+(``abh3-{fleet_id}.vda``: ``connection``, its will ``CONNECTIONBROKEN`` — one MQTT
+connection carries one last will — and ``instantActions``). paho's own thread reads,
+writes, pings and reconnects each; a sender thread of ours moves the outbox into the
+main client only while it is connected, with at most ``MAX_INFLIGHT`` messages paho has
+not written yet: whatever the broker does, nothing but the bounded outbox grows, and the
+hooks never wait for it.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands a
 # thread waits before reading the next, so a flooding fleet is held back by TCP and the
 # broker, not by our Python (which shares its interpreter lock with the bus loop)
 INCOMING_PER_S = 100.0
+STOPS = ("estop", "estop_clear")  # on the stop connection, for this robot and for `all`
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
 
 OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
@@ -86,6 +90,9 @@ class Link:
         self.client.on_connect = self._connected
         self.client.on_disconnect = self._disconnected
         self.client.on_message = self._message
+        self.stop = self._client(fleet.stop_client_id(fleet_id))
+        self.stop.on_connect = self._stop_connected
+        self.stop.on_message = self._message
         self.vda: mqtt.Client | None = None
         if settings.vda5050:
             self.vda = self._client(fleet.vda_client_id(fleet_id))
@@ -118,7 +125,7 @@ class Link:
         if self.settings.protocol == "5":
             properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
             properties.MaximumPacketSize = MAX_PACKET
-        for client in (self.client, self.vda):
+        for client in (self.client, self.stop, self.vda):
             if client is not None:
                 client.connect_async(
                     self.settings.host,
@@ -176,10 +183,7 @@ class Link:
         client.publish(
             self.topics.status, payloads.encode(self.status("online")), qos["status"], retain=True
         )
-        t = self.topics
-        topics = [t.command(kind) for kind in fleet.COMMANDS]
-        topics += [t.command(kind, everyone=True) for kind in fleet.COMMANDS[:2]]
-        client.subscribe([(topic, self._options()) for topic in topics])
+        client.subscribe([(self.topics.command("twist"), self._options())])
         if self._ever:
             self.reconnects += 1
             log.info("mqtt %s: connected again to %s", self.fleet_id, self.settings.url)
@@ -187,6 +191,15 @@ class Link:
             log.info("mqtt %s: connected to %s", self.fleet_id, self.settings.url)
         self._ever = True
         self.connected.set()
+
+    def _stop_connected(
+        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        if reason.is_failure:
+            return  # said by the main connection, refused alike
+        t = self.topics
+        stops = [t.command(kind, everyone=every) for kind in STOPS for every in (False, True)]
+        client.subscribe([(topic, self._options()) for topic in stops])
 
     def _vda_connected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
@@ -277,14 +290,9 @@ class Link:
     # ------------------------------------------------------------ the way out
 
     def say_offline(self) -> None:
-        """The orderly death: ``offline`` after everything queued."""
-        self.put(
-            self.topics.status,
-            self.status("offline"),
-            self.settings.qos["status"],
-            retain=True,
-            lossy=False,
-        )
+        """The orderly death: ``offline`` after everything queued, the last states too."""
+        status = payloads.encode(self.status("offline"))
+        self.outbox.put_last(Message(self.topics.status, status, self.settings.qos["status"], True))
 
     def close(self) -> None:
         """Disconnect in order (no last will), once the sender is done or given up."""
@@ -302,5 +310,6 @@ class Link:
                 info.wait_for_publish(0.3)
             self.vda.disconnect()
             self.vda.loop_stop()
-        self.client.disconnect()
-        self.client.loop_stop()
+        for client in (self.stop, self.client):
+            client.disconnect()
+            client.loop_stop()

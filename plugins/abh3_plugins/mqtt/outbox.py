@@ -1,10 +1,11 @@
 """What waits for the network, bounded: the hooks put, the link's sender takes.
 
 Two lanes: ``keep`` (status, events: each one says something once) before ``lossy``
-(unit states and health: the next one says it again). Beyond ``size`` messages the oldest
-lossy one goes first, then the oldest kept one; each is counted, and the first drop is
-said once in the log. ``put`` never blocks on the network: a lock held for a deque
-operation is all a hook waits for.
+(unit states and health: the next one says it again); and ``last``, one message sent
+once both are empty (the orderly ``offline``: after the last states). Beyond ``size``
+messages the oldest lossy one goes first, then the oldest kept one; each is counted, and
+the first drop is said once in the log. ``put`` never blocks on the network: a lock held
+for a deque operation is all a hook waits for.
 """
 
 from __future__ import annotations
@@ -31,11 +32,12 @@ class Outbox:
         self.dropped = 0
         self._keep: deque[Message] = deque()
         self._lossy: deque[Message] = deque()
+        self._last: Message | None = None
         self._ready = threading.Condition()
         self._closed = False
 
     def __len__(self) -> int:
-        return len(self._keep) + len(self._lossy)
+        return len(self._keep) + len(self._lossy) + (self._last is not None)
 
     def put(self, message: Message, *, lossy: bool) -> None:
         with self._ready:
@@ -52,6 +54,12 @@ class Outbox:
                     )
             self._ready.notify()
 
+    def put_last(self, message: Message) -> None:
+        """``message`` after everything queued, and after whatever is put meanwhile."""
+        with self._ready:
+            self._last = message
+            self._ready.notify()
+
     def take(self, timeout: float | None) -> Message | None:
         """The next message (kept ones first), or None after ``timeout`` or once closed."""
         with self._ready:
@@ -61,7 +69,8 @@ class Outbox:
                 return self._keep.popleft()
             if self._lossy:
                 return self._lossy.popleft()
-            return None
+            last, self._last = self._last, None
+            return last
 
     def close(self) -> None:
         with self._ready:

@@ -356,16 +356,29 @@ class MqttPlugin:
             return
         try:
             commands = self._parse(link, topic, message, sender)
-            for command in commands:
+            if commands:  # one seq per message: a VDA message's actions share its headerId
+                self.seqs.admit(f"{link.fleet_id} {topic}", commands[0])  # per robot: `all` too
+        except fleet.Refused as exc:
+            self._refuse(link, topic, str(exc), sender)
+            return
+        for command in commands:  # in order, each judged on its own
+            try:
                 needs = NEEDS[command.kind]
                 if not getattr(self.settings, needs):
                     raise fleet.Refused(f"{command.kind} from {command.sender}: {needs} is false")
-                self.seqs.admit(f"{link.fleet_id} {topic}", command)  # per robot: `all` too
                 self._obey(link, topic, command)
-        except fleet.Refused as exc:
-            self._refuse(link, topic, str(exc), sender)
+            except fleet.Refused as exc:
+                self._refuse(link, topic, str(exc), sender)
 
     def _parse(
+        self, link: Link, topic: str, message: mqtt.MQTTMessage, sender: str | None
+    ) -> list[fleet.Command]:
+        try:
+            return self._read(link, topic, message, sender)
+        except (RecursionError, ArithmeticError) as exc:  # deep nesting, huge numbers
+            raise fleet.Refused(f"malformed: {type(exc).__name__}") from None
+
+    def _read(
         self, link: Link, topic: str, message: mqtt.MQTTMessage, sender: str | None
     ) -> list[fleet.Command]:
         now, timeout = time.time(), self.settings.command_timeout_s

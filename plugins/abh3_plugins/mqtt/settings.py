@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from abh3_supervisor.plugin_api import Config, Section, fleet
+from abh3_supervisor.plugin_api import Config, PluginError, Section, fleet
 from abh3_supervisor.plugin_api import schema as js
 
 log = logging.getLogger("abh3_plugins.mqtt")
@@ -63,6 +63,7 @@ class Settings:
     username: str | None = None
     password_env: str | None = None
     password_file: str | None = None
+    secret_at: str = "plugins.mqtt"  # FILE:LINE: key of the password setting, for errors
     keepalive_s: int = 10
     state_rate_hz: float = 2.0
     health_s: float = 5.0
@@ -83,17 +84,21 @@ class Settings:
         return f"{'mqtts' if self.tls else 'mqtt'}://{self.host}:{self.port}"
 
     def password(self) -> str | None:
-        """The password, read now (never kept in the settings, never logged); OSError
-        when it cannot be had."""
+        """The password, read now (never kept in the settings, never logged); a
+        PluginError naming the setting when it cannot be had."""
         if self.password_env is not None:
             value = os.environ.get(self.password_env)
             if value is None:
-                raise OSError(
-                    f"mqtt: password_env: the environment variable {self.password_env} is not set"
+                raise PluginError(
+                    f"{self.secret_at}: the environment variable {self.password_env} is not set"
                 )
             return value
         if self.password_file is not None:
-            return Path(self.password_file).read_text("utf-8").rstrip("\r\n")
+            try:
+                return Path(self.password_file).read_text("utf-8").rstrip("\r\n")
+            except (OSError, UnicodeDecodeError) as exc:
+                why = getattr(exc, "strerror", None) or exc
+                raise PluginError(f"{self.secret_at}: {self.password_file}: {why}") from None
         return None
 
 
@@ -125,9 +130,9 @@ def parse(section: Section, config: Config) -> Settings:
         section.error("tls", f"{url}: TLS settings need an mqtts:// broker")
     q = section.sub("qos", set(QOS_KEYS))
     qos = {k: q.integer(k, v, 0, 2) for k, v in QOS_DEFAULTS.items()}
-    if section.has("password_env") and section.has("password_file"):
-        section.error("password_file", "give password_env or password_file, not both")
     env = section.text("password_env", "") or None
+    if env is not None and section.data.get("password_file") is not None:
+        section.error("password_file", "give password_env or password_file, not both")
     if env is not None and not _ENV.match(env):
         section.error("password_env", f"{env!r} is not an environment variable's name")
     elif env is not None and env not in os.environ:  # the run's environment, maybe not ours
@@ -154,7 +159,7 @@ def parse(section: Section, config: Config) -> Settings:
         protocol=section.choice("protocol", d.protocol, ["5", "3.1.1"]),
         name=name,
         prefix=prefix,
-        manufacturer=section.text("manufacturer", d.manufacturer),
+        manufacturer=_manufacturer(section, d.manufacturer),
         username=section.text("username", "") or None,
         password_env=env,
         password_file=_file(section, "password_file", base),
@@ -171,12 +176,32 @@ def parse(section: Section, config: Config) -> Settings:
         queue=section.integer("queue", d.queue, 10, 1_000_000),
         attach=attach,
         vda5050=section.boolean("vda5050", d.vda5050),
+        secret_at=_where(section, "password_env" if env is not None else "password_file"),
     )
+    if settings.allow_commands and settings.protocol != "5":
+        section.error(
+            "allow_commands",
+            "needs protocol: 5 — under MQTT 3.1.1 a command published retained reaches a "
+            "connected robot without its retain flag, and motion never comes from one",
+        )
     if settings.allow_estop_clear and not settings.allow_estop:
         section.error("allow_estop_clear", "needs allow_estop: true (clearing what it cannot set)")
     if (settings.password_env or settings.password_file) and settings.username is None:
         section.error("username", "a password needs a username")
     return settings
+
+
+def _where(section: Section, key: str) -> str:
+    path = (*section.path, key)
+    return f"{section.src.file}:{section.src.line(path)}: {'.'.join(map(str, path))}"
+
+
+def _manufacturer(section: Section, default: str) -> str:
+    """The VDA 5050 ``manufacturer``: a topic level of its own (no ``/``, ``+``, ``#``)."""
+    value = section.text("manufacturer", default)
+    if not value or fleet.safe(value) != value:
+        section.error("manufacturer", f"{value!r}: only letters, digits, _ . - (a topic level)")
+    return value
 
 
 def _broker(section: Section, url: str) -> tuple[str, int, bool]:
