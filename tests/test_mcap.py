@@ -22,8 +22,9 @@ from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.decode import decode_file
 from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.runtime.headless import run_headless
-from abh3_supervisor.runtime.mcap_recording import VENDOR, McapRecording, read_frames
+from abh3_supervisor.runtime.mcap_recording import McapRecording, read_frames
 from abh3_supervisor.runtime.recorder import GuardedRecorder
+from abh3_supervisor.runtime.ros_topics import VENDOR
 
 pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader
@@ -257,7 +258,7 @@ def test_without_the_mcap_extra_the_run_says_how_to_get_it_before_any_drive_move
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.INFO)
-    monkeypatch.setitem(sys.modules, "mcap_ros2.writer", None)  # import fails as if absent
+    monkeypatch.setitem(sys.modules, "mcap.writer", None)  # import fails as if absent
     cfg = tmp_path / "c.yaml"
     cfg.write_text(CONFIG)
     out = tmp_path / "run.mcap"
