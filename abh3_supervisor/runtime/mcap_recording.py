@@ -43,7 +43,6 @@ def open_mcap(path: Path, config: Config) -> McapRecording:
     """The recording, or a BusOpenError a user can act on (before any bus opens)."""
     try:
         import mcap.writer  # noqa: F401  (only to say now if it is missing)
-        import mcap_ros2._dynamic  # noqa: F401
     except ImportError as exc:
         raise BusOpenError(
             f"--record {path}: an .mcap recording needs the mcap libraries: {INSTALL_HINT}"

@@ -13,14 +13,15 @@ Topics:
   (``/<unit>/odom`` when its ``geometry.pulses_per_rev`` is known);
 - ``/diagnostics`` once a second and when a level changes (:mod:`..core.diagnostics`).
 
-Each message is encoded once, on the loop thread as frames and events arrive, and the
-same bytes go to every sink. This module never imports ``mcap``.
+Each message is encoded once (:mod:`.cdr`), on the loop thread as frames and events
+arrive, and the same bytes go to every sink. This module never imports ``mcap``.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import operator
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -32,6 +33,15 @@ from abh3_supervisor.core.diagnostics import Health, Level, Status
 from abh3_supervisor.core.odometry import Odometer, Pose, odometers, yaw_quaternion
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.protocol import frames
+from abh3_supervisor.runtime.cdr import (
+    DiagStatus,
+    FrameEncoder,
+    OdomEncoder,
+    diagnostic_array,
+    flat_encoder,
+    frame_encoder,
+    odometry_encoder,
+)
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 
 log = logging.getLogger(__name__)
@@ -111,7 +121,6 @@ SCHEMAS: dict[str, str] = {
         "geometry_msgs/Vector3",
     ),
 }
-ZERO36 = [0.0] * 36
 
 
 class TopicSink(Protocol):
@@ -125,33 +134,42 @@ def _int32(value: int) -> int:
     return value - (1 << 32) if value & 0x80000000 else value
 
 
-def _stamp(ns: int) -> dict[str, int]:
-    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+def _brd0(record: frames.Brd0) -> tuple[int, ...]:
+    return _int32(record.error), _int32(record.alarm)
 
 
-def brd_fields(record: frames.Broadcast) -> tuple[str, dict[str, Any]] | None:
-    """The vendor message and its fields for a decoded broadcast, as the bridge sends it."""
-    if isinstance(record, frames.Brd0):
-        return "Abh3Brd0", {"error": _int32(record.error), "alarm": _int32(record.alarm)}
-    if isinstance(record, frames.Brd1):
-        # 2023 sends its input word where 2021 has control (docs/ros2.md)
-        first = record.control if record.control is not None else record.inputs or 0
-        return "Abh3Brd1", {"control": _int32(first), "in_out": _int32(record.io)}
-    name = f"Abh3Brd{type(record).__name__.removeprefix('Brd')}"
-    if name not in VENDOR or not hasattr(record, "__dataclass_fields__"):
-        return None  # broadcast 7 is not defined
-    return name, {k: getattr(record, k) for k in FIELDS[name]}
+def _brd1(record: frames.Brd1) -> tuple[int, ...]:
+    # 2023 sends its input word where 2021 has control (docs/ros2.md)
+    first = record.control if record.control is not None else record.inputs or 0
+    return _int32(first), _int32(record.io)
+
+
+def _fields(name: str) -> Callable[[Any], tuple[float, ...]]:
+    return operator.attrgetter(*FIELDS[name])  # two or more names: a tuple
+
+
+# each broadcast's vendor message and its values in the message's order, as the bridge
+# sends them (broadcast 7 is not defined: none)
+BROADCASTS: dict[type, tuple[str, Callable[[Any], tuple[float, ...]]]] = {
+    frames.Brd0: ("Abh3Brd0", _brd0),
+    frames.Brd1: ("Abh3Brd1", _brd1),
+    **{getattr(frames, f"Brd{n}"): (f"Abh3Brd{n}", _fields(f"Abh3Brd{n}")) for n in range(2, 7)},
+}
+ENCODERS = {f"abh3_can_interface/msg/{name}": flat_encoder(text) for name, text in VENDOR.items()}
 
 
 class RosTopics(can.Listener):
     """Frames (a bus listener) and supervisor events (:meth:`observe`) in, CDR messages
-    out to every sink, all on the loop thread.
+    out to every sink, all on the loop thread. Each message is encoded once, by an
+    encoder made once per message type and constant frame id (:mod:`.cdr`), and each
+    topic's name is made once: the loop builds no dicts per message.
 
     A sink that raises is dropped — it gets no more messages, and the failure is logged
     once and kept in :attr:`failures` — and the others get this message and the ones
     after it: a full disk under the recording does not stop a live view, nor a live view's
     fault the recording. A sink that must report its own failure (the ``.mcap`` file,
-    through :class:`~.recorder.GuardedRecorder`) keeps it and raises it itself."""
+    through :class:`~.recorder.GuardedRecorder`) keeps it and raises it itself.
+    :attr:`sinks` is a list: a sink may be added before the first message."""
 
     def __init__(self, config: Config, sinks: Sequence[TopicSink]) -> None:
         self.sinks = list(sinks)
@@ -164,59 +182,53 @@ class RosTopics(can.Listener):
             for unit in odometer.units:
                 self.odometry.setdefault(unit, []).append(odometer)
         self.offset_ns = 0  # wall clock minus the supervisor's clock
-        self._clock: Callable[[], float] = time.monotonic
         self._next_diagnostics = -math.inf
         self._levels: dict[str, Level] = {}
-        self._encoders: dict[str, Callable[[Any], bytes]] = {}
+        # made at first use: (channel, is_rx) → topic, encoder; unit → its two topics …
+        self._frames: dict[tuple[object, bool], tuple[str, FrameEncoder]] = {}
+        self._feedback_topics: dict[str, tuple[str, str]] = {}
+        self._status_topics: dict[tuple[str, int], str] = {}
+        self._odom: dict[str, tuple[str, OdomEncoder]] = {}
 
-    def _encode(self, schema: str, message: dict[str, Any]) -> bytes:
-        encoder = self._encoders.get(schema)
-        if encoder is None:
-            from mcap_ros2._dynamic import serialize_dynamic
-
-            encoder = self._encoders[schema] = serialize_dynamic(schema, SCHEMAS[schema])[schema]
-        return encoder(message)
-
-    def write(self, topic: str, schema: str, message: dict[str, Any], ns: int) -> None:
-        data = self._encode(schema, message)
-        for sink in tuple(self.sinks):
+    def _emit(self, topic: str, schema: str, data: bytes, ns: int) -> None:
+        for sink in self.sinks:
             try:
                 sink.write(topic, schema, data, ns)
             except Exception as exc:
                 self._drop(sink, exc)
 
     def _drop(self, sink: TopicSink, exc: Exception) -> None:
-        self.sinks.remove(sink)
+        # a new list: the loop in _emit goes on over the old one, to the sinks after it
+        self.sinks = [s for s in self.sinks if s is not sink]
         self.failures.append((sink, exc))
-        log.warning(
-            "%s failed (%s): it gets no more topics; the others go on",
-            type(sink).__name__,
-            exc,
-        )
+        log.warning("%s failed (%s): it gets no more topics", type(sink).__name__, exc)
 
     # ------------------------------------------------------------ raw frames
 
     def on_message_received(self, msg: can.Message) -> None:
-        bus = self.bus_of.get(str(msg.channel), str(msg.channel))
+        route = self._frames.get((msg.channel, msg.is_rx))
+        if route is None:
+            route = self._frame_route(msg.channel, msg.is_rx)
+        topic, encode = route
         ns = int(msg.timestamp * 1e9)
-        data = bytes(msg.data) + bytes(8 - len(msg.data))
-        frame = {
-            "header": {"stamp": _stamp(ns), "frame_id": bus},
-            "id": msg.arbitration_id,
-            "is_rtr": msg.is_remote_frame,
-            "is_extended": msg.is_extended_id,
-            "is_error": msg.is_error_frame,
-            "dlc": msg.dlc,
-            "data": list(data[:8]),
-        }
-        self.write(f"/can/{bus}/{'rx' if msg.is_rx else 'tx'}", FRAME, frame, ns)
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        data = encode(
+            sec, nanosec, msg.arbitration_id, msg.is_remote_frame, msg.is_extended_id,
+            msg.is_error_frame, msg.dlc, msg.data,
+        )  # fmt: skip
+        self._emit(topic, FRAME, data, ns)
+
+    def _frame_route(self, channel: object, rx: bool) -> tuple[str, FrameEncoder]:
+        bus = self.bus_of.get(str(channel), str(channel))
+        route = f"/can/{bus}/{'rx' if rx else 'tx'}", frame_encoder(bus)
+        self._frames[channel, rx] = route
+        return route
 
     # ------------------------------------------------------------ decoded values
 
     def attach(self, sup: Supervisor, clock: Callable[[], float]) -> None:
         """Produce ``sup``'s decoded values; ``clock`` is its clock (the loop's)."""
         self.health = Health(sup)
-        self._clock = clock
         self.offset_ns = time.time_ns() - int(clock() * 1e9)
 
     def observe(self, event: object) -> None:
@@ -238,53 +250,47 @@ class RosTopics(can.Listener):
 
     def _feedback(self, event: FeedbackEvent, ns: int) -> None:
         assert self.health is not None
-        fbk = self.health.sup.units[event.unit].feedback
+        u = event.unit
+        fbk = self.health.sup.units[u].feedback
         if fbk is None:
             return
-        u = event.unit
-        self.write(f"/{u}/vel_fbk_ab", VELOCITY, {"vel_ay": fbk.vel_a, "vel_bx": fbk.vel_b}, ns)
-        self.write(f"/{u}/vel_fbk_yx", VELOCITY, {"vel_ay": fbk.vel_y, "vel_bx": fbk.vel_x}, ns)
+        topics = self._feedback_topics.get(u)
+        if topics is None:
+            topics = self._feedback_topics[u] = (f"/{u}/vel_fbk_ab", f"/{u}/vel_fbk_yx")
+        self._emit(topics[0], VELOCITY, _velocity(fbk.vel_a, fbk.vel_b), ns)
+        self._emit(topics[1], VELOCITY, _velocity(fbk.vel_y, fbk.vel_x), ns)
 
     def _status(self, event: StatusEvent, ns: int) -> None:
-        if isinstance(event.record, frames.Unknown):
-            return
-        named = brd_fields(event.record)
-        if named is not None:
-            name, fields = named
-            topic = f"/{event.unit}/brd{event.packet}_data"
-            self.write(topic, f"abh3_can_interface/msg/{name}", fields, ns)
         record = event.record
+        named = BROADCASTS.get(type(record))
+        if named is not None:
+            name, values = named
+            key = (event.unit, event.packet)
+            topic = self._status_topics.get(key)
+            if topic is None:
+                topic = self._status_topics[key] = f"/{event.unit}/brd{event.packet}_data"
+            schema = f"abh3_can_interface/msg/{name}"
+            self._emit(topic, schema, ENCODERS[schema](*values(record)), ns)
         if isinstance(record, frames.Brd4):
             for odometer in self.odometry.get(event.unit, ()):
                 pose = odometer.pulses(event.unit, record.pulse_a, record.pulse_b, event.t)
                 if pose is not None:  # every unit of the robot reported anew
-                    self._odom(odometer, pose, ns)
+                    self._odometry(odometer, pose, ns)
 
-    def _odom(self, odometer: Odometer, pose: Pose, ns: int) -> None:
+    def _odometry(self, odometer: Odometer, pose: Pose, ns: int) -> None:
         assert self.health is not None
         units = self.health.sup.units
         robot = odometer.robot
+        route = self._odom.get(robot.name)
+        if route is None:
+            route = f"/{robot.name}/odom", odometry_encoder(robot.frame_id, robot.child_frame_id)
+            self._odom[robot.name] = route
+        topic, encode = route
         linear, angular = odometer.twist({u: units[u].feedback for u in robot.units})
         qx, qy, qz, qw = yaw_quaternion(pose.yaw)
-        odom = {
-            "header": {"stamp": _stamp(ns), "frame_id": robot.frame_id},
-            "child_frame_id": robot.child_frame_id,
-            "pose": {
-                "pose": {
-                    "position": {"x": pose.x, "y": pose.y, "z": 0.0},
-                    "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
-                },
-                "covariance": ZERO36,
-            },
-            "twist": {
-                "twist": {
-                    "linear": {"x": linear, "y": 0.0, "z": 0.0},
-                    "angular": {"x": 0.0, "y": 0.0, "z": angular},
-                },
-                "covariance": ZERO36,
-            },
-        }
-        self.write(f"/{robot.name}/odom", ODOMETRY, odom, ns)
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        data = encode(sec, nanosec, pose.x, pose.y, qx, qy, qz, qw, linear, angular)
+        self._emit(topic, ODOMETRY, data, ns)
 
     def _diagnostics(self, now: float, ns: int, changed: bool) -> None:
         if self.health is None or (now < self._next_diagnostics and not changed):
@@ -294,18 +300,13 @@ class RosTopics(can.Listener):
         if now < self._next_diagnostics and levels == self._levels:
             return
         self._levels, self._next_diagnostics = levels, now + DIAGNOSTICS_PERIOD_S
-        array = {"header": {"stamp": _stamp(ns), "frame_id": ""}, "status": _statuses(statuses)}
-        self.write("/diagnostics", DIAGNOSTICS, array, ns)
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        data = diagnostic_array(sec, nanosec, "", [_diag(s) for s in statuses])
+        self._emit("/diagnostics", DIAGNOSTICS, data, ns)
 
 
-def _statuses(statuses: list[Status]) -> list[dict[str, Any]]:
-    return [
-        {
-            "level": int(s.level),
-            "name": s.name,
-            "message": s.message,
-            "hardware_id": s.hardware_id,
-            "values": [{"key": k, "value": v} for k, v in s.values],
-        }
-        for s in statuses
-    ]
+_velocity = ENCODERS[VELOCITY]
+
+
+def _diag(s: Status) -> DiagStatus:
+    return int(s.level), s.name, s.message, s.hardware_id, s.values
