@@ -350,3 +350,48 @@ def test_a_failing_sink_is_dropped_once_and_the_others_get_every_message(
     assert topics.sinks == [before, after]
     assert [s for s, _ in topics.failures] == [failing]
     assert caplog.text.count("Fails failed (") == 1
+
+
+def test_messages_added_in_one_pack_make_the_file_add_message_makes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """runtime/mcap_messages.py against the mcap Writer's own add_message: the same
+    messages (many topics, chunks closed by size and by flushes) give the same bytes."""
+    from abh3_supervisor.runtime import mcap_messages, mcap_recording
+
+    monkeypatch.setattr(mcap_recording, "CHUNK_BYTES", 3000)  # chunks closed by size too
+    config = parse_config(ROBOT, "robot.yaml")
+
+    adders: list[object] = []
+
+    def record(path: Path) -> bytes:
+        rec = mcap_recording.open_mcap(path, config)
+        adders.append(getattr(rec._add, "__self__", None))
+        for i in range(3000):
+            rec.on_message_received(
+                can.Message(
+                    arbitration_id=i % 7,
+                    data=bytes([i % 256] * (i % 9)),
+                    channel="cdr-test" if i % 3 else "another",
+                    timestamp=1_700_000_000 + (i * 7919 % 3000) / 1000,  # not in order
+                    is_rx=bool(i % 2),
+                )
+            )
+            if i % 500 == 0:
+                rec.flush()
+        rec.stop()
+        return path.read_bytes()
+
+    fast = record(tmp_path / "fast.mcap")
+    monkeypatch.setattr(
+        mcap_recording,
+        "fast_add",
+        lambda writer: lambda c, ns, data, seq: writer.add_message(c, ns, data, ns, seq),
+    )
+    slow = record(tmp_path / "slow.mcap")
+    assert fast == slow
+    assert isinstance(adders[0], mcap_messages._Messages) and adders[1] is None
+    with (tmp_path / "fast.mcap").open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count == 3000 and len(summary.chunk_indexes) > 10

@@ -30,6 +30,7 @@ from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.runtime.mcap_index import spill_chunk_indexes
+from abh3_supervisor.runtime.mcap_messages import fast_add
 from abh3_supervisor.runtime.ros_topics import SCHEMAS, VENDOR, RosTopics
 
 __all__ = ["CHUNK_BYTES", "VENDOR", "McapRecording", "open_mcap", "read_frames"]
@@ -74,6 +75,7 @@ class McapRecording(can.Listener):
             for name, text in SCHEMAS.items()
         }
         self._cdr = MessageEncoding.CDR
+        self._add = fast_add(self.writer)
         self.channels: dict[str, int] = {}
         self.counts: dict[str, int] = {}
         self.topics = RosTopics(config, [self])
@@ -90,7 +92,7 @@ class McapRecording(can.Listener):
                 channel = self.channels[topic] = self.writer.register_channel(
                     topic, self._cdr, self.schemas[schema]
                 )
-            self.writer.add_message(channel, ns, data, ns, sequence)
+            self._add(channel, ns, data, sequence)
         except Exception as exc:
             self.broken = True  # disk full: what is on disk stays readable, nothing more
             self.error = exc
