@@ -395,3 +395,32 @@ def test_messages_added_in_one_pack_make_the_file_add_message_makes(
         summary = make_reader(f).get_summary()
     assert summary is not None and summary.statistics is not None
     assert summary.statistics.message_count == 3000 and len(summary.chunk_indexes) > 10
+
+
+def test_a_full_disk_breaks_the_file_once_and_the_other_sinks_go_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The file's failure is raised once, to the recorder, after the other sinks of its
+    topics got the message; they go on getting the next ones."""
+    from abh3_supervisor.runtime import mcap_recording
+    from tests.support.disk import FillsUp
+
+    monkeypatch.setattr(mcap_recording, "CHUNK_BYTES", 4096)  # chunks written as it goes
+    config = parse_config(ROBOT, "robot.yaml")
+    real = (tmp_path / "full.mcap").open("wb")
+    recording = McapRecording(FillsUp(real, 20_000), config)  # type: ignore[arg-type]
+    live = Collect()
+    recording.topics.sinks.append(live)
+    raised = []
+    for i in range(3000):
+        try:
+            recording.on_message_received(
+                can.Message(arbitration_id=i, data=bytes(8), channel="cdr-test", timestamp=i)
+            )
+        except OSError as exc:
+            raised.append((i, exc))
+    recording.stop()
+    real.close()
+    assert len(raised) == 1 and "No space left" in str(raised[0][1]) and raised[0][0] < 2000
+    assert recording.broken and recording.topics.sinks == [recording, live]
+    assert [m[3] for m in live.messages] == [i * 10**9 for i in range(3000)]

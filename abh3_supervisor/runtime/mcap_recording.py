@@ -59,7 +59,14 @@ def open_mcap(path: Path, config: Config) -> McapRecording:
 class McapRecording(can.Listener):
     """The ``.mcap`` file: a :class:`~.ros_topics.TopicSink` fed by its own
     :class:`~.ros_topics.RosTopics` (:attr:`topics`, which other sinks may share), with the
-    recorder's interface (a bus listener, ``attach``/``observe``, ``flush``/``stop``)."""
+    recorder's interface (a bus listener, ``attach``/``observe``, ``flush``/``stop``).
+
+    A write that fails (disk full) breaks the file only: the file takes no more messages,
+    the other sinks of :attr:`topics` get this one and the next, and the failure is raised
+    once, after them, to whoever fed the frame or event — the
+    :class:`~.recorder.GuardedRecorder`, which reports it and stops feeding this object.
+    A sink that must outlive the file is therefore best fed by the runtime itself (its
+    frames and events to :attr:`topics`), not only through the recorder."""
 
     def __init__(self, stream: IO[bytes], config: Config, index_dir: Path | None = None) -> None:
         from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
@@ -81,10 +88,12 @@ class McapRecording(can.Listener):
         self.topics = RosTopics(config, [self])
         self._finished = False
         self.broken = False
-        self.error: Exception | None = None  # the write that failed: raised to the recorder
+        self.error: Exception | None = None  # the write that failed, until raised
 
     def write(self, topic: str, schema: str, data: bytes, ns: int) -> None:
         """A message, on its topic's channel (made at its first), numbered per topic."""
+        if self.broken:
+            return
         self.counts[topic] = sequence = self.counts.get(topic, 0) + 1
         channel = self.channels.get(topic)
         try:
@@ -93,15 +102,15 @@ class McapRecording(can.Listener):
                     topic, self._cdr, self.schemas[schema]
                 )
             self._add(channel, ns, data, sequence)
-        except Exception as exc:
+        except Exception as exc:  # kept, not raised into RosTopics: the other sinks go on
             self.broken = True  # disk full: what is on disk stays readable, nothing more
             self.error = exc
-            raise
 
     def _raise_failure(self) -> None:
-        # RosTopics keeps a failing sink from the others; the recorder must still hear it
+        """The failed write, once, for the recorder to report (after the other sinks)."""
         if self.error is not None:
-            raise self.error
+            error, self.error = self.error, None
+            raise error
 
     # ------------------------------------------------------------ the topics
 
@@ -122,14 +131,18 @@ class McapRecording(can.Listener):
 
     def flush(self) -> None:
         """Close the chunk in progress and hand the file's bytes to the OS."""
-        if self._finished:
+        if self._finished or self.broken:
             return
         mcap: Any = self.writer
-        if hasattr(mcap, "flush"):  # recent mcap: closes the chunk, flushes the stream
-            mcap.flush()
-            return
-        mcap._Writer__finalize_chunk()  # older mcap: the same, by its private name
-        self.stream.flush()
+        try:
+            if hasattr(mcap, "flush"):  # recent mcap: closes the chunk, flushes the stream
+                mcap.flush()
+                return
+            mcap._Writer__finalize_chunk()  # older mcap: the same, by its private name
+            self.stream.flush()
+        except Exception:
+            self.broken = True  # as for a failed write: the whole chunks written stay
+            raise
 
     def stop(self) -> None:
         """Index and close the file (after the stop frames)."""
