@@ -7,9 +7,11 @@ that a busy machine weighs on both alike. The figure is the **bus loop thread's*
 (``time.thread_time()``, the kernel's per-thread clock, read by callbacks on the loop
 itself) over a window after a warm-up, as % of one core: python-can's reader threads and
 the process's other threads are not in it; the simulated drives, which run on the loop,
-are, in both runs. Printed: the medians, and the spread of the pairs' ratios. Beside it,
-less noisy on a shared machine, the recorder's own share of that CPU: the loop's CPU clock
-read around each of its calls (frames, events, flushes), in the same runs.
+are, in both runs. The ratio is taken per frame on the bus (every frame is recorded), so
+that a run the machine starved of its rate does not look cheap. Printed: the medians, the
+median of the pairs' ratios and their spread, and, less noisy on a shared machine, the
+recorder's own share of the loop's CPU: the same clock read around each of its calls
+(frames, events, flushes), in the same runs.
 
 ``python -m benchmarks.recording [--runs N] [--seconds S]`` prints this section alone.
 """
@@ -28,6 +30,7 @@ import tempfile
 import time
 import timeit
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import can
@@ -51,13 +54,27 @@ def config(channel: str) -> str:
     )
 
 
-def _timed(spent: list[float], method: Callable[..., None]) -> Callable[..., None]:
+@dataclass(frozen=True)
+class Run:
+    loop_cpu: float  # % of one core
+    recorder_cpu: float  # % of one core, a part of loop_cpu
+    frames_per_s: float  # on the bus, sent and received (every one recorded)
+
+    @property
+    def us_per_frame(self) -> float:
+        """The loop's CPU per frame on the bus: as the CPU, but not lowered by a run the
+        machine starved of its rate."""
+        return 1e4 * self.loop_cpu / self.frames_per_s
+
+
+def _timed(spent: list[float], method: Callable[..., None], frame: bool) -> Callable[..., None]:
     def timed(self: object, *args: object) -> None:
         start = time.thread_time()
         try:
             method(self, *args)
         finally:
             spent[0] += time.thread_time() - start
+            spent[1] += frame
 
     return timed
 
@@ -68,13 +85,14 @@ async def _measure(record: Path, seconds: float) -> dict[str, float]:
     from abh3_supervisor.runtime.recorder import GuardedRecorder
 
     loop = asyncio.get_running_loop()
-    marks: list[tuple[float, float, float]] = []
-    spent = [0.0]  # the recorder's CPU on the loop
+    marks: list[tuple[float, float, float, float]] = []
+    spent = [0.0, 0.0]  # the recorder's CPU on the loop, frames recorded
     for name in ("on_message_received", "observe", "flush"):
-        setattr(GuardedRecorder, name, _timed(spent, getattr(GuardedRecorder, name)))
+        method = getattr(GuardedRecorder, name)
+        setattr(GuardedRecorder, name, _timed(spent, method, name == "on_message_received"))
 
     def mark() -> None:  # on the loop thread: its own CPU clock
-        marks.append((loop.time(), time.thread_time(), spent[0]))
+        marks.append((loop.time(), time.thread_time(), spent[0], spent[1]))
 
     loop.call_later(WARMUP_S, mark)
     loop.call_later(WARMUP_S + seconds, mark)
@@ -82,11 +100,12 @@ async def _measure(record: Path, seconds: float) -> dict[str, float]:
     code = await run_headless(
         cfg, duration=WARMUP_S + seconds + 0.5, record=record, status_interval=0
     )
-    (t0, cpu0, rec0), (t1, cpu1, rec1) = marks
+    (t0, cpu0, rec0, n0), (t1, cpu1, rec1, n1) = marks
     return {
         "code": code,
         "loop_cpu_percent": 100 * (cpu1 - cpu0) / (t1 - t0),
         "recorder_cpu_percent": 100 * (rec1 - rec0) / (t1 - t0),
+        "frames_per_s": (n1 - n0) / (t1 - t0),
     }
 
 
@@ -98,9 +117,8 @@ def child(suffix: str, seconds: float) -> None:
     print(json.dumps(figures))
 
 
-def one(suffix: str, seconds: float) -> tuple[float, float]:
-    """The loop's CPU and the recorder's share of it (% of one core), one run recording
-    to ``suffix``."""
+def one(suffix: str, seconds: float) -> Run:
+    """One run recording to ``suffix``, in a process of its own."""
     out = subprocess.run(
         [sys.executable, "-m", "benchmarks.recording", "--child", suffix, "--seconds",
          f"{seconds:g}"],
@@ -109,10 +127,12 @@ def one(suffix: str, seconds: float) -> tuple[float, float]:
     figures = json.loads(out.stdout.strip().splitlines()[-1])
     if figures["code"] != 0:
         raise RuntimeError(f"the {suffix} run ended with exit code {figures['code']}")
-    return float(figures["loop_cpu_percent"]), float(figures["recorder_cpu_percent"])
+    return Run(
+        figures["loop_cpu_percent"], figures["recorder_cpu_percent"], figures["frames_per_s"]
+    )
 
 
-def pairs(seconds: float, runs: int) -> list[tuple[tuple[float, float], tuple[float, float]]]:
+def pairs(seconds: float, runs: int) -> list[tuple[Run, Run]]:
     """.log's and .mcap's figures (:func:`one`) in ``runs`` interleaved pairs."""
     return [(one(".log", seconds), one(".mcap", seconds)) for _ in range(runs)]
 
@@ -159,26 +179,32 @@ def rows(seconds: float, runs: int) -> list[Row]:
         print("section 11 skipped: pip install -e '.[mcap]' for the recording figures")
         return []
     measured = pairs(seconds, runs)
-    log_cpu = statistics.median(log[0] for log, _ in measured)
-    mcap_cpu = statistics.median(mcap[0] for _, mcap in measured)
-    log_rec = statistics.median(log[1] for log, _ in measured)
-    mcap_rec = statistics.median(mcap[1] for _, mcap in measured)
-    ratios = sorted(mcap[0] / log[0] for log, mcap in measured)
+
+    def median(figure: Callable[[Run], float], which: int) -> float:
+        return statistics.median(figure(pair[which]) for pair in measured)
+
+    ratios = sorted(mcap.us_per_frame / log.us_per_frame for log, mcap in measured)
     ratio = statistics.median(ratios)
     spread = f"{ratios[0]:.2f}–{ratios[-1]:.2f}x" if len(ratios) > 1 else "1 run"
     ours_us, before_us = encode_us()
+
+    def row(figure: str, value: Callable[[Run], float], unit: str) -> Row:
+        return Row(SECTION, f"{figure}: .mcap vs .log", median(value, 1), median(value, 0), unit)
+
     return [
-        Row(SECTION, "loop thread CPU, % of one core: .mcap vs .log", mcap_cpu, log_cpu, "%"),
+        row("loop thread CPU, % of one core", lambda r: r.loop_cpu, "%"),
+        row("frames on the bus (every one recorded)", lambda r: r.frames_per_s, "/s"),
+        row("loop thread CPU per frame", lambda r: r.us_per_frame, "us"),
         Row(
             SECTION,
-            f"pairs' ratio .mcap/.log, median of {len(ratios)} ({spread})",
+            f"pairs' ratio of that, median of {len(ratios)} ({spread})",
             ratio,
             1.0,
             "x",
             "<=1.15x",
             ratio <= 1.15,
         ),
-        Row(SECTION, "the recorder's own share of it: .mcap vs .log", mcap_rec, log_rec, "%"),
+        row("the recorder's own share of the loop", lambda r: r.recorder_cpu, "%"),
         Row(
             SECTION,
             "encode a can_msgs/Frame: struct vs mcap_ros2 dynamic",
