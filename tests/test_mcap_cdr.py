@@ -384,7 +384,7 @@ def test_messages_added_in_one_pack_make_the_file_add_message_makes(
 
     fast = record(tmp_path / "fast.mcap")
     monkeypatch.setattr(
-        mcap_recording,
+        mcap_messages,
         "fast_add",
         lambda writer: lambda c, ns, data, seq: writer.add_message(c, ns, data, ns, seq),
     )

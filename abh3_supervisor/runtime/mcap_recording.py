@@ -30,7 +30,6 @@ from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError
 from abh3_supervisor.runtime.mcap_index import spill_chunk_indexes
-from abh3_supervisor.runtime.mcap_messages import fast_add
 from abh3_supervisor.runtime.ros_topics import SCHEMAS, VENDOR, RosTopics
 
 __all__ = ["CHUNK_BYTES", "VENDOR", "McapRecording", "open_mcap", "read_frames"]
@@ -71,6 +70,8 @@ class McapRecording(can.Listener):
     def __init__(self, stream: IO[bytes], config: Config, index_dir: Path | None = None) -> None:
         from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
         from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+
+        from abh3_supervisor.runtime.mcap_messages import fast_add  # imports mcap
 
         self.stream = stream
         self.writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
