@@ -169,7 +169,7 @@ class RosTopics(can.Listener):
     after it: a full disk under the recording does not stop a live view, nor a live view's
     fault the recording. A sink that must report its own failure (the ``.mcap`` file,
     through :class:`~.recorder.GuardedRecorder`) keeps it and raises it itself.
-    :attr:`sinks` is a list: a sink may be added before the first message."""
+    :attr:`sinks` is a list: a live view may append its sink to it (on the loop thread)."""
 
     def __init__(self, config: Config, sinks: Sequence[TopicSink]) -> None:
         self.sinks = list(sinks)
