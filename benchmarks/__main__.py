@@ -19,6 +19,7 @@ from benchmarks import (
     cycle_timing,
     estop,
     host_cpu,
+    recording,
     robot,
     ros2_bridge,
     scale,
@@ -399,6 +400,9 @@ def main(argv: list[str] | None = None) -> int:
     # 10. the supervisor alone, its drives in `abh3 simulate` (issue 32 item 4); skipped,
     # with the reason, where no network namespace can be made
     rows += alone.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
+
+    # 11. what an .mcap recording costs the bus loop against a .log (issue 34 item 2)
+    rows += recording.rows(2.0 if a.quick else 10.0, runs if a.quick else max(runs, 5))
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]

@@ -22,8 +22,9 @@ from abh3_supervisor.clients.cli import main
 from abh3_supervisor.clients.decode import decode_file
 from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.runtime.headless import run_headless
-from abh3_supervisor.runtime.mcap_recording import VENDOR, McapRecording, read_frames
+from abh3_supervisor.runtime.mcap_recording import McapRecording, read_frames
 from abh3_supervisor.runtime.recorder import GuardedRecorder
+from abh3_supervisor.runtime.ros_topics import VENDOR
 
 pytest.importorskip("mcap_ros2")
 from mcap.reader import make_reader
@@ -257,7 +258,9 @@ def test_without_the_mcap_extra_the_run_says_how_to_get_it_before_any_drive_move
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.INFO)
-    monkeypatch.setitem(sys.modules, "mcap_ros2.writer", None)  # import fails as if absent
+    for name in [n for n in sys.modules if n.split(".")[0] in ("mcap", "mcap_ros2")]:
+        monkeypatch.setitem(sys.modules, name, None)  # an import fails as if absent
+    monkeypatch.setitem(sys.modules, "mcap", None)
     cfg = tmp_path / "c.yaml"
     cfg.write_text(CONFIG)
     out = tmp_path / "run.mcap"
@@ -269,6 +272,28 @@ def test_without_the_mcap_extra_the_run_says_how_to_get_it_before_any_drive_move
     assert "pip install 'abh3-supervisor[mcap]'" in err
     assert not out.exists()
     assert "startup" not in caplog.text  # nothing was commanded
+
+
+@pytest.mark.wallclock
+def test_without_mcap_the_recording_module_imports_and_says_what_to_install() -> None:
+    """A process with no mcap at all: the module imports (decode and the recorder import
+    it lazily, then ask it), and opening a recording says what to install."""
+    code = (
+        "import sys\n"
+        "sys.modules['mcap'] = sys.modules['mcap_ros2'] = None\n"
+        "from pathlib import Path\n"
+        "from abh3_supervisor.config import parse_config\n"
+        "from abh3_supervisor.errors import BusOpenError\n"
+        "from abh3_supervisor.runtime.mcap_recording import open_mcap\n"
+        f"config = parse_config({CONFIG!r}, 'c.yaml')\n"
+        "try:\n"
+        "    open_mcap(Path('never.mcap'), config)\n"
+        "except BusOpenError as exc:\n"
+        "    print(exc)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "pip install 'abh3-supervisor[mcap]'" in out.stdout
 
 
 @pytest.mark.wallclock

@@ -1,0 +1,312 @@
+"""The ROS 2 topics a run produces — raw frames and decoded values as CDR messages — for
+whatever takes them (:class:`TopicSink`: the ``.mcap`` file, a live viewer).
+
+Topics:
+
+- ``/can/<bus>/tx`` and ``/can/<bus>/rx`` (``can_msgs/msg/Frame``): every frame the bus
+  pump sent or received, the stop frames included — the same frames a ``.log`` holds;
+- per unit, with the ROS 2 bridge's names: ``/<unit>/vel_fbk_ab``, ``/<unit>/vel_fbk_yx``
+  after every DP0 reply, ``/<unit>/brd<n>_data`` for every status packet 0–6;
+- per robot, ``/<robot>/odom`` from every wheel's pulse counts and velocity feedback
+  (:mod:`..core.odometry`) when every wheel's pulses_per_rev is known, with the robot's
+  frame ids; a unit of a file without ``robots:`` is a one-drive robot named after it
+  (``/<unit>/odom`` when its ``geometry.pulses_per_rev`` is known);
+- ``/diagnostics`` once a second and when a level changes (:mod:`..core.diagnostics`).
+
+Each message is encoded once (:mod:`.cdr`), on the loop thread as frames and events
+arrive, and the same bytes go to every sink. This module never imports ``mcap``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import operator
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import can
+
+from abh3_supervisor.config.model import Config
+from abh3_supervisor.core.diagnostics import Health, Level, Status
+from abh3_supervisor.core.odometry import Odometer, Pose, odometers, yaw_quaternion
+from abh3_supervisor.core.supervisor import FlagChange, Supervisor
+from abh3_supervisor.protocol import frames
+from abh3_supervisor.runtime.cdr import (
+    DiagStatus,
+    FrameEncoder,
+    OdomEncoder,
+    diagnostic_array,
+    flat_encoder,
+    frame_encoder,
+    odometry_encoder,
+)
+from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
+
+log = logging.getLogger(__name__)
+DIAGNOSTICS_PERIOD_S = 1.0
+SEP = "=" * 80
+
+_TIME = "int32 sec\nuint32 nanosec\n"
+_HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n"
+_VECTOR = "float64 x\nfloat64 y\nfloat64 z\n"
+_DEPENDENCIES = {
+    "std_msgs/Header": _HEADER,
+    "builtin_interfaces/Time": _TIME,
+    "diagnostic_msgs/DiagnosticStatus": (
+        "byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\nbyte level\nstring name\n"
+        "string message\nstring hardware_id\nKeyValue[] values\n"
+    ),
+    "diagnostic_msgs/KeyValue": "string key\nstring value\n",
+    "geometry_msgs/PoseWithCovariance": "Pose pose\nfloat64[36] covariance\n",
+    "geometry_msgs/Pose": "Point position\nQuaternion orientation\n",
+    "geometry_msgs/Point": _VECTOR,
+    "geometry_msgs/Quaternion": "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n",
+    "geometry_msgs/TwistWithCovariance": "Twist twist\nfloat64[36] covariance\n",
+    "geometry_msgs/Twist": "Vector3 linear\nVector3 angular\n",
+    "geometry_msgs/Vector3": _VECTOR,
+}
+
+
+def _msgdef(text: str, *dependencies: str) -> str:
+    """A ``ros2msg`` schema: the type's own fields, then each type it uses."""
+    parts = [text] + [f"{SEP}\nMSG: {d}\n{_DEPENDENCIES[d]}" for d in dependencies]
+    return "".join(parts)
+
+
+# the vendor's files (plugins/abh3_plugins/ros2/interface), as recorded: test_mcap holds them
+VENDOR = {
+    "Abh3Velocity": "float64 vel_ay\nfloat64 vel_bx\n",
+    "Abh3Brd0": "int32 error\nint32 alarm\n",
+    "Abh3Brd1": "int32 control\nint32 in_out\n",
+    "Abh3Brd2": "float64 vel_cmd_ay\nfloat64 vel_cmd_bx\nfloat64 vel_fbk_ay\nfloat64 vel_fbk_bx\n",
+    "Abh3Brd3": "float64 cur_cmd_ay\nfloat64 cur_cmd_bx\nfloat64 load_a\nfloat64 load_b\n",
+    "Abh3Brd4": "int32 pulse_a\nint32 pulse_b\n",
+    "Abh3Brd5": "float64 analog0\nfloat64 analog1\nfloat64 main_volt\nfloat64 control_volt\n",
+    "Abh3Brd6": "float64 monitor0\nfloat64 monitor1\n",
+}
+# each vendor message's field names, split once (not per broadcast on the bus loop)
+FIELDS = {name: tuple(text.split()[1::2]) for name, text in VENDOR.items()}
+FRAME = "can_msgs/msg/Frame"
+VELOCITY = "abh3_can_interface/msg/Abh3Velocity"
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+ODOMETRY = "nav_msgs/msg/Odometry"
+SCHEMAS: dict[str, str] = {
+    FRAME: _msgdef(
+        "std_msgs/Header header\nuint32 id\nbool is_rtr\nbool is_extended\nbool is_error\n"
+        "uint8 dlc\nuint8[8] data\n",
+        "std_msgs/Header",
+        "builtin_interfaces/Time",
+    ),
+    **{f"abh3_can_interface/msg/{name}": text for name, text in VENDOR.items()},
+    DIAGNOSTICS: _msgdef(
+        "std_msgs/Header header\nDiagnosticStatus[] status\n",
+        "std_msgs/Header",
+        "builtin_interfaces/Time",
+        "diagnostic_msgs/DiagnosticStatus",
+        "diagnostic_msgs/KeyValue",
+    ),
+    ODOMETRY: _msgdef(
+        "std_msgs/Header header\nstring child_frame_id\n"
+        "geometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n",
+        "std_msgs/Header",
+        "builtin_interfaces/Time",
+        "geometry_msgs/PoseWithCovariance",
+        "geometry_msgs/Pose",
+        "geometry_msgs/Point",
+        "geometry_msgs/Quaternion",
+        "geometry_msgs/TwistWithCovariance",
+        "geometry_msgs/Twist",
+        "geometry_msgs/Vector3",
+    ),
+}
+
+
+class TopicSink(Protocol):
+    def write(self, topic: str, schema: str, data: bytes, ns: int) -> None:
+        """One message: ``topic`` (``/can/b/tx`` …), ``schema`` (a key of
+        :data:`SCHEMAS`), ``data`` the CDR message as rosbag2 and mcap_ros2 write it (the
+        4-byte encapsulation header, little-endian), ``ns`` its wall-clock time."""
+
+
+def _int32(value: int) -> int:
+    return value - (1 << 32) if value & 0x80000000 else value
+
+
+def _brd0(record: frames.Brd0) -> tuple[int, ...]:
+    return _int32(record.error), _int32(record.alarm)
+
+
+def _brd1(record: frames.Brd1) -> tuple[int, ...]:
+    # 2023 sends its input word where 2021 has control (docs/ros2.md)
+    first = record.control if record.control is not None else record.inputs or 0
+    return _int32(first), _int32(record.io)
+
+
+def _fields(name: str) -> Callable[[Any], tuple[float, ...]]:
+    return operator.attrgetter(*FIELDS[name])  # two or more names: a tuple
+
+
+# each broadcast's vendor message and its values in the message's order, as the bridge
+# sends them (broadcast 7 is not defined: none)
+BROADCASTS: dict[type, tuple[str, Callable[[Any], tuple[float, ...]]]] = {
+    frames.Brd0: ("Abh3Brd0", _brd0),
+    frames.Brd1: ("Abh3Brd1", _brd1),
+    **{getattr(frames, f"Brd{n}"): (f"Abh3Brd{n}", _fields(f"Abh3Brd{n}")) for n in range(2, 7)},
+}
+ENCODERS = {f"abh3_can_interface/msg/{name}": flat_encoder(text) for name, text in VENDOR.items()}
+
+
+class RosTopics(can.Listener):
+    """Frames (a bus listener) and supervisor events (:meth:`observe`) in, CDR messages
+    out to every sink, all on the loop thread. Each message is encoded once, by an
+    encoder made once per message type and constant frame id (:mod:`.cdr`), and each
+    topic's name is made once: the loop builds no dicts per message.
+
+    A sink that raises is dropped — it gets no more messages, and the failure is logged
+    once and kept in :attr:`failures` — and the others get this message and the ones
+    after it: a full disk under the recording does not stop a live view, nor a live view's
+    fault the recording. A sink that must report its own failure (the ``.mcap`` file,
+    through :class:`~.recorder.GuardedRecorder`) keeps it and raises it itself.
+    :attr:`sinks` is a list: a live view may append its sink to it (on the loop thread)."""
+
+    def __init__(self, config: Config, sinks: Sequence[TopicSink]) -> None:
+        self.sinks = list(sinks)
+        self.failures: list[tuple[TopicSink, Exception]] = []
+        self.bus_of = {cfg.channel: name for name, cfg in config.buses.items()}
+        self.config = config
+        self.health: Health | None = None
+        self.odometry: dict[str, list[Odometer]] = {}  # unit → the robots it is a drive of
+        for odometer in odometers(config):
+            for unit in odometer.units:
+                self.odometry.setdefault(unit, []).append(odometer)
+        self.offset_ns = 0  # wall clock minus the supervisor's clock
+        self._next_diagnostics = -math.inf
+        self._levels: dict[str, Level] = {}
+        # made at first use: (channel, is_rx) → topic, encoder; unit → its two topics …
+        self._frames: dict[tuple[object, bool], tuple[str, FrameEncoder]] = {}
+        self._feedback_topics: dict[str, tuple[str, str]] = {}
+        self._status_topics: dict[tuple[str, int], str] = {}
+        self._odom: dict[str, tuple[str, OdomEncoder]] = {}
+
+    def _emit(self, topic: str, schema: str, data: bytes, ns: int) -> None:
+        for sink in self.sinks:
+            try:
+                sink.write(topic, schema, data, ns)
+            except Exception as exc:
+                self._drop(sink, exc)
+
+    def _drop(self, sink: TopicSink, exc: Exception) -> None:
+        # a new list: the loop in _emit goes on over the old one, to the sinks after it
+        self.sinks = [s for s in self.sinks if s is not sink]
+        self.failures.append((sink, exc))
+        log.warning("%s failed (%s): it gets no more topics", type(sink).__name__, exc)
+
+    # ------------------------------------------------------------ raw frames
+
+    def on_message_received(self, msg: can.Message) -> None:
+        route = self._frames.get((msg.channel, msg.is_rx))
+        if route is None:
+            route = self._frame_route(msg.channel, msg.is_rx)
+        topic, encode = route
+        ns = int(msg.timestamp * 1e9)
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        data = encode(
+            sec, nanosec, msg.arbitration_id, msg.is_remote_frame, msg.is_extended_id,
+            msg.is_error_frame, msg.dlc, msg.data,
+        )  # fmt: skip
+        self._emit(topic, FRAME, data, ns)
+
+    def _frame_route(self, channel: object, rx: bool) -> tuple[str, FrameEncoder]:
+        bus = self.bus_of.get(str(channel), str(channel))
+        route = f"/can/{bus}/{'rx' if rx else 'tx'}", frame_encoder(bus)
+        self._frames[channel, rx] = route
+        return route
+
+    # ------------------------------------------------------------ decoded values
+
+    def attach(self, sup: Supervisor, clock: Callable[[], float]) -> None:
+        """Produce ``sup``'s decoded values; ``clock`` is its clock (the loop's)."""
+        self.health = Health(sup)
+        self.offset_ns = time.time_ns() - int(clock() * 1e9)
+
+    def observe(self, event: object) -> None:
+        """A supervisor event (on the loop thread)."""
+        t = getattr(event, "t", None)
+        if t is None:
+            return
+        ns = self.offset_ns + int(t * 1e9)
+        if isinstance(event, FeedbackEvent) and not isinstance(event.reply, frames.Unknown):
+            self._feedback(event, ns)
+        elif isinstance(event, StatusEvent):
+            self._status(event, ns)
+        # a level follows only online, error and alarm (the rate is caught by the period):
+        # a 2023 drive's busy bits change its control word on every reply
+        levelled = isinstance(event, HealthEvent) or (
+            isinstance(event, FlagChange) and event.word in ("error", "alarm")
+        )
+        self._diagnostics(t, ns, levelled)
+
+    def _feedback(self, event: FeedbackEvent, ns: int) -> None:
+        assert self.health is not None
+        u = event.unit
+        fbk = self.health.sup.units[u].feedback
+        if fbk is None:
+            return
+        topics = self._feedback_topics.get(u)
+        if topics is None:
+            topics = self._feedback_topics[u] = (f"/{u}/vel_fbk_ab", f"/{u}/vel_fbk_yx")
+        self._emit(topics[0], VELOCITY, _velocity(fbk.vel_a, fbk.vel_b), ns)
+        self._emit(topics[1], VELOCITY, _velocity(fbk.vel_y, fbk.vel_x), ns)
+
+    def _status(self, event: StatusEvent, ns: int) -> None:
+        record = event.record
+        named = BROADCASTS.get(type(record))
+        if named is not None:
+            name, values = named
+            key = (event.unit, event.packet)
+            topic = self._status_topics.get(key)
+            if topic is None:
+                topic = self._status_topics[key] = f"/{event.unit}/brd{event.packet}_data"
+            schema = f"abh3_can_interface/msg/{name}"
+            self._emit(topic, schema, ENCODERS[schema](*values(record)), ns)
+        if isinstance(record, frames.Brd4):
+            for odometer in self.odometry.get(event.unit, ()):
+                pose = odometer.pulses(event.unit, record.pulse_a, record.pulse_b, event.t)
+                if pose is not None:  # every unit of the robot reported anew
+                    self._odometry(odometer, pose, ns)
+
+    def _odometry(self, odometer: Odometer, pose: Pose, ns: int) -> None:
+        assert self.health is not None
+        units = self.health.sup.units
+        robot = odometer.robot
+        route = self._odom.get(robot.name)
+        if route is None:
+            route = f"/{robot.name}/odom", odometry_encoder(robot.frame_id, robot.child_frame_id)
+            self._odom[robot.name] = route
+        topic, encode = route
+        linear, angular = odometer.twist({u: units[u].feedback for u in robot.units})
+        qx, qy, qz, qw = yaw_quaternion(pose.yaw)
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        data = encode(sec, nanosec, pose.x, pose.y, qx, qy, qz, qw, linear, angular)
+        self._emit(topic, ODOMETRY, data, ns)
+
+    def _diagnostics(self, now: float, ns: int, changed: bool) -> None:
+        if self.health is None or (now < self._next_diagnostics and not changed):
+            return
+        statuses = self.health.statuses(now)
+        levels = {s.name: s.level for s in statuses}
+        if now < self._next_diagnostics and levels == self._levels:
+            return
+        self._levels, self._next_diagnostics = levels, now + DIAGNOSTICS_PERIOD_S
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        data = diagnostic_array(sec, nanosec, "", [_diag(s) for s in statuses])
+        self._emit("/diagnostics", DIAGNOSTICS, data, ns)
+
+
+_velocity = ENCODERS[VELOCITY]
+
+
+def _diag(s: Status) -> DiagStatus:
+    return int(s.level), s.name, s.message, s.hardware_id, s.values
