@@ -337,6 +337,38 @@ def test_with_an_mcap_recording_both_get_the_same_messages(tmp_path: Path) -> No
     assert "/left/vel_fbk_ab" in topics and "/can/demo/tx" in topics
 
 
+def test_a_full_disk_ends_the_recording_not_the_live_view(tmp_path: Path) -> None:
+    """Sharing an .mcap recording's topics, the live view gets every frame once, before
+    and after the recording's disk fills (the frames then come to it directly)."""
+    import can
+
+    from abh3_supervisor.runtime.mcap_recording import McapRecording
+    from abh3_supervisor.runtime.recorder import GuardedRecorder
+    from tests.support.disk import FillsUp
+
+    class Seen:
+        def __init__(self) -> None:
+            self.topics: list[str] = []
+
+        def write(self, topic: str, schema: str, data: bytes, ns: int) -> None:
+            self.topics.append(topic)
+
+    path = tmp_path / "full.mcap"
+    with path.open("wb") as real:
+        full: Any = FillsUp(real, 100_000)
+        recorder = GuardedRecorder(path, McapRecording(full, config()))
+        seen = Seen()
+        feed = foxglove_live.live_feed(seen, recorder, config())
+        assert feed.shared
+        frames = 20_000  # ~0.5 MB recorded: the disk fills part-way
+        for i in range(frames):
+            msg = can.Message(arbitration_id=i, data=bytes(8), channel="foxglove-test")
+            feed.on_message_received(msg)
+        recorder.stop()
+    assert recorder.failed is not None and "No space left" in recorder.failed
+    assert seen.topics == ["/can/demo/rx"] * frames  # each once, none lost
+
+
 # ------------------------------------------------------------------ the option and the key
 
 
@@ -348,6 +380,33 @@ def test_an_endpoint_is_loopback_unless_a_host_is_given() -> None:
     for wrong in ("", "x:", "host:port", "70000", "a b:1", True, 1.5):
         with pytest.raises(ValueError):
             parse_endpoint(wrong)
+
+
+def _this_hosts_address() -> str | None:
+    """An address of this machine that is not loopback (none: no network at all)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(("192.0.2.1", 9))  # TEST-NET-1: nothing is sent, a route is chosen
+        except OSError:
+            return None
+        address = str(probe.getsockname()[0])
+    return None if address.startswith("127.") else address
+
+
+@pytest.mark.wallclock
+def test_by_default_it_is_reachable_on_loopback_only() -> None:
+    address = _this_hosts_address()
+    if address is None:
+        pytest.skip("no address but loopback on this machine")
+
+    async def reach(rt: Runtime, port: int) -> None:
+        assert rt.foxglove is not None and rt.foxglove.url.startswith("ws://127.0.0.1:")
+        async with connect(port) as ws:  # loopback: served
+            assert json.loads(await ws.recv())["op"] == "serverInfo"
+        with pytest.raises(OSError):  # this machine's own network address: refused
+            await asyncio.open_connection(address, port)
+
+    asyncio.run(serving(config(CONFIG.replace("foxglove: 127.0.0.1:0", "foxglove: 0")), reach))
 
 
 def test_the_yaml_key_is_checked_with_file_line_and_did_you_mean() -> None:

@@ -37,7 +37,7 @@ from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.runtime import priority
 from abh3_supervisor.runtime.recorder import GuardedRecorder
-from abh3_supervisor.runtime.ros_topics import SCHEMAS, RosTopics
+from abh3_supervisor.runtime.ros_topics import SCHEMAS, RosTopics, TopicSink
 
 if TYPE_CHECKING:
     import foxglove
@@ -141,23 +141,29 @@ class FoxgloveSink:
 
 
 class LiveFeed(can.Listener):
-    """The bus pumps' listener (the recorder's frames too) and a supervisor subscriber,
-    on the loop. The recording's topics (``shared``) reach the view through the
-    recording — until it fails (a full disk), after which they come this way, so the
-    live view goes on without it."""
+    """The bus pumps' listener (the recorder's frames too) and a supervisor subscriber
+    (after the recorder's), on the loop. The recording's topics (``shared``) reach the
+    view through the recording — until it fails (a full disk): from the next frame or
+    event on they come this way, so the live view goes on, each message once."""
 
     def __init__(
         self, topics: RosTopics, recorder: GuardedRecorder | None, *, shared: bool
     ) -> None:
         self.topics, self.recorder, self.shared = topics, recorder, shared
+        self._direct = not shared  # whether the topics come this way (see _note)
 
-    def _through_recording(self) -> bool:
-        return self.shared and self.recorder is not None and self.recorder.failed is None
+    def _note(self) -> None:
+        # read after the recorder had the frame or event: the one it failed on reached
+        # the view through it; the next ones come this way
+        if self.recorder is not None and self.recorder.failed is not None:
+            self._direct = True
 
     def on_message_received(self, msg: can.Message) -> None:
+        direct = self._direct
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
-        if not self._through_recording():
+            self._note()
+        if direct:
             self.topics.on_message_received(msg)
 
     def attach(self, sup: Supervisor, clock: Callable[[], float]) -> None:
@@ -165,8 +171,20 @@ class LiveFeed(can.Listener):
             self.topics.attach(sup, clock)
 
     def observe(self, event: object) -> None:
-        if not self._through_recording():
+        direct = self._direct
+        self._note()  # the recorder had this event already
+        if direct:
             self.topics.observe(event)
+
+
+def live_feed(sink: TopicSink, recorder: GuardedRecorder | None, config: Config) -> LiveFeed:
+    """The feed of ``sink``: the recording's topics when it makes them (``.mcap``: each
+    message encoded once, for both), otherwise a producer of its own."""
+    shared = getattr(recorder.writer, "topics", None) if recorder is not None else None
+    if isinstance(shared, RosTopics):
+        shared.sinks.append(sink)
+        return LiveFeed(shared, recorder, shared=True)
+    return LiveFeed(RosTopics(config, [sink]), recorder, shared=False)
 
 
 class FoxgloveLive:
@@ -195,14 +213,8 @@ class FoxgloveLive:
         return f"ws://{f'[{host}]' if ':' in host else host}:{self.port}"
 
     def feed(self, recorder: GuardedRecorder | None, config: Config) -> LiveFeed:
-        """What the bus pumps and the supervisor must feed for this view: the recording's
-        topics when it makes them (``.mcap``: each message encoded once, for both),
-        otherwise a producer of its own."""
-        shared = getattr(recorder.writer, "topics", None) if recorder is not None else None
-        if isinstance(shared, RosTopics):
-            shared.sinks.append(self.sink)
-            return LiveFeed(shared, recorder, shared=True)
-        return LiveFeed(RosTopics(config, [self.sink]), recorder, shared=False)
+        """What the bus pumps and the supervisor must feed for this view."""
+        return live_feed(self.sink, recorder, config)
 
     def stop(self) -> None:
         self._stopping.set()
