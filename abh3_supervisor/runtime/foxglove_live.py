@@ -235,8 +235,8 @@ def start_foxglove(
 
     # the SDK's own lines (a viewer connects, leaves, falls behind) in our log, named
     foxglove.set_log_level(logging.INFO)
-    for name_ in SDK_LOGGERS:
-        logging.getLogger(name_).addFilter(_named)
+    for sdk in SDK_LOGGERS:
+        logging.getLogger(sdk).addFilter(_named)
     context = foxglove.Context()
     try:
         # the SDK's threads start with the server: at normal priority, as their creator
@@ -267,10 +267,24 @@ def start_foxglove(
     return live
 
 
-def _named(record: logging.LogRecord) -> bool:
-    if not str(record.msg).startswith("foxglove: "):
-        record.msg = f"foxglove: {record.msg}"
-    return True
+class _Named(logging.Filter):
+    """The SDK's lines, named as Foxglove's, each said once in a row: a viewer that goes
+    away mid-send makes it report every message in flight ("Broken pipe") alike."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.last = ""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if text == self.last:
+            return False
+        self.last = text
+        record.msg, record.args = f"foxglove: {text}", None
+        return True
+
+
+_named = _Named()
 
 
 def _at_normal_priority(start: Callable[[], T]) -> T:
