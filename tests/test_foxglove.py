@@ -280,6 +280,7 @@ def test_a_starved_drain_drops_counts_and_says_so_once(
         assert rt.foxglove is not None
         sink = rt.foxglove.sink
         sink.drain = held.wait  # type: ignore[method-assign,assignment]
+        rt.foxglove.watchers.subscriptions.add((1, 1))  # a viewer: the topics are produced
         await rt.run_until(asyncio.Event(), timeout=1.5)
         timeouts = sum(
             slot.stats.timeouts
@@ -335,6 +336,43 @@ def test_with_an_mcap_recording_both_get_the_same_messages(tmp_path: Path) -> No
     with path.open("rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}  # type: ignore[union-attr]
     assert "/left/vel_fbk_ab" in topics and "/can/demo/tx" in topics
+
+
+@pytest.mark.wallclock
+def test_while_nobody_watches_the_frames_and_feedback_are_not_even_produced() -> None:
+    """No viewer: the producer sees each bus direction's first frame only (its channel is
+    made, for a viewer to find), not the hundreds after it; then a viewer subscribes and
+    they flow (the first test above decodes them)."""
+
+    async def idle(rt: Runtime, port: int) -> tuple[int, int, dict[str, Any]]:
+        feed = rt.pumps["demo"].recorder
+        assert isinstance(feed, foxglove_live.LiveFeed)
+        produced, frames = [0], [0]
+        make = feed.topics.on_message_received
+
+        def counted(msg: Any) -> None:
+            produced[0] += 1
+            make(msg)
+
+        feed.topics.on_message_received = counted  # type: ignore[method-assign]
+        seen = feed.on_message_received
+
+        def every(msg: Any) -> None:
+            frames[0] += 1
+            seen(msg)
+
+        feed.on_message_received = every  # type: ignore[method-assign]  # the pump's call
+        await rt.run_until(asyncio.Event(), timeout=1.0)
+        unwatched = produced[0], frames[0]
+        async with connect(port) as ws:
+            view = Viewer(ws)
+            await view.subscribe("/can/demo/rx")
+            await view.until(lambda topic, m: topic == "/can/demo/rx")
+        return unwatched[0], unwatched[1], view.channels
+
+    produced, frames, channels = asyncio.run(serving(config(), idle))
+    assert frames > 300 and produced <= 2  # tx and rx made their channels, no more
+    assert {"/can/demo/tx", "/can/demo/rx", "/left/vel_fbk_ab"} <= set(channels)
 
 
 def test_a_full_disk_ends_the_recording_not_the_live_view(tmp_path: Path) -> None:

@@ -6,7 +6,9 @@ one producer, :mod:`.ros_topics`), one channel per topic, made the first time th
 is written. The server accepts no commands: it advertises no capability (no client
 publishing, services or parameters), so a viewer can only watch.
 
-A slow or absent viewer costs the bus nothing. The SDK's log call is cheap while nobody
+A slow or absent viewer costs the bus nothing. Without an ``.mcap`` recording, the
+high-rate topics (frames, feedback) are not even produced while no viewer subscribes
+(:class:`LiveFeed`). The SDK's log call is cheap while nobody
 watches (0.1 µs, the GIL kept) but not once a viewer subscribes: it wakes the SDK's
 sender and gives up the GIL, 10 µs typically and up to milliseconds when another thread
 takes the GIL meanwhile (docs/foxglove.md, measured). So :meth:`FoxgloveSink.write`, on
@@ -27,7 +29,7 @@ import logging
 import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import can
 
@@ -38,10 +40,11 @@ from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.runtime import priority
 from abh3_supervisor.runtime.recorder import GuardedRecorder
 from abh3_supervisor.runtime.ros_topics import SCHEMAS, RosTopics, TopicSink
+from abh3_supervisor.scheduler.core import FeedbackEvent
 
 if TYPE_CHECKING:
     import foxglove
-    from foxglove.websocket import WebSocketServer
+    from foxglove.websocket import ServerListener, WebSocketServer
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -140,17 +143,47 @@ class FoxgloveSink:
         return send
 
 
+class Watchers:
+    """The server's listener: which viewer subscribes to which channel (called on the
+    SDK's threads, with the GIL; read on the loop)."""
+
+    def __init__(self) -> None:
+        self.subscriptions: set[tuple[int, int]] = set()  # (client id, channel id)
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self.subscriptions.add((client.id, channel.id))
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:  # a viewer gone, too
+        self.subscriptions.discard((client.id, channel.id))
+
+    def __bool__(self) -> bool:
+        return bool(self.subscriptions)
+
+
 class LiveFeed(can.Listener):
     """The bus pumps' listener (the recorder's frames too) and a supervisor subscriber
-    (after the recorder's), on the loop. The recording's topics (``shared``) reach the
-    view through the recording — until it fails (a full disk): from the next frame or
-    event on they come this way, so the live view goes on, each message once."""
+    (after the recorder's), on the loop.
+
+    The recording's topics (``shared``) reach the view through the recording — until it
+    fails (a full disk): from the next frame or event on they come this way, so the live
+    view goes on, each message once. Topics of its own (no ``.mcap`` recording) are not
+    even produced while no viewer subscribes to anything (``watchers`` empty), but for
+    the first frame of each bus and direction and the first feedback of each unit, which
+    make their topics' channels, for a viewer to see and subscribe to; the status
+    packets still go through (each robot's odometry adds up every pulse count)."""
 
     def __init__(
-        self, topics: RosTopics, recorder: GuardedRecorder | None, *, shared: bool
+        self,
+        topics: RosTopics,
+        recorder: GuardedRecorder | None,
+        *,
+        shared: bool,
+        watchers: Watchers | None = None,
     ) -> None:
         self.topics, self.recorder, self.shared = topics, recorder, shared
+        self.watchers = watchers if watchers is not None and not shared else None
         self._direct = not shared  # whether the topics come this way (see _note)
+        self._made: set[object] = set()  # what made its topics while nobody watched
 
     def _note(self) -> None:
         # read after the recorder had the frame or event: the one it failed on reached
@@ -158,12 +191,21 @@ class LiveFeed(can.Listener):
         if self.recorder is not None and self.recorder.failed is not None:
             self._direct = True
 
+    def _unwatched(self, key: object) -> bool:
+        """Nobody watches, and ``key``'s topics are made: nothing to produce."""
+        if self.watchers is None or self.watchers:
+            return False
+        if key in self._made:
+            return True
+        self._made.add(key)
+        return False
+
     def on_message_received(self, msg: can.Message) -> None:
         direct = self._direct
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
             self._note()
-        if direct:
+        if direct and not self._unwatched((msg.channel, msg.is_rx)):
             self.topics.on_message_received(msg)
 
     def attach(self, sup: Supervisor, clock: Callable[[], float]) -> None:
@@ -173,26 +215,37 @@ class LiveFeed(can.Listener):
     def observe(self, event: object) -> None:
         direct = self._direct
         self._note()  # the recorder had this event already
-        if direct:
-            self.topics.observe(event)
+        if not direct:
+            return
+        if isinstance(event, FeedbackEvent) and self._unwatched(event.unit):
+            return
+        self.topics.observe(event)
 
 
-def live_feed(sink: TopicSink, recorder: GuardedRecorder | None, config: Config) -> LiveFeed:
+def live_feed(
+    sink: TopicSink,
+    recorder: GuardedRecorder | None,
+    config: Config,
+    watchers: Watchers | None = None,
+) -> LiveFeed:
     """The feed of ``sink``: the recording's topics when it makes them (``.mcap``: each
-    message encoded once, for both), otherwise a producer of its own."""
+    message encoded once, for both), otherwise a producer of its own, idle while
+    ``watchers`` is empty."""
     shared = getattr(recorder.writer, "topics", None) if recorder is not None else None
     if isinstance(shared, RosTopics):
         shared.sinks.append(sink)
         return LiveFeed(shared, recorder, shared=True)
-    return LiveFeed(RosTopics(config, [sink]), recorder, shared=False)
+    return LiveFeed(RosTopics(config, [sink]), recorder, shared=False, watchers=watchers)
 
 
 class FoxgloveLive:
     """The server, the sink that feeds it and the thread that drains the sink's queue
     every ``DRAIN_S``; :meth:`stop` ends both."""
 
-    def __init__(self, server: WebSocketServer, sink: FoxgloveSink, endpoint: Endpoint) -> None:
-        self.server, self.sink, self.endpoint = server, sink, endpoint
+    def __init__(
+        self, server: WebSocketServer, sink: FoxgloveSink, endpoint: Endpoint, watchers: Watchers
+    ) -> None:
+        self.server, self.sink, self.endpoint, self.watchers = server, sink, endpoint, watchers
         self._stopping = threading.Event()
         self._drainer = threading.Thread(target=self._drain, name="foxglove drain", daemon=True)
         self._drainer.start()
@@ -214,7 +267,7 @@ class FoxgloveLive:
 
     def feed(self, recorder: GuardedRecorder | None, config: Config) -> LiveFeed:
         """What the bus pumps and the supervisor must feed for this view."""
-        return live_feed(self.sink, recorder, config)
+        return live_feed(self.sink, recorder, config, self.watchers)
 
     def stop(self) -> None:
         self._stopping.set()
@@ -237,7 +290,7 @@ def start_foxglove(
     foxglove.set_log_level(logging.INFO)
     for sdk in SDK_LOGGERS:
         logging.getLogger(sdk).addFilter(_named)
-    context = foxglove.Context()
+    context, watchers = foxglove.Context(), Watchers()
     try:
         # the SDK's threads start with the server: at normal priority, as their creator
         server = _at_normal_priority(
@@ -247,13 +300,14 @@ def start_foxglove(
                 port=endpoint.port,
                 capabilities=[],  # watch only: no publishing, services or parameters
                 context=context,
+                server_listener=cast("ServerListener", watchers),  # the two it needs
                 message_backlog_size=BACKLOG,
             )
         )
     except RuntimeError as exc:
         why = str(exc).removeprefix("FoxgloveError: ")
         raise Abh3Error(f"--foxglove {endpoint}: cannot serve: {why}") from exc
-    live = FoxgloveLive(server, FoxgloveSink(context, schemas), endpoint)
+    live = FoxgloveLive(server, FoxgloveSink(context, schemas), endpoint, watchers)
     log.info(
         "foxglove: serving live on %s (Foxglove: Open connection → Foxglove WebSocket)",
         live.url,
