@@ -67,7 +67,7 @@ def config(text: str = CONFIG) -> Config:
 
 async def serving(cfg: Config, viewer: Callable[[Runtime, int], Awaitable[T]]) -> T:
     """Run ``cfg`` on the simulator while ``viewer`` watches its Foxglove port."""
-    async with Runtime(cfg) as rt:
+    async with Runtime(cfg, foxglove=cfg.foxglove) as rt:
         assert rt.foxglove is not None
         stop = asyncio.Event()
         running = asyncio.ensure_future(rt.run_until(stop))
@@ -320,7 +320,8 @@ def test_with_an_mcap_recording_both_get_the_same_messages(tmp_path: Path) -> No
             return 1
 
     async def run() -> int:
-        async with Runtime(config(), record=path) as rt:
+        cfg = config()
+        async with Runtime(cfg, record=path, foxglove=cfg.foxglove) as rt:
             assert rt.foxglove is not None
             stop = asyncio.Event()
             running = asyncio.ensure_future(rt.run_until(stop))
@@ -445,6 +446,18 @@ def test_by_default_it_is_reachable_on_loopback_only() -> None:
             await asyncio.open_connection(address, port)
 
     asyncio.run(serving(config(CONFIG.replace("foxglove: 127.0.0.1:0", "foxglove: 0")), reach))
+
+
+@pytest.mark.wallclock
+def test_only_abh3_run_serves_the_files_key_not_the_tools_that_open_its_buses() -> None:
+    """`abh3 param -c`, `abh3 check --drives` build their runtime from the same file:
+    they serve nothing (nor collide with the port of an `abh3 run`)."""
+
+    async def tool() -> object:
+        async with Runtime(config()) as rt:
+            return rt.foxglove
+
+    assert asyncio.run(tool()) is None
 
 
 def test_the_yaml_key_is_checked_with_file_line_and_did_you_mean() -> None:

@@ -24,6 +24,7 @@ from typing import Any
 
 import can
 
+from abh3_supervisor.config.endpoint import Endpoint
 from abh3_supervisor.config.interfaces import echoes_own_frames, unknown_interface
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
 from abh3_supervisor.core import verify, verifying
@@ -163,10 +164,16 @@ def _refuse_in_fault_windows(
 
 class Runtime:
     def __init__(
-        self, config: Config, *, record: Path | None = None, plugins: PluginHost | None = None
+        self,
+        config: Config,
+        *,
+        record: Path | None = None,
+        plugins: PluginHost | None = None,
+        foxglove: Endpoint | None = None,
     ) -> None:
         self.config = config
         self.record = record
+        self.live = foxglove  # where to serve the live view: `abh3 run`'s, not every tool's
         self.plugins = plugins
         self.supervisor: Supervisor
         self.sims: dict[str, SimBus] = {}
@@ -200,8 +207,8 @@ class Runtime:
         if self.record is not None:
             self._recorder = open_recorder(self.record, self.config)
             self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
-        if self.config.foxglove is not None:  # a port taken: exit 2, before any bus opens
-            self.foxglove = start_foxglove(self.config.foxglove, f"abh3 {self.config.file}")
+        if self.live is not None:  # a port taken: exit 2, before any bus opens
+            self.foxglove = start_foxglove(self.live, f"abh3 {self.config.file}")
         self.supervisor = Supervisor(self.config, clock=loop.time)
         self.supervisor.call_at = loop.call_at
         self._arbitrate(loop)
