@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from abh3_supervisor.config.endpoint import Endpoint, parse_endpoint
+
 
 def positive(text: str) -> float:
     """A number above 0 (``inf`` allowed: "no end")."""
@@ -35,3 +37,11 @@ def count(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError("must be 0 or more")
     return value
+
+
+def endpoint(text: str) -> Endpoint:
+    """[HOST:]PORT, where a server of ours listens (127.0.0.1 unless a host is given)."""
+    try:
+        return parse_endpoint(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None

@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from abh3_supervisor import __version__
-from abh3_supervisor.clients.argtypes import positive
+from abh3_supervisor.clients.argtypes import endpoint, positive
 from abh3_supervisor.errors import Abh3Error, ConfigError, Interrupted, PartialWrite, RunError
 from abh3_supervisor.runtime import signals  # the standard library only: nothing loads early
 
@@ -71,6 +71,14 @@ def _parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="record all bus traffic; format by extension: .log .asc .blf .csv, or .mcap "
         "(raw frames and decoded values as ROS 2 messages; the mcap extra)",
+    )
+    run.add_argument(
+        "--foxglove",
+        type=endpoint,
+        metavar="[HOST:]PORT",
+        help="serve the .mcap recording's topics live to Foxglove over its WebSocket "
+        "protocol (127.0.0.1 unless a host is given; watch only; the foxglove extra); "
+        "overrides the file's `foxglove:`",
     )
     run.add_argument(
         "--priority",
@@ -494,6 +502,14 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
 
         check_format(args.record)
     config = load_config(args.config)
+    if args.foxglove is not None:
+        import dataclasses
+
+        config = dataclasses.replace(config, foxglove=args.foxglove)
+    if config.foxglove is not None:  # the extra missing: exit 2, before anything opens
+        from abh3_supervisor.runtime.foxglove_live import check_installed
+
+        check_installed(f"--foxglove {args.foxglove}" if args.foxglove else "foxglove:")
     plugins = _plugins(config)
     if args.record is not None:  # onto a plugin's own file: exit 2, before anything opens
         plugins.refuse_recording_onto_an_output(args.record, config.units)
@@ -579,6 +595,7 @@ def _tui_with_child(args: argparse.Namespace, release: Callable[[], None]) -> in
     for flag, value in (
         ("--priority", args.priority),
         ("--record", args.record),
+        ("--foxglove", args.foxglove),
         ("--socket-group", args.socket_group),
         ("--read-only-socket", args.read_only_socket),
     ):

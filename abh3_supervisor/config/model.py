@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
+from abh3_supervisor.config.endpoint import Endpoint
 from abh3_supervisor.config.source import Source
 from abh3_supervisor.core.kinematics import Geometry
 from abh3_supervisor.core.robot import RobotConfig, from_geometry
@@ -221,6 +222,8 @@ class Config:
     # the robots the file declares (``robots:``); every commanded unit not a wheel of one
     # is a one-drive robot of its own, named after it, from its ``geometry`` (added here)
     declared_robots: dict[str, RobotConfig] = field(default_factory=dict)
+    # `foxglove: [HOST:]PORT`: the recording's topics served live (runtime/foxglove_live.py)
+    foxglove: Endpoint | None = None
     # the declared robots whose units are all here, then the one-drive robots
     robots: dict[str, RobotConfig] = field(default_factory=dict, init=False, compare=False)
     _by_unit: dict[str, RobotConfig] = field(

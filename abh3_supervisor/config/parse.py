@@ -7,6 +7,7 @@ import re
 from pathlib import Path as FsPath
 from typing import Any
 
+from abh3_supervisor.config.endpoint import Endpoint, parse_endpoint
 from abh3_supervisor.config.faults import check_fault_units, check_fault_wheels, parse_faults
 from abh3_supervisor.config.interfaces import SHARED_BY_PROCESSES, unknown_interface
 from abh3_supervisor.config.model import (
@@ -42,7 +43,7 @@ from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 BITRATES = (250_000, 500_000, 1_000_000)  # what the ABH3 supports (§1)
 
-TOP_KEYS = {"buses", "units", "robots", "plugins"}
+TOP_KEYS = {"buses", "units", "robots", "plugins", "foxglove"}
 BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options"}
 BUS_ARGUMENTS = {"interface", "channel", "bitrate"}  # can.Bus(...) takes them from the bus
 SIM_KEYS = {
@@ -112,6 +113,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     check_fault_wheels(top, buses, units, robots)
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
+    foxglove = _foxglove(top)
     src.raise_if_problems()
     config = Config(
         file=file,
@@ -122,10 +124,21 @@ def parse_config(text: str, file: str = "<config>") -> Config:
         source=src,
         text=text,
         declared_robots=robots,
+        foxglove=foxglove,
     )
     _dry_run_startup(src, config)
     src.raise_if_problems()
     return config
+
+
+def _foxglove(top: Section) -> Endpoint | None:
+    if top.data.get("foxglove") is None:
+        return None
+    try:
+        return parse_endpoint(top.data["foxglove"])
+    except ValueError as exc:
+        top.error("foxglove", str(exc))
+        return None
 
 
 def _dry_run_startup(src: Source, config: Config) -> None:

@@ -13,6 +13,8 @@ from collections.abc import Sequence
 from typing import Any
 
 from abh3_supervisor.config import parse
+from abh3_supervisor.config.endpoint import MAX_PORT
+from abh3_supervisor.config.endpoint import PATTERN as ENDPOINT_PATTERN
 from abh3_supervisor.config.interfaces import known_interfaces
 from abh3_supervisor.config.model import (
     AXIS_KINDS,
@@ -414,6 +416,14 @@ def document(plugins: dict[str, Schema]) -> Schema:
                 "properties": plugins,
                 "additionalProperties": False,
                 "description": "only the plugins named here run",
+            },
+            "foxglove": {
+                "anyOf": [
+                    {"type": "integer", "minimum": 0, "maximum": MAX_PORT},
+                    {"type": "string", "pattern": ENDPOINT_PATTERN},
+                ],
+                "description": "serve the recording's topics live to Foxglove at [HOST:]PORT "
+                "(127.0.0.1 unless a host is given; docs/foxglove.md; the foxglove extra)",
             },
         },
         "required": ["buses", "units"],

@@ -24,6 +24,7 @@ from typing import Any
 
 import can
 
+from abh3_supervisor.config.endpoint import Endpoint
 from abh3_supervisor.config.interfaces import echoes_own_frames, unknown_interface
 from abh3_supervisor.config.model import BusConfig, Config, FaultKind, SimConfig
 from abh3_supervisor.core import verify, verifying
@@ -32,6 +33,7 @@ from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import priority
 from abh3_supervisor.runtime.echo import EchoFilter
+from abh3_supervisor.runtime.foxglove_live import FoxgloveLive, start_foxglove
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.scheduler.core import BusScheduler
@@ -162,10 +164,16 @@ def _refuse_in_fault_windows(
 
 class Runtime:
     def __init__(
-        self, config: Config, *, record: Path | None = None, plugins: PluginHost | None = None
+        self,
+        config: Config,
+        *,
+        record: Path | None = None,
+        plugins: PluginHost | None = None,
+        foxglove: Endpoint | None = None,
     ) -> None:
         self.config = config
         self.record = record
+        self.live = foxglove  # where to serve the live view: `abh3 run`'s, not every tool's
         self.plugins = plugins
         self.supervisor: Supervisor
         self.sims: dict[str, SimBus] = {}
@@ -173,6 +181,7 @@ class Runtime:
         self._sim_pumps: list[BusPump] = []
         self._buses: list[can.BusABC] = []
         self._recorder: GuardedRecorder | None = None
+        self.foxglove: FoxgloveLive | None = None  # the live view (`foxglove:`), when asked
         self.fatal: asyncio.Future[object] | None = None
         self.ended = asyncio.Event()  # a plugin ended the run (a normal stop, exit 0)
         self.stop_report: dict[str, str] = {}  # unit → CONFIRMED, SENT or "NOT sent: …"
@@ -198,6 +207,8 @@ class Runtime:
         if self.record is not None:
             self._recorder = open_recorder(self.record, self.config)
             self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
+        if self.live is not None:  # a port taken: exit 2, before any bus opens
+            self.foxglove = start_foxglove(self.live, f"abh3 {self.config.file}")
         self.supervisor = Supervisor(self.config, clock=loop.time)
         self.supervisor.call_at = loop.call_at
         self._arbitrate(loop)
@@ -205,6 +216,11 @@ class Runtime:
         if self._recorder is not None and attach is not None:  # decoded values too (MCAP)
             attach(self.supervisor, loop.time)
             self.supervisor.subscribe(self._recorder.observe)
+        listener: can.Listener | None = self._recorder  # what the pumps hand every frame
+        if self.foxglove is not None:  # the recording's topics, live
+            listener = feed = self.foxglove.feed(self._recorder, self.config)
+            feed.attach(self.supervisor, loop.time)
+            self.supervisor.subscribe(feed.observe)
         for name, cfg in self.config.buses.items():
             if (sim_cfg := cfg.simulate) is not None and not in_process(cfg):
                 log.info(
@@ -230,7 +246,7 @@ class Runtime:
                 name=name,
                 channel=cfg.channel,
                 after_step=functools.partial(self.supervisor.dispatch, name),
-                recorder=self._recorder,
+                recorder=listener,
                 on_fatal=self._on_fatal,
                 health=self.supervisor.bus_health[name],
             )
@@ -335,6 +351,9 @@ class Runtime:
         if self._recorder is not None:
             self._recorder.stop()  # after the stop frames: flushed and closed
             self._recorder = None
+        if self.foxglove is not None:
+            self.foxglove.stop()  # after the stop frames: viewers saw them
+            self.foxglove = None
         for bus in self._buses:
             bus.shutdown()
         self._buses.clear()

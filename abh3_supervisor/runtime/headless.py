@@ -72,7 +72,7 @@ async def run_headless(
     failed: str | None = None  # what ended the run (exit code 1)
     # a socket that cannot be served fails the run before the first frame: bound now
     bound = preflight(service) if service is not None else {}
-    rt = Runtime(config, record=record, plugins=plugins)
+    rt = Runtime(config, record=record, plugins=plugins, foxglove=config.foxglove)
     # the signal handlers outlive the runtime's stop and the last lines: a signal then
     # changes nothing (the CLI's own handlers, once back, would say no drive started)
     handled = contextlib.ExitStack()
