@@ -2,8 +2,9 @@
 
 python-can's ``Notifier`` delivers received frames on the loop (``add_reader`` where the
 bus has a file descriptor, a reader thread handing over with ``call_soon_threadsafe``
-otherwise); a single ``call_at`` timer wakes the machine at its next deadline. Everything
-the machine does therefore happens on the loop thread, one step at a time.
+otherwise); a single deadline timer (scheduler/timer.py: a timerfd, which the kernel
+repeats while the deadlines keep one period) wakes the machine at its next deadline.
+Everything the machine does therefore happens on the loop thread, one step at a time.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class BusPump(can.Listener):
         self.recorder = recorder
         self.on_fatal = on_fatal
         self.loop = asyncio.get_running_loop()
-        self._timer = DeadlineTimer(self.loop, self._step)
+        self._timer = DeadlineTimer(self.loop, self._step, repeating=True)
         self._notifier: can.Notifier | None = None
         self.frames_sent = 0
         self.frames_received = 0
