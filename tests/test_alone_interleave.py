@@ -4,6 +4,8 @@ medians. On made-up figures: no process is started."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 
 from abh3_supervisor.runtime import netns
@@ -50,3 +52,21 @@ def test_the_target_holds_in_every_run(
     assert row.ours == 145 and row.baseline == 100  # the medians, side by side
     assert row.ok is ok
     assert "each run's pair runs 1.4–" in row.target and "ours runs 140–" in row.target
+
+
+def test_section_2_runs_its_pairs_ours_then_bare(monkeypatch: pytest.MonkeyPatch) -> None:
+    from benchmarks import host_cpu
+
+    calls: list[str] = []
+
+    def timed(name: str, seconds: float) -> Callable[[int], float]:
+        def run(exchanges: int) -> float:
+            calls.append(name)
+            return seconds
+
+        return run
+
+    monkeypatch.setattr(host_cpu, "ours", timed("ours", 2.0))
+    monkeypatch.setattr(host_cpu, "bare", timed("bare", 1.0))
+    assert host_cpu.interleaved(10, 3) == ([2.0] * 3, [1.0] * 3)
+    assert calls == ["ours", "bare"] * 3
