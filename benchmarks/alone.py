@@ -463,10 +463,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--runs", type=int, default=3, help="repetitions; the median is printed")
     p.add_argument(
         "--interleave",
-        action=argparse.BooleanOptionalAction,
+        action="store_true",
         default=True,
         help="alternate the supervisor's and the bare host's windows (sup, bare, sup, "
-        "bare …; the default); without: every supervisor window first",
+        "bare …): the default",
+    )
+    p.add_argument(
+        "--no-interleave",
+        dest="interleave",
+        action="store_false",
+        help="every supervisor window first, then every bare host's",
     )
     sub = p.add_subparsers(dest="role")
     sub.add_parser("listen", help="print the DP0 frames heard, at SIGTERM")
