@@ -106,3 +106,10 @@ def ours(exchanges: int) -> float:
         return cpu / count
 
     return asyncio.run(run())
+
+
+def interleaved(exchanges: int, runs: int) -> tuple[list[float], list[float]]:
+    """``runs`` pairs, ours then bare each time (CPU seconds per exchange), so that each
+    pair shares the machine's state of the moment: (ours, bare), run by run."""
+    pairs = [(ours(exchanges), bare(exchanges)) for _ in range(runs)]
+    return [o for o, _ in pairs], [b for _, b in pairs]

@@ -213,3 +213,46 @@ def test_rtt_percentiles_are_those_of_the_last_window_of_round_trips(
     window = rtts[-RTT_WINDOW:]
     assert stats.rtt_ms(q) == pytest.approx(percentile(window, q) * 1000)  # type: ignore[operator]
     assert stats.rtts_ms(q, 99) == (stats.rtt_ms(q), stats.rtt_ms(99))
+
+
+_UNITS = {"left": 1, "right": 3}
+_KINDS = ["time", "reply", "short reply", "fail", "send now", "status", "ask"]
+
+
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(_KINDS), st.sampled_from(list(_UNITS)), st.integers(0, 600)),
+        max_size=80,
+    )
+)
+def test_each_units_earliest_deadline_is_kept_true_and_a_step_leaves_nothing_due(
+    steps: list[tuple[str, str, int]],
+) -> None:
+    """The scheduler keeps each unit's earliest deadline (``due``) instead of computing
+    four per unit per step: after any input it equals the deadlines computed afresh, and
+    after a step at ``now`` nothing of any unit is due at ``now`` (no unit skipped)."""
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    sched = BusScheduler(cfg.units.values(), now=0.0)
+    now = 0.0
+    for kind, unit, n in steps:
+        abh3 = _UNITS[unit]
+        if kind == "time":
+            now += n / 1000
+            sched.poll(now)
+            assert all(slot.earliest_due() > now for slot in sched.slots.values())
+        elif kind in ("reply", "short reply"):
+            stats = sched.slots[unit].stats
+            heard = stats.replies + stats.unsolicited + stats.malformed
+            sched.on_frame(ids.dp0_reply_id(abh3, 2), bytes(8 if kind == "reply" else 3), now)
+            assert stats.replies + stats.unsolicited + stats.malformed == heard + 1  # routed
+        elif kind == "fail":
+            sched.on_send_failed(sched.slots[unit].command_id)
+        elif kind == "send now":
+            sched.send_now(unit, now)
+        elif kind == "status":
+            sched.on_frame(ids.broadcast_id(abh3, 0, n % 7), bytes(8), now)
+        else:
+            sched.request_status(unit, n % 7)
+        for slot in sched.slots.values():
+            assert slot.due == slot.earliest_due()
+        assert sched.next_deadline() == min(s.earliest_due() for s in sched.slots.values())

@@ -48,3 +48,84 @@ def test_fires_at_the_deadline_and_not_after_cancel(
         t.close()
 
     asyncio.run(scenario())
+
+
+def _repeating(gaps: list[float], firings: int) -> tuple[list[float], int]:
+    """A repeating timer whose callback arms the next deadline ``gaps`` apart (cycled):
+    how early or late each firing came (loop time − deadline), and how many times the
+    kernel was asked to set the timer."""
+    if timer_module._LIBC is None:
+        pytest.skip("no timerfd on this platform")
+    set_calls = 0
+    settime = DeadlineTimer._settime
+
+    def counted(self: DeadlineTimer, seconds: int, nanoseconds: int, interval: int) -> None:
+        nonlocal set_calls
+        set_calls += 1
+        settime(self, seconds, nanoseconds, interval)
+
+    async def scenario() -> list[float]:
+        loop = asyncio.get_running_loop()
+        offsets: list[float] = []
+        done = loop.create_future()
+        deadline = loop.time() + 0.01
+
+        def callback() -> None:
+            nonlocal deadline
+            offsets.append(loop.time() - deadline)
+            if len(offsets) == firings:
+                done.set_result(None)
+                return  # not re-armed: it must not fire again
+            deadline += gaps[len(offsets) % len(gaps)]
+            t.arm(deadline)
+
+        t = DeadlineTimer(loop, callback, repeating=True)
+        t.arm(deadline)
+        await asyncio.wait_for(done, 10)
+        quiet = loop.create_future()
+        loop.call_later(0.05, quiet.set_result, None)  # a repetition would come in this
+        await quiet
+        t.close()
+        return offsets
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(DeadlineTimer, "_settime", counted)
+        offsets = asyncio.run(scenario())
+    return offsets, set_calls
+
+
+def test_a_periodic_schedule_is_repeated_by_the_kernel_and_never_late() -> None:
+    offsets, set_calls = _repeating([0.004], 40)
+    assert len(offsets) == 40  # and none after the callback stopped arming
+    # never before its deadline by more than the repetition's allowed lead (2 µs)
+    assert min(offsets) >= -(timer_module._SLACK_NS + 40 * timer_module._DRIFT_NS) / 1e9
+    # armed once, repeated from the first firing on; one more to stop it at the end
+    assert set_calls <= 4
+
+
+def test_an_irregular_schedule_is_armed_each_time_and_never_early() -> None:
+    offsets, set_calls = _repeating([0.002, 0.007], 20)
+    assert len(offsets) == 20
+    # a guess that does not fit is set again, not kept: no firing before its deadline
+    assert min(offsets) >= -(timer_module._SLACK_NS / 1e9)
+    assert set_calls >= 19
+
+
+def test_a_timer_not_asked_to_repeat_fires_once_per_arming() -> None:
+    if timer_module._LIBC is None:
+        pytest.skip("no timerfd on this platform")
+
+    async def scenario() -> int:
+        loop = asyncio.get_running_loop()
+        fired: list[float] = []
+        t = DeadlineTimer(loop, lambda: fired.append(loop.time()))
+        for _ in range(3):
+            t.arm(loop.time() + 0.003)
+            gone = loop.create_future()
+            loop.call_later(0.02, gone.set_result, None)
+            await gone
+        assert t._interval_ns == 0
+        t.close()
+        return len(fired)
+
+    assert asyncio.run(scenario()) == 3

@@ -32,7 +32,7 @@ from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import priority
-from abh3_supervisor.runtime.echo import EchoFilter
+from abh3_supervisor.runtime.echo import without_own_frames
 from abh3_supervisor.runtime.foxglove_live import FoxgloveLive, start_foxglove
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
@@ -59,7 +59,7 @@ def open_bus(cfg: BusConfig, *, from_file: bool = True) -> can.BusABC:
         raise BusOpenError(_cannot_open(cfg, f"{exc}{hint}")) from exc
     # no code of ours may see its own frames: on udp_multicast it would take its own
     # commands for another host's (runtime/echo.py)
-    return EchoFilter(bus) if echoes_own_frames(cfg.interface, cfg.options) else bus
+    return without_own_frames(bus) if echoes_own_frames(cfg.interface, cfg.options) else bus
 
 
 def _cannot_open(cfg: BusConfig, why: str) -> str:

@@ -3,16 +3,28 @@
 On python-can's ``udp_multicast`` every member of the group receives each datagram, its
 sender too, and nothing turns that off. Our machines must not see their own frames: the
 supervisor would take its own DP0 commands for another host's, a recording would hold
-each sent frame twice. :class:`EchoFilter` remembers what it sent and drops the first
-received copy of each. A frame another host sent that equals one of ours is dropped in
-its place, once; the copy of ours that then arrives has nothing left to match and goes
-through — so a second host sending exactly our frames is still seen, one frame late.
-Entries whose copy never came (a full socket buffer) are forgotten after ``EXPIRY_S``.
+each sent frame twice.
+
+:class:`MulticastEchoFilter` (``udp_multicast``) knows its copies by their bytes: python-can
+packs each frame with its send timestamp, so the datagram that comes back is byte for byte
+the one sent, and another host's frame never is. A copy is dropped before python-can
+unpacks it — and, as the loopback usually delivers it within the sending system call,
+taken back right after the send, so the event loop is not woken for it.
+
+:class:`EchoFilter` (any other bus that hears itself: ``receive_own_messages``) remembers
+what it sent and drops the first received copy of each by identifier and data. A frame
+another host sent that equals one of ours is dropped in its place, once; the copy of ours
+that then arrives has nothing left to match and goes through — so a second host sending
+exactly our frames is still seen, one frame late.
+
+Both forget entries whose copy never came (a full socket buffer) after ``EXPIRY_S``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import select
+import socket
 import threading
 import time
 from collections import deque
@@ -20,21 +32,46 @@ from collections.abc import Callable
 from typing import Any
 
 import can
+from can.interfaces.udp_multicast import UdpMulticastBus
+from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
 EXPIRY_S = 1.0
 MAX_PENDING = 4096  # sent frames awaiting their copy: a bound, whatever happens
+_TAKE_BACK = socket.MSG_PEEK | socket.MSG_DONTWAIT
 
 
-class EchoFilter(can.BusABC):
-    def __init__(self, bus: can.BusABC, *, clock: Callable[[], float] = time.monotonic) -> None:
+class _Wrapper(can.BusABC):
+    """Another bus, as this one: what is not received or sent goes straight to it."""
+
+    def __init__(self, bus: can.BusABC, clock: Callable[[], float]) -> None:
         self.inner = bus
         self._clock = clock
-        self._pending: deque[tuple[float, int, bytes]] = deque(maxlen=MAX_PENDING)
-        self._lock = threading.Lock()  # a reader thread receives while the loop sends
+        self._lock = threading.Lock()  # a reader thread may receive while the loop sends
         self.echoes_dropped = 0
         super().__init__(channel=bus.channel_info)
         self.channel_info = bus.channel_info
         self._can_protocol = bus.protocol
+
+    def fileno(self) -> int:
+        return self.inner.fileno()
+
+    @property
+    def state(self) -> can.BusState:
+        return self.inner.state
+
+    @state.setter
+    def state(self, new: can.BusState) -> None:
+        self.inner.state = new
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.inner.shutdown()
+
+
+class EchoFilter(_Wrapper):
+    def __init__(self, bus: can.BusABC, *, clock: Callable[[], float] = time.monotonic) -> None:
+        self._pending: deque[tuple[float, int, bytes]] = deque(maxlen=MAX_PENDING)
+        super().__init__(bus, clock)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         entry = (self._clock(), msg.arbitration_id, bytes(msg.data))
@@ -70,20 +107,98 @@ class EchoFilter(can.BusABC):
         with contextlib.suppress(ValueError):
             self._pending.remove(entry)
 
-    def fileno(self) -> int:
-        return self.inner.fileno()
-
-    @property
-    def state(self) -> can.BusState:
-        return self.inner.state
-
-    @state.setter
-    def state(self, new: can.BusState) -> None:
-        self.inner.state = new
-
     def set_filters(self, filters: Any = None) -> None:
         self.inner.set_filters(filters)
 
-    def shutdown(self) -> None:
-        super().shutdown()
-        self.inner.shutdown()
+
+class MulticastEchoFilter(_Wrapper):
+    """python-can's ``udp_multicast`` bus, read and written a datagram at a time (its
+    ``GeneralPurposeUdpMulticastBus``: ``send``, ``recv``, the socket), so that our own
+    datagrams are known by their bytes; see the module docstring."""
+
+    def __init__(
+        self, bus: UdpMulticastBus, *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self._udp = bus._multicast
+        self._socket: socket.socket = self._udp._socket
+        # (sent at, datagram), oldest first: copies come back in the order they were sent
+        self._pending: deque[tuple[float, bytes]] = deque(maxlen=MAX_PENDING)
+        super().__init__(bus, clock)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
+            raise can.CanOperationError("cannot send FD message over bus with CAN FD disabled")
+        datagram = pack_message(msg)  # python-can's own packing: the same bytes on the wire
+        entry = (self._clock(), datagram)
+        with self._lock:  # before sending: the copy may come back before send returns
+            self._pending.append(entry)
+        try:
+            self._udp.send(datagram, timeout)
+        except BaseException:
+            with self._lock:
+                self._forget(entry)
+            raise
+        if not timeout:  # a socket with a timeout would wait in recv, whatever the flags
+            self._take_back(datagram)
+
+    def _take_back(self, datagram: bytes) -> None:
+        """Drop our copy now if it is already the next datagram waiting (the loopback
+        delivers within the send): the loop then does not wake for it. Anything else
+        waiting stays where it is."""
+        with self._lock:
+            try:  # one byte more: a longer datagram cannot look equal
+                waiting = self._socket.recv(len(datagram) + 1, _TAKE_BACK)
+            except OSError:  # nothing waiting yet: recv drops it when it comes
+                return
+            if waiting != datagram:
+                return
+            self._socket.recv(1, socket.MSG_DONTWAIT)  # the rest of a datagram is discarded
+            self._is_own(datagram)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if timeout != 0:  # wait outside the lock: a send must not wait for a receive
+            readable, _, _ = select.select([self._socket], [], [], timeout)
+            if not readable:
+                return None, False
+        with self._lock:  # the copy may have been taken back since
+            got = self._udp.recv(0)
+            if got is None:
+                return None, False
+            datagram, _, stamp = got
+            if self._is_own(datagram):
+                return None, False  # recv() goes on waiting for the rest of its timeout
+        try:
+            msg = unpack_message(datagram, replace={"timestamp": stamp}, check=True)
+        except Exception as exc:  # as python-can's own bus says it
+            raise can.CanOperationError("could not unpack received message") from exc
+        if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
+            return None, False
+        return msg, False  # filters, if any, are this bus's own (BusABC applies them)
+
+    def _is_own(self, datagram: bytes) -> bool:
+        """Whether ``datagram`` is a copy of one we sent (then forgotten); under the lock."""
+        pending, now = self._pending, self._clock()
+        while pending and pending[0][0] < now - EXPIRY_S:
+            pending.popleft()
+        if pending and pending[0][1] == datagram:  # the usual case: the oldest one
+            pending.popleft()
+        else:
+            for entry in pending:
+                if entry[1] == datagram:
+                    self._forget(entry)
+                    break
+            else:
+                return False
+        self.echoes_dropped += 1
+        return True
+
+    def _forget(self, entry: tuple[float, bytes]) -> None:
+        with contextlib.suppress(ValueError):
+            self._pending.remove(entry)
+
+
+def without_own_frames(bus: can.BusABC) -> can.BusABC:
+    """``bus`` (which hears its own frames), wrapped so that it does not."""
+    if isinstance(bus, UdpMulticastBus) and hasattr(bus, "_multicast"):
+        return MulticastEchoFilter(bus)
+    return EchoFilter(bus)

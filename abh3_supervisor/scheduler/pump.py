@@ -2,8 +2,9 @@
 
 python-can's ``Notifier`` delivers received frames on the loop (``add_reader`` where the
 bus has a file descriptor, a reader thread handing over with ``call_soon_threadsafe``
-otherwise); a single ``call_at`` timer wakes the machine at its next deadline. Everything
-the machine does therefore happens on the loop thread, one step at a time.
+otherwise); a single deadline timer (scheduler/timer.py: a timerfd, which the kernel
+repeats while the deadlines keep one period) wakes the machine at its next deadline.
+Everything the machine does therefore happens on the loop thread, one step at a time.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class BusPump(can.Listener):
         self.recorder = recorder
         self.on_fatal = on_fatal
         self.loop = asyncio.get_running_loop()
-        self._timer = DeadlineTimer(self.loop, self._step)
+        self._timer = DeadlineTimer(self.loop, self._step, repeating=True)
         self._notifier: can.Notifier | None = None
         self.frames_sent = 0
         self.frames_received = 0
@@ -90,9 +91,14 @@ class BusPump(can.Listener):
             self._guard(self.machine.on_bad_frame, msg.arbitration_id, self.loop.time(), why)
             return
         self.frames_received += 1
+        now = self.loop.time()
         if self.health.state is not BusState.OK:  # only a bus in trouble watches for recovery
-            self.health.on_received(self.loop.time())
-        self._guard(self._receive_and_step, msg.arbitration_id, bytes(msg.data))
+            self.health.on_received(now)
+        try:  # _guard's, inline: once per frame
+            self.machine.on_frame(msg.arbitration_id, bytes(msg.data), now)
+            self._step_unguarded()
+        except Exception as exc:
+            self._failed(exc)
 
     def on_error(self, exc: Exception) -> None:
         """A receive failed (the interface went down): the bus's health says so once, as a
@@ -114,17 +120,20 @@ class BusPump(can.Listener):
     def _guard(self, fn: Callable[..., object], *args: object) -> None:
         try:
             fn(*args)
-        except Exception as exc:  # a bug in a machine must end the run safely, not hang it
-            log.exception("bus %s: internal error", self.name)
-            if self.on_fatal is not None:
-                self.on_fatal(exc)
+        except Exception as exc:
+            self._failed(exc)
 
-    def _receive_and_step(self, arbitration_id: int, data: bytes) -> None:
-        self.machine.on_frame(arbitration_id, data, self.loop.time())
-        self._step_unguarded()
+    def _failed(self, exc: Exception) -> None:
+        """A bug in a machine must end the run safely, not hang it."""
+        log.exception("bus %s: internal error", self.name, exc_info=exc)
+        if self.on_fatal is not None:
+            self.on_fatal(exc)
 
     def _step(self) -> None:
-        self._guard(self._step_unguarded)
+        try:  # _guard's, inline: once per timer firing
+            self._step_unguarded()
+        except Exception as exc:
+            self._failed(exc)
 
     def _step_unguarded(self) -> None:
         for arbitration_id, data in self.machine.poll(self.loop.time()):

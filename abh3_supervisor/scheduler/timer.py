@@ -5,6 +5,13 @@ granularity (rounded up), so a periodic command would leave up to 1 ms late. On 
 ``timerfd`` armed at the absolute CLOCK_MONOTONIC deadline (the clock ``loop.time()``
 reads) wakes the loop through ``add_reader`` at the right moment instead. Elsewhere, or
 if the timerfd cannot be made, it falls back to ``call_at``.
+
+``repeating``: a schedule of periodic deadlines (the pump's) re-arms the timer at every
+firing, a system call each time. Armed from its own callback, the timer therefore guesses
+that the next deadline will be as far after this one as this one was after the last
+firing, and lets the kernel repeat it (the timerfd's interval, a little short, so that a
+repetition never comes after its deadline): a deadline that falls just after the
+repetition then costs nothing; any other is armed as before.
 """
 
 from __future__ import annotations
@@ -19,6 +26,13 @@ from collections.abc import Callable
 
 _CLOCK_MONOTONIC = 1
 _TFD_TIMER_ABSTIME = 1
+# a repetition is this much shorter than the interval it repeats: the deadlines, floats,
+# land within ±1 ns of their grid, and a repetition must never come after one
+_DRIFT_NS = 2
+# a deadline this little after the next repetition keeps it (the repetitions drift this
+# far ahead of the grid before they are set again: once every 1000 periods)
+_SLACK_NS = 2000
+_MIN_INTERVAL_NS = 100_000  # nothing this close together repeats: no such schedule
 
 
 class _Timespec(ctypes.Structure):
@@ -44,11 +58,22 @@ _LIBC = _libc()
 
 
 class DeadlineTimer:
-    def __init__(self, loop: asyncio.AbstractEventLoop, callback: Callable[[], None]) -> None:
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        callback: Callable[[], None],
+        *,
+        repeating: bool = False,
+    ) -> None:
         self.loop, self.callback = loop, callback
         self.when: float | None = None
         self._handle: asyncio.TimerHandle | None = None
         self._fd = -1
+        self._repeating = repeating
+        self._next_ns = -1  # the timerfd's next expiry; -1: not armed
+        self._interval_ns = 0  # the kernel repeats it so (0: once)
+        self._fired_ns = -1  # the expiry whose callback runs now; -1: outside the callback
+        self._armed = False  # the callback armed or cancelled the timer
         self._spec = _Itimerspec()  # reused: arming happens on every scheduler step
         # the loop must tell time with CLOCK_MONOTONIC for absolute timerfd deadlines
         if _LIBC is not None and abs(loop.time() - time.monotonic()) < 0.01:
@@ -65,30 +90,48 @@ class DeadlineTimer:
         """Fire at ``when`` — or earlier: a later deadline keeps the armed one (lazy re-arm).
 
         The callback then finds nothing due and arms again; that costs one spurious wake-up
-        now and then instead of a system call on every scheduler step.
+        now and then instead of a system call on every scheduler step. A repetition
+        (``repeating``) is kept only for a deadline at most ``_SLACK_NS`` after it.
         """
+        if self._fd >= 0:
+            self._arm_fd(when)
+            return
         if self.when is not None and self.when <= when:
             return
         self.when = when
-        if self._fd >= 0:
-            when = max(when, 1e-6)  # an all-zero it_value would disarm instead
-            seconds = int(when)
-            value = self._spec.it_value
-            value.tv_sec, value.tv_nsec = seconds, int((when - seconds) * 1e9)
-            assert _LIBC is not None
-            _LIBC.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(self._spec), None)
-        else:
-            if self._handle is not None:
-                self._handle.cancel()
-            self._handle = self.loop.call_at(when, self._fire)
+        if self._handle is not None:
+            self._handle.cancel()
+        self._handle = self.loop.call_at(when, self._fire)
+
+    def _arm_fd(self, when: float) -> None:
+        self._armed = True
+        when = max(when, 1e-6)  # an all-zero it_value would disarm instead
+        seconds = int(when)
+        nanoseconds = int((when - seconds) * 1e9)
+        at = seconds * 1_000_000_000 + nanoseconds
+        armed = self._next_ns
+        if armed >= 0 and armed <= at and (not self._interval_ns or at - armed <= _SLACK_NS):
+            return  # it fires in time: lazily kept, or the repetition meant for this deadline
+        interval = 0
+        if self._repeating and self._fired_ns >= 0:  # from the callback: guess the period
+            gap = at - self._fired_ns
+            interval = gap - _DRIFT_NS if gap >= _MIN_INTERVAL_NS else 0
+        self._settime(seconds, nanoseconds, interval)
+        self._next_ns, self._interval_ns, self.when = at, interval, when
+
+    def _settime(self, seconds: int, nanoseconds: int, interval: int) -> None:
+        spec = self._spec
+        spec.it_value.tv_sec, spec.it_value.tv_nsec = seconds, nanoseconds
+        spec.it_interval.tv_sec, spec.it_interval.tv_nsec = divmod(interval, 1_000_000_000)
+        assert _LIBC is not None
+        _LIBC.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None)
 
     def cancel(self) -> None:
         self.when = None
         if self._fd >= 0:
-            assert _LIBC is not None
-            value = self._spec.it_value
-            value.tv_sec, value.tv_nsec = 0, 0  # all zero: disarm
-            _LIBC.timerfd_settime(self._fd, 0, ctypes.byref(self._spec), None)
+            self._armed = True
+            self._next_ns, self._interval_ns = -1, 0
+            self._settime(0, 0, 0)  # all zero: disarm
         elif self._handle is not None:
             self._handle.cancel()
             self._handle = None
@@ -103,10 +146,22 @@ class DeadlineTimer:
 
     def _on_readable(self) -> None:
         try:
-            os.read(self._fd, 8)
+            expiries = int.from_bytes(os.read(self._fd, 8), sys.byteorder)
         except BlockingIOError:
             return  # re-armed after expiring: nothing due now
-        self._fire()
+        interval = self._interval_ns
+        if interval:  # the kernel has armed the next repetition already (past any missed)
+            self._fired_ns = self._next_ns + (expiries - 1) * interval
+            self._next_ns = self._fired_ns + interval
+        else:
+            self._fired_ns, self._next_ns = self._next_ns, -1
+        self._armed = False
+        try:
+            self._fire()
+        finally:
+            self._fired_ns = -1
+            if interval and not self._armed and self._fd >= 0:  # nobody wants the repetition
+                self.cancel()
 
     def _fire(self) -> None:
         self.when = None

@@ -1,0 +1,155 @@
+"""The udp_multicast echo filter (runtime/echo.py): our own datagrams are known by their
+bytes, dropped before python-can unpacks them, and taken back right after the send.
+
+A multicast group's datagrams leave the machine; these tests need none. python-can's own
+``udp_multicast`` code reads and writes a UDP socket on 127.0.0.1 that sends to itself —
+the way the group hands a sender its own datagrams — and another socket plays the other
+host. Every byte still goes through python-can's packing, sending and receiving."""
+
+from __future__ import annotations
+
+import select
+import socket
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import can
+import pytest
+from can.interfaces.udp_multicast import UdpMulticastBus
+from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS, GeneralPurposeUdpMulticastBus
+from can.interfaces.udp_multicast.utils import pack_message
+
+from abh3_supervisor.runtime import echo
+from abh3_supervisor.runtime.echo import MulticastEchoFilter, without_own_frames
+
+pytestmark = pytest.mark.wallclock  # real sockets
+
+ID = 0x0CEF0102
+
+
+class _Loopback(GeneralPurposeUdpMulticastBus):
+    """python-can's socket handler on a unicast socket that sends to itself."""
+
+    def _create_socket(self, address_family: socket.AddressFamily) -> socket.socket:
+        sock = socket.socket(address_family, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        self.timestamp_nanosecond = True
+        sock.bind(("127.0.0.1", 0))
+        self.port = sock.getsockname()[1]  # the destination: this socket itself
+        return sock
+
+
+class LoopbackBus(UdpMulticastBus):
+    def __init__(self) -> None:
+        can.BusABC.__init__(self, "127.0.0.1")
+        self._multicast = _Loopback("127.0.0.1", 0, 1)
+        self._can_protocol = can.CanProtocol.CAN_20
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@dataclass
+class Bus:
+    ours: MulticastEchoFilter
+    other: socket.socket  # another host: sends datagrams to ours
+    clock: Clock
+
+    def from_other(self, msg: can.Message) -> None:
+        self.other.sendto(pack_message(msg), self.ours._socket.getsockname())
+
+    def waiting(self) -> bool:
+        return bool(select.select([self.ours._socket], [], [], 0)[0])
+
+
+@pytest.fixture
+def bus() -> Iterator[Bus]:
+    clock = Clock()
+    ours = MulticastEchoFilter(LoopbackBus(), clock=clock)
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    yield Bus(ours, other, clock)
+    ours.shutdown()
+    other.close()
+
+
+def frame(data: bytes, t: float = 1000.0) -> can.Message:
+    return can.Message(arbitration_id=ID, data=data, is_extended_id=True, timestamp=t)
+
+
+def test_the_factory_picks_it_for_python_cans_udp_multicast() -> None:
+    bus = without_own_frames(LoopbackBus())
+    try:
+        assert isinstance(bus, MulticastEchoFilter)
+    finally:
+        bus.shutdown()
+
+
+@pytest.mark.parametrize("timeout", [0, None])
+def test_our_copy_is_taken_back_during_the_send(bus: Bus, timeout: float | None) -> None:
+    bus.ours.send(frame(b"\x01" * 8), timeout=timeout)
+    # the loopback delivered it within the send, and it is gone already: nothing wakes
+    assert bus.ours.echoes_dropped == 1
+    assert not bus.waiting()
+    assert bus.ours.recv(0.05) is None
+
+
+def test_what_goes_out_is_python_cans_own_datagram(bus: Bus) -> None:
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    bus.ours._udp._send_destination = listener.getsockname()
+    msg = frame(b"\x07" * 8)
+    try:
+        bus.ours.send(msg, timeout=0)
+        assert listener.recv(4096) == pack_message(msg)  # the wire is unchanged
+    finally:
+        listener.close()
+    assert bus.ours.echoes_dropped == 0 and len(bus.ours._pending) == 1  # not back: waits
+
+
+def test_a_copy_behind_another_hosts_frame_is_dropped_when_read(bus: Bus) -> None:
+    bus.from_other(frame(b"\x02" * 8, t=5.0))  # waiting before our copy comes back
+    bus.ours.send(frame(b"\x03" * 8), timeout=0)
+    assert bus.ours.echoes_dropped == 0  # the other's frame stays first, untouched
+    got = bus.ours.recv(0)
+    assert got is not None and bytes(got.data) == b"\x02" * 8 and got.timestamp != 5.0
+    assert bus.ours.recv(0) is None  # our copy, dropped before it is unpacked
+    assert bus.ours.echoes_dropped == 1 and not bus.waiting()
+
+
+def test_another_hosts_frame_equal_to_ours_shows_at_once(bus: Bus) -> None:
+    bus.ours.send(frame(b"\x00" * 8, t=1000.0), timeout=0)
+    bus.from_other(frame(b"\x00" * 8, t=1000.5))  # same id and data, its own send time
+    got = bus.ours.recv(1.0)
+    assert got is not None and got.arbitration_id == ID and bytes(got.data) == b"\x00" * 8
+    assert bus.ours.echoes_dropped == 1
+
+
+def test_a_copy_that_never_came_is_forgotten(bus: Bus) -> None:
+    bus.ours._udp._send_destination = ("127.0.0.1", 9)  # the discard port: the copy is lost
+    msg = frame(b"\x05" * 8)
+    bus.ours.send(msg, timeout=0)
+    assert len(bus.ours._pending) == 1
+    bus.clock.t += echo.EXPIRY_S + 0.1
+    bus.from_other(msg)  # the very same bytes, from elsewhere, after the expiry
+    assert bus.ours.recv(1.0) is not None  # no longer mistaken for our copy
+    assert bus.ours.echoes_dropped == 0 and not bus.ours._pending
+
+
+def test_a_failed_send_leaves_nothing_to_match(bus: Bus) -> None:
+    bus.ours._udp._send_destination = ("256.0.0.1", 1)  # no such address: sendto fails
+    msg = frame(b"\x06" * 8)
+    with pytest.raises(can.CanError):
+        bus.ours.send(msg, timeout=0)
+    assert not bus.ours._pending
+
+
+def test_blocking_receive_waits_for_the_next_frame(bus: Bus) -> None:
+    assert bus.ours.recv(0.02) is None
+    bus.from_other(frame(b"\x09" * 8))
+    got = bus.ours.recv(1.0)
+    assert got is not None and bytes(got.data) == b"\x09" * 8
