@@ -1,7 +1,8 @@
 """``python -m benchmarks``: every figure next to its baseline, as ratios, in one run.
 
 ``--quick`` is the smoke mode CI runs (short windows, one repetition); ``--long`` adds the
-10-minute memory-growth run. Results are medians of ``--runs`` repetitions.
+10-minute memory-growth run; ``--small`` runs only section 11, a small computer's budget
+(the figures to take on a board). Results are medians of ``--runs`` repetitions.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from benchmarks import (
     robot,
     ros2_bridge,
     scale,
+    small,
 )
 from benchmarks.report import Row, machine, print_rows
 
@@ -40,8 +42,17 @@ def main(argv: list[str] | None = None) -> int:
         default=0.5,
         help="simulated drive response latency for the bus model (default 0.5)",
     )
+    p.add_argument(
+        "--small",
+        action="store_true",
+        help="only section 11: the supervisor in a CPU cgroup at 5/10/25 %% of a core (root)",
+    )
     a = p.parse_args(argv)
     runs = 1 if a.quick else a.runs
+    if a.small:
+        print(f"machine: {machine()}")
+        print_rows(small.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick))
+        return 0
     rows: list[Row] = []
     print(f"machine: {machine()}")
     print(
@@ -399,6 +410,10 @@ def main(argv: list[str] | None = None) -> int:
     # 10. the supervisor alone, its drives in `abh3 simulate` (issue 32 item 4); skipped,
     # with the reason, where no network namespace can be made
     rows += alone.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
+
+    # 11. a small computer's budget: the supervisor in a CPU cgroup (issue 34 items 1, 5);
+    # skipped, with the reason, where no cgroup or namespace can be made
+    rows += small.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]
