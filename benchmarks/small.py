@@ -288,7 +288,7 @@ def rows(seconds: float, runs: int, sizing: bool = True) -> list[Row]:
              "simulator_cpu_percent", "%"),
     ]  # fmt: skip
     if sizing:
-        out += sizing_rows(seconds, bridge)
+        out += breakdown_rows(seconds, runs, bridge) + sizing_rows(seconds, runs, bridge)
     return out
 
 
@@ -311,6 +311,38 @@ def _row(
     return Row(
         SECTION, figure, median, statistics.median(of_base), unit, said, ok(median) if ok else None
     )
+
+
+PARTS = (  # what each part of the row costs: (label, record, bridge, TUI), cumulative
+    (f"{UNITS} units @{RATE:g} Hz headless", False, False, False),
+    ("+ MCAP recording", True, False, False),
+    ("+ ROS 2 bridge", True, True, False),
+    ("+ 1 TUI attached", True, True, True),
+)
+
+
+def breakdown(seconds: float, runs: int, bridge: bool) -> dict[str, list[float]]:
+    """The supervisor's CPU % given a whole core, part by part (repetitions interleaved:
+    every part once, then again)."""
+    parts = [p for p in PARTS if bridge or not p[2]]
+    cpu: dict[str, list[float]] = {label: [] for label, *_ in parts}
+    for _ in range(runs):
+        for label, record, bridged, tui in parts:
+            done = run(100.0, seconds=seconds, bridge=bridged, record=record, tui=tui)
+            cpu[label].append(done.figures["supervisor_cpu_percent"])
+    return cpu
+
+
+def breakdown_rows(seconds: float, runs: int, bridge: bool) -> list[Row]:
+    """Each part's CPU against the one before it: what a board pays for each."""
+    out = []
+    before: float | None = None
+    for label, values in breakdown(seconds, runs, bridge).items():
+        median = statistics.median(values)
+        figure = f"a whole core, CPU %: {label}"
+        out.append(Row(SECTION, figure, median, before, "%", alone._spread(values, "%")))
+        before = median
+    return out
 
 
 def largest(holds: Callable[[int], bool], counts: Sequence[int]) -> int:
@@ -341,10 +373,18 @@ class Size:
     failed: Run | None  # the smallest count tried that did not hold, if any
 
 
+def median_run(runs: Sequence[Run]) -> Run:
+    """Repetitions of one configuration as one: the median of each figure."""
+    first = runs[0]
+    figures = {key: statistics.median(r.figures[key] for r in runs) for key in first.figures}
+    return Run(first.units, first.rate, first.percent, figures)
+
+
 def sizing(
-    seconds: float, bridge: bool, shares: Sequence[float] = SHARES
+    seconds: float, bridge: bool, runs: int = 1, shares: Sequence[float] = SHARES
 ) -> dict[tuple[float, float], Size]:
-    """The largest number of units that holds at each (share, rate), by bisection."""
+    """The largest number of units that holds at each (share, rate), by bisection; a
+    count holds when the median of ``runs`` repetitions does (a noisy machine)."""
     found: dict[tuple[float, float], Size] = {}
     for percent in shares:
         for rate in SIZING_RATES:
@@ -353,7 +393,9 @@ def sizing(
             def holds(
                 units: int, percent: float = percent, rate: float = rate, failed: list[Run] = failed
             ) -> bool:
-                done = run(percent, units, rate, seconds, bridge=bridge)
+                done = median_run(
+                    [run(percent, units, rate, seconds, bridge=bridge) for _ in range(runs)]
+                )
                 if not done.holds:
                     failed.append(done)
                 return done.holds
@@ -365,9 +407,9 @@ def sizing(
     return found
 
 
-def sizing_rows(seconds: float, bridge: bool) -> list[Row]:
+def sizing_rows(seconds: float, runs: int, bridge: bool) -> list[Row]:
     out = []
-    for (percent, rate), size in sizing(seconds, bridge).items():
+    for (percent, rate), size in sizing(seconds, bridge, runs).items():
         said = f"{size.units * rate:g} commands/s"
         if (f := size.failed) is not None:
             said += (
