@@ -131,13 +131,15 @@ class Run:
     units: int
     rate: float
     percent: float
-    figures: dict[str, float]
+    figures: dict[str, float]  # none if it did not start
+    why: str = ""  # why it did not start (a start-up that does not fit the share)
 
     @property
     def holds(self) -> bool:
         f = self.figures
         return (
-            f["rate_error_percent"] <= RATE_TOLERANCE
+            not self.why
+            and f["rate_error_percent"] <= RATE_TOLERANCE
             and f["jitter_p99_ms"] <= JITTER_P99_MS
             and f["timeouts"] == 0
         )
@@ -177,6 +179,8 @@ def run(
             window, timeouts, throttled = _supervised(
                 ns, limit, tmp, seconds, sim.pid, record=record, tui=tui
             )
+        except NotStarted as exc:
+            return Run(units, rate, percent, {}, why=str(exc))
         finally:
             alone._stop(sim)
             listener.terminate()  # it prints what it heard, then ends
@@ -196,6 +200,16 @@ def run(
         "throttled_percent": 100 * throttled,
     }
     return Run(units, rate, percent, figures)
+
+
+class NotStarted(RuntimeError):
+    """``abh3 run`` did not get its units running: the line it said why."""
+
+
+def _said(log: Path) -> str:
+    lines = [line for line in log.read_text().splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("error:")]
+    return (errors or lines or ["nothing said"])[-1]
 
 
 def _heard(out: str) -> list[tuple[float, int]]:
@@ -229,12 +243,13 @@ def _supervised(
             stdout=subprocess.DEVNULL, stderr=err, preexec_fn=limit.enter,
         )  # fmt: skip
     try:
-        deadline = time.monotonic() + START_CPU_S / (limit.percent / 100)
+        started = time.monotonic()
+        deadline = started + START_CPU_S / (limit.percent / 100)
         while not (sock.exists() and "running " in log.read_text()):
             if sup.poll() is not None:
-                raise RuntimeError(f"abh3 run ended (exit {sup.returncode}):\n{log.read_text()}")
+                raise NotStarted(f"exit {sup.returncode}, {_said(log)}")
             if time.monotonic() > deadline:
-                raise RuntimeError(f"abh3 run did not start its units:\n{log.read_text()}")
+                raise NotStarted(f"not running within {deadline - started:.0f} s, {_said(log)}")
             time.sleep(0.05)
         with _tui(sock) if tui else contextlib.nullcontext() as attached:
             time.sleep(SETTLE_S + alone.WARMUP_S)  # attached, drawn, discovered
@@ -256,9 +271,12 @@ def _supervised(
 # --- the rows ---------------------------------------------------------------------------
 
 
-def rows(seconds: float, runs: int, sizing: bool = True) -> list[Row]:
+def rows(
+    seconds: float, runs: int, sizing: bool = True, shares: Sequence[float] = SHARES
+) -> list[Row]:
     """The section's rows; none (and a line saying why) where no cgroup or namespace
-    can be made. ``sizing``: also the largest configuration that holds per share."""
+    can be made. ``sizing``: also what each part costs, and the largest configuration
+    that holds at each of ``shares`` (% of one core)."""
     why = cgroup.unavailable() or netns.unavailable()
     if why is not None:
         print(f"section 11 skipped: {why}")
@@ -288,7 +306,8 @@ def rows(seconds: float, runs: int, sizing: bool = True) -> list[Row]:
              "simulator_cpu_percent", "%"),
     ]  # fmt: skip
     if sizing:
-        out += breakdown_rows(seconds, runs, bridge) + sizing_rows(seconds, runs, bridge)
+        out += breakdown_rows(seconds, runs, bridge)
+        out += sizing_rows(seconds, runs, bridge, shares)
     return out
 
 
@@ -301,16 +320,20 @@ def _row(
     target: str = "",
     ok: Callable[[float], bool] | None = None,
 ) -> Row:
-    values = [r.figures[key] for r in ran]
-    of_base = [r.figures[key] for r in base]
+    values = [r.figures[key] for r in ran if not r.why]
+    of_base = [r.figures[key] for r in base if not r.why]
+    baseline = statistics.median(of_base) if of_base else None
+    if not values:
+        why = next(r.why for r in ran if r.why)
+        return Row(SECTION, figure, 0.0, baseline, unit, f"did not start: {why}", False)
     median = statistics.median(values)
     said = alone._spread(values, unit)
+    if (missed := len(ran) - len(values)) > 0:
+        said += f" ({missed} did not start)"
     if len(of_base) > 1:
         said += f"; baseline {alone._spread(of_base, unit)}"
     said = f"{target}; {said}" if target else said
-    return Row(
-        SECTION, figure, median, statistics.median(of_base), unit, said, ok(median) if ok else None
-    )
+    return Row(SECTION, figure, median, baseline, unit, said, ok(median) if ok else None)
 
 
 PARTS = (  # what each part of the row costs: (label, record, bridge, TUI), cumulative
@@ -329,7 +352,8 @@ def breakdown(seconds: float, runs: int, bridge: bool) -> dict[str, list[float]]
     for _ in range(runs):
         for label, record, bridged, tui in parts:
             done = run(100.0, seconds=seconds, bridge=bridged, record=record, tui=tui)
-            cpu[label].append(done.figures["supervisor_cpu_percent"])
+            if not done.why:  # a whole core starts it: else a fault, said in its row
+                cpu[label].append(done.figures["supervisor_cpu_percent"])
     return cpu
 
 
@@ -338,6 +362,9 @@ def breakdown_rows(seconds: float, runs: int, bridge: bool) -> list[Row]:
     out = []
     before: float | None = None
     for label, values in breakdown(seconds, runs, bridge).items():
+        if not values:
+            out.append(Row(SECTION, f"a whole core: {label}", 0.0, None, "", "did not start"))
+            continue
         median = statistics.median(values)
         figure = f"a whole core, CPU %: {label}"
         out.append(Row(SECTION, figure, median, before, "%", alone._spread(values, "%")))
@@ -375,8 +402,12 @@ class Size:
 
 def median_run(runs: Sequence[Run]) -> Run:
     """Repetitions of one configuration as one: the median of each figure."""
-    first = runs[0]
-    figures = {key: statistics.median(r.figures[key] for r in runs) for key in first.figures}
+    first, started = runs[0], [r for r in runs if not r.why]
+    if 2 * len(started) <= len(runs):  # most did not start: it does not
+        why = next(r.why for r in runs if r.why)
+        return Run(first.units, first.rate, first.percent, {}, why=why)
+    keys = started[0].figures
+    figures = {key: statistics.median(r.figures[key] for r in started) for key in keys}
     return Run(first.units, first.rate, first.percent, figures)
 
 
@@ -407,11 +438,15 @@ def sizing(
     return found
 
 
-def sizing_rows(seconds: float, runs: int, bridge: bool) -> list[Row]:
+def sizing_rows(
+    seconds: float, runs: int, bridge: bool, shares: Sequence[float] = SHARES
+) -> list[Row]:
     out = []
-    for (percent, rate), size in sizing(seconds, bridge, runs).items():
+    for (percent, rate), size in sizing(seconds, bridge, runs, shares).items():
         said = f"{size.units * rate:g} commands/s"
-        if (f := size.failed) is not None:
+        if (f := size.failed) is not None and f.why:
+            said += f"; {f.units} did not start: {f.why}"
+        elif f is not None:
             said += (
                 f"; {f.units} did not: rate error {f.figures['rate_error_percent']:.2g} %, "
                 f"p99 {f.figures['jitter_p99_ms']:.2g} ms, "
@@ -429,17 +464,24 @@ def sizing_rows(seconds: float, runs: int, bridge: bool) -> list[Row]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m benchmarks.small [--seconds S] [--runs N] [--quick]``."""
+    """``python -m benchmarks.small [--seconds S] [--runs N] [--shares P …] [--quick]``."""
     p = argparse.ArgumentParser(prog="python -m benchmarks.small", description=__doc__)
     p.add_argument("--seconds", type=float, default=10.0, help="each measuring window")
     p.add_argument("--runs", type=int, default=3, help="repetitions; the median is printed")
+    p.add_argument(
+        "--shares",
+        type=float,
+        nargs="+",
+        default=list(SHARES),
+        help="%% of one core the sizing table is taken at (on a board: 25 50 100)",
+    )
     p.add_argument("--quick", action="store_true", help="one short run, no sizing table")
     a = p.parse_args(argv)
     print(f"machine: {machine()}")
     if a.quick:
         print_rows(rows(2.0, 1, sizing=False))
     else:
-        print_rows(rows(a.seconds, a.runs))
+        print_rows(rows(a.seconds, a.runs, shares=a.shares))
 
 
 if __name__ == "__main__":

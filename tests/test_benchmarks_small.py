@@ -124,3 +124,22 @@ def test_the_supervisor_is_held_to_its_share(tmp_path: Path) -> None:
     found = cgroup.parent()
     assert found is not None
     assert not (found[0] / f"abh3-small-{os.getpid()}").exists()
+
+
+def test_a_start_that_does_not_fit_the_share_does_not_hold(tmp_path: Path) -> None:
+    """At 5 % the bridge's start can outlast the plugin host's 5 s: such a run did not
+    start, says why (the supervisor's error line), and repetitions count by majority."""
+    log = tmp_path / "run.err"
+    log.write_text(
+        "10:00:00.1 INFO    plugins loaded: ros2\n"
+        "error: plugin ros2 could not start (abh3_start): did not return within 5 s\n\n"
+    )
+    why = small._said(log)
+    assert why == "error: plugin ros2 could not start (abh3_start): did not return within 5 s"
+    figures = {"rate_error_percent": 0.1, "jitter_p99_ms": 1.0, "timeouts": 0.0}
+    ok, other = small.Run(1, 50, 5, figures), small.Run(1, 50, 5, figures | {"jitter_p99_ms": 3.0})
+    not_started = small.Run(1, 50, 5, {}, why=why)
+    assert not not_started.holds
+    assert small.median_run([not_started, ok, not_started]).why == why
+    two = small.median_run([ok, not_started, other])
+    assert two.holds and two.figures["jitter_p99_ms"] == 2.0  # the median of those that ran
