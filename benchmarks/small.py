@@ -427,6 +427,8 @@ def sizing(
                 done = median_run(
                     [run(percent, units, rate, seconds, bridge=bridge) for _ in range(runs)]
                 )
+                verdict = "holds" if done.holds else "does not hold"
+                print(f"section 11: {units} @{rate:g} Hz on {percent:g} %: {verdict}", flush=True)
                 if not done.holds:
                     failed.append(done)
                 return done.holds
