@@ -1,7 +1,8 @@
 """``python -m benchmarks``: every figure next to its baseline, as ratios, in one run.
 
 ``--quick`` is the smoke mode CI runs (short windows, one repetition); ``--long`` adds the
-10-minute memory-growth run. Results are medians of ``--runs`` repetitions.
+10-minute memory-growth run; ``--small`` runs only section 12, a small computer's budget
+(the figures to take on a board). Results are medians of ``--runs`` repetitions.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from benchmarks import (
     robot,
     ros2_bridge,
     scale,
+    small,
 )
 from benchmarks.report import Row, machine, print_rows
 
@@ -41,8 +43,17 @@ def main(argv: list[str] | None = None) -> int:
         default=0.5,
         help="simulated drive response latency for the bus model (default 0.5)",
     )
+    p.add_argument(
+        "--small",
+        action="store_true",
+        help="only section 12: the supervisor in a CPU cgroup at 5/10/25 %% of a core (root)",
+    )
     a = p.parse_args(argv)
     runs = 1 if a.quick else a.runs
+    if a.small:
+        print(f"machine: {machine()}")
+        print_rows(small.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick))
+        return 0
     rows: list[Row] = []
     print(f"machine: {machine()}")
     print(
@@ -405,6 +416,10 @@ def main(argv: list[str] | None = None) -> int:
 
     # 11. what an .mcap recording costs the bus loop against a .log (issue 34 item 2)
     rows += recording.rows(2.0 if a.quick else 10.0, runs if a.quick else max(runs, 5))
+
+    # 12. a small computer's budget: the supervisor in a CPU cgroup (issue 34 items 1, 5);
+    # skipped, with the reason, where no cgroup or namespace can be made
+    rows += small.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]
