@@ -77,8 +77,13 @@ class Link:
         self.outbox = Outbox(settings.queue, fleet_id)
         self.seq = payloads.Sequence()
         self.reconnects = 0
-        self.connected = threading.Event()
+        self.connected = threading.Event()  # the birth said: the sender may publish
         self._ever = False
+        # the birth waits for both: the main connection, and the e-stops subscribed on the
+        # stop one (or that one refused), so that `online` never comes before an e-stop
+        # would be heard
+        self._birth = threading.Lock()
+        self._main_up = self._stops_up = False
         self._on_message, self._on_lost = on_message, on_lost
         self._closing = threading.Event()
         self._inflight: deque[mqtt.MQTTMessageInfo] = deque()
@@ -92,6 +97,8 @@ class Link:
         self.client.on_message = self._message
         self.stop = self._client(fleet.stop_client_id(fleet_id))
         self.stop.on_connect = self._stop_connected
+        self.stop.on_subscribe = self._stops_subscribed
+        self.stop.on_disconnect = self._stop_disconnected
         self.stop.on_message = self._message
         self.vda: mqtt.Client | None = None
         if settings.vda5050:
@@ -178,12 +185,23 @@ class Link:
                 "mqtt %s: %s refused the connection: %s", self.fleet_id, self.settings.url, reason
             )
             return
-        qos = self.settings.qos
-        # the birth first: the retained status says online before anything else
-        client.publish(
-            self.topics.status, payloads.encode(self.status("online")), qos["status"], retain=True
-        )
         client.subscribe([(self.topics.command("twist"), self._options())])
+        with self._birth:
+            self._main_up = True
+            self._born_if_ready()
+
+    def _born_if_ready(self) -> None:
+        """The birth, once the main connection is up and the e-stops are heard (the lock
+        held; any of paho's threads)."""
+        if not (self._main_up and self._stops_up) or self.connected.is_set():
+            return
+        # the birth first: the retained status says online before anything else
+        self.client.publish(
+            self.topics.status,
+            payloads.encode(self.status("online")),
+            self.settings.qos["status"],
+            retain=True,
+        )
         if self._ever:
             self.reconnects += 1
             log.info("mqtt %s: connected again to %s", self.fleet_id, self.settings.url)
@@ -195,20 +213,34 @@ class Link:
     def _stop_connected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
-        if reason.is_failure:
-            return  # said by the main connection, refused alike
+        if reason.is_failure:  # no e-stops from the fleet; the birth is not held for them
+            if self._main_up:  # else the main connection says it, refused alike
+                log.warning("mqtt %s: the stop connection was refused: %s", self.fleet_id, reason)
+            self._stops_subscribed(client, userdata, 0)
+            return
         t = self.topics
         stops = [t.command(kind, everyone=every) for kind in STOPS for every in (False, True)]
         client.subscribe([(topic, self._options()) for topic in stops])
+
+    def _stops_subscribed(self, client: mqtt.Client, userdata: Any, mid: int, *rest: Any) -> None:
+        with self._birth:
+            self._stops_up = True
+            self._born_if_ready()
+
+    def _stop_disconnected(self, client: mqtt.Client, userdata: Any, *rest: Any) -> None:
+        with self._birth:
+            self._stops_up = False
 
     def _vda_connected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
         if reason.is_failure:
             return  # said by the main connection, refused alike
+        # subscribed first: the broker takes one connection's packets in order, so whoever
+        # reads ONLINE can be sure its instantActions are heard
+        client.subscribe([(self.topics.instant_actions, self._options())])
         online = payloads.encode(self.connection("online"))
         client.publish(self.topics.connection, online, 1, retain=True)
-        client.subscribe([(self.topics.instant_actions, self._options())])
 
     def _options(self) -> Any:
         """A command subscription's QoS; under MQTT 5 with "retain as published", so that a
@@ -222,8 +254,10 @@ class Link:
     def _disconnected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
-        was = self.connected.is_set()
-        self.connected.clear()
+        with self._birth:
+            self._main_up = False
+            was = self.connected.is_set()
+            self.connected.clear()
         if was and not self._closing.is_set():
             log.warning(
                 "mqtt %s: lost the broker %s (%s); reconnecting",
