@@ -20,7 +20,7 @@ import threading
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import pytest
 
@@ -408,6 +408,29 @@ def test_a_full_disk_ends_the_recording_not_the_live_view(tmp_path: Path) -> Non
     assert seen.topics == ["/can/demo/rx"] * frames  # each once, none lost
 
 
+@pytest.mark.wallclock
+def test_a_recording_that_failed_is_said_so_with_a_live_view_too(tmp_path: Path) -> None:
+    """The pumps hand their frames to the live feed, the recording behind it: the run's
+    end still finds the recording and its failure (exit 5, "stopped early")."""
+    from abh3_supervisor.runtime.recording import recorded, write_failures
+
+    path = tmp_path / "run.mcap"
+
+    async def fail_the_disk(rt: Runtime, port: int) -> None:
+        assert rt.recording is not None and rt.recording is not rt.pumps["demo"].recorder
+        rt.recording.failed = "[Errno 28] No space left on device"
+
+    async def run() -> Runtime:
+        async with Runtime(config(), record=path, foxglove=config().foxglove) as rt:
+            assert rt.foxglove is not None
+            await fail_the_disk(rt, rt.foxglove.port)
+        return rt
+
+    rt = asyncio.run(run())
+    assert write_failures(rt, None) == [f"--record {path}"]
+    assert "stopped early" in recorded(rt, path)
+
+
 # ------------------------------------------------------------------ the option and the key
 
 
@@ -416,9 +439,65 @@ def test_an_endpoint_is_loopback_unless_a_host_is_given() -> None:
     assert parse_endpoint("8765").loopback
     assert parse_endpoint("0.0.0.0:9000") == Endpoint("0.0.0.0", 9000)
     assert str(parse_endpoint("[::1]:9000")) == "[::1]:9000"
-    for wrong in ("", "x:", "host:port", "70000", "a b:1", True, 1.5):
+    for wrong in ("", "x:", "host:port", "70000", "a b:1", True, 1.5, "١٢٣٤"):
         with pytest.raises(ValueError):
             parse_endpoint(wrong)
+    assert parse_endpoint("127.0.0.2:1").loopback and parse_endpoint("[::1]:1").loopback
+    assert parse_endpoint("localhost:1").loopback
+    assert not parse_endpoint("127.evil.example:1").loopback  # a name, whatever it starts with
+    assert not parse_endpoint("0.0.0.0:1").loopback
+
+
+def test_the_sdks_lines_are_printable_warnings_at_most_and_few(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A viewer's text is in some of the SDK's lines: no forged line, no terminal escape,
+    no ERROR of ours, and no flood of the log."""
+    now = [0.0]
+    lines = foxglove_live._SdkLines(clock=lambda: now[0])
+    sdk = logging.getLogger("foxglove.websocket.test")
+
+    def said(text: str) -> None:
+        lines.handle(sdk.makeRecord(sdk.name, logging.ERROR, __file__, 1, text, (), None))
+
+    with caplog.at_level(logging.INFO, logger=foxglove_live.log.name):
+        said("Invalid message: unknown variant `x\n10:00:00.000 ERROR   unit left: FORGED\x1b[2J`")
+        for i in range(1000):  # a flood of them, in one instant
+            said(f"Invalid message {i}")
+        now[0] += 1.0
+        said("a viewer left")
+    records = [r for r in caplog.records if r.name == foxglove_live.log.name]
+    assert len(records) == foxglove_live.SDK_LINES_PER_S + 1
+    assert all(r.levelno == logging.WARNING for r in records)
+    first = records[0].getMessage()
+    assert first.startswith("foxglove: Invalid message") and "\n" not in first
+    assert "\x1b" not in first and "FORGED?[2J" in first
+    assert records[-1].getMessage() == "foxglove: a viewer left (996 more not shown)"
+
+
+def test_a_viewer_that_does_not_let_go_never_holds_the_way_out(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The SDK's stop waits for every viewer; ours gives it STOP_S, then goes on."""
+    monkeypatch.setattr(foxglove_live, "STOP_S", 0.05)
+    released = threading.Event()
+
+    class Stuck:
+        port = 1
+
+        def stop(self) -> None:
+            released.wait(WAIT_S)  # a viewer's full TCP window, in the SDK
+
+    sink = foxglove_live.FoxgloveSink(cast(Any, None), {})
+    live = foxglove_live.FoxgloveLive(
+        cast(Any, Stuck()), sink, Endpoint("127.0.0.1", 1), foxglove_live.Watchers()
+    )
+    try:
+        with caplog.at_level(logging.WARNING):
+            live.stop()  # returns: the way out goes on
+        assert "a viewer does not let go" in caplog.text
+    finally:
+        released.set()
 
 
 def _this_hosts_address() -> str | None:
@@ -484,17 +563,20 @@ def test_a_port_in_use_is_exit_2_before_any_drive_moves(
     taken.bind(("127.0.0.1", 0))
     taken.listen()
     port = taken.getsockname()[1]
+    kept = tmp_path / "yesterday.mcap"
+    kept.write_bytes(b"yesterday's recording")
     try:
         code = main(
             [
                 *("run", str(_yaml(tmp_path, CONFIG)), "--headless", "--no-socket"),
-                *("--duration", "5", "--foxglove", str(port)),
+                *("--duration", "5", "--foxglove", str(port), "--record", str(kept)),
             ]
         )
     finally:
         taken.close()
     err = capsys.readouterr().err
     assert code == 2
+    assert kept.read_bytes() == b"yesterday's recording"  # refused before it was opened
     assert f"--foxglove 127.0.0.1:{port}: cannot serve: Failed to bind port" in err
     assert "in use" in err
 

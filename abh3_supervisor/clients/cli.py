@@ -509,7 +509,9 @@ def _run(args: argparse.Namespace, release: Callable[[], None]) -> int:
     if config.foxglove is not None:  # the extra missing: exit 2, before anything opens
         from abh3_supervisor.runtime.foxglove_live import check_installed
 
-        check_installed(f"--foxglove {args.foxglove}" if args.foxglove else "foxglove:")
+        check_installed(
+            f"--foxglove {args.foxglove}" if args.foxglove else f"{config.file}: foxglove"
+        )
     plugins = _plugins(config)
     if args.record is not None:  # onto a plugin's own file: exit 2, before anything opens
         plugins.refuse_recording_onto_an_output(args.record, config.units)

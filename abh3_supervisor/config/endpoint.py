@@ -4,6 +4,7 @@ unless asked for."""
 
 from __future__ import annotations
 
+import ipaddress
 import re
 from dataclasses import dataclass
 
@@ -11,7 +12,7 @@ LOOPBACK = "127.0.0.1"
 MAX_PORT = 65535
 # HOST:PORT, [IPv6]:PORT or PORT alone (the JSON schema's pattern too: no named groups);
 # the host is resolved when the server binds
-PATTERN = r"^(?:([^\s:\[\]]+|\[[0-9A-Fa-f:.%\w]+\]):)?(\d{1,5})$"
+PATTERN = r"^(?:([^\s:\[\]]+|\[[0-9A-Fa-f:.%\w]+\]):)?([0-9]{1,5})$"  # ASCII digits only
 _FORM = re.compile(PATTERN)
 SAID = "[HOST:]PORT (e.g. 8765, 0.0.0.0:8765, [::1]:8765; port 0: any free one)"
 
@@ -26,7 +27,12 @@ class Endpoint:
 
     @property
     def loopback(self) -> bool:
-        return self.host in (LOOPBACK, "localhost", "::1") or self.host.startswith("127.")
+        """Only this machine can reach it: a loopback address, or ``localhost`` (a name
+        that merely starts with ``127.`` is not one)."""
+        try:
+            return ipaddress.ip_address(self.host.partition("%")[0]).is_loopback
+        except ValueError:
+            return self.host == "localhost"
 
 
 def parse_endpoint(value: object) -> Endpoint:

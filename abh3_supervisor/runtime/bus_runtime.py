@@ -181,6 +181,7 @@ class Runtime:
         self._sim_pumps: list[BusPump] = []
         self._buses: list[can.BusABC] = []
         self._recorder: GuardedRecorder | None = None
+        self.recording: GuardedRecorder | None = None  # the same, kept once closed: its outcome
         self.foxglove: FoxgloveLive | None = None  # the live view (`foxglove:`), when asked
         self.fatal: asyncio.Future[object] | None = None
         self.ended = asyncio.Event()  # a plugin ended the run (a normal stop, exit 0)
@@ -204,11 +205,13 @@ class Runtime:
         return self
 
     def _start(self, loop: asyncio.AbstractEventLoop) -> None:
-        if self.record is not None:
-            self._recorder = open_recorder(self.record, self.config)
-            self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
-        if self.live is not None:  # a port taken: exit 2, before any bus opens
+        # the live view first: a port taken exits 2 before the recording's file is opened
+        # (and so emptied) and before any bus opens
+        if self.live is not None:
             self.foxglove = start_foxglove(self.live, f"abh3 {self.config.file}")
+        if self.record is not None:
+            self._recorder = self.recording = open_recorder(self.record, self.config)
+            self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
         self.supervisor = Supervisor(self.config, clock=loop.time)
         self.supervisor.call_at = loop.call_at
         self._arbitrate(loop)

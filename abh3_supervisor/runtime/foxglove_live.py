@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, TypeVar, cast
@@ -53,13 +55,9 @@ SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk's server speaks (the app do
 BACKLOG = 1024  # messages the SDK queues per viewer (its default); the oldest go beyond
 QUEUE = 8192  # messages waiting for the drain: ~8 s of 4 units at 100 Hz
 DRAIN_S = 0.02  # the live view's added latency; 50 wake-ups a second, not one a message
-STOP_S = 1.0  # what closing waits for the drain thread at most
-# the SDK's loggers (Rust targets) whose lines we name as Foxglove's
-SDK_LOGGERS = (
-    "foxglove.websocket.server",
-    "foxglove.websocket.connected_client.send_lossy",
-    "foxglove.websocket.connected_client.poller",
-)
+STOP_S = 1.0  # what closing waits for the drain thread at most, and for the server
+SDK_LINES_PER_S = 5  # the SDK's log lines said a second at most (a viewer may flood them)
+SDK_LINE_CHARS = 300
 
 
 def check_installed(option: str) -> None:
@@ -272,7 +270,13 @@ class FoxgloveLive:
     def stop(self) -> None:
         self._stopping.set()
         self._drainer.join(STOP_S)
-        self.server.stop()
+        # a viewer that stopped reading can hold the SDK's stop for as long as TCP keeps
+        # its connection: never the way out (the drives are stopped already)
+        stopping = threading.Thread(target=self.server.stop, name="foxglove stop", daemon=True)
+        stopping.start()
+        stopping.join(STOP_S)
+        if stopping.is_alive():
+            log.warning("foxglove: a viewer does not let go: its connection is left behind")
         sink = self.sink
         dropped = f", {sink.dropped} dropped (the live view fell behind)" if sink.dropped else ""
         log.info("foxglove: stopped; %d message(s) served%s", sink.served, dropped)
@@ -288,8 +292,10 @@ def start_foxglove(
 
     # the SDK's own lines (a viewer connects, leaves, falls behind) in our log, named
     foxglove.set_log_level(logging.INFO)
-    for sdk in SDK_LOGGERS:
-        logging.getLogger(sdk).addFilter(_named)
+    sdk = logging.getLogger("foxglove")
+    if not any(isinstance(h, _SdkLines) for h in sdk.handlers):
+        sdk.addHandler(_SdkLines())
+        sdk.propagate = False  # said once, through ours
     context, watchers = foxglove.Context(), Watchers()
     try:
         # the SDK's threads start with the server: at normal priority, as their creator
@@ -321,24 +327,31 @@ def start_foxglove(
     return live
 
 
-class _Named(logging.Filter):
-    """The SDK's lines, named as Foxglove's, each said once in a row: a viewer that goes
-    away mid-send makes it report every message in flight ("Broken pipe") alike."""
+class _SdkLines(logging.Handler):
+    """The SDK's lines (its loggers, ``foxglove.*``), said in our log as a viewer's doing:
+    named, made printable and short (a viewer's text is in some: no forged lines, no
+    terminal escapes), at most WARNING (a viewer's garbage or its going away is no error
+    of ours), each said once in a row and at most ``SDK_LINES_PER_S`` a second, the rest
+    counted into the next line said."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__()
-        self.last = ""
+        self.clock = clock
+        self.last, self.window, self.said, self.unsaid = "", -math.inf, 0, 0
 
-    def filter(self, record: logging.LogRecord) -> bool:
-        text = record.getMessage()
-        if text == self.last:
-            return False
-        self.last = text
-        record.msg, record.args = f"foxglove: {text}", None
-        return True
-
-
-_named = _Named()
+    def emit(self, record: logging.LogRecord) -> None:
+        text = "".join(c if c.isprintable() else "?" for c in record.getMessage())
+        text = text[:SDK_LINE_CHARS]
+        now = self.clock()
+        if now >= self.window:
+            self.window, self.said = now + 1.0, 0
+        if text == self.last or self.said >= SDK_LINES_PER_S:
+            self.unsaid += 1
+            return
+        self.last, self.said = text, self.said + 1
+        more = f" ({self.unsaid} more not shown)" if self.unsaid else ""
+        self.unsaid = 0
+        log.log(min(record.levelno, logging.WARNING), "foxglove: %s%s", text, more)
 
 
 def _at_normal_priority(start: Callable[[], T]) -> T:

@@ -16,10 +16,7 @@ def recording(path: Path) -> str:
 
 
 def _recorder(rt: Runtime) -> GuardedRecorder | None:
-    for pump in rt.pumps.values():
-        if isinstance(pump.recorder, GuardedRecorder):
-            return pump.recorder
-    return None
+    return rt.recording  # kept after the run: its outcome (the pumps may hold a live feed)
 
 
 def recorded(rt: Runtime, path: Path) -> str:
