@@ -61,7 +61,8 @@ from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 
 # 1.1: fleet; SupervisorView.clear_emergency_stop, .bus_counters, .foreign_hosts
 # 1.2: the abh3_threads hook, THREADS_BELOW_LOOP; PluginError (said as written)
-API_VERSION = "1.2"
+# 1.3: abh3_feedback's inputs (the input word in force with the setpoint)
+API_VERSION = "1.3"
 """``MAJOR.MINOR`` of this module's promise; a plugin may check the major it was written for."""
 
 # the entry-point group a plugin registers under: [project.entry-points.abh3_supervisor]

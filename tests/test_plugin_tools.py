@@ -88,7 +88,7 @@ def test_the_text_listing_names_the_failure_in_one_line(
     assert "broken\n  failed to load: ModuleNotFoundError: No module named" in out
     assert "Traceback" not in out
     assert "hooks: abh3_config_schema, abh3_configure, " in out  # the built-ins'
-    assert "API version: 1.0 (compatible with 1.2)" in out  # the built-ins declare it
+    assert "API version: 1.0 (compatible with 1.3)" in out  # the built-ins declare it
 
 
 def test_the_declared_api_version_is_read_from_the_object_or_its_module() -> None:

@@ -71,8 +71,9 @@ def abh3_input_sources(register: Callable[[InputSource], None], supervisor: Supe
 
 
 @hookspec
-def abh3_feedback(unit: str, feedback: Feedback, setpoint: Setpoint) -> None:
-    """After every DP0 reply: velocity feedback and the setpoint that was in force."""
+def abh3_feedback(unit: str, feedback: Feedback, setpoint: Setpoint, inputs: int) -> None:
+    """After every DP0 reply: velocity feedback, and the setpoint and the input word
+    (the bits the host commands) that were in force when it came."""
 
 
 @hookspec

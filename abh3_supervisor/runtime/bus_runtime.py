@@ -37,7 +37,7 @@ from abh3_supervisor.runtime.foxglove_live import FoxgloveLive, start_foxglove
 from abh3_supervisor.runtime.recorder import GuardedRecorder, open_recorder
 from abh3_supervisor.runtime.stopping import CONFIRMED, stop_drives
 from abh3_supervisor.scheduler.core import BusScheduler
-from abh3_supervisor.scheduler.pump import BusPump
+from abh3_supervisor.scheduler.pump import READ_BATCH_S, BusPump
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 from abh3_supervisor.simulator.bus import SimBus
 
@@ -252,6 +252,7 @@ class Runtime:
                 recorder=listener,
                 on_fatal=self._on_fatal,
                 health=self.supervisor.bus_health[name],
+                batch_s=READ_BATCH_S,  # a frame waits for the next step if one is near
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start
 

@@ -1,10 +1,21 @@
 """The thin asyncio layer: runs one sans-I/O machine (scheduler or simulator) on a bus.
 
-python-can's ``Notifier`` delivers received frames on the loop (``add_reader`` where the
-bus has a file descriptor, a reader thread handing over with ``call_soon_threadsafe``
-otherwise); a single deadline timer (scheduler/timer.py: a timerfd, which the kernel
-repeats while the deadlines keep one period) wakes the machine at its next deadline.
-Everything the machine does therefore happens on the loop thread, one step at a time.
+Received frames reach the machine on the loop: python-can's ``Notifier`` hands them over
+from a reader thread (``call_soon_threadsafe``) where the bus has no file descriptor, and
+reads them on the loop (``add_reader``) where it has one. A single deadline timer
+(scheduler/timer.py: a timerfd, which the kernel repeats while the deadlines keep one
+period) wakes the machine at its next deadline. Everything the machine does therefore
+happens on the loop thread, one step at a time.
+
+``batch_s`` (the supervisor's pumps: :data:`READ_BATCH_S`): on a bus with a file
+descriptor the pump reads the frames itself, all that wait, before each step; and while
+its next deadline is at most ``batch_s`` away it does not watch the bus at all — that
+step reads what came meanwhile. Each frame keeps the time it came (its receive timestamp,
+bounded by the previous read), and every decision the machine takes in a step follows a
+read, so nothing is decided on stale frames; what waits is only the frames' delivery to
+the observers, by less than ``batch_s``. With several units on staggered phases the loop
+then wakes once per phase instead of once more for every reply: the CPU a wake-up costs
+is most of what an exchange costs (docs/performance.md, section 10).
 """
 
 from __future__ import annotations
@@ -22,6 +33,10 @@ from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
 RETRY_S = 0.5  # a bus whose receive failed is read again after this
+# the supervisor's pumps: frames may wait this long for the next step (4 units at 100 Hz
+# step every 2.5 ms, 2 every 5 ms); the observers see them at most this much later
+READ_BATCH_S = 0.005
+MAX_READ = 64  # frames read before a step: a flood cannot hold the loop (the rest next)
 log = logging.getLogger(__name__)
 
 
@@ -45,6 +60,7 @@ class BusPump(can.Listener):
         recorder: can.Listener | None = None,
         on_fatal: Callable[[BaseException], None] | None = None,
         health: BusHealth | None = None,
+        batch_s: float = 0.0,
     ) -> None:
         self.bus, self.machine, self.name, self.channel = bus, machine, name, channel
         self.after_step = after_step
@@ -53,6 +69,13 @@ class BusPump(can.Listener):
         self.loop = asyncio.get_running_loop()
         self._timer = DeadlineTimer(self.loop, self._step, repeating=True)
         self._notifier: can.Notifier | None = None
+        self._running = False
+        self.batch_s = batch_s
+        self._fd = -1  # the bus's file descriptor where this pump reads it (batch_s)
+        self._watching = False  # the loop wakes when the bus is readable
+        self._read_at = 0.0  # when the bus was last read to the end
+        self._last_t = 0.0  # the time given to the last frame read
+        self._resume_at = 0.0  # a receive failed: reading rests until then
         self.frames_sent = 0
         self.frames_received = 0
         self.send_errors = 0
@@ -62,12 +85,17 @@ class BusPump(can.Listener):
         self.health = health if health is not None else BusHealth(name)
 
     def start(self) -> None:
-        # a short receive timeout lets stop() join a reader thread quickly
-        self._notifier = _Notifier(self.bus, [self], timeout=0.05, loop=self.loop)
+        self._running = True
+        self._fd = _fileno(self.bus) if self.batch_s > 0 else -1
+        if self._fd < 0:  # a short receive timeout lets stop() join a reader thread quickly
+            self._notifier = _Notifier(self.bus, [self], timeout=0.05, loop=self.loop)
+        self._read_at = self._last_t = self.loop.time()
         self._step()
 
     def stop(self) -> None:  # also called by Notifier.stop(): must be idempotent
+        self._running = False
         self._timer.close()
+        self._watch(False)
         notifier, self._notifier = self._notifier, None
         if notifier is not None:
             notifier.stop()
@@ -75,30 +103,69 @@ class BusPump(can.Listener):
     # ------------------------------------------------------------ can.Listener
 
     def on_message_received(self, msg: can.Message) -> None:
-        if self._notifier is None:
+        if not self._running:
             return  # stopped: a frame handed over just before stop() is dropped
+        try:  # _guard's, inline: once per frame
+            if self._receive(msg, self.loop.time()):
+                self._step_unguarded()
+        except Exception as exc:
+            self._failed(exc)
+
+    def _receive(self, msg: can.Message, now: float) -> bool:
+        """One frame to the recorder and the machine; whether the machine took it."""
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         if msg.is_error_frame:
             self.bus_errors += 1
-            self.health.on_error_frame(msg.arbitration_id, bytes(msg.data), self.loop.time())
+            self.health.on_error_frame(msg.arbitration_id, bytes(msg.data), now)
             self._health_changed()
-            return
+            return False
         if not msg.is_extended_id:
-            return
+            return False
         if msg.is_remote_frame or msg.is_fd:  # an ABH3 sends neither: never a reply
             why = "remote frame" if msg.is_remote_frame else "CAN FD frame"
-            self._guard(self.machine.on_bad_frame, msg.arbitration_id, self.loop.time(), why)
-            return
+            self.machine.on_bad_frame(msg.arbitration_id, now, why)
+            return False
         self.frames_received += 1
-        now = self.loop.time()
         if self.health.state is not BusState.OK:  # only a bus in trouble watches for recovery
             self.health.on_received(now)
-        try:  # _guard's, inline: once per frame
-            self.machine.on_frame(msg.arbitration_id, bytes(msg.data), now)
-            self._step_unguarded()
-        except Exception as exc:
-            self._failed(exc)
+        self.machine.on_frame(msg.arbitration_id, bytes(msg.data), now)
+        return True
+
+    def _read(self) -> None:
+        """Every frame waiting on the bus (up to MAX_READ), in order, each at the time it
+        came: its receive timestamp where that lies between the last read and now (a clock
+        of the interface's own, or a stepped wall clock, is not trusted), else now."""
+        now = self.loop.time()
+        if now < self._resume_at:
+            return
+        wall, since = time.time(), now - self._read_at
+        self._read_at = now
+        for _ in range(MAX_READ):
+            try:
+                msg = self.bus.recv(0)
+            except Exception as exc:  # whatever the interface raises: rest, then again
+                self._resume_at = now + RETRY_S
+                self._watch(False)
+                self.loop.call_at(self._resume_at, self._step)
+                self.on_error(exc)
+                return
+            if msg is None:
+                return
+            age = wall - msg.timestamp
+            t = now - age if 0.0 <= age <= since else now
+            self._last_t = t = max(t, self._last_t)
+            self._receive(msg, t)
+
+    def _watch(self, on: bool) -> None:
+        """Wake the loop when the bus is readable, or leave its frames to the next step."""
+        if on == self._watching or self._fd < 0:
+            return
+        if on:
+            self.loop.add_reader(self._fd, self._step)
+        else:
+            self.loop.remove_reader(self._fd)
+        self._watching = on
 
     def on_error(self, exc: Exception) -> None:
         """A receive failed (the interface went down): the bus's health says so once, as a
@@ -130,7 +197,12 @@ class BusPump(can.Listener):
             self.on_fatal(exc)
 
     def _step(self) -> None:
-        try:  # _guard's, inline: once per timer firing
+        """A timer firing, or the bus readable (batch_s): read what waits, then step."""
+        if not self._running:
+            return
+        try:  # _guard's, inline: once per step
+            if self._fd >= 0:
+                self._read()
             self._step_unguarded()
         except Exception as exc:
             self._failed(exc)
@@ -141,14 +213,16 @@ class BusPump(can.Listener):
         if self.after_step is not None:
             self.after_step()
         deadline = self.machine.next_deadline()
-        if self._notifier is None or not math.isfinite(deadline):
+        if not self._running or not math.isfinite(deadline):
             self._timer.cancel()
         else:
             self._timer.arm(deadline)
+        if self._fd >= 0 and self._running and self.loop.time() >= self._resume_at:
+            self._watch(deadline - self.loop.time() > self.batch_s)
 
     def wake(self) -> None:
         """Step now (on the loop): new work was queued outside the schedule."""
-        if self._notifier is not None:
+        if self._running:
             self._timer.arm(self.loop.time())
 
     def send(self, arbitration_id: int, data: bytes) -> bool:
@@ -178,6 +252,14 @@ class BusPump(can.Listener):
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         return True
+
+
+def _fileno(bus: can.BusABC) -> int:
+    """The bus's file descriptor, or -1 (python-can's virtual bus, some USB adapters)."""
+    try:
+        return bus.fileno()
+    except NotImplementedError:
+        return -1
 
 
 class _Notifier(can.Notifier):

@@ -95,7 +95,7 @@ FLUSH_S = 0.5  # default seconds between flushes: at most what a kill -9 loses
 MONITOR_DIGITS = 7  # monitors are float32: seven significant digits hold all they carry
 
 
-ABH3_API_VERSION = "1.0"  # the plugin API (abh3_supervisor.plugin_api) this is written for
+ABH3_API_VERSION = "1.3"  # the plugin API this is written for (abh3_feedback's inputs)
 
 
 def number(column: str, value: float) -> str:
@@ -272,21 +272,20 @@ class CsvPlugin:
                 values[key] = number(key, value)
 
     @hookimpl
-    def abh3_feedback(self, unit: str, feedback: Feedback, setpoint: Setpoint) -> None:
+    def abh3_feedback(self, unit: str, feedback: Feedback, setpoint: Setpoint, inputs: int) -> None:
         self._check()
         if self.period_s and feedback.t - self.last_row.get(unit, -1e18) < self.period_s:
             return
         self.last_row[unit] = feedback.t
-        row = self._row(unit, feedback, setpoint, feedback.control)
+        row = self._row(unit, feedback, setpoint, inputs, feedback.control)
         with self.lock:
             self._file(unit).write(row)
 
     def _row(
-        self, unit: str, feedback: Feedback, setpoint: Setpoint, control: int | None
+        self, unit: str, feedback: Feedback, setpoint: Setpoint, inputs: int, control: int | None
     ) -> dict[str, Any]:
         wall = time.time() - (time.monotonic() - feedback.t)  # event time on the wall clock
         layout = self.layouts[unit]
-        inputs = self.units[unit].inputs  # the word commanded now (an int: read whole)
         row = {
             "time": number("time", wall),
             "unit": unit,
@@ -322,6 +321,8 @@ class CsvPlugin:
         for name, unit in self.units.items():
             if unit.feedback is None:
                 continue
-            row = self._row(name, unit.feedback, unit.setpoint, unit.words.get("control"))
+            row = self._row(
+                name, unit.feedback, unit.setpoint, unit.inputs, unit.words.get("control")
+            )
             row["note"] = "after the stop"
             self._file(name).write(row)

@@ -1,0 +1,220 @@
+"""The supervisor's pump on a bus with a file descriptor (``batch_s``, scheduler/pump.py):
+it reads every waiting frame before each step, watches the bus only while its next
+deadline is further than ``batch_s``, and gives each frame the time it came.
+
+The loop and the timer are fakes with a clock the test sets: nothing here waits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import time
+from collections.abc import Callable
+
+import can
+import pytest
+
+from abh3_supervisor.scheduler.pump import MAX_READ, BusPump
+
+BATCH = 0.005
+
+
+class Clocks:
+    """The loop's monotonic clock and the wall clock, which the test moves together."""
+
+    def __init__(self) -> None:
+        self.mono, self.wall = 100.0, 1_700_000_000.0
+
+    def advance(self, dt: float) -> None:
+        self.mono += dt
+        self.wall += dt
+
+
+class FakeLoop:
+    def __init__(self, clocks: Clocks) -> None:
+        self.clocks = clocks
+        self.readers: dict[int, Callable[[], None]] = {}
+        self.later: list[tuple[float, Callable[[], None]]] = []
+
+    def time(self) -> float:
+        return self.clocks.mono
+
+    def add_reader(self, fd: int, callback: Callable[[], None]) -> None:
+        self.readers[fd] = callback
+
+    def remove_reader(self, fd: int) -> None:
+        del self.readers[fd]
+
+    def call_at(self, when: float, callback: Callable[[], None]) -> None:
+        self.later.append((when, callback))
+
+
+class FakeTimer:
+    def __init__(self) -> None:
+        self.when: float | None = None
+
+    def arm(self, when: float) -> None:
+        self.when = when if self.when is None else min(self.when, when)
+
+    def cancel(self) -> None:
+        self.when = None
+
+    def close(self) -> None:
+        self.when = None
+
+
+class QueueBus(can.BusABC):
+    """Frames waiting on a file descriptor; ``recv(0)`` hands them over one by one."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="q")
+        self.waiting: collections.deque[can.Message] = collections.deque()
+        self.sent: list[can.Message] = []
+        self.fail = False
+
+    def fileno(self) -> int:
+        return 42
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append(msg)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self.fail:
+            raise can.CanOperationError("Network is down")
+        return (self.waiting.popleft() if self.waiting else None), False
+
+
+class Machine:
+    """Sends a frame at each deadline of a fixed period; records what it was fed."""
+
+    def __init__(self, period: float, start: float) -> None:
+        self.period, self.due = period, start
+        self.fed: list[tuple[int, float]] = []
+        self.polled: list[tuple[float, int]] = []  # when, frames fed by then
+
+    def on_frame(self, arbitration_id: int, data: bytes, now: float) -> None:
+        self.fed.append((arbitration_id, now))
+
+    def poll(self, now: float) -> list[tuple[int, bytes]]:
+        self.polled.append((now, len(self.fed)))
+        if now < self.due:
+            return []
+        while self.due <= now:
+            self.due += self.period
+        return [(0x100, bytes(8))]
+
+    def next_deadline(self) -> float:
+        return self.due
+
+    def on_send_failed(self, arbitration_id: int) -> None:
+        pass
+
+    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
+        pass
+
+
+def frame(ident: int, timestamp: float) -> can.Message:
+    return can.Message(
+        arbitration_id=ident, data=bytes(8), is_extended_id=True, timestamp=timestamp
+    )
+
+
+def rounded(pairs: list[tuple[int, float]] | list[tuple[float, int]]) -> list[tuple[float, float]]:
+    """Times to the microsecond (the fake clocks add floats)."""
+    return [(round(a, 6), round(b, 6)) for a, b in pairs]
+
+
+def pump_for(
+    period: float, monkeypatch: pytest.MonkeyPatch
+) -> tuple[BusPump, QueueBus, Machine, FakeLoop, FakeTimer, Clocks]:
+    clocks = Clocks()
+    monkeypatch.setattr(time, "time", lambda: clocks.wall)  # the pump's wall clock
+    bus, machine = QueueBus(), Machine(period, clocks.mono)
+
+    async def build() -> BusPump:
+        return BusPump(bus, machine, name="b", channel="q", batch_s=BATCH)
+
+    pump = asyncio.run(build())
+    loop, timer = FakeLoop(clocks), FakeTimer()
+    pump.loop, pump._timer = loop, timer  # type: ignore[assignment]
+    pump.start()
+    return pump, bus, machine, loop, timer, clocks
+
+
+def test_a_near_deadline_leaves_the_frames_to_the_step_which_reads_them_first(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pump, bus, machine, loop, timer, clocks = pump_for(0.0025, monkeypatch)
+    assert len(bus.sent) == 1 and timer.when == pytest.approx(clocks.mono + 0.0025)
+    assert loop.readers == {}  # the next step is 2.5 ms away: nobody watches the bus
+    clocks.advance(0.0005)  # the reply comes 0.5 ms after the command; nothing wakes
+    bus.waiting.append(frame(0x200, clocks.wall))
+    clocks.advance(0.002)  # the timer fires
+    pump._step()
+    # the reply was fed before the step decided anything, at the time it came
+    assert rounded(machine.fed) == [(0x200, 100.0005)]
+    assert rounded(machine.polled[-1:]) == [(100.0025, 1)]
+    assert len(bus.sent) == 2 and loop.readers == {}
+
+
+def test_a_far_deadline_watches_the_bus_and_a_frame_wakes_the_step_at_once(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pump, bus, machine, loop, _, clocks = pump_for(0.010, monkeypatch)
+    assert list(loop.readers) == [42]  # 10 ms to the next step: a reply must wake us
+    clocks.advance(0.0005)
+    bus.waiting.append(frame(0x200, clocks.wall))
+    loop.readers[42]()  # the loop saw the bus readable
+    assert rounded(machine.fed) == [(0x200, 100.0005)]
+    assert machine.polled[-1][1] == 1  # stepped after the frame
+    pump.stop()
+    assert loop.readers == {}
+
+
+def test_a_frame_keeps_its_time_only_within_the_time_since_the_last_read(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pump, bus, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
+    clocks.advance(0.002)
+    bus.waiting.extend(
+        [
+            frame(1, clocks.wall - 0.001),  # came 1 ms ago: kept
+            frame(2, clocks.wall - 60.0),  # an interface's own clock, or a stepped wall: now
+            frame(3, clocks.wall + 5.0),  # from the future: now
+            frame(4, clocks.wall - 0.0015),  # earlier than the frame before it: not before it
+        ]
+    )
+    pump._step()
+    assert rounded(machine.fed) == [(1, 100.001), (2, 100.002), (3, 100.002), (4, 100.002)]
+
+
+def test_a_flood_is_read_a_batch_at_a_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    pump, bus, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
+    bus.waiting.extend(frame(0x200, clocks.wall) for _ in range(MAX_READ + 10))
+    clocks.advance(0.0025)
+    pump._step()
+    assert len(machine.fed) == MAX_READ and len(bus.waiting) == 10  # the rest: next step
+    clocks.advance(0.0025)
+    pump._step()
+    assert len(machine.fed) == MAX_READ + 10
+
+
+def test_a_receive_that_fails_rests_then_reads_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
+    notes: list[Exception] = []
+    monkeypatch.setattr(pump, "on_error", notes.append)
+    bus.fail = True
+    loop.readers[42]()
+    assert len(notes) == 1 and loop.readers == {}  # not watched while it rests
+    ((when, again),) = loop.later
+    clocks.advance(0.002)
+    pump._step()  # a timer step meanwhile does not try the bus
+    assert len(notes) == 1 and loop.readers == {}
+    bus.fail = False
+    bus.waiting.append(frame(0x200, clocks.wall))
+    clocks.mono = when
+    again()
+    assert [i for i, _ in machine.fed] == [0x200]
+    assert timer.when is not None  # watched again as before: only while the step is far
+    assert (42 in loop.readers) == (timer.when - clocks.mono > BATCH)
