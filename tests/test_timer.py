@@ -6,6 +6,7 @@ import asyncio
 
 import pytest
 
+from abh3_supervisor.core.timing import next_on_grid
 from abh3_supervisor.scheduler import timer as timer_module
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
@@ -129,3 +130,59 @@ def test_a_timer_not_asked_to_repeat_fires_once_per_arming() -> None:
         return len(fired)
 
     assert asyncio.run(scenario()) == 3
+
+
+def test_a_later_deadline_from_outside_the_callback_keeps_the_repetition() -> None:
+    """A frame that moves the deadline later (the simulator's drives: their command-zero
+    watch, at every command) costs no system call: the repetition fires early, and its
+    callback sets the timer for the deadline then."""
+    if timer_module._LIBC is None:
+        pytest.skip("no timerfd on this platform")
+    calls: list[int] = []
+    kept: list[bool] = []
+
+    async def scenario() -> list[float]:
+        loop = asyncio.get_running_loop()
+        fired: list[float] = []
+        done = loop.create_future()
+        late = loop.time() + 0.05
+
+        def outside() -> None:  # a frame's step: not the timer's callback
+            before = len(calls)
+            t.arm(loop.time() + 0.5)  # later than the repetition: kept
+            kept.append(len(calls) == before)
+
+        def callback() -> None:
+            fired.append(loop.time())
+            if len(fired) < 3:
+                t.arm(loop.time() + 0.004)  # a period: the kernel repeats it
+                if len(fired) == 2:
+                    loop.call_soon(outside)
+            elif len(fired) == 3:
+                t.arm(late)  # the repetition came early: set for the deadline now
+            else:
+                done.set_result(None)
+
+        t = DeadlineTimer(loop, callback, repeating=True)
+        settime = t._settime
+
+        def counted(seconds: int, nanoseconds: int, interval: int) -> None:
+            calls.append(interval)
+            settime(seconds, nanoseconds, interval)
+
+        t._settime = counted  # type: ignore[method-assign]
+        t.arm(loop.time() + 0.004)
+        await asyncio.wait_for(done, 5)
+        t.close()
+        return fired
+
+    fired = asyncio.run(scenario())
+    assert kept == [True]
+    assert fired[-1] - fired[0] >= 0.05 - 0.004  # the late deadline was kept, never before
+
+
+def test_a_grid_keeps_its_phase_after_a_stall() -> None:
+    assert next_on_grid(1.0, 0.01, 1.005) == pytest.approx(1.01)  # on time
+    # a stall of 3.7 periods: the next point of the same grid, missed ones skipped
+    assert next_on_grid(1.0, 0.01, 1.037) == pytest.approx(1.04)
+    assert next_on_grid(1.0, 0.01, 1.04) == pytest.approx(1.05)  # exactly on a point: the next

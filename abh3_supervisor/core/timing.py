@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 
 def next_on_grid(due: float, interval: float, now: float) -> float:
-    """The next due time on the grid; after a stall, restart from now rather than burst."""
+    """The next due time on the grid; after a stall, the first grid point after now (the
+    missed ones are skipped rather than sent in a burst). The grid keeps its phase, so
+    units staggered over a period stay staggered after a stall: the loop keeps waking
+    once per phase and its timer keeps repeating (scheduler/timer.py)."""
     due += interval
-    return due if due > now else now + interval
+    if due > now:
+        return due
+    return due + (math.floor((now - due) / interval) + 1) * interval

@@ -90,8 +90,11 @@ class DeadlineTimer:
         """Fire at ``when`` — or earlier: a later deadline keeps the armed one (lazy re-arm).
 
         The callback then finds nothing due and arms again; that costs one spurious wake-up
-        now and then instead of a system call on every scheduler step. A repetition
-        (``repeating``) is kept only for a deadline at most ``_SLACK_NS`` after it.
+        now and then instead of a system call on every scheduler step. From the callback, a
+        repetition (``repeating``) is kept only for a deadline at most ``_SLACK_NS`` after
+        it (else the period is guessed again); outside it, as any earlier expiry — a frame
+        that moves the deadline later (the simulator's drives, at every command) then costs
+        no system call, and the early firing's callback sets the timer right.
         """
         if self._fd >= 0:
             self._arm_fd(when)
@@ -110,8 +113,11 @@ class DeadlineTimer:
         nanoseconds = int((when - seconds) * 1e9)
         at = seconds * 1_000_000_000 + nanoseconds
         armed = self._next_ns
-        if armed >= 0 and armed <= at and (not self._interval_ns or at - armed <= _SLACK_NS):
-            return  # it fires in time: lazily kept, or the repetition meant for this deadline
+        # it fires in time: lazily kept (outside the callback a repetition too: fired early,
+        # its callback arms again), or the repetition meant for this deadline
+        kept = not self._interval_ns or at - armed <= _SLACK_NS or self._fired_ns < 0
+        if 0 <= armed <= at and kept:
+            return
         interval = 0
         if self._repeating and self._fired_ns >= 0:  # from the callback: guess the period
             gap = at - self._fired_ns
