@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import re
 import resource
+import sys
 import threading
 from pathlib import Path
 
@@ -15,17 +16,21 @@ from abh3_supervisor.runtime.priority import Priority, PriorityError, bus_priori
 
 
 def test_normal_leaves_the_scheduling_alone() -> None:
-    before = os.sched_getscheduler(0)
+    before, switch = os.sched_getscheduler(0), sys.getswitchinterval()
     with bus_priority(Priority.NORMAL) as note:
         assert os.sched_getscheduler(0) == before
+        assert sys.getswitchinterval() == switch
     assert note == "bus loop at normal priority"
 
 
 @pytest.mark.skipif(not priority._may_realtime(), reason="needs root or RLIMIT_RTPRIO")
 def test_auto_runs_the_loop_and_its_threads_real_time_then_restores() -> None:
     before = os.sched_getscheduler(0), os.sched_getparam(0)
+    switch = sys.getswitchinterval()
     seen: list[int] = []
     with bus_priority(Priority.AUTO) as note:
+        # another thread running Python holds the loop up for at most this, not 5 ms
+        assert sys.getswitchinterval() == pytest.approx(priority.GIL_SWITCH_S)
         assert os.sched_getscheduler(0) == os.SCHED_FIFO
         assert os.sched_getparam(0).sched_priority == priority.FIFO_PRIORITY
         # a thread started meanwhile (a bus reader, a plugin's worker) shares the priority:
@@ -36,6 +41,7 @@ def test_auto_runs_the_loop_and_its_threads_real_time_then_restores() -> None:
     assert seen == [os.SCHED_FIFO]
     assert "real-time priority (SCHED_FIFO 20)" in note
     assert (os.sched_getscheduler(0), os.sched_getparam(0)) == before
+    assert sys.getswitchinterval() == switch
 
 
 def test_without_permission_auto_says_how_to_allow_it_and_realtime_refuses(

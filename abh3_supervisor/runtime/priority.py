@@ -25,12 +25,14 @@ import contextlib
 import enum
 import os
 import resource
+import sys
 from collections.abc import Iterator
 
 from abh3_supervisor.errors import Abh3Error
 
 FIFO_PRIORITY = 20
 BELOW_LOOP_PRIORITY = FIFO_PRIORITY - 10  # plugin threads that asked (plugin_thread)
+GIL_SWITCH_S = 0.0005  # the interpreter lock's switch interval while the loop is real-time
 # what _may_realtime accepts, and how to give it (the shipped systemd unit does the first)
 HOW_TO_ALLOW = (
     f"it needs root or an RLIMIT_RTPRIO of at least {FIFO_PRIORITY}: LimitRTPRIO={FIFO_PRIORITY} "
@@ -103,8 +105,13 @@ def bus_priority(mode: Priority) -> Iterator[str]:
             raise PriorityError(f"--priority realtime: {why}; {HOW_TO_ALLOW}") from exc
         yield f"bus loop at normal priority: {why}; {HOW_TO_ALLOW}"
         return
+    # the loop woken while another thread of ours runs Python waits for the interpreter
+    # lock up to the switch interval: 5 ms by default, the whole jitter budget
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(GIL_SWITCH_S)
     try:
         yield f"bus loop at real-time priority (SCHED_FIFO {FIFO_PRIORITY})"
     finally:
+        sys.setswitchinterval(switch)
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, before[0], before[1])
