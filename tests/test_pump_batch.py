@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 import collections
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from typing import ClassVar
 
 import can
 import pytest
@@ -67,8 +68,11 @@ class FakeTimer:
 class QueueBus(can.BusABC):
     """Frames waiting on a file descriptor; ``recv(0)`` hands them over one by one."""
 
+    made: ClassVar[list[QueueBus]] = []
+
     def __init__(self) -> None:
         super().__init__(channel="q")
+        QueueBus.made.append(self)
         self.waiting: collections.deque[can.Message] = collections.deque()
         self.sent: list[can.Message] = []
         self.fail = False
@@ -83,6 +87,13 @@ class QueueBus(can.BusABC):
         if self.fail:
             raise can.CanOperationError("Network is down")
         return (self.waiting.popleft() if self.waiting else None), False
+
+
+@pytest.fixture(autouse=True)
+def _shut() -> Iterator[None]:
+    yield
+    while QueueBus.made:
+        QueueBus.made.pop().shutdown()
 
 
 class Machine:
@@ -218,3 +229,20 @@ def test_a_receive_that_fails_rests_then_reads_again(monkeypatch: pytest.MonkeyP
     assert [i for i, _ in machine.fed] == [0x200]
     assert timer.when is not None  # watched again as before: only while the step is far
     assert (42 in loop.readers) == (timer.when - clocks.mono > BATCH)
+
+
+def test_what_the_frames_said_is_acted_on_before_the_step_sends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Another host's frame read at a step must stop the unit before that step's frame
+    goes: the owner's reaction (the Supervisor's dispatch, ``after_step``) comes first."""
+    pump, bus, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
+    seen: list[tuple[int, int, int]] = []  # at each dispatch: frames fed, polls, frames sent
+    pump.after_step = lambda: seen.append((len(machine.fed), len(machine.polled), len(bus.sent)))
+    clocks.advance(0.001)
+    bus.waiting.append(frame(0x0CEF0102, clocks.wall))  # a foreign command, say
+    clocks.advance(0.0015)
+    polled, sent = len(machine.polled), len(bus.sent)
+    pump._step()
+    assert seen[0] == (1, polled, sent)  # the frame dispatched, nothing polled or sent yet
+    assert len(bus.sent) == sent + 1 and seen[-1][2] == sent + 1  # then the step's own

@@ -132,15 +132,17 @@ class BusPump(can.Listener):
         self.machine.on_frame(msg.arbitration_id, bytes(msg.data), now)
         return True
 
-    def _read(self) -> None:
+    def _read(self) -> bool:
         """Every frame waiting on the bus (up to MAX_READ), in order, each at the time it
         came: its receive timestamp where that lies between the last read and now (a clock
-        of the interface's own, or a stepped wall clock, is not trusted), else now."""
+        of the interface's own, or a stepped wall clock, is not trusted), else now.
+        Whether the machine took any."""
         now = self.loop.time()
         if now < self._resume_at:
-            return
+            return False
         wall, since = time.time(), now - self._read_at
         self._read_at = now
+        took = False
         for _ in range(MAX_READ):
             try:
                 msg = self.bus.recv(0)
@@ -149,13 +151,14 @@ class BusPump(can.Listener):
                 self._watch(False)
                 self.loop.call_at(self._resume_at, self._step)
                 self.on_error(exc)
-                return
+                return took
             if msg is None:
-                return
+                return took
             age = wall - msg.timestamp
             t = now - age if 0.0 <= age <= since else now
             self._last_t = t = max(t, self._last_t)
-            self._receive(msg, t)
+            took |= self._receive(msg, t)
+        return took
 
     def _watch(self, on: bool) -> None:
         """Wake the loop when the bus is readable, or leave its frames to the next step."""
@@ -201,8 +204,10 @@ class BusPump(can.Listener):
         if not self._running:
             return
         try:  # _guard's, inline: once per step
-            if self._fd >= 0:
-                self._read()
+            if self._fd >= 0 and self._read() and self.after_step is not None:
+                # what the frames said (another host on a drive, a unit back online) is
+                # acted on before this step's frames are decided and sent
+                self.after_step()
             self._step_unguarded()
         except Exception as exc:
             self._failed(exc)
