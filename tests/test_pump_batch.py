@@ -17,6 +17,7 @@ import can
 import pytest
 
 from abh3_supervisor.scheduler.pump import MAX_READ, BusPump
+from tests.support.rig import Deaf
 
 BATCH = 0.005
 
@@ -96,7 +97,7 @@ def _shut() -> Iterator[None]:
         QueueBus.made.pop().shutdown()
 
 
-class Machine:
+class Machine(Deaf):
     """Sends a frame at each deadline of a fixed period; records what it was fed."""
 
     def __init__(self, period: float, start: float) -> None:
@@ -117,12 +118,6 @@ class Machine:
 
     def next_deadline(self) -> float:
         return self.due
-
-    def on_send_failed(self, arbitration_id: int) -> None:
-        pass
-
-    def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None:
-        pass
 
 
 def frame(ident: int, timestamp: float) -> can.Message:
