@@ -103,6 +103,21 @@ def test_a_reader_is_reported_not_commanding_until_it_commands() -> None:
     assert [r.commanding for r in turned] == [True]  # news: it now stops the drive
 
 
+def test_after_a_clear_the_next_command_is_news_even_within_the_episode() -> None:
+    """A host quiet for QUIET_S is forgiven when its stop is cleared; if it commands again
+    before its episode ended (it kept reading, or its frame was not yet read when the
+    stop was cleared), that command stops the drive again."""
+    watch = ForeignWatch(DRIVES)
+    assert len(watch.frame(ids.dp0_command_id(1, 2), WORD, 1.0)) == 1
+    reading = ids.request_id(1, 2), frames.encode_request(0xEF00)
+    assert watch.frame(*reading, 1.9) == []  # it keeps reading: the episode goes on
+    assert watch.commanding("left", 2.1) == []  # quiet as a commander: the stop may clear
+    watch.forgive("left")
+    assert [r.commanding for r in watch.of("left")] == [False]  # its reads stay on record
+    again = watch.frame(ids.dp0_command_id(1, 2), WORD, 2.2)  # within the episode
+    assert [r.commanding for r in again] == [True]  # news: the supervisor stops it again
+
+
 # ------------------------------------------------------------ replies we did not ask for
 
 

@@ -241,3 +241,29 @@ def test_what_the_frames_said_is_acted_on_before_the_step_sends(
     pump._step()
     assert seen[0] == (1, polled, sent)  # the frame dispatched, nothing polled or sent yet
     assert len(bus.sent) == sent + 1 and seen[-1][2] == sent + 1  # then the step's own
+
+
+def test_after_a_step_that_failed_the_bus_is_watched_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A bug in a machine ends the run; the way out must still hear the drives' answers
+    to its stop frames, though the timer may never fire again."""
+    pump, _, machine, loop, _, clocks = pump_for(0.0025, monkeypatch)
+    failures: list[BaseException] = []
+    pump.on_fatal = failures.append
+    assert loop.readers == {}
+    monkeypatch.setattr(machine, "poll", lambda now: 1 / 0)
+    clocks.advance(0.0025)
+    pump._step()
+    assert len(failures) == 1 and list(loop.readers) == [42]
+
+
+def test_a_frame_read_after_a_poll_is_not_timed_before_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pump, bus, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
+    start = clocks.mono
+    clocks.advance(0.0025)
+    bus.waiting.append(frame(0x200, clocks.wall - 0.0024))  # stamped before the last poll
+    pump._step()
+    assert machine.fed[0][1] >= start  # the first step polled at start: never before it

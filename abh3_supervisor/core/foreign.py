@@ -196,6 +196,15 @@ class ForeignWatch:
         found = [r for r in self.hosts.values() if r.unit == unit]
         return sorted(found, key=lambda r: (not r.commanding, r.source))
 
+    def forgive(self, unit: str) -> None:
+        """The stop ``unit``'s hosts caused was cleared: the next command of any of them is
+        news again (a new stop), even within the episode — a host that kept reading the
+        drive meanwhile, or a frame the bus had not yet been read for when it was cleared
+        (the pump reads in batches: scheduler/pump.py). What it read stays on record."""
+        for record in self.of(unit):
+            for kind in COMMANDING:
+                record.heard.pop(kind, None)
+
     def commanding(self, unit: str, now: float) -> list[Foreign]:
         """The hosts that commanded ``unit``'s drive within :attr:`quiet_s` of ``now``."""
         return [r for r in self.of(unit) if now - r.last_commanding <= self.quiet_s]

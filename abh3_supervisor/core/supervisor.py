@@ -341,6 +341,8 @@ class Supervisor:
                 )
                 continue
             del self.gate.foreign[name]
+            for member in robot.units if robot is not None else (name,):
+                self.schedulers[self.units[member].cfg.bus].foreign.forgive(member)
             self.arbiter.hold(name)
             self._push(self.units[name])
             cleared.append(name)

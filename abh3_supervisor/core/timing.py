@@ -13,4 +13,5 @@ def next_on_grid(due: float, interval: float, now: float) -> float:
     due += interval
     if due > now:
         return due
-    return due + (math.floor((now - due) / interval) + 1) * interval
+    due += (math.floor((now - due) / interval) + 1) * interval
+    return due if due > now else due + interval  # now on a point, within rounding

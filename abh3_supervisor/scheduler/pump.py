@@ -107,6 +107,8 @@ class BusPump(can.Listener):
             return  # stopped: a frame handed over just before stop() is dropped
         try:  # _guard's, inline: once per frame
             if self._receive(msg, self.loop.time()):
+                if self.after_step is not None:  # what it said first, as in _step
+                    self.after_step()
                 self._step_unguarded()
         except Exception as exc:
             self._failed(exc)
@@ -211,9 +213,15 @@ class BusPump(can.Listener):
             self._step_unguarded()
         except Exception as exc:
             self._failed(exc)
+            # the timer may not fire again: the bus wakes us, as the notifier's would (the
+            # way out reads the drives' answers to its stop frames)
+            if self._running and self.loop.time() >= self._resume_at:
+                self._watch(True)
 
     def _step_unguarded(self) -> None:
-        for arbitration_id, data in self.machine.poll(self.loop.time()):
+        now = self.loop.time()
+        self._last_t = max(self._last_t, now)  # a frame read after this poll is not before it
+        for arbitration_id, data in self.machine.poll(now):
             self.send(arbitration_id, data)
         if self.after_step is not None:
             self.after_step()
