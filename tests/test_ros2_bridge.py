@@ -52,8 +52,9 @@ def test_feedback_status_odometry_and_conversions_reach_another_process(
     # the drive ramps to the command: Y 300, X 20 = A 320, B 280 at the motors
     assert until(fbk_ab, types.Abh3Velocity(320.0, 280.0))
     assert until(fbk_yx, types.Abh3Velocity(300.0, 20.0), 5)
-    control = next(brd1.take_iter(timeout=duration(seconds=5)))
-    assert control.control & 0x3 == 0x3  # servo and start on, as the drive reports
+    # servo and start on, as the drive reports (the reader may still hold a packet from
+    # before the start-up commands took effect: the first one that says so)
+    assert until(brd1, lambda b: b.control & 0x3 == 0x3, 5)
     # odometry: the twist from the feedback, the pose from the pulse counts
     speed = (300 / 60 * 0.1 * 0.1 * math.pi, -20 / 60 * 0.1 * 0.1 * math.pi / 0.25)
     first = until(
