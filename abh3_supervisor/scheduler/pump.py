@@ -107,9 +107,7 @@ class BusPump(can.Listener):
             return  # stopped: a frame handed over just before stop() is dropped
         try:  # _guard's, inline: once per frame
             if self._receive(msg, self.loop.time()):
-                if self.after_step is not None:  # what it said first, as in _step
-                    self.after_step()
-                self._step_unguarded()
+                self._step_unguarded(fed=True)
         except Exception as exc:
             self._failed(exc)
 
@@ -206,11 +204,7 @@ class BusPump(can.Listener):
         if not self._running:
             return
         try:  # _guard's, inline: once per step
-            if self._fd >= 0 and self._read() and self.after_step is not None:
-                # what the frames said (another host on a drive, a unit back online) is
-                # acted on before this step's frames are decided and sent
-                self.after_step()
-            self._step_unguarded()
+            self._step_unguarded(fed=self._fd >= 0 and self._read())
         except Exception as exc:
             self._failed(exc)
             # the timer may not fire again: the bus wakes us, as the notifier's would (the
@@ -218,7 +212,12 @@ class BusPump(can.Listener):
             if self._running and self.loop.time() >= self._resume_at:
                 self._watch(True)
 
-    def _step_unguarded(self) -> None:
+    def _step_unguarded(self, fed: bool = False) -> None:
+        """``fed``: frames were just given to the machine — what they said (another host
+        on a drive, a unit back online) is acted on before this step's frames are decided
+        and sent."""
+        if fed and self.after_step is not None:
+            self.after_step()
         now = self.loop.time()
         self._last_t = max(self._last_t, now)  # a frame read after this poll is not before it
         for arbitration_id, data in self.machine.poll(now):
