@@ -141,7 +141,7 @@ def test_a_later_deadline_from_outside_the_callback_keeps_the_repetition() -> No
     calls: list[int] = []
     kept: list[bool] = []
 
-    async def scenario() -> list[float]:
+    async def scenario() -> tuple[list[float], float]:
         loop = asyncio.get_running_loop()
         fired: list[float] = []
         done = loop.create_future()
@@ -174,11 +174,11 @@ def test_a_later_deadline_from_outside_the_callback_keeps_the_repetition() -> No
         t.arm(loop.time() + 0.004)
         await asyncio.wait_for(done, 5)
         t.close()
-        return fired
+        return fired, late
 
-    fired = asyncio.run(scenario())
+    fired, late = asyncio.run(scenario())
     assert kept == [True]
-    assert fired[-1] - fired[0] >= 0.05 - 0.004  # the late deadline was kept, never before
+    assert fired[-1] >= late - 1e-4  # the late deadline was kept, never before it
 
 
 def test_a_grid_keeps_its_phase_after_a_stall() -> None:
