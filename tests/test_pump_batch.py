@@ -17,6 +17,7 @@ import can
 import pytest
 
 from abh3_supervisor.scheduler.pump import MAX_READ, BusPump
+from abh3_supervisor.scheduler.sources import ThreadSource
 from tests.support.rig import Deaf
 
 BATCH = 0.005
@@ -267,3 +268,28 @@ def test_a_frame_read_after_a_poll_is_not_timed_before_it(
     bus.waiting.append(frame(0x200, clocks.wall - 0.0024))  # stamped before the last poll
     pump._step()
     assert machine.fed[0][1] >= start  # the first step polled at start: never before it
+
+
+def test_without_a_file_descriptor_the_step_reads_the_reader_threads_queue_first(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """python-can's virtual bus, a USB adapter: a late loop finds both drives' replies
+    waiting and feeds them before the step, so both units' commands leave in it (python-
+    can's Notifier stepped once per reply: the first unit's command went a step early)."""
+
+    def no_fd(self: QueueBus) -> int:
+        raise NotImplementedError
+
+    monkeypatch.setattr(QueueBus, "fileno", no_fd)
+    monkeypatch.setattr(ThreadSource, "start", lambda self: None)  # the test is the thread
+    pump, _, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
+    source = pump._source
+    assert isinstance(source, ThreadSource)
+    clocks.advance(0.001)
+    source._frames.extend([frame(0x201, clocks.wall), frame(0x203, clocks.wall)])
+    clocks.advance(0.0015)
+    polled = len(machine.polled)
+    pump._step()
+    assert rounded(machine.fed) == [(0x201, 100.001), (0x203, 100.001)]
+    assert machine.polled[polled:] == [(clocks.mono, 2)]  # one step, after both
+    pump.stop()

@@ -148,6 +148,20 @@ def truth(robot: RobotConfig, frames: list[dict[str, Any]], until: float) -> tup
     return x, y, yaw
 
 
+def sent_together(frames: list[dict[str, Any]]) -> dict[tuple[str, float], set[tuple[str, float]]]:
+    """Each DP0 command's (unit, time) to the DP0 commands of its step: the run of frames
+    the host sent with none received between them."""
+    turns: dict[tuple[str, float], set[tuple[str, float]]] = {}
+    run: set[tuple[str, float]] = set()
+    for f in [*frames, {"direction": "drive->host"}]:
+        if f["direction"] != "host->drive":
+            turns.update((key, run) for key in run)
+            run = set()
+        elif f["kind"] == "dp0_command":
+            run.add((f["unit"], f["t"]))
+    return turns
+
+
 @pytest.mark.parametrize(("shape", "transport"), [("two-drives", "rclpy"), ("skid-steer", "dds")])
 def test_cmd_vel_drives_every_wheel_and_odom_follows_the_robot(
     ros: tuple[str, Path, Path], tmp_path: Path, shape: str, transport: str
@@ -180,9 +194,16 @@ def test_cmd_vel_drives_every_wheel_and_odom_follows_the_robot(
         assert len(moving[unit]) > 20, (unit, y, x, commands[-4:], report)
     if robot.name == "rover":
         assert motor_speeds(robot, *TWIST)["r"][0] < 0  # the mirrored wheel: backwards
-    one, other = (moving[u] for u in robot.units)
-    for t in one:  # the other drive's frame of the same turn left within 2 ms (period 20)
-        assert min(abs(t - s) for s in other) < 0.002, (t, report)
+    # the same turn: each of one drive's frames has the other's in its step — the frames the
+    # host sent with nothing received between (the recording's order is the loop's) — and
+    # they left together; by how much is the machine's (at normal priority, under load, a
+    # preempted loop parts a step's frames by a time slice, 3-5 ms), so only the median
+    turns = sent_together(out["frames"])
+    one, other = robot.units
+    for t in moving[one]:
+        assert other in {unit for unit, _ in turns[one, t]}, (one, t, report)
+    gaps = sorted(min(abs(t - s) for s in moving[other]) for t in moving[one])
+    assert gaps[len(gaps) // 2] < 0.001, (gaps, report)
 
     # odom: the twist asked while driving, from every wheel's feedback
     driving = p["odom_driving"]

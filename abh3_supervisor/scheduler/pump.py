@@ -1,21 +1,25 @@
 """The thin asyncio layer: runs one sans-I/O machine (scheduler or simulator) on a bus.
 
-Received frames reach the machine on the loop: python-can's ``Notifier`` hands them over
-from a reader thread (``call_soon_threadsafe``) where the bus has no file descriptor, and
-reads them on the loop (``add_reader``) where it has one. A single deadline timer
+Frames wait in a source until a step reads them: the bus's own file descriptor where it
+has one (SocketCAN, ``udp_multicast``), else a queue a reader thread of the pump's fills
+(python-can's virtual bus, most USB adapters: :class:`ThreadSource`). Each step reads all
+that wait (up to :data:`MAX_READ`), hands what they said to the owner (``after_step``),
+and only then decides and sends its own frames. A single deadline timer
 (scheduler/timer.py: a timerfd, which the kernel repeats while the deadlines keep one
-period) wakes the machine at its next deadline. Everything the machine does therefore
-happens on the loop thread, one step at a time.
+period) wakes the machine at its next deadline; a frame wakes it only while the source is
+watched. Everything the machine does therefore happens on the loop thread, one step at a
+time, on frames all read: a loop that was late acts on every reply that came meanwhile at
+once (a robot's drives, each waiting for its own reply, still send in one step).
 
-``batch_s`` (the supervisor's pumps: :data:`READ_BATCH_S`): on a bus with a file
-descriptor the pump reads the frames itself, all that wait, before each step; and while
-its next deadline is at most ``batch_s`` away it does not watch the bus at all — that
-step reads what came meanwhile. Each frame keeps the time it came (its receive timestamp,
-bounded by the previous read), and every decision the machine takes in a step follows a
-read, so nothing is decided on stale frames; what waits is only the frames' delivery to
-the observers, by less than ``batch_s``. With several units on staggered phases the loop
-then wakes once per phase instead of once more for every reply: the CPU a wake-up costs
-is most of what an exchange costs (docs/performance.md, section 10).
+``batch_s`` (the supervisor's pumps: :data:`READ_BATCH_S`): while the next deadline is at
+most ``batch_s`` away the source is not watched — that step reads what came meanwhile.
+Each frame keeps the time it came (its receive timestamp, bounded by the previous read),
+and every decision the machine takes in a step follows a read, so nothing is decided on
+stale frames; what waits is only the frames' delivery to the observers, by less than
+``batch_s``. With several units on staggered phases the loop then wakes once per phase
+instead of once more for every reply: the CPU a wake-up costs is most of what an exchange
+costs (docs/performance.md, section 10). The simulator's pumps (``batch_s`` 0) watch
+whenever their next deadline is not now.
 """
 
 from __future__ import annotations
@@ -30,9 +34,9 @@ from typing import Protocol
 import can
 
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
+from abh3_supervisor.scheduler.sources import RETRY_S, FdSource, FrameSource, ThreadSource
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
-RETRY_S = 0.5  # a bus whose receive failed is read again after this
 # the supervisor's pumps: frames may wait this long for the next step (4 units at 100 Hz
 # step every 2.5 ms, 2 every 5 ms); the observers see them at most this much later
 READ_BATCH_S = 0.005
@@ -48,7 +52,7 @@ class Machine(Protocol):
     def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None: ...
 
 
-class BusPump(can.Listener):
+class BusPump:
     def __init__(
         self,
         bus: can.BusABC,
@@ -68,11 +72,9 @@ class BusPump(can.Listener):
         self.on_fatal = on_fatal
         self.loop = asyncio.get_running_loop()
         self._timer = DeadlineTimer(self.loop, self._step, repeating=True)
-        self._notifier: can.Notifier | None = None
+        self._source: FrameSource | None = None
         self._running = False
         self.batch_s = batch_s
-        self._fd = -1  # the bus's file descriptor where this pump reads it (batch_s)
-        self._watching = False  # the loop wakes when the bus is readable
         self._read_at = 0.0  # when the bus was last read to the end
         self._last_t = 0.0  # the time given to the last frame read
         self._resume_at = 0.0  # a receive failed: reading rests until then
@@ -86,30 +88,24 @@ class BusPump(can.Listener):
 
     def start(self) -> None:
         self._running = True
-        self._fd = _fileno(self.bus) if self.batch_s > 0 else -1
-        if self._fd < 0:  # a short receive timeout lets stop() join a reader thread quickly
-            self._notifier = _Notifier(self.bus, [self], timeout=0.05, loop=self.loop)
+        fd = _fileno(self.bus)
+        if fd >= 0:
+            self._source = FdSource(self.bus, fd, self.loop, self._step)
+        else:
+            reader = ThreadSource(self.bus, self.loop, self._step, self.on_error, self.name)
+            reader.start()
+            self._source = reader
         self._read_at = self._last_t = self.loop.time()
         self._step()
 
-    def stop(self) -> None:  # also called by Notifier.stop(): must be idempotent
+    def stop(self) -> None:  # idempotent
         self._running = False
         self._timer.close()
-        self._watch(False)
-        notifier, self._notifier = self._notifier, None
-        if notifier is not None:
-            notifier.stop()
+        source, self._source = self._source, None
+        if source is not None:
+            source.stop()
 
-    # ------------------------------------------------------------ can.Listener
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if not self._running:
-            return  # stopped: a frame handed over just before stop() is dropped
-        try:  # _guard's, inline: once per frame
-            if self._receive(msg, self.loop.time()):
-                self._step_unguarded(fed=True)
-        except Exception as exc:
-            self._failed(exc)
+    # ------------------------------------------------------------ receiving
 
     def _receive(self, msg: can.Message, now: float) -> bool:
         """One frame to the recorder and the machine; whether the machine took it."""
@@ -138,14 +134,14 @@ class BusPump(can.Listener):
         of the interface's own, or a stepped wall clock, is not trusted), else now.
         Whether the machine took any."""
         now = self.loop.time()
-        if now < self._resume_at:
+        if now < self._resume_at or self._source is None:
             return False
         wall, since = time.time(), now - self._read_at
         self._read_at = now
         took = False
         for _ in range(MAX_READ):
             try:
-                msg = self.bus.recv(0)
+                msg = self._source.recv()
             except Exception as exc:  # whatever the interface raises: rest, then again
                 self._resume_at = now + RETRY_S
                 self._watch(False)
@@ -161,18 +157,13 @@ class BusPump(can.Listener):
         return took
 
     def _watch(self, on: bool) -> None:
-        """Wake the loop when the bus is readable, or leave its frames to the next step."""
-        if on == self._watching or self._fd < 0:
-            return
-        if on:
-            self.loop.add_reader(self._fd, self._step)
-        else:
-            self.loop.remove_reader(self._fd)
-        self._watching = on
+        """Wake the loop when a frame waits, or leave the frames to the next step."""
+        if self._source is not None:
+            self._source.watch(on)
 
     def on_error(self, exc: Exception) -> None:
         """A receive failed (the interface went down): the bus's health says so once, as a
-        notice; retrying is the notifier's."""
+        notice; the source tries again after ``RETRY_S``."""
         self.bus_errors += 1
         code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
         self.health.on_send_error(code, f"receive failed: {exc}", self.loop.time())
@@ -200,15 +191,15 @@ class BusPump(can.Listener):
             self.on_fatal(exc)
 
     def _step(self) -> None:
-        """A timer firing, or the bus readable (batch_s): read what waits, then step."""
+        """A timer firing, or a frame waiting while watched: read what waits, then step."""
         if not self._running:
             return
         try:  # _guard's, inline: once per step
-            self._step_unguarded(fed=self._fd >= 0 and self._read())
+            self._step_unguarded(fed=self._read())
         except Exception as exc:
             self._failed(exc)
-            # the timer may not fire again: the bus wakes us, as the notifier's would (the
-            # way out reads the drives' answers to its stop frames)
+            # the timer may not fire again: a frame wakes us (the way out reads the
+            # drives' answers to its stop frames)
             if self._running and self.loop.time() >= self._resume_at:
                 self._watch(True)
 
@@ -229,7 +220,7 @@ class BusPump(can.Listener):
             self._timer.cancel()
         else:
             self._timer.arm(deadline)
-        if self._fd >= 0 and self._running and self.loop.time() >= self._resume_at:
+        if self._running and self.loop.time() >= self._resume_at:
             self._watch(deadline - self.loop.time() > self.batch_s)
 
     def wake(self) -> None:
@@ -272,25 +263,3 @@ def _fileno(bus: can.BusABC) -> int:
         return bus.fileno()
     except NotImplementedError:
         return -1
-
-
-class _Notifier(can.Notifier):
-    """python-can's Notifier, except where it reads a bus from the loop (``add_reader``:
-    SocketCAN): there a receive that raises would go to asyncio's exception handler — a
-    traceback — on every turn of the loop while the fd stays readable. Here it reaches
-    the listeners' ``on_error`` and the reader rests ``RETRY_S`` before trying again."""
-
-    def _on_message_available(self, bus: can.BusABC) -> None:
-        try:
-            super()._on_message_available(bus)
-        except Exception as exc:  # whatever the interface raises: its listeners decide
-            self._on_error(exc)
-            loop, fd = self._loop, bus.fileno()
-            if loop is None or self._stopped:
-                return
-            loop.remove_reader(fd)
-            loop.call_later(RETRY_S, self._resume, bus, fd)
-
-    def _resume(self, bus: can.BusABC, fd: int) -> None:
-        if not self._stopped and self._loop is not None:
-            self._loop.add_reader(fd, self._on_message_available, bus)

@@ -1,0 +1,127 @@
+"""Where a pump's received frames wait until its next step reads them (scheduler/pump.py).
+
+A bus with a file descriptor is its own queue: the step reads it with ``recv(0)``, and the
+loop watches the descriptor when a frame should wake it. A bus without one (python-can's
+virtual bus, most USB adapters) is read by a thread of its own into a queue, which the
+loop is woken for the same way. Both wake the loop once for whatever came meanwhile, not
+once per frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+import can
+
+RECV_TIMEOUT_S = 0.05  # the reader thread's wait for a frame: how long stop() may take
+RETRY_S = 0.5  # a bus whose receive failed is read again after this
+
+
+class FrameSource(Protocol):
+    def recv(self) -> can.Message | None:
+        """The next waiting frame, or None (on the loop; the bus's receive may raise)."""
+        ...
+
+    def watch(self, on: bool) -> None:
+        """Wake the loop (``wake``) when a frame waits, or leave the frames to the step."""
+        ...
+
+    def stop(self) -> None: ...
+
+
+class FdSource:
+    """The bus's own file descriptor: frames wait in the kernel."""
+
+    def __init__(
+        self, bus: can.BusABC, fd: int, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]
+    ) -> None:
+        self.bus, self.fd, self.loop, self.wake = bus, fd, loop, wake
+        self._watching = False
+
+    def recv(self) -> can.Message | None:
+        return self.bus.recv(0)
+
+    def watch(self, on: bool) -> None:
+        if on == self._watching:
+            return
+        if on:
+            self.loop.add_reader(self.fd, self.wake)
+        else:
+            self.loop.remove_reader(self.fd)
+        self._watching = on
+
+    def stop(self) -> None:
+        self.watch(False)
+
+
+class ThreadSource:
+    """A reader thread's queue. The thread hands the loop a wake only when it is watched
+    and none is already on its way, so a late loop gets one call for a burst of frames. A
+    receive that fails is told to the loop (``on_error``) and tried again after
+    ``RETRY_S``: the thread never dies of it (python-can's Notifier's thread did, when
+    it ran for a loop, and the bus went deaf for the rest of the run)."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        loop: asyncio.AbstractEventLoop,
+        wake: Callable[[], None],
+        on_error: Callable[[Exception], None],
+        name: str,
+    ) -> None:
+        self.bus, self.loop, self.wake, self.on_error = bus, loop, wake, on_error
+        self._frames: collections.deque[can.Message] = collections.deque()
+        self._watching = False
+        self._waking = False  # a wake is on its way to the loop
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"can reader {name}", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def recv(self) -> can.Message | None:
+        try:
+            return self._frames.popleft()
+        except IndexError:
+            return None
+
+    def watch(self, on: bool) -> None:
+        self._watching = on
+        if on and self._frames and not self._waking:  # came while nobody watched
+            self._waking = True
+            self.loop.call_soon(self._woken)
+
+    def stop(self) -> None:
+        self._watching = False
+        self._stopped.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=1.0)
+
+    def _woken(self) -> None:  # on the loop
+        self._waking = False
+        if not self._stopped.is_set():
+            self.wake()
+
+    def _run(self) -> None:
+        while not self._stopped.is_set():
+            try:
+                msg = self.bus.recv(RECV_TIMEOUT_S)
+            except Exception as exc:  # whatever the interface raises: say so, rest, again
+                self._to_loop(self.on_error, exc)
+                self._stopped.wait(RETRY_S)
+                continue
+            if msg is None:
+                continue
+            self._frames.append(msg)
+            if self._watching and not self._waking:
+                self._waking = True
+                self._to_loop(self._woken)
+
+    def _to_loop(self, fn: Callable[..., None], *args: object) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: the run is over
+            self.loop.call_soon_threadsafe(fn, *args)

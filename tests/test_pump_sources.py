@@ -1,0 +1,144 @@
+"""A bus without a file descriptor, read by a thread into a queue (scheduler/sources.py):
+a burst of frames wakes the loop once, frames that came while nobody watched wake it when
+it watches again, and a receive that fails is told and tried again, never the thread's end.
+
+The reader's body runs in the test's own thread over a scripted bus, and the loop is a
+fake that collects what the thread hands it: nothing here waits on time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from typing import Any, cast
+
+import can
+import pytest
+
+from abh3_supervisor.scheduler import sources
+from abh3_supervisor.scheduler.sources import ThreadSource
+
+
+class HandOver:
+    """The loop as the reader thread sees it: callbacks queued, run when the test says."""
+
+    def __init__(self) -> None:
+        self.queued: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
+
+    def call_soon_threadsafe(self, fn: Callable[..., None], *args: Any) -> None:
+        self.queued.append((fn, args))
+
+    call_soon = call_soon_threadsafe
+
+    def run(self) -> None:
+        queued, self.queued = self.queued, []
+        for fn, args in queued:
+            fn(*args)
+
+
+class Scripted(can.BusABC):
+    """Hands out its script one item per receive (a frame, None, or an error to raise),
+    and ends the reader when the script is done."""
+
+    def __init__(self, script: list[can.Message | Exception | None]) -> None:
+        super().__init__(channel="scripted")
+        self.script = script
+        self.source: ThreadSource | None = None
+        self.waits: list[float] = []
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self.script:
+            assert self.source is not None
+            self.source._stopped.set()
+            return None, False
+        item = self.script.pop(0)
+        if isinstance(item, Exception):
+            raise item
+        return item, False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        raise AssertionError("the reader never sends")
+
+
+def reader(
+    script: list[can.Message | Exception | None], watching: bool
+) -> tuple[ThreadSource, HandOver, list[str], list[Exception], Scripted]:
+    loop, woken, errors = HandOver(), [], cast(list[Exception], [])
+    bus = Scripted(script)
+    source = ThreadSource(
+        bus, cast(asyncio.AbstractEventLoop, loop), lambda: woken.append("step"), errors.append, "t"
+    )
+    bus.source = source
+    source.watch(watching)
+    return source, loop, woken, errors, bus
+
+
+def read_script(source: ThreadSource) -> None:
+    """The reader thread's body until the script ends (which stops it); then the source
+    is live again, as though the thread went on waiting."""
+    source._run()
+    source._stopped.clear()
+
+
+def frame(ident: int) -> can.Message:
+    return can.Message(arbitration_id=ident, is_extended_id=True, data=bytes(8))
+
+
+def drained(source: ThreadSource) -> list[int]:
+    out = []
+    while (msg := source.recv()) is not None:
+        out.append(msg.arbitration_id)
+    return out
+
+
+def test_a_burst_of_frames_wakes_a_watching_loop_once() -> None:
+    source, loop, woken, _, bus = reader([frame(1), frame(2), None, frame(3)], watching=True)
+    read_script(source)
+    assert len(loop.queued) == 1  # one wake on its way for the whole burst
+    loop.run()
+    assert woken == ["step"] and drained(source) == [1, 2, 3]
+    bus.shutdown()
+
+
+def test_frames_that_came_unwatched_wake_the_loop_when_it_watches_again() -> None:
+    source, loop, woken, _, bus = reader([frame(1), frame(2)], watching=False)
+    read_script(source)
+    assert loop.queued == []  # the step due within batch_s reads them
+    source.watch(True)  # the step did not come (or did not read them all): wake now
+    loop.run()
+    assert woken == ["step"] and drained(source) == [1, 2]
+    source.watch(True)  # nothing waits: nothing to wake for
+    assert loop.queued == []
+    bus.shutdown()
+
+
+def test_a_receive_that_fails_is_told_then_tried_again_after_a_rest(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    down = can.CanOperationError("Network is down")
+    source, loop, woken, errors, bus = reader([down, frame(7)], watching=True)
+    rests: list[float | None] = []
+    monkeypatch.setattr(source._stopped, "wait", rests.append)
+    read_script(source)
+    loop.run()
+    assert errors == [down] and rests == [sources.RETRY_S]
+    assert woken == ["step"] and drained(source) == [7]  # read again after the rest
+    bus.shutdown()
+
+
+def test_stop_ends_the_thread_and_no_wake_follows() -> None:
+    bus = can.Bus(interface="virtual", channel="sources-stop")
+    loop, woken = HandOver(), []
+    source = ThreadSource(
+        bus, cast(asyncio.AbstractEventLoop, loop), lambda: woken.append("step"), print, "v"
+    )
+    source.start()
+    source.watch(True)
+    source.stop()
+    assert not source._thread.is_alive()
+    source._frames.append(frame(1))
+    source._waking = False
+    source.watch(True)  # a wake already queued when the pump stopped
+    loop.run()
+    assert woken == []
+    bus.shutdown()
