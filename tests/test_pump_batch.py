@@ -286,10 +286,32 @@ def test_without_a_file_descriptor_the_step_reads_the_reader_threads_queue_first
     source = pump._source
     assert isinstance(source, ThreadSource)
     clocks.advance(0.001)
-    source._frames.extend([frame(0x201, clocks.wall), frame(0x203, clocks.wall)])
+    source._frames.extend([(frame(i, clocks.wall), clocks.wall) for i in (0x201, 0x203)])
     clocks.advance(0.0015)
     polled = len(machine.polled)
     pump._step()
     assert rounded(machine.fed) == [(0x201, 100.001), (0x203, 100.001)]
     assert machine.polled[polled:] == [(clocks.mono, 2)]  # one step, after both
+    pump.stop()
+
+
+def test_a_frame_an_interface_stamped_with_its_own_clock_is_timed_when_the_reader_took_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """PCAN without ``uptime`` stamps seconds since boot: the reader thread's own time of
+    the frame, not the step's, is when it came."""
+
+    def no_fd(self: QueueBus) -> int:
+        raise NotImplementedError
+
+    monkeypatch.setattr(QueueBus, "fileno", no_fd)
+    monkeypatch.setattr(ThreadSource, "start", lambda self: None)
+    pump, _, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
+    source = pump._source
+    assert isinstance(source, ThreadSource)
+    clocks.advance(0.0005)
+    source._frames.append((frame(0x201, 8123.25), clocks.wall))  # since boot; taken now
+    clocks.advance(0.002)
+    pump._step()
+    assert rounded(machine.fed) == [(0x201, 100.0005)]
     pump.stop()

@@ -86,8 +86,8 @@ def frame(ident: int) -> can.Message:
 
 def drained(source: ThreadSource) -> list[int]:
     out = []
-    while (msg := source.recv()) is not None:
-        out.append(msg.arbitration_id)
+    while (got := source.recv()) is not None:
+        out.append(got[0].arbitration_id)
     return out
 
 
@@ -136,9 +136,35 @@ def test_stop_ends_the_thread_and_no_wake_follows() -> None:
     source.watch(True)
     source.stop()
     assert not source._thread.is_alive()
-    source._frames.append(frame(1))
+    source._frames.append((frame(1), 0.0))
     source._waking = False
     source.watch(True)  # a wake already queued when the pump stopped
     loop.run()
     assert woken == []
+    bus.shutdown()
+
+
+def test_a_failed_receive_is_not_told_to_a_pump_stopped_meanwhile() -> None:
+    source, loop, _, errors, bus = reader([can.CanOperationError("down")], watching=True)
+    source._stopped.wait = lambda timeout=None: True  # type: ignore[method-assign]
+    read_script(source)
+    source.stop()  # the pump stopped before the loop ran the hand-over
+    loop.run()
+    assert errors == []
+    bus.shutdown()
+
+
+def test_the_reader_ends_when_the_loop_is_gone() -> None:
+    """A pump nobody stopped: its loop closed, its bus shut down, every receive fails;
+    the thread ends instead of retrying for ever."""
+
+    class Closed(HandOver):
+        def call_soon_threadsafe(self, fn: Callable[..., None], *args: Any) -> None:
+            raise RuntimeError("Event loop is closed")
+
+    bus = Scripted([can.CanOperationError("bus shut down")] * 3)
+    source = ThreadSource(bus, cast(asyncio.AbstractEventLoop, Closed()), print, print, "c")
+    bus.source = source
+    source._run()
+    assert source._stopped.is_set() and len(bus.script) == 2  # one try, then the end
     bus.shutdown()

@@ -131,8 +131,9 @@ class BusPump:
     def _read(self) -> bool:
         """Every frame waiting on the bus (up to MAX_READ), in order, each at the time it
         came: its receive timestamp where that lies between the last read and now (a clock
-        of the interface's own, or a stepped wall clock, is not trusted), else now.
-        Whether the machine took any."""
+        of the interface's own, or a stepped wall clock, is not trusted), else the time
+        the source took it off the bus where it knows it, else now. Whether the machine
+        took any."""
         now = self.loop.time()
         if now < self._resume_at or self._source is None:
             return False
@@ -141,16 +142,19 @@ class BusPump:
         took = False
         for _ in range(MAX_READ):
             try:
-                msg = self._source.recv()
+                got = self._source.recv()
             except Exception as exc:  # whatever the interface raises: rest, then again
                 self._resume_at = now + RETRY_S
                 self._watch(False)
                 self.loop.call_at(self._resume_at, self._step)
                 self.on_error(exc)
                 return took
-            if msg is None:
+            if got is None:
                 return took
+            msg, arrived = got
             age = wall - msg.timestamp
+            if not 0.0 <= age <= since and arrived is not None:
+                age = wall - arrived
             t = now - age if 0.0 <= age <= since else now
             self._last_t = t = max(t, self._last_t)
             took |= self._receive(msg, t)

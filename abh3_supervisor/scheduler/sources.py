@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
 import threading
+import time
 from collections.abc import Callable
 from typing import Protocol
 
@@ -23,8 +23,9 @@ RETRY_S = 0.5  # a bus whose receive failed is read again after this
 
 
 class FrameSource(Protocol):
-    def recv(self) -> can.Message | None:
-        """The next waiting frame, or None (on the loop; the bus's receive may raise)."""
+    def recv(self) -> tuple[can.Message, float | None] | None:
+        """The next waiting frame and the wall time it was taken off the bus where the
+        source knows it, or None (on the loop; the bus's receive may raise)."""
         ...
 
     def watch(self, on: bool) -> None:
@@ -43,8 +44,9 @@ class FdSource:
         self.bus, self.fd, self.loop, self.wake = bus, fd, loop, wake
         self._watching = False
 
-    def recv(self) -> can.Message | None:
-        return self.bus.recv(0)
+    def recv(self) -> tuple[can.Message, float | None] | None:
+        msg = self.bus.recv(0)
+        return None if msg is None else (msg, None)  # the kernel's timestamp says when
 
     def watch(self, on: bool) -> None:
         if on == self._watching:
@@ -64,7 +66,10 @@ class ThreadSource:
     and none is already on its way, so a late loop gets one call for a burst of frames. A
     receive that fails is told to the loop (``on_error``) and tried again after
     ``RETRY_S``: the thread never dies of it (python-can's Notifier's thread did, when
-    it ran for a loop, and the bus went deaf for the rest of the run)."""
+    it ran for a loop, and the bus went deaf for the rest of the run). Each frame keeps
+    the wall time the thread took it: an interface whose own timestamps are not the wall
+    clock (PCAN's since boot, a drifting hardware clock) is still timed when it came,
+    not when the step reads it."""
 
     def __init__(
         self,
@@ -75,7 +80,7 @@ class ThreadSource:
         name: str,
     ) -> None:
         self.bus, self.loop, self.wake, self.on_error = bus, loop, wake, on_error
-        self._frames: collections.deque[can.Message] = collections.deque()
+        self._frames: collections.deque[tuple[can.Message, float]] = collections.deque()
         self._watching = False
         self._waking = False  # a wake is on its way to the loop
         self._stopped = threading.Event()
@@ -84,7 +89,7 @@ class ThreadSource:
     def start(self) -> None:
         self._thread.start()
 
-    def recv(self) -> can.Message | None:
+    def recv(self) -> tuple[can.Message, float | None] | None:
         try:
             return self._frames.popleft()
         except IndexError:
@@ -107,21 +112,27 @@ class ThreadSource:
         if not self._stopped.is_set():
             self.wake()
 
+    def _failed(self, exc: Exception) -> None:  # on the loop
+        if not self._stopped.is_set():  # a pump stopped meanwhile hears of it no more
+            self.on_error(exc)
+
     def _run(self) -> None:
         while not self._stopped.is_set():
             try:
                 msg = self.bus.recv(RECV_TIMEOUT_S)
             except Exception as exc:  # whatever the interface raises: say so, rest, again
-                self._to_loop(self.on_error, exc)
+                self._to_loop(self._failed, exc)
                 self._stopped.wait(RETRY_S)
                 continue
             if msg is None:
                 continue
-            self._frames.append(msg)
+            self._frames.append((msg, time.time()))
             if self._watching and not self._waking:
                 self._waking = True
                 self._to_loop(self._woken)
 
     def _to_loop(self, fn: Callable[..., None], *args: object) -> None:
-        with contextlib.suppress(RuntimeError):  # the loop closed: the run is over
+        try:
             self.loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:  # the loop closed (a pump nobody stopped): the run is over
+            self._stopped.set()
