@@ -10,8 +10,10 @@ load alone does); ``flood`` (a fleet client in a process of its own publishes re
 e-stops as fast as it can and a 10 MB message every second, over MQTT 3.1.1 so that they
 arrive; ``FJ_PROTOCOL=5``, ``FJ_BIG=0`` vary it); ``flood, plugin threads normal`` (the
 same, the plugin's threads left at normal priority: as before it asked to run below the
-loop); ``dead`` (the broker killed at a third of the run, back at two thirds: reconnects).
-Each scenario's ratio is to its own baseline, the same run without MQTT, within each run.
+loop); ``dead, no plugin`` (the broker killed at a third of the run and started again at
+two thirds, nobody of ours connected: what the broker's death and start cost the machine);
+``dead`` (the same, the plugin connected: it loses the broker and reconnects). Each
+scenario's ratio is to its own baseline, the same run without MQTT, within each run.
 """
 
 from __future__ import annotations
@@ -147,7 +149,8 @@ SCENARIOS = {  # name → its baseline: the same run without MQTT
     "flood, no plugin": "none",
     "flood": "flood, no plugin",
     "flood, plugin threads normal": "flood, no plugin",
-    "dead": "none",
+    "dead, no plugin": "none",
+    "dead": "dead, no plugin",
 }
 
 
@@ -160,6 +163,8 @@ def one_run(broker: Broker, secret: Path, seconds: float) -> dict[str, tuple[flo
         "flood, plugin threads normal": measure(
             config("fj-fnorm", broker, secret), seconds, flood(broker), below_loop=False
         ),
+        # the broker killed and started again on this machine, nobody of ours connected
+        "dead, no plugin": measure(config("fj-dnone", None, secret), seconds, dead(broker)),
         "dead": measure(config("fj-dead", broker, secret), seconds, dead(broker)),
     }
 
