@@ -197,13 +197,14 @@ def test_cmd_vel_drives_every_wheel_and_odom_follows_the_robot(
     # the same turn: each of one drive's frames has the other's in its step — the frames the
     # host sent with nothing received between (the recording's order is the loop's) — and
     # they left together; by how much is the machine's (at normal priority, under load, a
-    # preempted loop parts a step's frames by a time slice, 3-5 ms), so only the median
+    # preempted loop parts a step's frames by a time slice, 3-5 ms, in up to 3 % of the
+    # turns seen here), so the median and the 90th percentile
     turns = sent_together(out["frames"])
     one, other = robot.units
     for t in moving[one]:
         assert other in {unit for unit, _ in turns[one, t]}, (one, t, report)
     gaps = sorted(min(abs(t - s) for s in moving[other]) for t in moving[one])
-    assert gaps[len(gaps) // 2] < 0.001, (gaps, report)
+    assert gaps[len(gaps) // 2] < 0.001 and gaps[len(gaps) * 9 // 10] < 0.002, (gaps, report)
 
     # odom: the twist asked while driving, from every wheel's feedback
     driving = p["odom_driving"]
