@@ -149,6 +149,22 @@ def pump_for(
     return pump, bus, machine, loop, timer, clocks
 
 
+def thread_pump_for(
+    period: float, monkeypatch: pytest.MonkeyPatch
+) -> tuple[BusPump, ThreadSource, Machine, Clocks]:
+    """The pump on a bus without a file descriptor; the test plays its reader thread,
+    putting frames in the queue itself."""
+
+    def no_fd(self: QueueBus) -> int:
+        raise NotImplementedError
+
+    monkeypatch.setattr(QueueBus, "fileno", no_fd)
+    monkeypatch.setattr(ThreadSource, "start", lambda self: None)
+    pump, _, machine, _, _, clocks = pump_for(period, monkeypatch)
+    assert isinstance(pump._source, ThreadSource)
+    return pump, pump._source, machine, clocks
+
+
 def test_a_near_deadline_leaves_the_frames_to_the_step_which_reads_them_first(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -277,14 +293,7 @@ def test_without_a_file_descriptor_the_step_reads_the_reader_threads_queue_first
     waiting and feeds them before the step, so both units' commands leave in it (python-
     can's Notifier stepped once per reply: the first unit's command went a step early)."""
 
-    def no_fd(self: QueueBus) -> int:
-        raise NotImplementedError
-
-    monkeypatch.setattr(QueueBus, "fileno", no_fd)
-    monkeypatch.setattr(ThreadSource, "start", lambda self: None)  # the test is the thread
-    pump, _, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
-    source = pump._source
-    assert isinstance(source, ThreadSource)
+    pump, source, machine, clocks = thread_pump_for(0.0025, monkeypatch)
     clocks.advance(0.001)
     source._frames.extend([(frame(i, clocks.wall), clocks.wall) for i in (0x201, 0x203)])
     clocks.advance(0.0015)
@@ -301,14 +310,7 @@ def test_a_frame_an_interface_stamped_with_its_own_clock_is_timed_when_the_reade
     """PCAN without ``uptime`` stamps seconds since boot: the reader thread's own time of
     the frame, not the step's, is when it came."""
 
-    def no_fd(self: QueueBus) -> int:
-        raise NotImplementedError
-
-    monkeypatch.setattr(QueueBus, "fileno", no_fd)
-    monkeypatch.setattr(ThreadSource, "start", lambda self: None)
-    pump, _, machine, _, _, clocks = pump_for(0.0025, monkeypatch)
-    source = pump._source
-    assert isinstance(source, ThreadSource)
+    pump, source, machine, clocks = thread_pump_for(0.0025, monkeypatch)
     clocks.advance(0.0005)
     source._frames.append((frame(0x201, 8123.25), clocks.wall))  # since boot; taken now
     clocks.advance(0.002)

@@ -28,8 +28,6 @@ class HandOver:
     def call_soon_threadsafe(self, fn: Callable[..., None], *args: Any) -> None:
         self.queued.append((fn, args))
 
-    call_soon = call_soon_threadsafe
-
     def run(self) -> None:
         queued, self.queued = self.queued, []
         for fn, args in queued:

@@ -97,9 +97,8 @@ class ThreadSource:
 
     def watch(self, on: bool) -> None:
         self._watching = on
-        if on and self._frames and not self._waking:  # came while nobody watched
-            self._waking = True
-            self.loop.call_soon(self._woken)
+        if on and self._frames:  # came while nobody watched
+            self._wake_once()
 
     def stop(self) -> None:
         self._watching = False
@@ -127,9 +126,13 @@ class ThreadSource:
             if msg is None:
                 continue
             self._frames.append((msg, time.time()))
-            if self._watching and not self._waking:
-                self._waking = True
-                self._to_loop(self._woken)
+            if self._watching:
+                self._wake_once()
+
+    def _wake_once(self) -> None:  # from either thread
+        if not self._waking:
+            self._waking = True
+            self._to_loop(self._woken)
 
     def _to_loop(self, fn: Callable[..., None], *args: object) -> None:
         try:
