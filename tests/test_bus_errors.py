@@ -87,6 +87,7 @@ class FlakyBus(can.BusABC):
     def __init__(self, channel: Any = None, **kwargs: Any) -> None:
         self.inner = can.Bus(interface="virtual", channel=channel)
         self.fail: can.CanError | None = None
+        self.recv_fail: can.CanError | None = None  # an adapter unplugged, say
         self.errors: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
         self.channel_info = f"flaky {channel}"
         super().__init__(channel=channel)
@@ -101,6 +102,8 @@ class FlakyBus(can.BusABC):
         self.inner.send(msg, timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self.recv_fail is not None:
+            raise self.recv_fail
         try:
             return self.errors.get_nowait(), False
         except queue.Empty:
@@ -210,6 +213,42 @@ def test_the_supervisor_reports_bus_errors_per_bus_and_recovers(flaky: None) -> 
         "bus robot: recovered from tx queue full: frames go out and come in again",
         "bus robot: ERROR-PASSIVE: error-passive (tx errors 0, rx errors 140)",
         "bus robot: recovered from error-passive: the controller is error-active again (tx errors 0, rx errors 20)",
+    ]
+
+
+@pytest.mark.wallclock
+def test_a_bus_without_a_descriptor_whose_receive_fails_is_heard_again_when_it_comes_back(
+    flaky: None,
+) -> None:
+    """A USB adapter's receive failing for a moment: the pump's reader thread says so,
+    rests and reads again (python-can's Notifier's thread died of it, and the drives went
+    unheard for the rest of the run). The drive side judges: it goes on getting our
+    commands, answers, and its answers to the stop frames are heard at the end."""
+    config = parse_config(
+        "buses:\n  robot: {interface: flaky, channel: rxfail}\nunits:\n  - {name: base}\n",
+        "e.yaml",
+    )
+    notices = BusNotices("robot")
+
+    async def scenario() -> None:
+        with drives_on(config, "robot", "rxfail") as drives:
+            async with Runtime(config) as rt:
+                sup = rt.supervisor
+                sup.subscribe(notices)
+                assert await sup.wait_exchange("base", sup.clock(), 3.0)
+                (bus,) = FlakyBus.instances
+                bus.recv_fail = can.CanOperationError("Error receiving: device gone", errno.ENODEV)
+                assert "receive failed" in await notices.next()
+                bus.recv_fail = None
+                heard = drives.frames_received
+                assert await sup.wait_exchange("base", sup.clock(), 3.0)  # answers heard again
+                assert drives.frames_received > heard  # and the drive gets our commands
+        assert rt.stops_confirmed
+
+    asyncio.run(scenario())
+    assert notices.seen == [
+        "bus robot: SENDS FAILING: receive failed: Error receiving: device gone [Error Code 19]",
+        "bus robot: recovered from sends failing: frames go out and come in again",
     ]
 
 
