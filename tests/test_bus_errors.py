@@ -116,8 +116,8 @@ class FlakyBus(can.BusABC):
 
 
 class FdBus(FlakyBus):
-    """As SocketCAN: a file descriptor python-can's Notifier reads from the loop
-    (``add_reader``), and a receive that raises when the interface goes down."""
+    """As SocketCAN: a file descriptor the pump reads on the loop (``add_reader``, its
+    ``FdSource``), and a receive that raises when the interface goes down."""
 
     def __init__(self, channel: Any = None, **kwargs: Any) -> None:
         super().__init__(channel, **kwargs)
@@ -263,7 +263,7 @@ def mirrored(rt: Runtime) -> Mirror:
 def test_a_receive_that_fails_on_a_bus_read_from_the_loop_is_a_state_not_a_traceback(
     flaky: None,
 ) -> None:
-    """SocketCAN taken down under a running supervisor: python-can reads it from the loop
+    """SocketCAN taken down under a running supervisor: the pump reads it on the loop
     (add_reader); the failing receive becomes BUS-OFF once, and the reader rests between
     tries instead of spinning the loop with tracebacks."""
     config = parse_config(
