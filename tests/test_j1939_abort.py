@@ -81,8 +81,10 @@ def assert_next_dts_wait_for_a_fresh_cts(frames: list[WireFrame], drive: int = L
 
 def test_a_cts_on_the_wire_when_we_give_up_does_not_clear_the_next_requests_dts() -> None:
     """The caller gives up right after our RTS; the drive's CTS to it is already on the
-    wire (it arrives after the abort is decided). The next request waits for its own."""
-    rig = Rig(parse_config(TWO_UNITS, "two.yaml"), bitrate=500_000)
+    wire (it arrives after the abort is decided). The next request waits for its own.
+    The units on phases of their own: the moment to give up was found on that wire."""
+    apart = TWO_UNITS.replace("simulate: true}", "simulate: true, units_per_turn: 1}")
+    rig = Rig(parse_config(apart, "two.yaml"), bitrate=500_000)
     channel = rig.scheduler.params["left"]
     rig.run(0.1)
     given_up: list[Result] = []

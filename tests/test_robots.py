@@ -127,10 +127,19 @@ def test_a_robots_drives_get_their_speeds_in_the_same_scheduler_turn() -> None:
     assert starts_l == starts_r
 
 
-def test_units_of_no_common_robot_stay_staggered() -> None:
-    rig = rig_of(UNITS)
+def test_units_of_no_common_robot_share_a_turn_unless_the_bus_says_one_per_turn() -> None:
+    rig = rig_of(UNITS)  # the default: up to 4 units in a turn
     rig.run(0.2)
-    assert commands(rig, "l")[0][0] != commands(rig, "r")[0][0]
+    assert [c[0] for c in commands(rig, "l")] == [c[0] for c in commands(rig, "r")]
+    apart = rig_of(UNITS.replace("simulate: true}", "simulate: true, units_per_turn: 1}"))
+    apart.run(0.2)
+    starts_l = [c[0] for c in commands(apart, "l")]
+    starts_r = [c[0] for c in commands(apart, "r")]
+    assert starts_l[0] != starts_r[0]
+    # half a period apart, every period
+    period = 1 / apart.config.units["l"].command_rate_hz
+    pairs = zip(starts_l, starts_r, strict=False)
+    assert all(right - left == pytest.approx(period / 2) for left, right in pairs)
 
 
 def test_one_saturated_side_slows_the_whole_robot_and_it_goes_straight() -> None:

@@ -17,6 +17,7 @@ from abh3_supervisor.scheduler.core import (
     FeedbackEvent,
     HealthEvent,
     StatusEvent,
+    turns,
 )
 from abh3_supervisor.scheduler.stats import RTT_WINDOW, UnitStats, percentile
 from tests.support.rig import TWO_UNITS, Rig
@@ -256,3 +257,38 @@ def test_each_units_earliest_deadline_is_kept_true_and_a_step_leaves_nothing_due
         for slot in sched.slots.values():
             assert slot.due == slot.earliest_due()
         assert sched.next_deadline() == min(s.earliest_due() for s in sched.slots.values())
+
+
+def test_turns_fill_up_to_the_bus_setting_and_never_split_a_robot() -> None:
+    assert turns([("a", 1), ("b", 1), ("c", 1)], 4) == {"a": 0, "b": 0, "c": 0}
+    assert turns([("a", 1), ("b", 1), ("c", 1)], 1) == {"a": 0, "b": 1, "c": 2}
+    # a robot of 3 fills the first turn with one more; the next single starts turn 1
+    assert turns([("rover", 3), ("a", 1), ("b", 1)], 4) == {"rover": 0, "a": 0, "b": 1}
+    # a robot larger than a turn has one of its own, whole
+    assert turns([("a", 1), ("big", 6), ("b", 1)], 4) == {"a": 0, "big": 1, "b": 2}
+    assert turns([], 4) == {}
+
+
+def _first_commands(text: str) -> dict[str, float]:
+    """When each unit's first DP0 command goes, stepping the scheduler on a fine grid."""
+    cfg = parse_config(text, "c.yaml")
+    sched = BusScheduler(cfg.units.values(), now=0.0, units_per_turn=cfg.buses["b"].units_per_turn)
+    names = {ids.dp0_command_id(u.abh3_id, u.host_id): n for n, u in cfg.units.items()}
+    first: dict[str, float] = {}
+    for step in range(200):  # 20 ms at 0.1 ms
+        now = step / 10_000
+        for ident, _ in sched.poll(now):
+            if ident in names:
+                first.setdefault(names[ident], now)
+    return first
+
+
+def test_six_units_go_in_two_turns_half_a_period_apart() -> None:
+    units = "".join(f"  - {{name: u{i}, abh3_id: {i + 1}, host_id: 100}}\n" for i in range(6))
+    first = _first_commands(f"buses: {{b: {{}}}}\nunits:\n{units}")
+    period = 1 / 50  # the default command rate
+    assert [first[f"u{i}"] for i in range(4)] == [0.0] * 4
+    assert [first[f"u{i}"] for i in (4, 5)] == [pytest.approx(period / 2)] * 2
+    alone = _first_commands(f"buses: {{b: {{units_per_turn: 1}}}}\nunits:\n{units}")
+    # each on its own phase (stepped at 0.1 ms: a send on the first step at or after it)
+    assert sorted(alone.values()) == pytest.approx([i * period / 6 for i in range(6)], abs=1e-4)

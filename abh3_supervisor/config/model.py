@@ -148,6 +148,13 @@ class SimConfig:
         return next((forms for name, forms in self.telabh3_forms if name == unit), None)
 
 
+# units whose commands leave in one turn of the schedule (one wake-up of the host) unless
+# the bus says otherwise: a burst this size, each unit's status poll beside its command,
+# stays within a SocketCAN interface's default transmit queue (10 frames)
+UNITS_PER_TURN = 4
+MAX_UNITS_PER_TURN = 64
+
+
 @dataclass(frozen=True)
 class BusConfig:
     name: str
@@ -156,6 +163,7 @@ class BusConfig:
     bitrate: int = 500_000
     simulate: SimConfig | None = None
     options: dict[str, Any] = field(default_factory=dict)
+    units_per_turn: int = UNITS_PER_TURN
 
 
 @dataclass(frozen=True)

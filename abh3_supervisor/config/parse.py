@@ -11,6 +11,8 @@ from abh3_supervisor.config.endpoint import Endpoint, parse_endpoint
 from abh3_supervisor.config.faults import check_fault_units, check_fault_wheels, parse_faults
 from abh3_supervisor.config.interfaces import SHARED_BY_PROCESSES, unknown_interface
 from abh3_supervisor.config.model import (
+    MAX_UNITS_PER_TURN,
+    UNITS_PER_TURN,
     BroadcastConfig,
     BusConfig,
     Config,
@@ -44,7 +46,7 @@ NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 BITRATES = (250_000, 500_000, 1_000_000)  # what the ABH3 supports (§1)
 
 TOP_KEYS = {"buses", "units", "robots", "plugins", "foxglove"}
-BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options"}
+BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options", "units_per_turn"}
 BUS_ARGUMENTS = {"interface", "channel", "bitrate"}  # can.Bus(...) takes them from the bus
 SIM_KEYS = {
     "external",
@@ -228,6 +230,7 @@ def _buses(top: Section) -> dict[str, BusConfig]:
             bitrate=bitrate,
             simulate=_simulate(b, interface),
             options=dict(options.items()),
+            units_per_turn=b.integer("units_per_turn", UNITS_PER_TURN, 1, MAX_UNITS_PER_TURN),
         )
     if not buses:
         top.error("buses", "declare at least one bus")

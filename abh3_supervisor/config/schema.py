@@ -18,6 +18,8 @@ from abh3_supervisor.config.endpoint import PATTERN as ENDPOINT_PATTERN
 from abh3_supervisor.config.interfaces import known_interfaces
 from abh3_supervisor.config.model import (
     AXIS_KINDS,
+    MAX_UNITS_PER_TURN,
+    UNITS_PER_TURN,
     WIRING_KINDS,
     ControlMode,
     FaultKind,
@@ -174,6 +176,12 @@ def _bus() -> Schema:
                 "default": "can0",
             },
             "bitrate": choice_of_ints(list(parse.BITRATES), "bit/s", 500_000),
+            "units_per_turn": integer(
+                1,
+                MAX_UNITS_PER_TURN,
+                "units whose commands leave together in one turn (1: each its own phase)",
+                UNITS_PER_TURN,
+            ),
             "simulate": {
                 "anyOf": [{"type": "boolean"}, sim],
                 "description": "attach the built-in simulator: true or its options",

@@ -146,7 +146,8 @@ class Supervisor:
         # a robot's units send in the same turn (one phase per robot on each bus)
         together = {u: r.name for r in config.robots.values() for u in r.units}
         self.schedulers = {
-            bus: BusScheduler(config.units_on(bus), now, together) for bus in config.buses
+            bus: BusScheduler(config.units_on(bus), now, together, cfg.units_per_turn)
+            for bus, cfg in config.buses.items()
         }
         # what each bus's interface reports of itself (bus-off, error-passive, …)
         self.bus_health = {bus: BusHealth(bus) for bus in config.buses}

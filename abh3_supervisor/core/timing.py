@@ -8,8 +8,9 @@ import math
 def next_on_grid(due: float, interval: float, now: float) -> float:
     """The next due time on the grid; after a stall, the first grid point after now (the
     missed ones are skipped rather than sent in a burst). The grid keeps its phase, so
-    units staggered over a period stay staggered after a stall: the loop keeps waking
-    once per phase and its timer keeps repeating (scheduler/timer.py)."""
+    turns staggered over a period stay staggered, and a turn's units together, after a
+    stall: the loop keeps waking once per turn and its timer keeps repeating
+    (scheduler/timer.py)."""
     due += interval
     if due > now:
         return due

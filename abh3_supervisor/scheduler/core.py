@@ -10,10 +10,11 @@ bus: the caller passes ``now`` in and sends what :meth:`poll` returns.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from abh3_supervisor.config.model import Role, UnitConfig
+from abh3_supervisor.config.model import UNITS_PER_TURN, Role, UnitConfig
 from abh3_supervisor.core.foreign import Foreign, ForeignWatch
 from abh3_supervisor.core.timing import next_on_grid
 from abh3_supervisor.params.session import ParamChannel
@@ -209,16 +210,38 @@ class UnitSlot:
         return self.period if self.online is not False else max(self.period, self.timeout)
 
 
+def turns(groups: list[tuple[str, int]], per_turn: int) -> dict[str, int]:
+    """Each group's turn: groups (name, units) in order fill a turn up to ``per_turn``
+    units, then the next; a group larger than that has a turn of its own (a robot's
+    units always leave together)."""
+    out: dict[str, int] = {}
+    turn, filled = 0, 0
+    for name, size in groups:
+        if filled and filled + size > per_turn:
+            turn, filled = turn + 1, 0
+        out[name] = turn
+        filled += size
+    return out
+
+
 class BusScheduler:
     """Multiplexes every unit of one bus; see the module docstring."""
 
     def __init__(
-        self, units: Iterable[UnitConfig], now: float, together: Mapping[str, str] | None = None
+        self,
+        units: Iterable[UnitConfig],
+        now: float,
+        together: Mapping[str, str] | None = None,
+        units_per_turn: int = UNITS_PER_TURN,
     ) -> None:
         """``together``: unit → the name of the units it sends with (its robot): they share
-        one phase, so a robot's frames leave in the same turn; groups are staggered."""
+        one phase, so a robot's frames leave in the same turn. Groups share a turn up to
+        ``units_per_turn`` units (the bus's setting); the turns are staggered."""
         cfgs = list(units)
-        groups = list(dict.fromkeys((together or {}).get(c.name, c.name) for c in cfgs))
+        group_of = {c.name: (together or {}).get(c.name, c.name) for c in cfgs}
+        sizes = Counter(group_of.values())  # in first-seen order: the file's
+        turn_of = turns(list(sizes.items()), units_per_turn)
+        n_turns = max(turn_of.values(), default=0) + 1
         self.slots: dict[str, UnitSlot] = {}
         self._routes: dict[int, tuple[UnitSlot, int]] = {}  # id → (slot, -1 DP0 | packet)
         self._senders: dict[int, UnitSlot] = {}  # our request ids → slot
@@ -231,9 +254,9 @@ class BusScheduler:
         # other hosts on the drives we command (core/foreign.py), from unrouted frames
         self.foreign = ForeignWatch({c.abh3_id: c.name for c in cfgs if c.role is Role.COMMAND})
         for cfg in cfgs:
-            # stagger first sends so the units do not all hit the bus at one instant
-            i = groups.index((together or {}).get(cfg.name, cfg.name))
-            slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / max(1, len(groups)))
+            # stagger the turns so that no more than a turn's frames hit the bus at once
+            i = turn_of[group_of[cfg.name]]
+            slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / n_turns)
             self.slots[cfg.name] = slot
             self._senders[slot.command_id] = slot
             self._senders[slot.poll_id] = slot
