@@ -181,18 +181,41 @@ def test_a_near_deadline_leaves_the_frames_to_the_step_which_reads_them_first(
     assert len(bus.sent) == 2 and loop.readers == {}
 
 
-def test_a_far_deadline_watches_the_bus_and_a_frame_wakes_the_step_at_once(
+def fire(pump: BusPump, timer: FakeTimer) -> None:
+    """The timer fires: its expiry is spent, the step arms it anew."""
+    timer.when = None
+    pump._step()
+
+
+def test_a_turns_replies_are_read_together_then_a_far_deadline_watches_the_bus(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    pump, bus, machine, loop, _, clocks = pump_for(0.010, monkeypatch)
-    assert list(loop.readers) == [42]  # 10 ms to the next step: a reply must wake us
-    clocks.advance(0.0005)
-    bus.waiting.append(frame(0x200, clocks.wall))
+    pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
+    # the start sent a frame: its replies are read half a batch later, nothing wakes before
+    assert loop.readers == {} and timer.when == pytest.approx(clocks.mono + BATCH / 2)
+    for _ in range(3):  # replies in three bursts: none wakes the loop
+        clocks.advance(0.0005)
+        bus.waiting.append(frame(0x200, clocks.wall))
+    clocks.advance(BATCH / 2 - 0.0015)
+    fire(pump, timer)  # one wake-up reads them all, each at the time it came
+    assert rounded(machine.fed) == [(0x200, 100.0005), (0x200, 100.001), (0x200, 100.0015)]
+    assert len(bus.sent) == 1 and timer.when == pytest.approx(100.010)
+    assert list(loop.readers) == [42]  # 7.5 ms to the next step: another frame must wake us
+    clocks.advance(0.001)
+    bus.waiting.append(frame(0x300, clocks.wall))
     loop.readers[42]()  # the loop saw the bus readable
-    assert rounded(machine.fed) == [(0x200, 100.0005)]
-    assert machine.polled[-1][1] == 1  # stepped after the frame
+    assert rounded(machine.fed[-1:]) == [(0x300, 100.0035)]
+    assert machine.polled[-1][1] == 4  # stepped after the frame
     pump.stop()
     assert loop.readers == {}
+
+
+def test_a_pump_that_does_not_batch_watches_at_once_after_it_sent(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr("tests.test_pump_batch.BATCH", 0.0)  # the simulator's pumps
+    _, _, _, loop, timer, clocks = pump_for(0.010, monkeypatch)
+    assert list(loop.readers) == [42] and timer.when == pytest.approx(clocks.mono + 0.010)
 
 
 def test_a_frame_keeps_its_time_only_within_the_time_since_the_last_read(
@@ -225,6 +248,8 @@ def test_a_flood_is_read_a_batch_at_a_time(monkeypatch: pytest.MonkeyPatch) -> N
 
 def test_a_receive_that_fails_rests_then_reads_again(monkeypatch: pytest.MonkeyPatch) -> None:
     pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
+    clocks.advance(BATCH / 2)
+    fire(pump, timer)  # the start's replies read: the bus watched from here on
     notes: list[Exception] = []
     monkeypatch.setattr(pump, "on_error", notes.append)
     bus.fail = True

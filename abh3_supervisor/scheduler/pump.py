@@ -16,9 +16,13 @@ most ``batch_s`` away the source is not watched — that step reads what came me
 Each frame keeps the time it came (its receive timestamp, bounded by the previous read),
 and every decision the machine takes in a step follows a read, so nothing is decided on
 stale frames; what waits is only the frames' delivery to the observers, by less than
-``batch_s``. With several units on staggered phases the loop then wakes once per phase
-instead of once more for every reply: the CPU a wake-up costs is most of what an exchange
-costs (docs/performance.md, section 10). The simulator's pumps (``batch_s`` 0) watch
+``batch_s``. With several turns of units staggered over a period the loop then wakes once
+per turn instead of once more for every reply: the CPU a wake-up costs is most of what an
+exchange costs (docs/performance.md, sections 10 and 12; the scheduler puts up to the
+bus's ``units_per_turn`` units in one turn). After a step that sent, with the next
+deadline further than ``batch_s``, the pump reads again ``batch_s / 2`` later instead of
+watching at once, so the replies to a turn are read in one wake-up, not one each; from
+that read on it watches. The simulator's pumps (``batch_s`` 0) watch
 whenever their next deadline is not now.
 """
 
@@ -215,17 +219,22 @@ class BusPump:
             self.after_step()
         now = self.loop.time()
         self._last_t = max(self._last_t, now)  # a frame read after this poll is not before it
-        for arbitration_id, data in self.machine.poll(now):
+        out = self.machine.poll(now)
+        for arbitration_id, data in out:
             self.send(arbitration_id, data)
         if self.after_step is not None:
             self.after_step()
         deadline = self.machine.next_deadline()
+        far = deadline - self.loop.time() > self.batch_s
+        # a turn was sent and nothing else falls due soon: its replies are read together,
+        # half a batch later, rather than each waking the loop as it comes
+        gather = bool(out) and far and self.batch_s > 0
         if not self._running or not math.isfinite(deadline):
             self._timer.cancel()
         else:
-            self._timer.arm(deadline)
+            self._timer.arm(now + self.batch_s / 2 if gather else deadline)
         if self._running and self.loop.time() >= self._resume_at:
-            self._watch(deadline - self.loop.time() > self.batch_s)
+            self._watch(far and not gather)
 
     def wake(self) -> None:
         """Step now (on the loop): new work was queued outside the schedule."""
