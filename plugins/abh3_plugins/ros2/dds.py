@@ -29,6 +29,7 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from abh3_plugins.ros2 import discovery, types
+from abh3_plugins.ros2.dds_write import packed_write
 from abh3_plugins.ros2.settings import QosSettings, Settings
 from abh3_plugins.ros2.transport import Publish, ServiceHandler
 from abh3_supervisor.plugin_api import RESPONSE_INVALID
@@ -118,7 +119,7 @@ class DdsTransport:
     def publisher(self, name: str, typ: type) -> Publish:
         writer = DataWriter(self.participant, self._topic(f"rt{name}", typ), qos=self.qos)
         self.writers.append(writer)
-        return writer.write
+        return packed_write(writer, typ)  # a flat message in one pack (dds_write.py)
 
     def subscribe(self, name: str, typ: type, handle: Callable[[Any], None]) -> None:
         self._reader(f"rt{name}", typ, handle, self.qos)
