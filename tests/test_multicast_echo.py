@@ -153,3 +153,20 @@ def test_blocking_receive_waits_for_the_next_frame(bus: Bus) -> None:
     bus.from_other(frame(b"\x09" * 8))
     got = bus.ours.recv(1.0)
     assert got is not None and bytes(got.data) == b"\x09" * 8
+
+
+def test_our_copies_never_end_a_read_of_what_waits_behind_them(bus: Bus) -> None:
+    """The pump reads with ``recv(0)`` until it gets None: a copy of ours first in the
+    queue must not stop it before another host's frame behind the copy."""
+    bus.ours._udp._send_destination = ("127.0.0.1", 9)  # sent, and its copy not back yet
+    sent = [frame(bytes([n]) * 8, t=1000.0 + n) for n in (1, 2)]
+    for msg in sent:
+        bus.ours.send(msg, timeout=0)
+    own = bus.ours._socket.getsockname()
+    for msg in sent:  # the copies come back late, with another host's frame after them
+        bus.other.sendto(pack_message(msg), own)
+    bus.from_other(frame(b"\x09" * 8, t=5.0))
+    select.select([bus.ours._socket], [], [], 1.0)
+    got = bus.ours.recv(0)
+    assert got is not None and bytes(got.data) == b"\x09" * 8
+    assert bus.ours.echoes_dropped == 2 and bus.ours.recv(0) is None

@@ -53,6 +53,20 @@ def test_our_own_frames_never_come_back(echoing: tuple[EchoFilter, can.BusABC, C
     assert ours.echoes_dropped == 1
 
 
+def test_our_copies_never_end_a_read_of_what_waits_behind_them(
+    echoing: tuple[EchoFilter, can.BusABC, Clock],
+) -> None:
+    """The pump reads with ``recv(0)`` until it gets None: our copies first in the queue
+    must not stop it before another host's frame behind them."""
+    ours, other, _ = echoing
+    ours.send(msg(0x18EF0102, b"\x01" * 8))
+    ours.send(msg(0x18EF0102, b"\x02" * 8))
+    other.send(msg(0x18EF0302, b"\x09" * 8))
+    got = ours.recv(0)
+    assert got is not None and bytes(got.data) == b"\x09" * 8
+    assert ours.echoes_dropped == 2 and ours.recv(0) is None
+
+
 def test_a_frame_equal_to_ours_from_another_host_still_shows(
     echoing: tuple[EchoFilter, can.BusABC, Clock],
 ) -> None:

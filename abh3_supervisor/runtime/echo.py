@@ -86,7 +86,9 @@ class EchoFilter(_Wrapper):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         msg = self.inner.recv(timeout)
-        if msg is None or self._is_echo(msg):
+        while msg is not None and self._is_echo(msg):
+            msg = self.inner.recv(0)  # what waits behind it: a copy never ends a read
+        if msg is None:
             return None, False  # recv() goes on waiting for the rest of its timeout
         return msg, True  # the inner bus applied its filters
 
@@ -161,12 +163,13 @@ class MulticastEchoFilter(_Wrapper):
             if not readable:
                 return None, False
         with self._lock:  # the copy may have been taken back since
-            got = self._udp.recv(0)
-            if got is None:
-                return None, False
-            datagram, _, stamp = got
-            if self._is_own(datagram):
-                return None, False  # recv() goes on waiting for the rest of its timeout
+            while True:  # past our copies to what waits behind them: a copy never ends a
+                got = self._udp.recv(0)  # read (the pump's, at timeout 0, would stop there)
+                if got is None:
+                    return None, False  # recv() goes on waiting for the rest of its timeout
+                datagram, _, stamp = got
+                if not self._is_own(datagram):
+                    break
         try:
             msg = unpack_message(datagram, replace={"timestamp": stamp}, check=True)
         except Exception as exc:  # as python-can's own bus says it
