@@ -466,7 +466,7 @@ def sizing_rows(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m benchmarks.small [--seconds S] [--runs N] [--shares P …] [--quick]``."""
+    """``python -m benchmarks.small [--seconds S] [--runs N] [--shares P …] [--quick | --row]``."""
     p = argparse.ArgumentParser(prog="python -m benchmarks.small", description=__doc__)
     p.add_argument("--seconds", type=float, default=10.0, help="each measuring window")
     p.add_argument("--runs", type=int, default=3, help="repetitions; the median is printed")
@@ -478,12 +478,15 @@ def main(argv: list[str] | None = None) -> None:
         help="%% of one core the sizing table is taken at (on a board: 25 50 100)",
     )
     p.add_argument("--quick", action="store_true", help="one short run, no sizing table")
+    p.add_argument(
+        "--row", action="store_true", help="issue 34's row and its baseline only (--runs each)"
+    )
     a = p.parse_args(argv)
     print(f"machine: {machine()}")
     if a.quick:
         print_rows(rows(2.0, 1, sizing=False))
     else:
-        print_rows(rows(a.seconds, a.runs, shares=a.shares))
+        print_rows(rows(a.seconds, a.runs, sizing=not a.row, shares=a.shares))
 
 
 if __name__ == "__main__":
