@@ -89,3 +89,15 @@ def test_a_wrong_sample_is_refused_as_cyclonedds_refuses_it(
     publish = dds_write.packed_write(writer, types.Abh3Velocity)
     with pytest.raises(TypeError):
         publish(types.Abh3Brd0(1, 2))
+
+
+def test_a_value_out_of_its_fields_range_is_refused_as_cyclonedds_refuses_it(
+    participant: DomainParticipant,
+) -> None:
+    topic = Topic(participant, "rt/dds_write/range", types.Abh3Brd0)
+    writer = DataWriter(participant, topic, qos=qos(QosSettings()))
+    publish = dds_write.packed_write(writer, types.Abh3Brd0)
+    with pytest.raises(Exception, match="error") as raised:  # cyclonedds names the member
+        publish(types.Abh3Brd0(error=1 << 40, alarm=0))
+    with pytest.raises(type(raised.value)):
+        writer.write(types.Abh3Brd0(error=1 << 40, alarm=0))

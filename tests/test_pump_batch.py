@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import math
 import time
 from collections.abc import Callable, Iterator
 from typing import ClassVar
@@ -342,3 +343,13 @@ def test_a_frame_an_interface_stamped_with_its_own_clock_is_timed_when_the_reade
     pump._step()
     assert rounded(machine.fed) == [(0x201, 100.0005)]
     pump.stop()
+
+
+def test_a_step_that_sent_with_nothing_due_after_it_watches_the_bus(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """No deadline left (the timer cancelled): the replies cannot wait for a read that
+    no timer will bring, or the pump would never read again."""
+    _, bus, _, loop, timer, _ = pump_for(math.inf, monkeypatch)  # one frame, then nothing
+    assert len(bus.sent) == 1 and timer.when is None
+    assert list(loop.readers) == [42]

@@ -292,3 +292,25 @@ def test_six_units_go_in_two_turns_half_a_period_apart() -> None:
     alone = _first_commands(f"buses: {{b: {{units_per_turn: 1}}}}\nunits:\n{units}")
     # each on its own phase (stepped at 0.1 ms: a send on the first step at or after it)
     assert sorted(alone.values()) == pytest.approx([i * period / 6 for i in range(6)], abs=1e-4)
+
+
+def test_turns_at_different_rates_never_land_on_one_another() -> None:
+    """4 units at 100 Hz, 4 more, 4 at 50 and 4 at 25 Hz: four turns on the 100 Hz grid;
+    no step sends more than one turn's commands (SocketCAN's default queue is 10)."""
+    rates = [100] * 8 + [50] * 4 + [25] * 4
+    units = "".join(
+        f"  - {{name: u{i}, abh3_id: {i + 1}, host_id: 100, command_rate_hz: {r}}}\n"
+        for i, r in enumerate(rates)
+    )
+    cfg = parse_config(f"buses: {{b: {{bitrate: 1000000}}}}\nunits:\n{units}", "c.yaml")
+    sched = BusScheduler(cfg.units.values(), now=0.0)
+    commands = {ids.dp0_command_id(u.abh3_id, u.host_id) for u in cfg.units.values()}
+    most, sent = 0, 0
+    for step in range(10_000):  # 1 s at 0.1 ms
+        now = step / 10_000
+        for unit in cfg.units.values():  # the drives answer within the step
+            sched.on_frame(ids.dp0_reply_id(unit.abh3_id, unit.host_id), bytes(8), now)
+        out = [i for i, _ in sched.poll(now) if i in commands]
+        most, sent = max(most, len(out)), sent + len(out)
+    assert most == 4
+    assert sent == pytest.approx(8 * 100 + 4 * 50 + 4 * 25, abs=16)

@@ -9,8 +9,7 @@ def next_on_grid(due: float, interval: float, now: float) -> float:
     """The next due time on the grid; after a stall, the first grid point after now (the
     missed ones are skipped rather than sent in a burst). The grid keeps its phase, so
     turns staggered over a period stay staggered, and a turn's units together, after a
-    stall: the loop keeps waking once per turn and its timer keeps repeating
-    (scheduler/timer.py)."""
+    stall: the loop keeps waking for whole turns, not for each unit."""
     due += interval
     if due > now:
         return due

@@ -242,6 +242,11 @@ class BusScheduler:
         sizes = Counter(group_of.values())  # in first-seen order: the file's
         turn_of = turns(list(sizes.items()), units_per_turn)
         n_turns = max(turn_of.values(), default=0) + 1
+        # the turns' offsets divide the bus's shortest period: a unit's grid then keeps its
+        # turn's offset modulo that period whatever its own rate (a multiple of it), and
+        # never lands on another turn's (each unit's own period would put a slower
+        # unit's turn on a faster one's grid)
+        base = min((1.0 / c.command_rate_hz for c in cfgs), default=1.0)
         self.slots: dict[str, UnitSlot] = {}
         self._routes: dict[int, tuple[UnitSlot, int]] = {}  # id → (slot, -1 DP0 | packet)
         self._senders: dict[int, UnitSlot] = {}  # our request ids → slot
@@ -255,8 +260,7 @@ class BusScheduler:
         self.foreign = ForeignWatch({c.abh3_id: c.name for c in cfgs if c.role is Role.COMMAND})
         for cfg in cfgs:
             # stagger the turns so that no more than a turn's frames hit the bus at once
-            i = turn_of[group_of[cfg.name]]
-            slot = UnitSlot(cfg, now + i * (1.0 / cfg.command_rate_hz) / n_turns)
+            slot = UnitSlot(cfg, now + turn_of[group_of[cfg.name]] * base / n_turns)
             self.slots[cfg.name] = slot
             self._senders[slot.command_id] = slot
             self._senders[slot.poll_id] = slot

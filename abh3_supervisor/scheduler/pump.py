@@ -16,11 +16,11 @@ most ``batch_s`` away the source is not watched — that step reads what came me
 Each frame keeps the time it came (its receive timestamp, bounded by the previous read),
 and every decision the machine takes in a step follows a read, so nothing is decided on
 stale frames; what waits is only the frames' delivery to the observers, by less than
-``batch_s``. With several turns of units staggered over a period the loop then wakes once
-per turn instead of once more for every reply: the CPU a wake-up costs is most of what an
-exchange costs (docs/performance.md, sections 10 and 12; the scheduler puts up to the
-bus's ``units_per_turn`` units in one turn). After a step that sent, with the next
-deadline further than ``batch_s``, the pump reads again ``batch_s / 2`` later instead of
+``batch_s``. With several turns of units staggered over a period the loop then does not
+wake once more for every reply: the CPU a wake-up costs is most of what an exchange
+costs (docs/performance.md, sections 10 and 12; the scheduler puts up to the bus's
+``units_per_turn`` units in one turn). After a step that sent, with the next deadline
+further than ``batch_s``, the pump reads again ``batch_s / 2`` later instead of
 watching at once, so the replies to a turn are read in one wake-up, not one each; from
 that read on it watches. The simulator's pumps (``batch_s`` 0) watch
 whenever their next deadline is not now.
@@ -228,7 +228,7 @@ class BusPump:
         far = deadline - self.loop.time() > self.batch_s
         # a turn was sent and nothing else falls due soon: its replies are read together,
         # half a batch later, rather than each waking the loop as it comes
-        gather = bool(out) and far and self.batch_s > 0
+        gather = bool(out) and far and self.batch_s > 0 and math.isfinite(deadline)
         if not self._running or not math.isfinite(deadline):
             self._timer.cancel()
         else:

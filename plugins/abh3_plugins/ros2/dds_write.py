@@ -57,7 +57,12 @@ def packed_write(writer: DataWriter[Any], typ: type) -> Publish:
         if type(sample) is not typ:
             writer.write(sample)  # its own TypeError
             return
-        ret = write(ref, pack(header, *values(sample)))
+        try:
+            data = pack(header, *values(sample))
+        except struct.error:  # a value out of the field's range: cyclonedds's error, which
+            writer.write(sample)  # names the field
+            raise
+        ret = write(ref, data)
         if ret < 0:
             raise DDSException(ret, f"Occurred while writing sample in {writer!r}")
 
