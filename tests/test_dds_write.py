@@ -72,21 +72,25 @@ def test_a_flat_message_is_the_bytes_of_the_idl_and_a_reader_decodes_it(
     assert got == samples
 
 
+def _writer(participant: DomainParticipant, name: str, typ: type) -> DataWriter[Any]:
+    topic: Topic[Any] = Topic(participant, f"rt/dds_write/{name}", typ)
+    return DataWriter(participant, topic, qos=qos(QosSettings()))
+
+
 def test_a_message_with_strings_or_of_another_kind_keeps_the_idls_write(
     participant: DomainParticipant,
 ) -> None:
     for typ in (types.KeyValue, types.Header, types.Odometry):
-        topic = Topic(participant, f"rt/dds_write/{typ.__name__}", typ)
-        writer = DataWriter(participant, topic, qos=qos(QosSettings()))
+        writer = _writer(participant, typ.__name__, typ)
         assert dds_write.packed_write(writer, typ) == writer.write
 
 
 def test_a_wrong_sample_is_refused_as_cyclonedds_refuses_it(
     participant: DomainParticipant,
 ) -> None:
-    topic = Topic(participant, "rt/dds_write/wrong", types.Abh3Velocity)
-    writer = DataWriter(participant, topic, qos=qos(QosSettings()))
-    publish = dds_write.packed_write(writer, types.Abh3Velocity)
+    publish = dds_write.packed_write(
+        _writer(participant, "wrong", types.Abh3Velocity), types.Abh3Velocity
+    )
     with pytest.raises(TypeError):
         publish(types.Abh3Brd0(1, 2))
 
@@ -94,8 +98,7 @@ def test_a_wrong_sample_is_refused_as_cyclonedds_refuses_it(
 def test_a_value_out_of_its_fields_range_is_refused_as_cyclonedds_refuses_it(
     participant: DomainParticipant,
 ) -> None:
-    topic = Topic(participant, "rt/dds_write/range", types.Abh3Brd0)
-    writer = DataWriter(participant, topic, qos=qos(QosSettings()))
+    writer = _writer(participant, "range", types.Abh3Brd0)
     publish = dds_write.packed_write(writer, types.Abh3Brd0)
     with pytest.raises(Exception, match="error") as raised:  # cyclonedds names the member
         publish(types.Abh3Brd0(error=1 << 40, alarm=0))
