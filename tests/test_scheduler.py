@@ -216,6 +216,32 @@ def test_rtt_percentiles_are_those_of_the_last_window_of_round_trips(
     assert stats.rtts_ms(q, 99) == (stats.rtt_ms(q), stats.rtt_ms(99))
 
 
+@given(
+    st.lists(st.floats(0.0, 0.05), min_size=0, max_size=400),
+    st.floats(0.0, 3.0),
+    st.floats(0.1, 3.0),
+)
+def test_the_achieved_rate_counts_the_replies_of_the_window_as_a_scan_would(
+    steps: list[float], after: float, window: float
+) -> None:
+    """Found by bisection in the arrival-ordered times (no scan per snapshot), the same
+    replies as reading every time against ``now - t <= window``, edges included."""
+    stats = UnitStats(requested_rate_hz=50)
+    t = 10.0
+    for step in steps:
+        t += step
+        stats.on_reply(t, None)
+    now = t + after
+    recent = [r for r in stats._reply_times if now - r <= window]
+    if len(recent) < 2:
+        expected = 0.0
+    else:
+        last = recent[-1] if now - recent[-1] <= window / 4 else now
+        span = last - recent[0]
+        expected = (len(recent) - 1) / span if span > 0 else 0.0
+    assert stats.achieved_rate_hz(now, window) == expected
+
+
 _UNITS = {"left": 1, "right": 3}
 _KINDS = ["time", "reply", "short reply", "fail", "send now", "status", "ask"]
 

@@ -13,7 +13,7 @@ import pytest
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.service import state_push
-from abh3_supervisor.service.snapshot import supervisor_state, unit_state
+from abh3_supervisor.service.snapshot import supervisor_state, unit_json
 from abh3_supervisor.service.state_push import SharedState
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
@@ -58,12 +58,12 @@ def test_the_loop_runs_between_units_while_a_snapshot_is_built(
     read = 0
     turns: list[int] = []  # units read when each loop turn came
 
-    def counted(sup: Supervisor, unit: Any) -> dict[str, Any]:
+    def counted(sup: Supervisor, unit: Any) -> bytes:
         nonlocal read
         read += 1
-        return unit_state(sup, unit)
+        return unit_json(sup, unit)
 
-    monkeypatch.setattr(state_push, "unit_state", counted)
+    monkeypatch.setattr(state_push, "unit_json", counted)
 
     async def main() -> None:
         build = asyncio.ensure_future(SharedState(rt, 0.005).latest())

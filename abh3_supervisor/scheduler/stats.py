@@ -52,7 +52,8 @@ class UnitStats:
         """Solicited replies per second over the last ``window`` seconds."""
         # list(deque) copies in one C call, atomic under the GIL: the TUI reads these from
         # its own thread while the bus thread appends
-        recent = [t for t in list(self._reply_times) if now - t <= window]
+        times = list(self._reply_times)  # in arrival order: the window is a tail of it
+        recent = times[bisect.bisect_left(times, True, key=lambda t: now - t <= window) :]
         if len(recent) < 2:
             return 0.0
         # measure between replies while they flow (no bias from where `now` falls between

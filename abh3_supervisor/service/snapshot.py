@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor.core import readouts
 from abh3_supervisor.protocol import frames
+from abh3_supervisor.service.protocol import dumps
 
 if TYPE_CHECKING:
     from abh3_supervisor.config.model import Role
@@ -57,6 +58,19 @@ def _word_json(word: FlagWord, role: Role, name: str, value: int) -> dict[str, A
 def _verify_json(verification: Verification) -> dict[str, Any]:
     """A unit's verification (frozen: a new check is a new object) as JSON, once."""
     return verification.to_json()
+
+
+@functools.lru_cache(maxsize=256)
+def _verify_encoded(verification: Verification) -> bytes:
+    """The same, encoded: about half of a unit's pushed bytes, the same on every push."""
+    return dumps(_verify_json(verification))
+
+
+def unit_json(sup: Supervisor, unit: UnitState) -> bytes:
+    """:func:`unit_state` encoded, its verification spliced in already encoded."""
+    state = unit_state(sup, unit)
+    del state["verify"]
+    return dumps(state)[:-1] + b',"verify":' + _verify_encoded(unit.verify) + b"}"
 
 
 def _reported(unit: UnitState, control: int | None) -> dict[str, Any] | None:

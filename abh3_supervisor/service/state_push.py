@@ -18,7 +18,7 @@ import asyncio
 from typing import TYPE_CHECKING
 
 from abh3_supervisor.service.protocol import dumps
-from abh3_supervisor.service.snapshot import bus_state, head, unit_state
+from abh3_supervisor.service.snapshot import bus_state, head, unit_json
 
 if TYPE_CHECKING:
     from abh3_supervisor.runtime.bus_runtime import Runtime
@@ -56,7 +56,7 @@ class SharedState:
         opening = dumps(head(sup))
         units: list[bytes] = []
         for name, unit in list(sup.units.items()):
-            units.append(dumps(name) + b":" + dumps(unit_state(sup, unit)))
+            units.append(dumps(name) + b":" + unit_json(sup, unit))
             await asyncio.sleep(0)  # the buses' turn: a deadline may have fallen due
         pumps = self.rt.pumps
         buses = {name: bus_state(sup, name, pumps.get(name)) for name in sup.schedulers}
