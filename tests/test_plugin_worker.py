@@ -5,9 +5,16 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Generator
 from typing import Any
 
+import pluggy
+import pytest
+
+from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host import host as host_module
+from abh3_supervisor.plugin_host.hookspecs import hookimpl
+from abh3_supervisor.plugin_host.host import PluginHost
 
 
 class Host:
@@ -63,3 +70,53 @@ def test_a_full_queue_drops_and_counts_never_waits() -> None:
     host.release.set()
     worker.close(time.monotonic() + 10)
     assert host.calls == list(range(host_module.QUEUE_SIZE + 1))
+
+
+class Plain:
+    """A plugin whose hook names only some of the hook's arguments."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[str, bool]] = []
+
+    @hookimpl
+    def abh3_health(self, unit: str, online: bool) -> None:
+        self.seen.append((unit, online))
+
+
+class Wrapping:
+    """A plugin whose hook is a new-style wrapper: only pluggy knows how to run it."""
+
+    def __init__(self) -> None:
+        self.seen: list[str] = []
+
+    @hookimpl(wrapper=True)
+    def abh3_health(self, unit: str) -> Generator[None, None, None]:
+        self.seen.append(unit)
+        return (yield)
+
+
+def plugin_host(**plugins: object) -> PluginHost:
+    host = PluginHost(parse_config("buses: {b: {}}\nunits: [{name: u}]\n", "c.yaml"), available={})
+    for name, plugin in plugins.items():
+        host.register(plugin, name)
+        host._caller(name, "abh3_health")  # as start() builds them, before any worker runs
+    return host
+
+
+def test_a_plain_hook_is_called_directly_with_the_arguments_it_names() -> None:
+    plain, wrapping = Plain(), Wrapping()
+    host = plugin_host(plain=plain, wrapping=wrapping)
+    assert host._ignoring["plain", "abh3_health"] is not host._callers["plain", "abh3_health"]
+    assert host._ignoring["wrapping", "abh3_health"] is host._callers["wrapping", "abh3_health"]
+    host.call_one("plain", "abh3_health", unit="u", online=True, t=1.0)
+    host.call_one("wrapping", "abh3_health", unit="u", online=False, t=2.0)
+    assert plain.seen == [("u", True)] and wrapping.seen == ["u"]
+
+
+def test_a_direct_call_missing_an_argument_fails_as_pluggy_s_would() -> None:
+    plain = Plain()
+    host = plugin_host(plain=plain)
+    host.call_one("plain", "abh3_health", unit="u", t=1.0)  # no `online`
+    assert plain.seen == [] and host.failures == {"plain": 1}
+    with pytest.raises(pluggy.HookCallError, match="'online'"):
+        host._ignoring["plain", "abh3_health"](unit="u", t=1.0)
