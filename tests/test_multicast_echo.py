@@ -12,6 +12,7 @@ import select
 import socket
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import can
 import pytest
@@ -170,3 +171,41 @@ def test_our_copies_never_end_a_read_of_what_waits_behind_them(bus: Bus) -> None
     got = bus.ours.recv(0)
     assert got is not None and bytes(got.data) == b"\x09" * 8
     assert bus.ours.echoes_dropped == 2 and bus.ours.recv(0) is None
+
+
+def test_a_datagram_is_read_as_python_can_reads_it_without_asking_select(
+    bus: Bus, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The data and the kernel's receive time, as python-can's ``recv`` gives them."""
+    sent = [frame(bytes([n]) * 8, t=5.0 + n) for n in (1, 2)]
+    for msg in sent:
+        bus.from_other(msg)
+    select.select([bus.ours._socket], [], [], 1.0)
+    theirs = bus.ours._udp.recv(0)
+    assert theirs is not None
+    monkeypatch.setattr(select, "select", None)  # not asked: it would fail
+    monkeypatch.setattr(bus.ours._udp, "recv", None)
+    ours = bus.ours._datagram()
+    assert ours is not None and bus.ours._datagram() is None
+    assert [theirs[0], ours[0]] == [pack_message(m) for m in sent]
+    assert abs(ours[1] - theirs[2]) < 5.0 and ours[1] >= theirs[2]  # the same wall clock
+
+
+def test_a_socket_given_a_send_timeout_is_read_by_python_can_never_waiting(bus: Bus) -> None:
+    """A send with a timeout leaves it on the socket, which then makes any receive wait
+    for as long: such a socket is read python-can's way, after ``select``."""
+    bus.ours.send(frame(b"\x01" * 8), timeout=0.5)
+    assert bus.ours._socket.gettimeout() == 0.5
+    calls: list[float | None] = []
+    recv = bus.ours._udp.recv
+
+    def counted(timeout: float | None = None) -> Any:
+        calls.append(timeout)
+        return recv(timeout)
+
+    bus.ours._udp.recv = counted  # type: ignore[method-assign]
+    bus.from_other(frame(b"\x02" * 8))
+    select.select([bus.ours._socket], [], [], 1.0)
+    got = bus.ours.recv(0)
+    assert got is not None and bytes(got.data) == b"\x02" * 8 and bus.ours.recv(0) is None
+    assert calls == [0, 0, 0]  # the copy of the timed send, the frame, then none

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import select
 import socket
+import struct
 import threading
 import time
 from collections import deque
@@ -33,6 +34,7 @@ from typing import Any
 
 import can
 from can.interfaces.udp_multicast import UdpMulticastBus
+from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
 EXPIRY_S = 1.0
@@ -164,10 +166,10 @@ class MulticastEchoFilter(_Wrapper):
                 return None, False
         with self._lock:  # the copy may have been taken back since
             while True:  # past our copies to what waits behind them: a copy never ends a
-                got = self._udp.recv(0)  # read (the pump's, at timeout 0, would stop there)
+                got = self._datagram()  # read (the pump's, at timeout 0, would stop there)
                 if got is None:
                     return None, False  # recv() goes on waiting for the rest of its timeout
-                datagram, _, stamp = got
+                datagram, stamp = got
                 if not self._is_own(datagram):
                     break
         try:
@@ -177,6 +179,30 @@ class MulticastEchoFilter(_Wrapper):
         if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
             return None, False
         return msg, False  # filters, if any, are this bus's own (BusABC applies them)
+
+    def _datagram(self) -> tuple[bytes, float] | None:
+        """The next datagram waiting and its kernel timestamp, or None. python-can's own
+        ``recv(0)`` asks ``select`` first, a system call per datagram and one more to find
+        none; with SO_TIMESTAMPNS (Linux) and no send timeout set on the socket (which
+        would make any receive wait) it is read at once, checked as python-can checks it."""
+        udp = self._udp
+        if not udp.timestamp_nanosecond or self._socket.gettimeout():
+            got = udp.recv(0)
+            return None if got is None else (got[0], got[2])
+        try:
+            datagram, ancillary, _, _ = self._socket.recvmsg(
+                udp.max_buffer, udp.received_ancillary_buffer_size, socket.MSG_DONTWAIT
+            )
+        except BlockingIOError:  # any other OSError goes up as python-can's recv lets it
+            return None
+        if len(ancillary) != 1 or ancillary[0][:2] != (socket.SOL_SOCKET, SO_TIMESTAMPNS):
+            raise can.CanOperationError("received control message type that was not requested")
+        seconds, nanoseconds = struct.unpack(udp.received_timestamp_struct, ancillary[0][2])
+        if nanoseconds >= 1_000_000_000:
+            raise can.CanOperationError(
+                f"Timestamp nanoseconds field was out of range: {nanoseconds}"
+            )
+        return datagram, seconds + nanoseconds * 1.0e-9
 
     def _is_own(self, datagram: bytes) -> bool:
         """Whether ``datagram`` is a copy of one we sent (then forgotten); under the lock."""
