@@ -17,6 +17,7 @@ from typing import ClassVar
 import can
 import pytest
 
+from abh3_supervisor.scheduler import sources
 from abh3_supervisor.scheduler.pump import MAX_READ, BusPump
 from abh3_supervisor.scheduler.sources import ThreadSource
 from tests.support.rig import Deaf
@@ -138,6 +139,7 @@ def pump_for(
 ) -> tuple[BusPump, QueueBus, Machine, FakeLoop, FakeTimer, Clocks]:
     clocks = Clocks()
     monkeypatch.setattr(time, "time", lambda: clocks.wall)  # the pump's wall clock
+    monkeypatch.setattr(sources, "WATCH_SET", False)  # the watch is the fake loop's reader
     bus, machine = QueueBus(), Machine(period, clocks.mono)
 
     async def build() -> BusPump:

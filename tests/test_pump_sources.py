@@ -9,7 +9,10 @@ fake that collects what the thread hands it: nothing here waits on time.
 from __future__ import annotations
 
 import asyncio
+import select
+import socket
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, cast
 
 import can
@@ -166,3 +169,110 @@ def test_the_reader_ends_when_the_loop_is_gone() -> None:
     source._run()
     assert source._stopped.is_set() and len(bus.script) == 2  # one try, then the end
     bus.shutdown()
+
+
+class Socket(can.BusABC):
+    """A descriptor that can be made readable at will (one end of a socket pair)."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="s")
+        self.ours, self.theirs = socket.socketpair()
+
+    def fileno(self) -> int:
+        return self.ours.fileno()
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        raise NotImplementedError
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return None, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.ours.close()
+        self.theirs.close()
+
+
+def readable(fd: int) -> bool:
+    return bool(select.select([fd], [], [], 0)[0])
+
+
+@pytest.mark.skipif(not sources.WATCH_SET, reason="no epoll on this system")
+def test_the_fd_watch_is_an_epoll_set_the_loop_watches_for_good() -> None:
+    """Watching on and off changes the set, never the loop's readers; a frame waiting
+    makes the set readable only while watched, and one that waited before the watch
+    turned on makes it readable at once."""
+    bus = Socket()
+    loop = asyncio.new_event_loop()
+    woken: list[int] = []
+    try:
+        source = sources.FdSource(bus, bus.fileno(), loop, lambda: woken.append(1))
+        assert source._set is not None
+        watched = source._set.fileno()
+        selector = loop._selector  # type: ignore[attr-defined]
+        assert set(selector.get_map()) >= {watched} and bus.fileno() not in selector.get_map()
+        bus.theirs.send(b"x")  # a frame waits, unwatched
+        assert not readable(watched)
+        source.watch(True)
+        assert readable(watched)  # what waited wakes the loop at once
+        loop.run_until_complete(asyncio.sleep(0))  # one turn: the loop sees the set readable
+        assert woken
+        source.watch(False)
+        assert not readable(watched)
+        source.stop()
+        assert watched not in selector.get_map()
+    finally:
+        loop.close()
+        bus.shutdown()
+
+
+def test_a_descriptor_epoll_refuses_is_watched_the_loop_s_way(tmp_path: Path) -> None:
+    """A regular file cannot join an epoll set (EPERM): its watch is the loop's reader."""
+    readers: dict[int, Callable[[], None]] = {}
+
+    class Loop:
+        def add_reader(self, fd: int, callback: Callable[[], None]) -> None:
+            readers[fd] = callback
+
+        def remove_reader(self, fd: int) -> None:
+            del readers[fd]
+
+    bus = Socket()
+    try:
+        with (tmp_path / "f").open("wb") as f:
+            source = sources.FdSource(bus, f.fileno(), cast(Any, Loop()), print)
+            assert source._set is None
+            source.watch(True)
+            assert list(readers) == [f.fileno()]
+            source.stop()
+            assert readers == {}
+    finally:
+        bus.shutdown()
+
+
+class Filtered(Socket):
+    """Hands out its frames one per receive, unfiltered: the bus's filters decide."""
+
+    def __init__(self, ids: list[int]) -> None:
+        super().__init__()
+        self.frames = [can.Message(arbitration_id=i, is_extended_id=True) for i in ids]
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return (self.frames.pop(0) if self.frames else None), False
+
+
+def test_a_frame_the_bus_s_filters_refuse_never_ends_a_read() -> None:
+    """python-can's ``recv(0)`` answers None at a refused frame; the source reads on."""
+    bus = Filtered([0x1, 0x2, 0x3])
+    bus.set_filters([{"can_id": 0x2, "can_mask": 0x1FFFFFFF, "extended": True}])
+    loop = asyncio.new_event_loop()
+    try:
+        source = sources.FdSource(bus, bus.fileno(), loop, print)
+        assert source._direct
+        got = source.recv()
+        assert got is not None and got[0].arbitration_id == 0x2
+        assert source.recv() is None and not bus.frames
+        source.stop()
+    finally:
+        loop.close()
+        bus.shutdown()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +21,7 @@ import can
 
 RECV_TIMEOUT_S = 0.05  # the reader thread's wait for a frame: how long stop() may take
 RETRY_S = 0.5  # a bus whose receive failed is read again after this
+WATCH_SET = hasattr(select, "epoll")  # FdSource's watch: an epoll set of its own
 
 
 class FrameSource(Protocol):
@@ -36,22 +38,54 @@ class FrameSource(Protocol):
 
 
 class FdSource:
-    """The bus's own file descriptor: frames wait in the kernel."""
+    """The bus's own file descriptor: frames wait in the kernel.
+
+    The pump turns the watch on and off twice per turn. Where there is epoll (Linux), the
+    descriptor sits in an epoll set of its own, which the loop watches for good: turning
+    the watch on or off is one ``epoll_ctl`` on that set, where the loop's own
+    ``add_reader``/``remove_reader`` cost about ten times as much (a handle made, the
+    loop's selector updated) — on a small computer, 4 % of the bus loop at 100 turns a
+    second. The set is level-triggered like the loop: a frame still waiting when the
+    watch turns on wakes the loop at once."""
 
     def __init__(
         self, bus: can.BusABC, fd: int, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]
     ) -> None:
         self.bus, self.fd, self.loop, self.wake = bus, fd, loop, wake
         self._watching = False
+        # python-can's receive, read through its implementers' hook where the bus keeps
+        # BusABC's own recv: a frame costs a few calls fewer (the step reads ~1000 a second)
+        self._direct = type(bus).recv is can.BusABC.recv
+        self._set: select.epoll | None = None
+        if WATCH_SET:
+            self._set = select.epoll()
+            try:
+                self._set.register(fd, 0)  # in the set, watched for nothing yet
+            except OSError:  # a descriptor epoll refuses: the loop's own way, then
+                self._set.close()
+                self._set = None
+            else:
+                loop.add_reader(self._set.fileno(), wake)
 
     def recv(self) -> tuple[can.Message, float | None] | None:
-        msg = self.bus.recv(0)
-        return None if msg is None else (msg, None)  # the kernel's timestamp says when
+        bus = self.bus
+        if not self._direct:
+            msg = bus.recv(0)
+            return None if msg is None else (msg, None)  # the kernel's timestamp says when
+        while True:  # BusABC.recv(0) without its clock, its loop and its debug log
+            msg, filtered = bus._recv_internal(0)
+            if msg is None:
+                return None
+            if filtered or bus._matches_filters(msg):
+                return msg, None
+            # one the bus's filters refuse: the next, where recv(0) would end the read
 
     def watch(self, on: bool) -> None:
         if on == self._watching:
             return
-        if on:
+        if self._set is not None:
+            self._set.modify(self.fd, select.EPOLLIN if on else 0)
+        elif on:
             self.loop.add_reader(self.fd, self.wake)
         else:
             self.loop.remove_reader(self.fd)
@@ -59,6 +93,10 @@ class FdSource:
 
     def stop(self) -> None:
         self.watch(False)
+        if self._set is not None:
+            self.loop.remove_reader(self._set.fileno())
+            self._set.close()
+            self._set = None
 
 
 class ThreadSource:
