@@ -13,8 +13,9 @@ import pytest
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.service import state_push
-from abh3_supervisor.service.snapshot import supervisor_state, unit_json
+from abh3_supervisor.service.snapshot import supervisor_state, unit_json, unit_state
 from abh3_supervisor.service.state_push import SharedState
+from tests.support.rig import Rig
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
 
@@ -117,3 +118,14 @@ def test_a_change_during_a_build_is_in_what_every_waiting_client_gets() -> None:
     during, after = asyncio.run(main())
     assert decoded(during)["estop"] is True
     assert decoded(after)["estop"] is True
+
+
+def test_a_live_unit_s_pushed_state_is_its_state_in_meaning(rig: Rig) -> None:
+    """Status records, flag words of both generations, inputs and verification: spliced
+    in encoded once per value, and still what ``state`` says, push after push."""
+    for _ in range(3):
+        rig.run(0.35)  # status packets and words change between pushes
+        for unit in rig.sup.units.values():
+            ours = json.loads(unit_json(rig.sup, unit))
+            assert ours == json.loads(json.dumps(unit_state(rig.sup, unit)))
+            assert ours["status"] and ours["words"] and ours["inputs"]["names"]

@@ -66,11 +66,45 @@ def _verify_encoded(verification: Verification) -> bytes:
     return dumps(_verify_json(verification))
 
 
+@functools.lru_cache(maxsize=1024)
+def _word_encoded(word: FlagWord, role: Role, name: str, value: int) -> bytes:
+    """``"name":{…}``: a flag word's member of ``words``, encoded once per value."""
+    return dumps(name) + b":" + dumps(_word_json(word, role, name, value))
+
+
+@functools.lru_cache(maxsize=1024)
+def _flags_encoded(word: FlagWord, value: int) -> bytes:
+    return dumps(_flags(word, value))
+
+
+def _flags(word: FlagWord, value: int) -> dict[str, Any]:
+    return {"value": value, "names": word.names(value)}
+
+
 def unit_json(sup: Supervisor, unit: UnitState) -> bytes:
-    """:func:`unit_state` encoded, its verification spliced in already encoded."""
-    state = unit_state(sup, unit)
-    del state["verify"]
-    return dumps(state)[:-1] + b',"verify":' + _verify_encoded(unit.verify) + b"}"
+    """:func:`unit_state` encoded (the pushed state, 10 times a second): its flag words,
+    its verification and its status records, which mostly keep their values from one
+    push to the next, are spliced in encoded once per value."""
+    words = dict(unit.words)  # copied at once: the bus side may write meanwhile
+    role, layout = unit.cfg.role, unit.layout
+    return b"".join(
+        (
+            dumps(_unit_changing(sup, unit, words))[:-1],  # the object left open
+            b',"inputs":',
+            _flags_encoded(layout.input, unit.inputs),
+            b',"words":{',
+            b",".join(
+                _word_encoded(layout.words[name], role, name, value)
+                for name, value in words.items()
+                if name in layout.words
+            ),
+            b'},"verify":',
+            _verify_encoded(unit.verify),
+            b',"status":{',
+            b",".join(_record_encoded(packet, record) for packet, record in _status(unit)),
+            b"}}",
+        )
+    )
 
 
 def _reported(unit: UnitState, control: int | None) -> dict[str, Any] | None:
@@ -83,14 +117,37 @@ def _reported(unit: UnitState, control: int | None) -> dict[str, Any] | None:
 
 
 def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
+    words = dict(unit.words)  # copied at once: the bus side may write meanwhile
+    return {
+        **_unit_changing(sup, unit, words),
+        "inputs": _flags(unit.layout.input, unit.inputs),
+        "words": {
+            name: _word(unit, name, value)
+            for name, value in words.items()
+            if name in unit.layout.words
+        },
+        # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
+        "verify": _verify_json(unit.verify),
+        "status": {str(packet): _record(record) for packet, record in _status(unit)},
+    }
+
+
+def _status(unit: UnitState) -> list[tuple[int, frames.Broadcast]]:
+    """The last broadcast packets (the 8th, a 2023 drive's parameter answer, aside)."""
+    return [(p, r) for p, (_, r) in dict(unit.status).items() if not isinstance(r, frames.Brd7)]
+
+
+@functools.lru_cache(maxsize=1024)
+def _record_encoded(packet: int, record: frames.Broadcast) -> bytes:
+    """``"packet":{…}``: frozen, compared by value; most are unchanged between pushes."""
+    return dumps(str(packet)) + b":" + dumps(_record(record))
+
+
+def _unit_changing(sup: Supervisor, unit: UnitState, words: dict[str, int]) -> dict[str, Any]:
+    """A unit's state but its flag words, its inputs, its verification and its status."""
     slot = sup.schedulers[unit.cfg.bus].slots[unit.name]
     st, fb, now = slot.stats, unit.feedback, sup.clock()
     rtt_p50, rtt_p99 = st.rtts_ms(50, 99)
-    words = dict(unit.words)  # copied at once: the bus side may write meanwhile
-    status: dict[str, Any] = {}
-    for packet, (_, record) in dict(unit.status).items():
-        if not isinstance(record, frames.Brd7):
-            status[str(packet)] = _record(record)
     return {
         "bus": unit.cfg.bus,
         "abh3_id": unit.cfg.abh3_id,
@@ -113,21 +170,12 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
             "vel_x": fb.vel_x,
             "control": fb.control,
         },
-        "inputs": {"value": unit.inputs, "names": unit.layout.input.names(unit.inputs)},
-        "words": {
-            name: _word(unit, name, value)
-            for name, value in words.items()
-            if name in unit.layout.words
-        },
         "reported": _reported(unit, words.get("control")),
-        # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
-        "verify": _verify_json(unit.verify),
         # other hosts on the unit's drive (core/foreign.py) and the stop they caused
         "foreign": {
             "stopped": sup.gate.foreign.get(unit.name),
             "hosts": [host.to_json() for host in sup.foreign_hosts(unit.name)],
         },
-        "status": status,
         "stats": {
             "rate_hz": st.achieved_rate_hz(now),
             "requested_rate_hz": st.requested_rate_hz,
