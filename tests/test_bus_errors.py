@@ -289,3 +289,38 @@ def test_a_receive_that_fails_on_a_bus_read_from_the_loop_is_a_state_not_a_trace
     asyncio.run(scenario())
     assert notices.seen == ["bus robot: BUS-OFF: network down: bus-off, or the interface is down"]
     assert unhandled == []
+
+
+@pytest.mark.wallclock
+def test_a_hung_up_bus_resting_after_a_failed_receive_does_not_spin_the_loop(
+    flaky: None,
+) -> None:
+    """A descriptor left hung up (an slcan adapter unplugged, its tty gone): while the
+    pump rests after the failed receive, with the watch off, the loop does not step it
+    on every turn (epoll reports a hang-up whatever the watched events)."""
+    config = parse_config(
+        "buses:\n  robot: {interface: fdflaky, channel: fd}\nunits:\n  - {name: base}\n", "e.yaml"
+    )
+    notices = BusNotices("robot")
+
+    async def scenario() -> int:
+        async with Runtime(config) as rt:
+            rt.supervisor.subscribe(notices)
+            (bus,) = [b for b in FlakyBus.instances if isinstance(b, FdBus)]
+            bus.go_down()
+            bus._w.close()  # the other end gone: a hang-up on the bus's descriptor
+            await notices.next()  # the receive failed: the pump rests, the watch off
+            pump, steps = rt.pumps["robot"], 0
+            original = pump._step_unguarded
+
+            def counted(fed: bool = False) -> None:
+                nonlocal steps
+                steps += 1
+                original(fed)
+
+            pump._step_unguarded = counted  # type: ignore[method-assign]
+            for _ in range(200):  # loop turns, far less than RETRY_S
+                await asyncio.sleep(0)
+            return steps
+
+    assert asyncio.run(scenario()) <= 3  # the unit's own schedule, not one per turn

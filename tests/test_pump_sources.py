@@ -276,3 +276,63 @@ def test_a_frame_the_bus_s_filters_refuse_never_ends_a_read() -> None:
     finally:
         loop.close()
         bus.shutdown()
+
+
+async def turns(n: int) -> None:
+    for _ in range(n):
+        await asyncio.sleep(0)
+
+
+@pytest.mark.skipif(not sources.WATCH_SET, reason="no epoll on this system")
+def test_an_unwatched_hung_up_descriptor_never_wakes_the_loop() -> None:
+    """epoll reports a hang-up or an error whatever the mask, even none: unwatched, the
+    descriptor is out of the set, as it was out of the loop (an unplugged adapter, a peer
+    gone), and the loop sleeps instead of stepping the pump on every turn."""
+    bus = Socket()
+    loop = asyncio.new_event_loop()
+    woken: list[int] = []
+    try:
+        source = sources.FdSource(bus, bus.fileno(), loop, lambda: woken.append(1))
+        source.watch(True)
+        source.watch(False)
+        bus.theirs.shutdown(socket.SHUT_RDWR)  # a hang-up on ours
+        bus.ours.shutdown(socket.SHUT_RDWR)
+        loop.run_until_complete(turns(100))
+        assert woken == []
+        source.stop()
+    finally:
+        loop.close()
+        bus.shutdown()
+
+
+@pytest.mark.skipif(not sources.WATCH_SET, reason="no epoll on this system")
+def test_unwatching_a_descriptor_closed_under_the_source_is_silent() -> None:
+    """As the loop's ``remove_reader`` was: the kernel dropped it from the set already."""
+    bus = Socket()
+    loop = asyncio.new_event_loop()
+    try:
+        source = sources.FdSource(bus, bus.fileno(), loop, print)
+        assert source._set is not None
+        watched = source._set.fileno()
+        source.watch(True)
+        bus.ours.close()
+        source.stop()
+        assert watched not in loop._selector.get_map()  # type: ignore[attr-defined]
+    finally:
+        loop.close()
+        bus.shutdown()
+
+
+def test_a_flood_of_frames_the_bus_s_filters_refuse_is_read_in_bounded_slices() -> None:
+    bus = Filtered([0x1] * (2 * sources.REFUSED_PER_RECV + 10) + [0x2])
+    bus.set_filters([{"can_id": 0x2, "can_mask": 0x1FFFFFFF, "extended": True}])
+    loop = asyncio.new_event_loop()
+    try:
+        source = sources.FdSource(bus, bus.fileno(), loop, print)
+        assert source.recv() is None and source.recv() is None  # each a bounded slice
+        got = source.recv()
+        assert got is not None and got[0].arbitration_id == 0x2
+        source.stop()
+    finally:
+        loop.close()
+        bus.shutdown()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import select
 import threading
 import time
@@ -22,6 +23,7 @@ import can
 RECV_TIMEOUT_S = 0.05  # the reader thread's wait for a frame: how long stop() may take
 RETRY_S = 0.5  # a bus whose receive failed is read again after this
 WATCH_SET = hasattr(select, "epoll")  # FdSource's watch: an epoll set of its own
+REFUSED_PER_RECV = 64  # frames the bus's own filters refuse, read past in one receive
 
 
 class FrameSource(Protocol):
@@ -41,12 +43,14 @@ class FdSource:
     """The bus's own file descriptor: frames wait in the kernel.
 
     The pump turns the watch on and off twice per turn. Where there is epoll (Linux), the
-    descriptor sits in an epoll set of its own, which the loop watches for good: turning
-    the watch on or off is one ``epoll_ctl`` on that set, where the loop's own
+    loop watches an epoll set of the source's own for good, and the watch puts the
+    descriptor in that set or takes it out: one ``epoll_ctl``, where the loop's own
     ``add_reader``/``remove_reader`` cost about ten times as much (a handle made, the
     loop's selector updated) — on a small computer, 4 % of the bus loop at 100 turns a
     second. The set is level-triggered like the loop: a frame still waiting when the
-    watch turns on wakes the loop at once."""
+    watch turns on wakes the loop at once. Unwatched, the descriptor leaves the set rather
+    than staying in it with no events: epoll reports an error or a hang-up whatever the
+    mask, and an unplugged adapter's descriptor would wake the loop on every turn."""
 
     def __init__(
         self, bus: can.BusABC, fd: int, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]
@@ -59,8 +63,9 @@ class FdSource:
         self._set: select.epoll | None = None
         if WATCH_SET:
             self._set = select.epoll()
-            try:
-                self._set.register(fd, 0)  # in the set, watched for nothing yet
+            try:  # can epoll hold it? Out again until watched: a descriptor in the set
+                self._set.register(fd, 0)  # reports an error or a hang-up whatever its
+                self._set.unregister(fd)  # mask, and the loop would spin on it
             except OSError:  # a descriptor epoll refuses: the loop's own way, then
                 self._set.close()
                 self._set = None
@@ -72,19 +77,24 @@ class FdSource:
         if not self._direct:
             msg = bus.recv(0)
             return None if msg is None else (msg, None)  # the kernel's timestamp says when
-        while True:  # BusABC.recv(0) without its clock, its loop and its debug log
-            msg, filtered = bus._recv_internal(0)
+        for _ in range(REFUSED_PER_RECV + 1):  # BusABC.recv(0) without its clock, its loop
+            msg, filtered = bus._recv_internal(0)  # and its debug log
             if msg is None:
                 return None
             if filtered or bus._matches_filters(msg):
                 return msg, None
             # one the bus's filters refuse: the next, where recv(0) would end the read
+        return None  # a flood of refused frames: the rest waits for the next step
 
     def watch(self, on: bool) -> None:
         if on == self._watching:
             return
         if self._set is not None:
-            self._set.modify(self.fd, select.EPOLLIN if on else 0)
+            if on:
+                self._set.register(self.fd, select.EPOLLIN)
+            else:
+                with contextlib.suppress(OSError):  # closed under us: the kernel dropped it
+                    self._set.unregister(self.fd)
         elif on:
             self.loop.add_reader(self.fd, self.wake)
         else:
@@ -92,11 +102,13 @@ class FdSource:
         self._watching = on
 
     def stop(self) -> None:
-        self.watch(False)
-        if self._set is not None:
-            self.loop.remove_reader(self._set.fileno())
-            self._set.close()
-            self._set = None
+        try:
+            self.watch(False)
+        finally:
+            if self._set is not None:
+                self.loop.remove_reader(self._set.fileno())
+                self._set.close()
+                self._set = None
 
 
 class ThreadSource:
