@@ -326,7 +326,8 @@ class PluginHost:
             return
         try:
             if (call := self._ignoring.get((name, hook))) is None:
-                call = self._caller(name, hook)
+                self._caller(name, hook)  # builds it (a hook start() did not build)
+                call = self._ignoring[name, hook]
             call(**kwargs)
         except ConfigError:
             raise

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor.core import readouts
@@ -38,8 +38,10 @@ def _finite(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
 
 
-def _word(unit: UnitState, name: str, value: int) -> dict[str, Any]:
-    return _word_json(unit.layout.words[name], unit.cfg.role, name, value)
+def _flag_words(unit: UnitState, words: dict[str, int]) -> Iterator[tuple[FlagWord, str, int]]:
+    """The unit's flag words its layout names (word, name, value), in the order they came."""
+    layout = unit.layout.words
+    return ((layout[name], name, value) for name, value in words.items() if name in layout)
 
 
 @functools.lru_cache(maxsize=1024)
@@ -86,17 +88,15 @@ def unit_json(sup: Supervisor, unit: UnitState) -> bytes:
     its verification and its status records, which mostly keep their values from one
     push to the next, are spliced in encoded once per value."""
     words = dict(unit.words)  # copied at once: the bus side may write meanwhile
-    role, layout = unit.cfg.role, unit.layout
+    role = unit.cfg.role
     return b"".join(
         (
             dumps(_unit_changing(sup, unit, words))[:-1],  # the object left open
             b',"inputs":',
-            _flags_encoded(layout.input, unit.inputs),
+            _flags_encoded(unit.layout.input, unit.inputs),
             b',"words":{',
             b",".join(
-                _word_encoded(layout.words[name], role, name, value)
-                for name, value in words.items()
-                if name in layout.words
+                _word_encoded(w, role, name, value) for w, name, value in _flag_words(unit, words)
             ),
             b'},"verify":',
             _verify_encoded(unit.verify),
@@ -122,9 +122,8 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
         **_unit_changing(sup, unit, words),
         "inputs": _flags(unit.layout.input, unit.inputs),
         "words": {
-            name: _word(unit, name, value)
-            for name, value in words.items()
-            if name in unit.layout.words
+            name: _word_json(word, unit.cfg.role, name, value)
+            for word, name, value in _flag_words(unit, words)
         },
         # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
         "verify": _verify_json(unit.verify),
