@@ -1,5 +1,7 @@
-"""The udp_multicast echo filter (runtime/echo.py): our own datagrams are known by their
-bytes, dropped before python-can unpacks them, and taken back right after the send.
+"""The udp_multicast echo filter (runtime/echo.py): our own datagrams sent on a socket
+whose copies the kernel keeps from ours (runtime/kernel_echo.py); or, where that cannot
+be had, known by their bytes, dropped before python-can unpacks them, and taken back
+right after the send.
 
 A multicast group's datagrams leave the machine; these tests need none. python-can's own
 ``udp_multicast`` code reads and writes a UDP socket on 127.0.0.1 that sends to itself —
@@ -20,7 +22,7 @@ from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS, GeneralPurposeUdpMulticastBus
 from can.interfaces.udp_multicast.utils import pack_message
 
-from abh3_supervisor.runtime import echo
+from abh3_supervisor.runtime import echo, kernel_echo
 from abh3_supervisor.runtime.echo import MulticastEchoFilter, without_own_frames
 
 pytestmark = pytest.mark.wallclock  # real sockets
@@ -68,14 +70,25 @@ class Bus:
         return bool(select.select([self.ours._socket], [], [], 0)[0])
 
 
-@pytest.fixture
-def bus() -> Iterator[Bus]:
+def _bus(in_kernel: bool) -> Iterator[Bus]:
     clock = Clock()
-    ours = MulticastEchoFilter(LoopbackBus(), clock=clock)
+    ours = MulticastEchoFilter(LoopbackBus(), clock=clock, in_kernel=in_kernel)
     other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     yield Bus(ours, other, clock)
     ours.shutdown()
     other.close()
+
+
+@pytest.fixture
+def bus() -> Iterator[Bus]:
+    """Our copies known by their bytes."""
+    yield from _bus(in_kernel=False)
+
+
+@pytest.fixture
+def kernel_bus() -> Iterator[Bus]:
+    """Our copies kept from us by the kernel."""
+    yield from _bus(in_kernel=True)
 
 
 def frame(data: bytes, t: float = 1000.0) -> can.Message:
@@ -209,3 +222,91 @@ def test_a_socket_given_a_send_timeout_is_read_by_python_can_never_waiting(bus: 
     got = bus.ours.recv(0)
     assert got is not None and bytes(got.data) == b"\x02" * 8 and bus.ours.recv(0) is None
     assert calls == [0, 0, 0]  # the copy of the timed send, the frame, then none
+
+
+# --- in the kernel ----------------------------------------------------------------------
+
+
+def test_in_the_kernel_our_copy_never_reaches_our_socket(kernel_bus: Bus) -> None:
+    ours = kernel_bus.ours
+    assert ours.sender is not None
+    ours.send(frame(b"\x01" * 8), timeout=0)
+    assert not kernel_bus.waiting() and ours.recv(0.05) is None
+    assert ours.echoes_dropped == 0 and not ours._pending  # nothing was remembered
+
+
+def test_in_the_kernel_another_hosts_frame_equal_to_ours_still_comes(kernel_bus: Bus) -> None:
+    msg = frame(b"\x00" * 8, t=1000.0)
+    kernel_bus.ours.send(msg, timeout=0)
+    kernel_bus.from_other(msg)  # byte for byte our datagram, from another socket
+    got = kernel_bus.ours.recv(1.0)
+    assert got is not None and bytes(got.data) == b"\x00" * 8
+    assert kernel_bus.ours.recv(0) is None
+
+
+def test_in_the_kernel_what_goes_out_is_python_cans_own_datagram(kernel_bus: Bus) -> None:
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    sender = kernel_bus.ours.sender
+    assert sender is not None
+    source = sender.getsockname()
+    sender.connect(listener.getsockname())  # the same source, another destination
+    msg = frame(b"\x07" * 8)
+    try:
+        kernel_bus.ours.send(msg, timeout=0)
+        data, came_from = listener.recvfrom(4096)
+        assert data == pack_message(msg) and came_from == source
+    finally:
+        listener.close()
+
+
+def test_in_the_kernel_a_failed_send_is_python_cans_error(kernel_bus: Bus) -> None:
+    sender = kernel_bus.ours.sender
+    assert sender is not None
+    sender.close()
+    with pytest.raises(can.CanOperationError, match="failed to send via socket"):
+        kernel_bus.ours.send(frame(b"\x06" * 8), timeout=0)
+
+
+def test_where_the_kernel_refuses_the_copies_are_known_by_their_bytes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def refused(sock: socket.socket, program: bytes) -> None:
+        raise PermissionError("no filters here")
+
+    monkeypatch.setattr(kernel_echo, "attach", refused)
+    ours = MulticastEchoFilter(LoopbackBus())
+    try:
+        assert ours.sender is None
+        ours.send(frame(b"\x01" * 8), timeout=0)
+        assert ours.echoes_dropped == 1 and ours.recv(0.05) is None
+    finally:
+        ours.shutdown()
+
+
+def test_the_filter_drops_our_address_and_port_only() -> None:
+    """Same port on another address (another host), another port on our address (another
+    program here): both pass; only our own address and port are dropped."""
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    receiver.bind(("127.0.0.1", 0))
+    ours = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ours.bind(("127.0.0.1", 0))
+    address, port = ours.getsockname()
+    elsewhere = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    elsewhere.bind(("127.0.0.2", port))
+    here = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    here.bind(("127.0.0.1", 0))
+    sockets = [receiver, ours, elsewhere, here]
+    try:
+        kernel_echo.attach(receiver, kernel_echo.source_filter(address, port))
+        for sender, data in ((ours, b"ours"), (elsewhere, b"elsewhere"), (here, b"here")):
+            sender.sendto(data, receiver.getsockname())
+        receiver.settimeout(1.0)
+        got = {receiver.recv(64), receiver.recv(64)}
+        receiver.setblocking(False)
+        with pytest.raises(BlockingIOError):
+            receiver.recv(64)
+        assert got == {b"elsewhere", b"here"}
+    finally:
+        for sock in sockets:
+            sock.close()

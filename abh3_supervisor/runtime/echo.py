@@ -5,11 +5,13 @@ sender too, and nothing turns that off. Our machines must not see their own fram
 supervisor would take its own DP0 commands for another host's, a recording would hold
 each sent frame twice.
 
-:class:`MulticastEchoFilter` (``udp_multicast``) knows its copies by their bytes: python-can
-packs each frame with its send timestamp, so the datagram that comes back is byte for byte
-the one sent, and another host's frame never is. A copy is dropped before python-can
-unpacks it — and, as the loopback usually delivers it within the sending system call,
-taken back right after the send, so the event loop is not woken for it.
+:class:`MulticastEchoFilter` (``udp_multicast``) sends on a socket of its own whose copies
+the kernel drops before they reach us (:mod:`.kernel_echo`: Linux, IPv4). Where that cannot
+be had it knows its copies by their bytes: python-can packs each frame with its send
+timestamp, so the datagram that comes back is byte for byte the one sent, and another
+host's frame never is. A copy is dropped before python-can unpacks it — and, as the
+loopback usually delivers it within the sending system call, taken back right after the
+send, so the event loop is not woken for it.
 
 :class:`EchoFilter` (any other bus that hears itself: ``receive_own_messages``) remembers
 what it sent and drops the first received copy of each by identifier and data. A frame
@@ -36,6 +38,8 @@ import can
 from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
+
+from abh3_supervisor.runtime.kernel_echo import own_sender
 
 EXPIRY_S = 1.0
 MAX_PENDING = 4096  # sent frames awaiting their copy: a bound, whatever happens
@@ -118,21 +122,32 @@ class EchoFilter(_Wrapper):
 class MulticastEchoFilter(_Wrapper):
     """python-can's ``udp_multicast`` bus, read and written a datagram at a time (its
     ``GeneralPurposeUdpMulticastBus``: ``send``, ``recv``, the socket), so that our own
-    datagrams are known by their bytes; see the module docstring."""
+    datagrams never reach us or are known by their bytes; see the module docstring.
+    ``in_kernel=False``: by their bytes only."""
 
     def __init__(
-        self, bus: UdpMulticastBus, *, clock: Callable[[], float] = time.monotonic
+        self,
+        bus: UdpMulticastBus,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        in_kernel: bool = True,
     ) -> None:
         self._udp = bus._multicast
         self._socket: socket.socket = self._udp._socket
         # (sent at, datagram), oldest first: copies come back in the order they were sent
         self._pending: deque[tuple[float, bytes]] = deque(maxlen=MAX_PENDING)
+        # the socket whose datagrams the kernel keeps from ours, and its send timeout
+        self.sender = own_sender(self._udp) if in_kernel else None
+        self._sender_timeout: float | None = None
         super().__init__(bus, clock)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
             raise can.CanOperationError("cannot send FD message over bus with CAN FD disabled")
         datagram = pack_message(msg)  # python-can's own packing: the same bytes on the wire
+        if self.sender is not None:  # no copy comes back: nothing to remember
+            self._send_own(self.sender, datagram, timeout)
+            return
         entry = (self._clock(), datagram)
         with self._lock:  # before sending: the copy may come back before send returns
             self._pending.append(entry)
@@ -144,6 +159,24 @@ class MulticastEchoFilter(_Wrapper):
             raise
         if not timeout:  # a socket with a timeout would wait in recv, whatever the flags
             self._take_back(datagram)
+
+    def _send_own(self, sender: socket.socket, datagram: bytes, timeout: float | None) -> None:
+        """python-can's ``send`` (its timeout and errors), on our own socket."""
+        try:
+            if timeout != self._sender_timeout:
+                sender.settimeout(timeout)
+                self._sender_timeout = timeout
+            if sender.send(datagram) < len(datagram):
+                raise TimeoutError
+        except TimeoutError:
+            raise can.CanTimeoutError() from None
+        except OSError as error:
+            raise can.CanOperationError("failed to send via socket") from error
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        if self.sender is not None:
+            self.sender.close()
 
     def _take_back(self, datagram: bytes) -> None:
         """Drop our copy now if it is already the next datagram waiting (the loopback
