@@ -260,12 +260,64 @@ def test_in_the_kernel_what_goes_out_is_python_cans_own_datagram(kernel_bus: Bus
         listener.close()
 
 
-def test_in_the_kernel_a_failed_send_is_python_cans_error(kernel_bus: Bus) -> None:
-    sender = kernel_bus.ours.sender
+def test_in_the_kernel_the_sender_is_python_cans_own_destination_and_ttl(kernel_bus: Bus) -> None:
+    udp, sender = kernel_bus.ours._udp, kernel_bus.ours.sender
     assert sender is not None
-    sender.close()
+    assert sender.getpeername() == (udp.group, udp.port)
+    ttl = sender.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL)
+    assert ttl == udp._socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 1
+
+
+def test_in_the_kernel_a_sender_that_fails_is_given_up_for_python_cans_socket(
+    kernel_bus: Bus,
+) -> None:
+    """An address gone under the connected socket: the frame still goes out, python-can's
+    way, and from then on our copies are known by their bytes; the filter goes too."""
+    ours = kernel_bus.ours
+    assert ours.sender is not None
+    source = ours.sender.getsockname()
+    ours.sender.close()  # any send on it now fails
+    ours.send(frame(b"\x06" * 8), timeout=0)
+    assert ours.sender is None
+    assert ours.echoes_dropped == 1 and ours.recv(0.05) is None  # sent, its copy taken back
+    successor = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:  # whatever has that address and port now is heard
+        successor.bind(source)
+        successor.sendto(pack_message(frame(b"\x08" * 8)), ours._socket.getsockname())
+        got = ours.recv(1.0)
+        assert got is not None and bytes(got.data) == b"\x08" * 8
+    finally:
+        successor.close()
+
+
+def test_in_the_kernel_a_failed_send_is_python_cans_error(kernel_bus: Bus) -> None:
+    ours = kernel_bus.ours
+    assert ours.sender is not None
+    ours.sender.close()
+    ours._udp._send_destination = ("256.0.0.1", 1)  # python-can's own send fails too
     with pytest.raises(can.CanOperationError, match="failed to send via socket"):
-        kernel_bus.ours.send(frame(b"\x06" * 8), timeout=0)
+        ours.send(frame(b"\x06" * 8), timeout=0)
+
+
+def test_without_a_source_address_the_copies_are_known_by_their_bytes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Where routing gives the group no source address, nothing is fixed to match."""
+
+    class Sourceless(socket.socket):
+        def getsockname(self) -> Any:
+            return "0.0.0.0", super().getsockname()[1]
+
+    bus = LoopbackBus()
+    monkeypatch.setattr(socket, "socket", Sourceless)
+    ours = MulticastEchoFilter(bus)
+    monkeypatch.undo()
+    try:
+        assert ours.sender is None
+        ours.send(frame(b"\x01" * 8), timeout=0)
+        assert ours.echoes_dropped == 1 and ours.recv(0.05) is None
+    finally:
+        ours.shutdown()
 
 
 def test_where_the_kernel_refuses_the_copies_are_known_by_their_bytes(

@@ -25,6 +25,7 @@ Both forget entries whose copy never came (a full socket buffer) after ``EXPIRY_
 from __future__ import annotations
 
 import contextlib
+import logging
 import select
 import socket
 import struct
@@ -39,7 +40,9 @@ from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
-from abh3_supervisor.runtime.kernel_echo import own_sender
+from abh3_supervisor.runtime.kernel_echo import detach, own_sender
+
+log = logging.getLogger(__name__)
 
 EXPIRY_S = 1.0
 MAX_PENDING = 4096  # sent frames awaiting their copy: a bound, whatever happens
@@ -136,18 +139,17 @@ class MulticastEchoFilter(_Wrapper):
         self._socket: socket.socket = self._udp._socket
         # (sent at, datagram), oldest first: copies come back in the order they were sent
         self._pending: deque[tuple[float, bytes]] = deque(maxlen=MAX_PENDING)
+        super().__init__(bus, clock)
         # the socket whose datagrams the kernel keeps from ours, and its send timeout
         self.sender = own_sender(self._udp) if in_kernel else None
         self._sender_timeout: float | None = None
-        super().__init__(bus, clock)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
             raise can.CanOperationError("cannot send FD message over bus with CAN FD disabled")
         datagram = pack_message(msg)  # python-can's own packing: the same bytes on the wire
-        if self.sender is not None:  # no copy comes back: nothing to remember
-            self._send_own(self.sender, datagram, timeout)
-            return
+        if self.sender is not None and self._send_own(self.sender, datagram, timeout):
+            return  # no copy comes back: nothing to remember
         entry = (self._clock(), datagram)
         with self._lock:  # before sending: the copy may come back before send returns
             self._pending.append(entry)
@@ -160,8 +162,10 @@ class MulticastEchoFilter(_Wrapper):
         if not timeout:  # a socket with a timeout would wait in recv, whatever the flags
             self._take_back(datagram)
 
-    def _send_own(self, sender: socket.socket, datagram: bytes, timeout: float | None) -> None:
-        """python-can's ``send`` (its timeout and errors), on our own socket."""
+    def _send_own(self, sender: socket.socket, datagram: bytes, timeout: float | None) -> bool:
+        """python-can's ``send`` (its timeout and errors) on our own socket; False if that
+        socket can no longer send (its address is gone: it is bound to the one it had),
+        which is then given up for python-can's own."""
         try:
             if timeout != self._sender_timeout:
                 sender.settimeout(timeout)
@@ -170,8 +174,26 @@ class MulticastEchoFilter(_Wrapper):
                 raise TimeoutError
         except TimeoutError:
             raise can.CanTimeoutError() from None
-        except OSError as error:
+        except BlockingIOError as error:  # a full buffer: python-can's error, as its own send
             raise can.CanOperationError("failed to send via socket") from error
+        except OSError as error:
+            log.warning(
+                "udp_multicast: our own sending socket failed (%s); python-can's sends now,"
+                " and our copies are known by their bytes",
+                error,
+            )
+            self._give_up_sender()
+            return False
+        return True
+
+    def _give_up_sender(self) -> None:
+        """From now on python-can's socket sends, and our copies are matched by bytes."""
+        with self._lock:
+            sender, self.sender = self.sender, None
+            with contextlib.suppress(OSError):
+                detach(self._socket)
+            if sender is not None:
+                sender.close()
 
     def shutdown(self) -> None:
         super().shutdown()

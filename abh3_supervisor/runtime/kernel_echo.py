@@ -13,15 +13,17 @@ this machine another port (ours is bound without ``SO_REUSEADDR``, so it is ours
 python-can's own members send from the group's port. Nothing else changes: the destination,
 the TTL, the loopback (on, as python-can leaves it) and the bytes are python-can's.
 
-The source is the one ``getsockname`` gives after ``connect``: the kernel fixed it there.
-Where routing gives no address (``0.0.0.0``: a multicast route over ``lo`` alone, as in
-the benchmarks' namespace), the kernel chooses anew at each send; a routing change during
-the run could then give our frames another source, and they would come back to us as
-another host's frames — which the supervisor reports and stops for (never the other way:
-another host's frame is never dropped).
+The source is the one ``getsockname`` gives after ``connect``: the kernel fixed it there,
+and every datagram of that socket carries it. Where routing gives no address
+(``0.0.0.0``: a multicast route with no usable source, a host whose address has not come
+yet) there is nothing fixed to match — the kernel would choose anew at each send, and a
+source of ``0.0.0.0`` is also what another host without an address sends — so
+:func:`own_sender` gives None. The benchmarks' namespace gives its route ``src
+127.0.0.1`` (:mod:`.netns`). If that address goes away during the run, the socket can send
+no more; the echo filter then gives it up (:meth:`~.echo.MulticastEchoFilter.send`).
 
 Linux and IPv4 only; elsewhere, or where the kernel refuses the filter, :func:`own_sender`
-gives None and the echo filter takes its copies back itself.
+gives None and the echo filter knows its copies by their bytes.
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ import struct
 import sys
 from typing import Any
 
-SO_ATTACH_FILTER = 26  # Linux's value; the socket module does not name it
+SO_ATTACH_FILTER = 26  # Linux's values; the socket module does not name them
+SO_DETACH_FILTER = 27
 _SKF_NET_OFF = -0x100000  # classic BPF: an offset from the network (IP) header
 _IP_SOURCE = 12  # the IPv4 header's source address
 # classic BPF opcodes (linux/filter.h)
@@ -66,6 +69,11 @@ def attach(sock: socket.socket, program: bytes) -> None:
     sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
 
 
+def detach(sock: socket.socket) -> None:
+    """``sock`` without its filter."""
+    sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
+
+
 def own_sender(udp: Any) -> socket.socket | None:
     """A socket to send ``udp``'s datagrams on, whose copies ``udp``'s socket (python-can's
     ``GeneralPurposeUdpMulticastBus``) never receives; None where that cannot be had."""
@@ -79,6 +87,9 @@ def own_sender(udp: Any) -> socket.socket | None:
         )
         sender.connect((udp.group, udp.port))
         address, port = sender.getsockname()
+        if address == "0.0.0.0":  # no source of our own to know our datagrams by
+            sender.close()
+            return None
         attach(receiving, source_filter(address, port))
     except OSError:
         sender.close()
