@@ -139,10 +139,13 @@ class MulticastEchoFilter(_Wrapper):
         self._socket: socket.socket = self._udp._socket
         # (sent at, datagram), oldest first: copies come back in the order they were sent
         self._pending: deque[tuple[float, bytes]] = deque(maxlen=MAX_PENDING)
-        super().__init__(bus, clock)
-        # the socket whose datagrams the kernel keeps from ours, and its send timeout
-        self.sender = own_sender(self._udp) if in_kernel else None
+        # the socket whose datagrams the kernel keeps from ours (made once the bus is:
+        # nothing to leak if it is not), and its send timeout
+        self.sender: socket.socket | None = None
         self._sender_timeout: float | None = None
+        super().__init__(bus, clock)
+        if in_kernel:
+            self.sender = own_sender(self._udp)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
@@ -196,9 +199,8 @@ class MulticastEchoFilter(_Wrapper):
                 sender.close()
 
     def shutdown(self) -> None:
+        self._give_up_sender()
         super().shutdown()
-        if self.sender is not None:
-            self.sender.close()
 
     def _take_back(self, datagram: bytes) -> None:
         """Drop our copy now if it is already the next datagram waiting (the loopback
@@ -261,7 +263,10 @@ class MulticastEchoFilter(_Wrapper):
 
     def _is_own(self, datagram: bytes) -> bool:
         """Whether ``datagram`` is a copy of one we sent (then forgotten); under the lock."""
-        pending, now = self._pending, self._clock()
+        pending = self._pending
+        if not pending:  # nothing sent lately, or nothing comes back (our own socket)
+            return False
+        now = self._clock()
         while pending and pending[0][0] < now - EXPIRY_S:
             pending.popleft()
         if pending and pending[0][1] == datagram:  # the usual case: the oldest one

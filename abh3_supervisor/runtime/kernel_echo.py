@@ -32,7 +32,8 @@ import array
 import socket
 import struct
 import sys
-from typing import Any
+
+from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus
 
 SO_ATTACH_FILTER = 26  # Linux's values; the socket module does not name them
 SO_DETACH_FILTER = 27
@@ -74,10 +75,10 @@ def detach(sock: socket.socket) -> None:
     sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
 
 
-def own_sender(udp: Any) -> socket.socket | None:
-    """A socket to send ``udp``'s datagrams on, whose copies ``udp``'s socket (python-can's
-    ``GeneralPurposeUdpMulticastBus``) never receives; None where that cannot be had."""
-    receiving: socket.socket = udp._socket
+def own_sender(udp: GeneralPurposeUdpMulticastBus) -> socket.socket | None:
+    """A socket to send ``udp``'s datagrams on, whose copies ``udp``'s socket never
+    receives; None where that cannot be had."""
+    receiving = udp._socket
     if not sys.platform.startswith("linux") or receiving.family != socket.AF_INET:
         return None
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
