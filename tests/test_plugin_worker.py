@@ -1,12 +1,14 @@
 """A plugin's worker (plugin_host/host.py ``_Worker``): events in order, none lost while
-the queue has room, and the thread woken once for a batch rather than once per event."""
+the queue has room, and the thread woken once for a batch rather than once per event —
+for the bus loop's events, once per step of the loop, after it."""
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections.abc import Generator
-from typing import Any
+from typing import Any, cast
 
 import pluggy
 import pytest
@@ -15,6 +17,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host import host as host_module
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
+from abh3_supervisor.scheduler.core import HealthEvent
 
 
 class Host:
@@ -40,14 +43,7 @@ class Host:
 def test_events_posted_while_the_worker_is_busy_wake_it_once_and_all_arrive_in_order() -> None:
     host = Host()
     worker = host_module._Worker(host, "p")  # type: ignore[arg-type]
-    sets: list[float] = []
-    wake = worker._wake.set  # the event the thread waits on, counted
-
-    def counted() -> None:
-        sets.append(time.monotonic())
-        wake()
-
-    worker._wake.set = counted  # type: ignore[method-assign]
+    sets = counted_wakes(worker)
     worker.post("abh3_tick", {"i": 0})
     assert host.started.wait(10)  # the first event woke it; its hook holds it
     woken = len(sets)
@@ -59,6 +55,51 @@ def test_events_posted_while_the_worker_is_busy_wake_it_once_and_all_arrive_in_o
     assert host.calls == list(range(200)) and not worker.thread.is_alive()
 
 
+def counted_wakes(worker: host_module._Worker) -> list[float]:
+    """Each time the thread is woken (its event set), from now on."""
+    sets: list[float] = []
+    wake = worker._wake.set
+
+    def counted() -> None:
+        sets.append(time.monotonic())
+        wake()
+
+    worker._wake.set = counted  # type: ignore[method-assign]
+    return sets
+
+
+def test_the_events_of_one_loop_step_reach_the_worker_after_it_in_one_wake_up() -> None:
+    plain = Plain()
+    host = plugin_host(plain=plain)
+
+    async def run() -> None:
+        host._sup, host._loop = cast(Any, object()), asyncio.get_running_loop()
+        worker = host.workers["plain"] = host_module._Worker(host, "plain")
+        sets = counted_wakes(worker)
+        for i in range(5):  # one step of the loop: five events
+            host._observe(HealthEvent("u", float(i), i % 2 == 0))
+        assert len(worker.held) == 5 and not worker.items and sets == []  # none yet
+        await asyncio.sleep(0)  # the step is over: the loop runs the release queued by it
+        assert not worker.held and len(sets) == 1
+        host._observe(HealthEvent("u", 5.0, False))  # the next step's
+        await asyncio.sleep(0)
+        worker.close(time.monotonic() + 10)
+        assert not worker.thread.is_alive()
+
+    asyncio.run(run())
+    assert plain.seen == [("u", i % 2 == 0) for i in range(5)] + [("u", False)]
+
+
+def test_what_the_loop_held_goes_before_the_end_marker() -> None:
+    host = Host()
+    host.release.set()
+    worker = host_module._Worker(host, "p")  # type: ignore[arg-type]
+    for i in range(3):
+        worker.hold("abh3_tick", {"i": i})
+    worker.close(time.monotonic() + 10)  # the run ended before the loop released them
+    assert host.calls == [0, 1, 2] and not worker.thread.is_alive()
+
+
 def test_a_full_queue_drops_and_counts_never_waits() -> None:
     host = Host()
     worker = host_module._Worker(host, "p")  # type: ignore[arg-type]
@@ -66,7 +107,9 @@ def test_a_full_queue_drops_and_counts_never_waits() -> None:
     assert host.started.wait(10)
     for i in range(1, host_module.QUEUE_SIZE + 51):
         worker.post("abh3_tick", {"i": i})
-    assert worker.dropped == 50 and not worker.ask_to_end()  # full: the marker waits too
+    worker.hold("abh3_tick", {"i": -1})  # the loop's events count against the same bound
+    assert worker.dropped == 51 and not worker.held
+    assert not worker.ask_to_end()  # full: the marker waits too
     host.release.set()
     worker.close(time.monotonic() + 10)
     assert host.calls == list(range(host_module.QUEUE_SIZE + 1))

@@ -1,6 +1,7 @@
 """The supervisor's pump on a bus with a file descriptor (``batch_s``, scheduler/pump.py):
-it reads every waiting frame before each step, watches the bus only while its next
-deadline is further than ``batch_s``, and gives each frame the time it came.
+it reads every waiting frame before each step, leaves a turn's replies to the next step
+(at most ``batch_s`` later), watches the bus only while its next deadline is further than
+``batch_s``, and gives each frame the time it came.
 
 The loop and the timer are fakes with a clock the test sets: nothing here waits.
 """
@@ -18,11 +19,11 @@ import can
 import pytest
 
 from abh3_supervisor.scheduler import sources
-from abh3_supervisor.scheduler.pump import MAX_READ, BusPump
+from abh3_supervisor.scheduler.pump import MAX_READ, READ_BATCH_S, BusPump
 from abh3_supervisor.scheduler.sources import ThreadSource
 from tests.support.rig import Deaf
 
-BATCH = 0.005
+BATCH = READ_BATCH_S  # one period at 100 Hz
 
 
 class Clocks:
@@ -190,26 +191,96 @@ def fire(pump: BusPump, timer: FakeTimer) -> None:
     pump._step()
 
 
-def test_a_turns_replies_are_read_together_then_a_far_deadline_watches_the_bus(
+def test_a_turns_replies_are_read_together_a_batch_later_then_a_far_deadline_watches_the_bus(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
-    # the start sent a frame: its replies are read half a batch later, nothing wakes before
-    assert loop.readers == {} and timer.when == pytest.approx(clocks.mono + BATCH / 2)
+    pump, bus, machine, loop, timer, clocks = pump_for(0.050, monkeypatch)  # 20 Hz
+    # the start sent a frame: its replies are read a batch later, nothing wakes before
+    assert loop.readers == {} and timer.when == pytest.approx(clocks.mono + BATCH)
     for _ in range(3):  # replies in three bursts: none wakes the loop
         clocks.advance(0.0005)
         bus.waiting.append(frame(0x200, clocks.wall))
-    clocks.advance(BATCH / 2 - 0.0015)
+    clocks.advance(BATCH - 0.0015)
     fire(pump, timer)  # one wake-up reads them all, each at the time it came
     assert rounded(machine.fed) == [(0x200, 100.0005), (0x200, 100.001), (0x200, 100.0015)]
-    assert len(bus.sent) == 1 and timer.when == pytest.approx(100.010)
-    assert list(loop.readers) == [42]  # 7.5 ms to the next step: another frame must wake us
+    assert len(bus.sent) == 1 and timer.when == pytest.approx(100.050)
+    assert list(loop.readers) == [42]  # 40 ms to the next step: another frame must wake us
     clocks.advance(0.001)
     bus.waiting.append(frame(0x300, clocks.wall))
     loop.readers[42]()  # the loop saw the bus readable
-    assert rounded(machine.fed[-1:]) == [(0x300, 100.0035)]
+    assert rounded(machine.fed[-1:]) == [(0x300, 100.011)]
     assert machine.polled[-1][1] == 4  # stepped after the frame
     pump.stop()
+    assert loop.readers == {}
+
+
+def test_at_100_hz_the_loop_wakes_once_a_period_and_each_step_reads_the_last_turns_replies(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The next turn is a batch away: the turn's replies wait for it, never watched."""
+    pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
+    start = clocks.mono
+    for n in range(1, 6):
+        assert loop.readers == {} and timer.when == pytest.approx(start + n * 0.010)
+        clocks.advance(0.0007)  # the drive answers the turn
+        bus.waiting.append(frame(0x200, clocks.wall))
+        answered = clocks.mono
+        assert timer.when is not None
+        clocks.advance(timer.when - clocks.mono)  # the timer fires at the next turn
+        fire(pump, timer)
+        # its reply fed before that step decided anything, at the time it came
+        assert machine.fed[-1][0] == 0x200 and machine.fed[-1][1] == pytest.approx(answered)
+        assert machine.polled[-1][0] == pytest.approx(start + n * 0.010)
+        assert machine.polled[-1][1] == n
+    assert len(bus.sent) == 6 and len(machine.polled) == 6  # one step a period, no other
+
+
+class Schedule:
+    """The scheduler's ``read_by`` (pump.Turns), as a test sets it."""
+
+    def __init__(self, turn: float) -> None:
+        self.turn, self.urgent = turn, False
+
+    def read_by(self, now: float) -> float:
+        return now if self.urgent else self.turn
+
+
+def test_the_replies_are_read_by_the_next_turn_on_the_grid_not_a_batch_after_a_late_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A step runs a little after its deadline; its turn's replies held for ``now +
+    batch`` would bring every turn later by as much (a 100 Hz unit ran at 97 Hz)."""
+    pump, _, _, loop, timer, clocks = pump_for(0.020, monkeypatch)
+    start = clocks.mono
+    pump.turns = Schedule(start + 0.030)  # another unit's turn 10 ms after this one's
+    clocks.advance(0.020 + 0.0004)  # the timer's step at +20 ms runs 0.4 ms late
+    fire(pump, timer)
+    assert timer.when == pytest.approx(start + 0.030)  # the grid's 10 ms later, not 10.4
+    assert loop.readers == {}
+
+
+def test_a_reply_overdue_or_a_conversation_is_read_as_it_comes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A parameter session's every answer brings its next frame, and a late reply holds
+    its unit's command: held for the next turn, each would wait a period."""
+    pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
+    assert loop.readers == {}  # the start's turn: its replies held for the next step
+    schedule = pump.turns = Schedule(clocks.mono + 0.020)
+    schedule.urgent = True
+    clocks.advance(0.010)
+    fire(pump, timer)  # a turn that sent, in a conversation: watched at once
+    assert list(loop.readers) == [42] and timer.when == pytest.approx(clocks.mono + 0.010)
+    clocks.advance(0.0004)
+    bus.waiting.append(frame(0x1CEB0201, clocks.wall))  # the drive's answer wakes the loop
+    loop.readers[42]()  # a step that sent nothing: still watched
+    assert machine.fed[-1][0] == 0x1CEB0201 and machine.fed[-1][1] == pytest.approx(clocks.mono)
+    assert list(loop.readers) == [42]
+    schedule.urgent = False
+    assert timer.when is not None
+    clocks.advance(timer.when - clocks.mono)
+    schedule.turn = clocks.mono + 0.010
+    fire(pump, timer)  # nothing urgent: the turn's replies are held again
     assert loop.readers == {}
 
 
@@ -250,8 +321,8 @@ def test_a_flood_is_read_a_batch_at_a_time(monkeypatch: pytest.MonkeyPatch) -> N
 
 
 def test_a_receive_that_fails_rests_then_reads_again(monkeypatch: pytest.MonkeyPatch) -> None:
-    pump, bus, machine, loop, timer, clocks = pump_for(0.010, monkeypatch)
-    clocks.advance(BATCH / 2)
+    pump, bus, machine, loop, timer, clocks = pump_for(0.050, monkeypatch)
+    clocks.advance(BATCH)
     fire(pump, timer)  # the start's replies read: the bus watched from here on
     notes: list[Exception] = []
     monkeypatch.setattr(pump, "on_error", notes.append)
@@ -347,11 +418,14 @@ def test_a_frame_an_interface_stamped_with_its_own_clock_is_timed_when_the_reade
     pump.stop()
 
 
-def test_a_step_that_sent_with_nothing_due_after_it_watches_the_bus(
+def test_a_step_that_sent_with_nothing_due_after_it_reads_a_batch_later_then_watches(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """No deadline left (the timer cancelled): the replies cannot wait for a read that
-    no timer will bring, or the pump would never read again."""
-    _, bus, _, loop, timer, _ = pump_for(math.inf, monkeypatch)  # one frame, then nothing
-    assert len(bus.sent) == 1 and timer.when is None
-    assert list(loop.readers) == [42]
+    """No deadline left: the replies are read by a step the pump arms itself, and from
+    then on the bus is watched (no timer will bring another read)."""
+    pump, bus, _, loop, timer, clocks = pump_for(math.inf, monkeypatch)  # one frame, then none
+    assert len(bus.sent) == 1 and timer.when == pytest.approx(clocks.mono + BATCH)
+    assert loop.readers == {}
+    clocks.advance(BATCH)
+    fire(pump, timer)
+    assert timer.when is None and list(loop.readers) == [42]

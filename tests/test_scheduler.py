@@ -340,3 +340,26 @@ def test_turns_at_different_rates_never_land_on_one_another() -> None:
         most, sent = max(most, len(out)), sent + len(out)
     assert most == 4
     assert sent == pytest.approx(8 * 100 + 4 * 50 + 4 * 25, abs=16)
+
+
+def test_a_turns_replies_are_to_be_read_by_the_next_turn_on_the_grid() -> None:
+    """``read_by`` (the pump's Turns): the next command or poll on the grid, though the
+    exchanges in flight make the deadline wait for their replies; ``now`` while a reply
+    is overdue (its unit's command waits for it) or a parameter session is on."""
+    cfg = parse_config(
+        "buses: {b: {}}\nunits:\n"
+        "  - {name: u, command_rate_hz: 100, broadcast: {mask: 0x01, rate_hz: 10}}\n",
+        "c.yaml",
+    )
+    sched = BusScheduler(cfg.units.values(), now=0.0)
+    assert len(sched.poll(0.0)) == 1  # the command
+    assert sched.read_by(0.0) == pytest.approx(0.005)  # the poll, half a period on
+    assert len(sched.poll(0.005)) == 1  # the poll; the command's exchange still unread
+    assert sched.next_deadline() > 0.05  # the next command waits for its reply...
+    assert sched.read_by(0.005) == pytest.approx(0.010)  # ...which is read by its turn
+    assert sched.read_by(0.0101) == 0.0101  # not read by then: overdue, read as it comes
+    sched.on_frame(ids.dp0_reply_id(1, 2), bytes(8), 0.0008)
+    assert len(sched.poll(0.0101)) == 1  # the next command, late by the reply
+    assert sched.read_by(0.0101) == pytest.approx(0.020)
+    sched.params["u"].on_work()  # a parameter session queued: answers as they come
+    assert sched.read_by(0.0101) == 0.0101

@@ -58,7 +58,6 @@ STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
 DRAIN_DEADLINE_S = 5.0  # every worker's queue together, on the way out
 LEFTOVER_GRACE_S = 1.0  # threads (not daemons) a plugin left running, after the run
 STUCK_S = 3.0  # a hook running longer is logged at once (the queue fills much later)
-GATHER_S = 0.01  # a worker's pause after a batch of events: the next ones gather meanwhile
 _STOP = object()
 
 
@@ -115,16 +114,19 @@ def _ignoring_result(caller: Any) -> Callable[..., object]:
 class _Worker:
     """One plugin's observation hooks, run in order on a thread of its own.
 
-    The loop appends to a bounded deque and wakes the thread only when it sleeps for
-    want of work; after each batch the thread waits ``GATHER_S`` for more to gather. At
-    hundreds of events a second the thread (and the interpreter lock it takes from the
-    loop) then wakes about ``1 / GATHER_S`` times a second instead of once per event,
-    and each event reaches the plugin at most ``GATHER_S`` after the loop posted it.
+    The loop holds the events of one of its steps (:meth:`hold`) and hands them over
+    together when the step is done (:meth:`release`); other threads (the tick's)
+    :meth:`post`. Either appends to a bounded deque and wakes the thread only when it
+    sleeps for want of work. At hundreds of events a second the thread (and the
+    interpreter lock it takes from the loop) then wakes once per step of the loop that
+    had events — about once a bus period — instead of once per event, never in the
+    middle of a step, and each event reaches the plugin as soon as its step is done.
     """
 
     def __init__(self, host: PluginHost, name: str) -> None:
         self.host, self.name = host, name
         self.items: deque[object] = deque()
+        self.held: list[object] = []  # this step's events, on the loop: see release()
         self._wake = threading.Event()
         self._idle = False  # the thread waits for _wake: the next post sets it
         self.dropped = 0
@@ -135,20 +137,41 @@ class _Worker:
         self.thread.start()
 
     def post(self, hook: str, kwargs: dict[str, Any]) -> None:
+        """Queued now, from any thread (never waits)."""
         if not self._put((hook, kwargs)):
-            self.dropped += 1
-            if self.dropped in (1, 100, 10_000):
-                log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
+            self._drop()
+
+    def hold(self, hook: str, kwargs: dict[str, Any]) -> None:
+        """On the loop: queued at the :meth:`release` after this step (never waits)."""
+        if len(self.items) + len(self.held) >= QUEUE_SIZE:
+            self._drop()
+        else:
+            self.held.append((hook, kwargs))
+
+    def release(self) -> None:
+        """On the loop: the events held so far to the thread, in one wake-up."""
+        if self.held:
+            held, self.held = self.held, []
+            self.items.extend(held)
+            self._kick()
+
+    def _drop(self) -> None:
+        self.dropped += 1
+        if self.dropped in (1, 100, 10_000):
+            log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
 
     def _put(self, item: object) -> bool:
-        """Queue ``item`` unless the queue is full (on the loop: never waits)."""
+        """Queue ``item`` unless the queue is full (never waits)."""
         if len(self.items) >= QUEUE_SIZE:
             return False
         self.items.append(item)
+        self._kick()
+        return True
+
+    def _kick(self) -> None:
         if self._idle:  # one wake-up; what follows gathers while the thread works
             self._idle = False
             self._wake.set()
-        return True
 
     def _run(self) -> None:
         self.host.thread_setup(self.name in self.host.below_loop)
@@ -170,12 +193,12 @@ class _Worker:
                     self.host.call_one(self.name, hook, **kwargs)
                 finally:
                     self.busy = None
-            time.sleep(GATHER_S)
 
     def ask_to_end(self) -> bool:
         """The end marker after what is queued (so files get their last rows); False
         while the queue is full (a stuck hook): never waited for."""
         if not self.asked:
+            self.release()  # what the loop held goes first
             if not self._put(_STOP):
                 return False
             self.asked = True
@@ -233,6 +256,7 @@ class PluginHost:
         self.demote: Callable[[int], None] = lambda native_id: None  # one thread to normal
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._releasing = False  # a release of the workers' held events is queued
         self.outputs: list[tuple[str, str]] = []  # (file, where it is set) plugins write
         self._load(config, installed() if available is None else available)
 
@@ -645,7 +669,16 @@ class PluginHost:
         else:
             return
         for worker in self.workers.values():
-            worker.post(hook, kwargs)
+            worker.hold(hook, kwargs)
+        if not self._releasing:  # once, after the step (the loop's callback) that held them
+            assert self._loop is not None
+            self._releasing = True
+            self._loop.call_soon(self._release)
+
+    def _release(self) -> None:
+        self._releasing = False
+        for worker in self.workers.values():
+            worker.release()
 
     def stop_inputs(self) -> None:
         """First on the way out: no input may command anything after this. Idempotent."""

@@ -243,9 +243,10 @@ class Runtime:
             bus = open_bus(cfg)
             self._buses.append(bus)
             _refuse_in_fault_windows(bus, cfg.simulate, loop)
+            scheduler = self.supervisor.schedulers[name]
             self.pumps[name] = BusPump(
                 bus,
-                self.supervisor.schedulers[name],
+                scheduler,
                 name=name,
                 channel=cfg.channel,
                 after_step=functools.partial(self.supervisor.dispatch, name),
@@ -253,6 +254,7 @@ class Runtime:
                 on_fatal=self._on_fatal,
                 health=self.supervisor.bus_health[name],
                 batch_s=READ_BATCH_S,  # a frame waits for the next step if one is near
+                turns=scheduler,  # a turn's replies: read by the next turn
             )
         if self.plugins is not None:  # before any frame: a plugin that cannot start
 

@@ -410,6 +410,23 @@ class BusScheduler:
     def _params_work(self) -> None:
         self._params_active = True
 
+    def read_by(self, now: float) -> float:
+        """When the pump must read what comes from ``now`` on (scheduler/pump.py,
+        ``Turns``): by the next command or status poll on a unit's grid, as if every
+        reply in flight had been read (:meth:`next_deadline` waits for them); ``now``
+        (as it comes) while a reply is due by its unit's grid already, or a parameter
+        session is queued or open, each of the drive's frames bringing our next."""
+        if self._params_active:
+            return now
+        turn = math.inf
+        for slot in self._slots:
+            if slot.next_command <= now and slot.dp0_sent_at is not None:
+                return now  # the reply is late: the command waits for it
+            if slot.polls and slot.next_poll <= now and slot.poll_sent_at is not None:
+                return now
+            turn = min(turn, slot.next_command, slot.next_poll if slot.polls else turn)
+        return turn
+
     def request_status(self, unit: str, packet: int) -> None:
         """Ask for broadcast ``packet`` once, at the next free poll turn (seed ``brd_num``).
 

@@ -15,15 +15,19 @@ once (a robot's drives, each waiting for its own reply, still send in one step).
 most ``batch_s`` away the source is not watched — that step reads what came meanwhile.
 Each frame keeps the time it came (its receive timestamp, bounded by the previous read),
 and every decision the machine takes in a step follows a read, so nothing is decided on
-stale frames; what waits is only the frames' delivery to the observers, by less than
-``batch_s``. With several turns of units staggered over a period the loop then does not
-wake once more for every reply: the CPU a wake-up costs is most of what an exchange
+stale frames; what waits is only the frames' delivery to the observers, by at most
+``batch_s``. After a step that sent, the source is not watched either: the replies to
+what it sent are read together by the next step, which the pump brings at the next turn
+on the units' grid (``turns``: :meth:`Turns.read_by`) or ``batch_s`` later, whichever
+comes first — at 100 Hz that is the units' next turn, so
+4 units at 100 Hz wake the loop once a period instead of once for the turn and once for
+its replies (or once per reply): the CPU a wake-up costs is most of what an exchange
 costs (docs/performance.md, sections 10 and 12; the scheduler puts up to the bus's
-``units_per_turn`` units in one turn). After a step that sent, with the next deadline
-further than ``batch_s``, the pump reads again ``batch_s / 2`` later instead of
-watching at once, so the replies to a turn are read in one wake-up, not one each; from
-that read on it watches. The simulator's pumps (``batch_s`` 0) watch
-whenever their next deadline is not now.
+``units_per_turn`` units in one turn). After a step that did not send, with the next
+deadline further than ``batch_s``, the pump watches; and while a reply is overdue or
+the machine is in a conversation (a parameter session, each answer bringing its next
+frame) it watches after sending too. The simulator's pumps (``batch_s`` 0) watch whenever their next
+deadline is not now.
 """
 
 from __future__ import annotations
@@ -41,9 +45,10 @@ from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.scheduler.sources import RETRY_S, FdSource, FrameSource, ThreadSource
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
-# the supervisor's pumps: frames may wait this long for the next step (4 units at 100 Hz
-# step every 2.5 ms, 2 every 5 ms); the observers see them at most this much later
-READ_BATCH_S = 0.005
+# the supervisor's pumps: frames may wait this long for the next step (one period at
+# 100 Hz, so 4 units at 100 Hz wake the loop once a period); the observers see them at
+# most this much later
+READ_BATCH_S = 0.010
 MAX_READ = 64  # frames read before a step: a flood cannot hold the loop (the rest next)
 log = logging.getLogger(__name__)
 
@@ -54,6 +59,17 @@ class Machine(Protocol):
     def next_deadline(self) -> float: ...
     def on_send_failed(self, arbitration_id: int) -> None: ...
     def on_bad_frame(self, arbitration_id: int, now: float, reason: str) -> None: ...
+
+
+class Turns(Protocol):
+    """What a batching pump asks of its machine's schedule (the bus scheduler's)."""
+
+    def read_by(self, now: float) -> float:
+        """When the frames that come from ``now`` on must be read: the next turn on the
+        units' grid (as if every reply in flight had been read: the machine's own
+        deadline waits for them, as it cannot know they came), or ``now`` — as they come
+        — while a reply is overdue or a conversation goes on."""
+        ...
 
 
 class BusPump:
@@ -69,6 +85,7 @@ class BusPump:
         on_fatal: Callable[[BaseException], None] | None = None,
         health: BusHealth | None = None,
         batch_s: float = 0.0,
+        turns: Turns | None = None,
     ) -> None:
         self.bus, self.machine, self.name, self.channel = bus, machine, name, channel
         self.after_step = after_step
@@ -79,6 +96,7 @@ class BusPump:
         self._source: FrameSource | None = None
         self._running = False
         self.batch_s = batch_s
+        self.turns = turns
         self._read_at = 0.0  # when the bus was last read to the end
         self._last_t = 0.0  # the time given to the last frame read
         self._resume_at = 0.0  # a receive failed: reading rests until then
@@ -225,16 +243,25 @@ class BusPump:
         if self.after_step is not None:
             self.after_step()
         deadline = self.machine.next_deadline()
-        far = deadline - self.loop.time() > self.batch_s
-        # a turn was sent and nothing else falls due soon: its replies are read together,
-        # half a batch later, rather than each waking the loop as it comes
-        gather = bool(out) and far and self.batch_s > 0 and math.isfinite(deadline)
+        # a turn was sent: its replies are read together by the next turn's step, at most
+        # a batch later, rather than each waking the loop as it comes (at 100 Hz: one
+        # wake-up a period); the grid's time, not now's, or each turn would leave late by
+        # the step's own latency
+        hold = urgent = False  # urgent: a reply overdue, a conversation (read as they come)
+        if self.batch_s > 0:
+            read_by = now + self.batch_s
+            if self.turns is not None:
+                read_by = min(read_by, self.turns.read_by(now))
+            urgent = read_by <= now
+            hold = bool(out) and not urgent
+            if hold:
+                deadline = min(deadline, read_by)
         if not self._running or not math.isfinite(deadline):
             self._timer.cancel()
         else:
-            self._timer.arm(now + self.batch_s / 2 if gather else deadline)
+            self._timer.arm(deadline)
         if self._running and self.loop.time() >= self._resume_at:
-            self._watch(far and not gather)
+            self._watch(urgent or (not hold and deadline - self.loop.time() > self.batch_s))
 
     def wake(self) -> None:
         """Step now (on the loop): new work was queued outside the schedule."""
