@@ -163,3 +163,46 @@ def test_a_direct_call_missing_an_argument_fails_as_pluggy_s_would() -> None:
     assert plain.seen == [] and host.failures == {"plain": 1}
     with pytest.raises(pluggy.HookCallError, match="'online'"):
         host._ignoring["plain", "abh3_health"](unit="u", t=1.0)
+
+
+class Counting:
+    """What a worker uses of its host: counts its calls, and lets a test wait for them."""
+
+    below_loop: frozenset[str] = frozenset()
+
+    def __init__(self) -> None:
+        self.calls: list[int] = []
+        self.changed = threading.Condition()
+
+    def thread_setup(self, below_loop: bool) -> None:
+        pass
+
+    def call_one(self, name: str, hook: str, **kwargs: Any) -> None:
+        with self.changed:
+            self.calls.append(kwargs["i"])
+            self.changed.notify_all()
+
+    def wait_for(self, n: int) -> None:
+        with self.changed:
+            assert self.changed.wait_for(lambda: len(self.calls) >= n, timeout=10)
+
+
+def test_batches_start_at_least_a_spacing_apart(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bus watched frame by frame releases events at every frame: the thread rests
+    the remainder of ``SPACING_S`` before a batch that comes sooner after the last."""
+    clock = [100.0]
+    rests: list[float] = []
+    monkeypatch.setattr(time, "monotonic", lambda: clock[0])  # the module host.py uses
+    monkeypatch.setattr(time, "sleep", rests.append)  # the rest, not slept
+    host = Counting()
+    worker = host_module._Worker(host, "p")  # type: ignore[arg-type]
+    worker.post("abh3_tick", {"i": 0})  # the first batch, at 100.0
+    host.wait_for(1)
+    clock[0] += 0.001
+    worker.post("abh3_tick", {"i": 1})  # 1 ms later: rests 3 ms first
+    host.wait_for(2)
+    clock[0] += 0.010
+    worker.post("abh3_tick", {"i": 2})  # long after: at once
+    host.wait_for(3)
+    assert host.calls == [0, 1, 2] and rests == [pytest.approx(0.003)]
+    worker.close(clock[0] + 10)

@@ -344,22 +344,34 @@ def test_turns_at_different_rates_never_land_on_one_another() -> None:
 
 def test_a_turns_replies_are_to_be_read_by_the_next_turn_on_the_grid() -> None:
     """``read_by`` (the pump's Turns): the next command or poll on the grid, though the
-    exchanges in flight make the deadline wait for their replies; ``now`` while a reply
-    is overdue (its unit's command waits for it) or a parameter session is on."""
-    cfg = parse_config(
+    exchanges in flight make the deadline wait for their replies; ``now`` while an
+    online unit's reply is late past its turn (its command waits for it) or a parameter
+    session is on; a late status reply or a unit not heard is never urgent."""
+    text = (
         "buses: {b: {}}\nunits:\n"
-        "  - {name: u, command_rate_hz: 100, broadcast: {mask: 0x01, rate_hz: 10}}\n",
-        "c.yaml",
+        "  - {name: u, command_rate_hz: 100, broadcast: {mask: 0x01, rate_hz: 10}}\n"
     )
-    sched = BusScheduler(cfg.units.values(), now=0.0)
+    reply = ids.dp0_reply_id(1, 2)
+    sched = BusScheduler(parse_config(text, "c.yaml").units.values(), now=0.0)
     assert len(sched.poll(0.0)) == 1  # the command
-    assert sched.read_by(0.0) == pytest.approx(0.005)  # the poll, half a period on
-    assert len(sched.poll(0.005)) == 1  # the poll; the command's exchange still unread
-    assert sched.next_deadline() > 0.05  # the next command waits for its reply...
-    assert sched.read_by(0.005) == pytest.approx(0.010)  # ...which is read by its turn
-    assert sched.read_by(0.0101) == 0.0101  # not read by then: overdue, read as it comes
-    sched.on_frame(ids.dp0_reply_id(1, 2), bytes(8), 0.0008)
-    assert len(sched.poll(0.0101)) == 1  # the next command, late by the reply
-    assert sched.read_by(0.0101) == pytest.approx(0.020)
+    sched.on_frame(reply, bytes(8), 0.0008)  # heard: online
+    assert sched.read_by(0.0008) == pytest.approx(0.005)  # the poll, half a period on
+    assert len(sched.poll(0.005)) == 1  # the poll (its reply never comes)
+    assert len(sched.poll(0.010)) == 1  # the next command; its reply not read yet
+    assert sched.next_deadline() > 0.05  # the command after it waits for that reply...
+    assert sched.read_by(0.010) == pytest.approx(0.020)  # ...which is read by its turn
+    assert sched.read_by(0.0201) == 0.0201  # not read by then: late, read as it comes
+    sched.on_frame(reply, bytes(8), 0.0202)
+    assert len(sched.poll(0.0202)) == 1  # the next command, late by the reply
+    assert sched.read_by(0.0202) == pytest.approx(0.030)
+    slot = sched.slots["u"]
+    slot.next_poll = 0.0201  # the poll's turn passed, its request unanswered: not urgent
+    assert sched.read_by(0.0202) == pytest.approx(0.030)
     sched.params["u"].on_work()  # a parameter session queued: answers as they come
-    assert sched.read_by(0.0101) == 0.0101
+    assert sched.read_by(0.0202) == 0.0202
+
+    silent = BusScheduler(parse_config(text, "c.yaml").units.values(), now=0.0)
+    silent.poll(0.0)
+    silent.poll(0.005)
+    assert silent.poll(0.010) == []  # never heard: the command waits for its timeout
+    assert silent.read_by(0.0101) == pytest.approx(0.105)  # not urgent: the next poll

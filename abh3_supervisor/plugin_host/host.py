@@ -58,6 +58,9 @@ STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
 DRAIN_DEADLINE_S = 5.0  # every worker's queue together, on the way out
 LEFTOVER_GRACE_S = 1.0  # threads (not daemons) a plugin left running, after the run
 STUCK_S = 3.0  # a hook running longer is logged at once (the queue fills much later)
+# a worker's batches start at least this far apart: a bus watched frame by frame, or
+# several buses, release events far more often than once a period
+SPACING_S = 0.004
 _STOP = object()
 
 
@@ -121,6 +124,10 @@ class _Worker:
     interpreter lock it takes from the loop) then wakes once per step of the loop that
     had events — about once a bus period — instead of once per event, never in the
     middle of a step, and each event reaches the plugin as soon as its step is done.
+    Batches start at least ``SPACING_S`` apart: released sooner, the thread rests the
+    remainder first (a watched bus steps once per frame; several buses step apart).
+    A tick is queued when it comes: it may run before the events of a loop step still
+    in progress.
     """
 
     def __init__(self, host: PluginHost, name: str) -> None:
@@ -162,7 +169,7 @@ class _Worker:
 
     def _put(self, item: object) -> bool:
         """Queue ``item`` unless the queue is full (never waits)."""
-        if len(self.items) >= QUEUE_SIZE:
+        if len(self.items) + len(self.held) >= QUEUE_SIZE:
             return False
         self.items.append(item)
         self._kick()
@@ -176,6 +183,7 @@ class _Worker:
     def _run(self) -> None:
         self.host.thread_setup(self.name in self.host.below_loop)
         items = self.items
+        began = -SPACING_S
         while True:
             if not items:
                 self._idle = True
@@ -183,6 +191,10 @@ class _Worker:
                     self._wake.wait()
                 self._idle = False
                 self._wake.clear()
+            rest = began + SPACING_S - time.monotonic()
+            if rest > 0:
+                time.sleep(rest)  # what is released meanwhile joins this batch
+            began = time.monotonic()
             while items:
                 item = items.popleft()
                 if item is _STOP:

@@ -1,9 +1,11 @@
 """``abh3_tick``: a plugin's periodic call, at its section's ``tick_hz``.
 
 One timer thread per plugin that implements the hook posts ``abh3_tick(t)`` to the
-plugin's worker, so the tick runs on the same thread as its other observation hooks, in
-order with them (no locks needed between them). The timer keeps a fixed grid (a late
-tick does not shift the next); it sleeps on an event, so closing it is immediate.
+plugin's worker, so the tick runs on the same thread as its other observation hooks, one
+at a time with them (no locks needed between them); queued when it falls due, it may run
+before the events of a bus-loop step still in progress (host.py, ``_Worker``). The timer
+keeps a fixed grid (a late tick does not shift the next); it sleeps on an event, so
+closing it is immediate.
 ``tick_hz`` is the host's key, valid in every section, like ``on_error``: the plugin
 never sees it.
 """

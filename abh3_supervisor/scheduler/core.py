@@ -414,17 +414,20 @@ class BusScheduler:
         """When the pump must read what comes from ``now`` on (scheduler/pump.py,
         ``Turns``): by the next command or status poll on a unit's grid, as if every
         reply in flight had been read (:meth:`next_deadline` waits for them); ``now``
-        (as it comes) while a reply is due by its unit's grid already, or a parameter
-        session is queued or open, each of the drive's frames bringing our next."""
+        (as it comes) while an online unit's reply is late past its turn (its command
+        waits for it), or a parameter session is queued or open, each of the drive's
+        frames bringing our next. A late status reply holds back no command, and a unit
+        not heard (offline, or not yet) keeps to its deadlines: neither is urgent."""
         if self._params_active:
             return now
         turn = math.inf
         for slot in self._slots:
-            if slot.next_command <= now and slot.dp0_sent_at is not None:
-                return now  # the reply is late: the command waits for it
-            if slot.polls and slot.next_poll <= now and slot.poll_sent_at is not None:
+            if slot.next_command > now:
+                turn = min(turn, slot.next_command)
+            elif slot.dp0_sent_at is not None and slot.online:
                 return now
-            turn = min(turn, slot.next_command, slot.next_poll if slot.polls else turn)
+            if slot.polls and now < slot.next_poll < turn:
+                turn = slot.next_poll
         return turn
 
     def request_status(self, unit: str, packet: int) -> None:
