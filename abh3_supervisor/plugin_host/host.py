@@ -150,7 +150,7 @@ class _Worker:
 
     def hold(self, hook: str, kwargs: dict[str, Any]) -> None:
         """On the loop: queued at the :meth:`release` after this step (never waits)."""
-        if len(self.items) + len(self.held) >= QUEUE_SIZE:
+        if self._full():
             self._drop()
         else:
             self.held.append((hook, kwargs))
@@ -167,9 +167,13 @@ class _Worker:
         if self.dropped in (1, 100, 10_000):
             log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
 
+    def _full(self) -> bool:
+        """The bound counts what is queued and what the loop holds for it."""
+        return len(self.items) + len(self.held) >= QUEUE_SIZE
+
     def _put(self, item: object) -> bool:
         """Queue ``item`` unless the queue is full (never waits)."""
-        if len(self.items) + len(self.held) >= QUEUE_SIZE:
+        if self._full():
             return False
         self.items.append(item)
         self._kick()

@@ -19,14 +19,14 @@ stale frames; what waits is only the frames' delivery to the observers, by at mo
 ``batch_s``. After a step that sent, the source is not watched either: the replies to
 what it sent are read together by the next step, which the pump brings at the next turn
 on the units' grid (``turns``: :meth:`Turns.read_by`) or ``batch_s`` later, whichever
-comes first — at 100 Hz that is the units' next turn, so
-4 units at 100 Hz wake the loop once a period instead of once for the turn and once for
-its replies (or once per reply): the CPU a wake-up costs is most of what an exchange
-costs (docs/performance.md, sections 10 and 12; the scheduler puts up to the bus's
-``units_per_turn`` units in one turn). After a step that did not send, with the next
-deadline further than ``batch_s``, the pump watches; and while a reply is overdue or
-the machine is in a conversation (a parameter session, each answer bringing its next
-frame) it watches after sending too. The simulator's pumps (``batch_s`` 0) watch whenever their next
+comes first. At 100 Hz that is the units' next turn, so 4 units at 100 Hz wake the loop
+once a period instead of once for the turn and once for its replies (or once per
+reply): the CPU a wake-up costs is most of what an exchange costs (docs/performance.md,
+sections 10 and 12; the scheduler puts up to the bus's ``units_per_turn`` units in one
+turn). After a step that did not send, the pump watches while the next deadline is
+further than ``batch_s``; and while a reply is overdue or the machine is in a
+conversation (a parameter session, each answer bringing its next frame) it watches
+after any step. The simulator's pumps (``batch_s`` 0) watch whenever their next
 deadline is not now.
 """
 
