@@ -5,9 +5,10 @@ for the bus loop's events, once per step of the loop, after it."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import threading
 import time
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from typing import Any, cast
 
 import pluggy
@@ -187,22 +188,150 @@ class Counting:
             assert self.changed.wait_for(lambda: len(self.calls) >= n, timeout=10)
 
 
+class VirtualTime:
+    """``time.monotonic`` and ``time.sleep`` for a worker stepped by the test: a sleep
+    is recorded and moves the clock on at once, doing on the way what was due (``at``:
+    the loop's releases)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.now = 100.0
+        self.rests: list[float] = []
+        self.due: list[tuple[float, Callable[[], None]]] = []
+        monkeypatch.setattr(time, "monotonic", lambda: self.now)  # the module host.py uses
+        monkeypatch.setattr(time, "sleep", self.sleep)
+
+    def at(self, when: float, action: Callable[[], None]) -> None:
+        self.due = sorted([*self.due, (when, action)], key=lambda entry: entry[0])
+
+    def sleep(self, rest: float) -> None:
+        self.rests.append(rest)
+        self.advance(rest)
+
+    def advance(self, dt: float) -> None:
+        end = self.now + dt
+        while self.due and self.due[0][0] <= end:
+            self.now, action = self.due.pop(0)
+            action()
+        self.now = end
+
+
+class Woken:
+    """A stepped worker's wake-up: a wait lets ``late`` pass on the virtual clock, in
+    which a release must wake it (else the test fails: it would wait for ever)."""
+
+    def __init__(self, t: VirtualTime) -> None:
+        self.t, self.flag, self.late, self.waits = t, False, 0.0, 0
+
+    def set(self) -> None:
+        self.flag = True
+
+    def clear(self) -> None:
+        self.flag = False
+
+    def wait(self, timeout: float | None = None) -> bool:
+        self.waits += 1
+        self.t.advance(self.late)
+        assert self.flag, "the thread would wait to be woken"
+        return True
+
+
+def stepped_worker(t: VirtualTime) -> tuple[host_module._Worker, Woken]:
+    """A worker whose thread is not started: the test calls its waits itself."""
+    worker = host_module._Worker(Counting(), "p", start=False)  # type: ignore[arg-type]
+    woken = Woken(t)
+    worker._wake = woken  # type: ignore[assignment]
+    return worker, woken
+
+
+def batch(worker: host_module._Worker) -> None:
+    """The worker's next batch begins (its wait), and takes what is queued."""
+    worker._next_batch()
+    worker.items.clear()
+
+
+def release(worker: host_module._Worker) -> None:
+    """A loop step's events, handed over."""
+    worker.hold("abh3_tick", {"i": 0})
+    worker.release()
+
+
 def test_batches_start_at_least_a_spacing_apart(monkeypatch: pytest.MonkeyPatch) -> None:
     """A bus watched frame by frame releases events at every frame: the thread rests
     the remainder of ``SPACING_S`` before a batch that comes sooner after the last."""
-    clock = [100.0]
-    rests: list[float] = []
-    monkeypatch.setattr(time, "monotonic", lambda: clock[0])  # the module host.py uses
-    monkeypatch.setattr(time, "sleep", rests.append)  # the rest, not slept
-    host = Counting()
-    worker = host_module._Worker(host, "p")  # type: ignore[arg-type]
-    worker.post("abh3_tick", {"i": 0})  # the first batch, at 100.0
-    host.wait_for(1)
-    clock[0] += 0.001
-    worker.post("abh3_tick", {"i": 1})  # 1 ms later: rests 3 ms first
-    host.wait_for(2)
-    clock[0] += 0.010
-    worker.post("abh3_tick", {"i": 2})  # long after: at once
-    host.wait_for(3)
-    assert host.calls == [0, 1, 2] and rests == [pytest.approx(0.003)]
-    worker.close(clock[0] + 10)
+    t = VirtualTime(monkeypatch)
+    worker, _ = stepped_worker(t)
+    release(worker)  # the first batch, at 100.0: at once
+    batch(worker)
+    assert worker.began == 100.0 and t.rests == []
+    t.now += 0.001
+    release(worker)  # 1 ms later: rests the remainder first
+    batch(worker)
+    assert t.rests == [pytest.approx(host_module.SPACING_S - 0.001)]
+    t.now += 0.5
+    release(worker)  # long after: at once
+    batch(worker)
+    assert len(t.rests) == 1 and worker.began == t.now
+
+
+def paced(t: VirtualTime, worker: host_module._Worker, woken: Woken) -> float:
+    """The loop releases a step's events every 10 ms from 100.0 on (a bus at 100 Hz);
+    the first two batches, woken by it. When the second began."""
+    period = host_module.SPACING_S
+    for k in range(1, 10):
+        t.at(100.0 + k * period, functools.partial(release, worker))
+    release(worker)
+    batch(worker)
+    woken.late = period  # the thread waits for the next release, which wakes it
+    batch(worker)
+    assert woken.waits == 1 and worker.began == pytest.approx(100.0 + period)
+    return worker.began
+
+
+def test_while_batches_come_a_spacing_apart_the_thread_sleeps_to_the_next_release(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A bus at 100 Hz: the thread sleeps until just after the loop's next release is
+    due and finds its events there; it never waits to be woken again."""
+    t = VirtualTime(monkeypatch)
+    worker, woken = stepped_worker(t)
+    began, period = paced(t, worker, woken), host_module.SPACING_S
+    for n in range(1, 6):
+        batch(worker)
+        assert worker.began == pytest.approx(began + n * period + host_module.LAG_S)
+    assert woken.waits == 1  # never waited to be woken again
+
+
+def test_a_release_that_is_late_is_waited_for_and_the_pace_taken_from_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A late step: nothing waits when the thread wakes, so it waits to be woken; once
+    the releases come a spacing apart again it sleeps to them by itself."""
+    t = VirtualTime(monkeypatch)
+    worker, woken = stepped_worker(t)
+    began, period = paced(t, worker, woken), host_module.SPACING_S
+    late = 0.003
+    t.due = [(when + late, action) for when, action in t.due]  # from now on 3 ms late
+    woken.late = late - host_module.LAG_S  # the next release comes after the wake-up
+    batch(worker)
+    assert woken.waits == 2 and worker.began == pytest.approx(began + period + late)
+    woken.late = period  # 13 ms since the last release: woken by the next one too
+    batch(worker)
+    assert woken.waits == 3 and worker.began == pytest.approx(began + 2 * period + late)
+    batch(worker)  # a spacing apart again: by itself
+    assert worker.began == pytest.approx(began + 3 * period + late + host_module.LAG_S)
+
+
+def test_releases_further_apart_than_a_spacing_are_waited_for_without_a_wasted_wake_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A bus at 50 Hz: the thread sleeps to nothing it would not find, it is woken."""
+    t = VirtualTime(monkeypatch)
+    worker, woken = stepped_worker(t)
+    for k in range(1, 6):
+        t.at(100.0 + k * 0.020, functools.partial(release, worker))
+    release(worker)
+    batch(worker)
+    woken.late = 0.0201  # each wait sees the next release
+    for _ in range(5):
+        batch(worker)
+    assert woken.waits == 5 and t.rests == []

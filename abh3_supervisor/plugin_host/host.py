@@ -21,6 +21,7 @@ import _thread
 import asyncio
 import functools
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -59,8 +60,12 @@ DRAIN_DEADLINE_S = 5.0  # every worker's queue together, on the way out
 LEFTOVER_GRACE_S = 1.0  # threads (not daemons) a plugin left running, after the run
 STUCK_S = 3.0  # a hook running longer is logged at once (the queue fills much later)
 # a worker's batches start at least this far apart: a bus watched frame by frame, or
-# several buses, release events far more often than once a period
-SPACING_S = 0.004
+# several buses, release events far more often than once a period (one at 100 Hz)
+SPACING_S = 0.010
+# while the loop releases events about a spacing apart, the worker wakes by itself this
+# long after the next release is due; "about": up to PACED_S, which such a wake-up finds
+LAG_S = 0.001
+PACED_S = SPACING_S + LAG_S
 _STOP = object()
 
 
@@ -114,24 +119,39 @@ def _ignoring_result(caller: Any) -> Callable[..., object]:
     return call
 
 
+def _sleep_until(when: float) -> None:
+    rest = when - time.monotonic()
+    if rest > 0:
+        time.sleep(rest)
+
+
 class _Worker:
     """One plugin's observation hooks, run in order on a thread of its own.
 
     The loop holds the events of one of its steps (:meth:`hold`) and hands them over
     together when the step is done (:meth:`release`); other threads (the tick's)
     :meth:`post`. Either appends to a bounded deque and wakes the thread only when it
-    sleeps for want of work. At hundreds of events a second the thread (and the
-    interpreter lock it takes from the loop) then wakes once per step of the loop that
-    had events — about once a bus period — instead of once per event, never in the
-    middle of a step, and each event reaches the plugin as soon as its step is done.
+    waits for work. At hundreds of events a second the thread (and the interpreter lock
+    it takes from the loop) then runs once per step of the loop that had events — about
+    once a bus period — instead of once per event, never in the middle of a step.
     Batches start at least ``SPACING_S`` apart: released sooner, the thread rests the
     remainder first (a watched bus steps once per frame; several buses step apart).
-    A tick is queued when it comes: it may run before the events of a loop step still
-    in progress.
+    While the loop releases about a spacing apart (a bus at 100 Hz), the thread does not
+    wait to be woken: it sleeps until ``LAG_S`` after the next release is due (a
+    spacing after the last) and finds the events there. A wake-up from another thread
+    costs the waker an interrupt to the sleeper's processor: at 100 a second about half
+    a point of a core on this VM, most of it the loop's (docs/performance.md, section
+    12). When nothing is there (the step was late), it waits for the loop. A tick is
+    queued when it comes: it may run before the events of a loop step in progress.
     """
 
-    def __init__(self, host: PluginHost, name: str) -> None:
+    def __init__(self, host: PluginHost, name: str, *, start: bool = True) -> None:
+        """``start``: False leaves the thread unstarted (a test steps its waits itself)."""
         self.host, self.name = host, name
+        self.began = 0.0  # when this batch began (monotonic)
+        self.released_at = -math.inf  # the loop's last release
+        # the releases the last two batches began with: the loop's pace
+        self.taken = (-math.inf, -math.inf)
         self.items: deque[object] = deque()
         self.held: list[object] = []  # this step's events, on the loop: see release()
         self._wake = threading.Event()
@@ -141,7 +161,8 @@ class _Worker:
         self.busy: tuple[str, float] | None = None
         self.asked = False  # the end marker is queued
         self.thread = threading.Thread(target=self._run, name=f"plugin {name}", daemon=True)
-        self.thread.start()
+        if start:
+            self.thread.start()
 
     def post(self, hook: str, kwargs: dict[str, Any]) -> None:
         """Queued now, from any thread (never waits)."""
@@ -160,6 +181,7 @@ class _Worker:
         if self.held:
             held, self.held = self.held, []
             self.items.extend(held)
+            self.released_at = time.monotonic()
             self._kick()
 
     def _drop(self) -> None:
@@ -187,18 +209,8 @@ class _Worker:
     def _run(self) -> None:
         self.host.thread_setup(self.name in self.host.below_loop)
         items = self.items
-        began = -SPACING_S
         while True:
-            if not items:
-                self._idle = True
-                if not items:  # an item appended before _idle was seen: no wait for it
-                    self._wake.wait()
-                self._idle = False
-                self._wake.clear()
-            rest = began + SPACING_S - time.monotonic()
-            if rest > 0:
-                time.sleep(rest)  # what is released meanwhile joins this batch
-            began = time.monotonic()
+            self._next_batch()
             while items:
                 item = items.popleft()
                 if item is _STOP:
@@ -209,6 +221,26 @@ class _Worker:
                     self.host.call_one(self.name, hook, **kwargs)
                 finally:
                     self.busy = None
+
+    def _next_batch(self) -> None:
+        """Until the next batch begins: the loop's next release, slept to while the
+        releases come about a spacing apart, else waited for; and at least a spacing
+        after the last batch began (what is released meanwhile joins this one)."""
+        items = self.items
+        found = False  # by sleeping to the next release
+        if not items and self.taken[1] - self.taken[0] <= PACED_S:
+            _sleep_until(self.released_at + SPACING_S + LAG_S)
+            found = bool(items)
+        if not items:
+            self._idle = True
+            if not items:  # an item appended before _idle was seen: no wait for it
+                self._wake.wait()
+            self._idle = False
+            self._wake.clear()
+        if not found:  # (else a second sleep of the first one's overshoot)
+            _sleep_until(self.began + SPACING_S)
+        self.began = time.monotonic()
+        self.taken = self.taken[1], self.released_at
 
     def ask_to_end(self) -> bool:
         """The end marker after what is queued (so files get their last rows); False
