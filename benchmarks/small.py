@@ -108,11 +108,13 @@ async def _counters(sock: Path) -> dict[str, int]:
 
 
 @contextlib.contextmanager
-def _tui(sock: Path) -> Iterator[subprocess.Popen[bytes]]:
-    tui = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.tui_client", str(sock), "3600"],
-        cwd=alone.ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
+def _tui(sock: Path, err: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """The attached TUI; what it says on stderr goes to ``err``."""
+    with err.open("w") as said:
+        tui = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks.tui_client", str(sock), "3600"],
+            cwd=alone.ROOT, stdout=subprocess.DEVNULL, stderr=said,
+        )  # fmt: skip
     try:
         yield tui
     finally:
@@ -203,7 +205,8 @@ def run(
 
 
 class NotStarted(RuntimeError):
-    """``abh3 run`` did not get its units running: the line it said why."""
+    """``abh3 run`` did not get its units running, or its attached TUI gave up within
+    the share: the line that says why (the run does not hold)."""
 
 
 def _said(log: Path) -> str:
@@ -251,7 +254,8 @@ def _supervised(
             if time.monotonic() > deadline:
                 raise NotStarted(f"not running within {deadline - started:.0f} s, {_said(log)}")
             time.sleep(0.05)
-        with _tui(sock) if tui else contextlib.nullcontext() as attached:
+        tui_err = tmp / "tui.err"
+        with _tui(sock, tui_err) if tui else contextlib.nullcontext() as attached:
             time.sleep(SETTLE_S + alone.WARMUP_S)  # attached, drawn, discovered
             before, held = asyncio.run(_counters(sock)), limit.throttled()
             window = alone._measure({"supervisor": sup.pid, "simulator": sim_pid}, seconds)
@@ -259,7 +263,8 @@ def _supervised(
             if sup.poll() is not None:
                 raise RuntimeError(f"abh3 run ended during the window:\n{log.read_text()}")
             if attached is not None and attached.poll() is not None:
-                raise RuntimeError("the attached TUI ended during the window")
+                # an operator's TUI that cannot stay attached: the share does not carry it
+                raise NotStarted(f"the attached TUI ended during the window: {_said(tui_err)}")
     finally:
         alone._stop(sup)
     timeouts = sum(after[name] - before.get(name, 0) for name in after)
