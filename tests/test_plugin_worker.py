@@ -166,28 +166,6 @@ def test_a_direct_call_missing_an_argument_fails_as_pluggy_s_would() -> None:
         host._ignoring["plain", "abh3_health"](unit="u", t=1.0)
 
 
-class Counting:
-    """What a worker uses of its host: counts its calls, and lets a test wait for them."""
-
-    below_loop: frozenset[str] = frozenset()
-
-    def __init__(self) -> None:
-        self.calls: list[int] = []
-        self.changed = threading.Condition()
-
-    def thread_setup(self, below_loop: bool) -> None:
-        pass
-
-    def call_one(self, name: str, hook: str, **kwargs: Any) -> None:
-        with self.changed:
-            self.calls.append(kwargs["i"])
-            self.changed.notify_all()
-
-    def wait_for(self, n: int) -> None:
-        with self.changed:
-            assert self.changed.wait_for(lambda: len(self.calls) >= n, timeout=10)
-
-
 class VirtualTime:
     """``time.monotonic`` and ``time.sleep`` for a worker stepped by the test: a sleep
     is recorded and moves the clock on at once, doing on the way what was due (``at``:
@@ -236,8 +214,9 @@ class Woken:
 
 
 def stepped_worker(t: VirtualTime) -> tuple[host_module._Worker, Woken]:
-    """A worker whose thread is not started: the test calls its waits itself."""
-    worker = host_module._Worker(Counting(), "p", start=False)  # type: ignore[arg-type]
+    """A worker whose thread is not started: the test calls its waits itself (its host
+    is never called)."""
+    worker = host_module._Worker(Host(), "p", start=False)  # type: ignore[arg-type]
     woken = Woken(t)
     worker._wake = woken  # type: ignore[assignment]
     return worker, woken

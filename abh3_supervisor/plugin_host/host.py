@@ -150,8 +150,9 @@ class _Worker:
         self.host, self.name = host, name
         self.began = 0.0  # when this batch began (monotonic)
         self.released_at = -math.inf  # the loop's last release
-        # the releases the last two batches began with: the loop's pace
-        self.taken = (-math.inf, -math.inf)
+        self.took = -math.inf  # the release the last batch began with
+        # the last two batches began with releases about a spacing apart: the loop's pace
+        self.paced = False
         self.items: deque[object] = deque()
         self.held: list[object] = []  # this step's events, on the loop: see release()
         self._wake = threading.Event()
@@ -228,7 +229,7 @@ class _Worker:
         after the last batch began (what is released meanwhile joins this one)."""
         items = self.items
         found = False  # by sleeping to the next release
-        if not items and self.taken[1] - self.taken[0] <= PACED_S:
+        if not items and self.paced:
             _sleep_until(self.released_at + SPACING_S + LAG_S)
             found = bool(items)
         if not items:
@@ -240,7 +241,8 @@ class _Worker:
         if not found:  # (else a second sleep of the first one's overshoot)
             _sleep_until(self.began + SPACING_S)
         self.began = time.monotonic()
-        self.taken = self.taken[1], self.released_at
+        self.paced = self.released_at - self.took <= PACED_S
+        self.took = self.released_at
 
     def ask_to_end(self) -> bool:
         """The end marker after what is queued (so files get their last rows); False
