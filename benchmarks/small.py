@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from abh3_supervisor.clients.link import Link
+from abh3_supervisor.clients.tui.app import STATE_HZ
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core import planner
 from abh3_supervisor.protocol import ids
@@ -108,11 +109,12 @@ async def _counters(sock: Path) -> dict[str, int]:
 
 
 @contextlib.contextmanager
-def _tui(sock: Path, err: Path) -> Iterator[subprocess.Popen[bytes]]:
-    """The attached TUI; what it says on stderr goes to ``err``."""
+def _tui(sock: Path, err: Path, states: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """The attached TUI; what it says on stderr goes to ``err``, a line per state it
+    applied to ``states`` (benchmarks/tui_client.py)."""
     with err.open("w") as said:
         tui = subprocess.Popen(
-            [sys.executable, "-m", "benchmarks.tui_client", str(sock), "3600"],
+            [sys.executable, "-m", "benchmarks.tui_client", str(sock), "3600", str(states)],
             cwd=alone.ROOT, stdout=subprocess.DEVNULL, stderr=said,
         )  # fmt: skip
     try:
@@ -181,6 +183,7 @@ def run(
             window, timeouts, throttled = _supervised(
                 ns, limit, tmp, seconds, sim.pid, record=record, tui=tui
             )
+            view = _view(tmp / "tui.states", window) if tui else {}
         except NotStarted as exc:
             return Run(units, rate, percent, {}, why=str(exc))
         finally:
@@ -200,8 +203,20 @@ def run(
         "supervisor_cpu_percent": 100 * window.cpu["supervisor"] / span,
         "simulator_cpu_percent": 100 * window.cpu["simulator"] / span,
         "throttled_percent": 100 * throttled,
+        **view,
     }
     return Run(units, rate, percent, figures)
+
+
+def _view(states: Path, window: alone.Window) -> dict[str, float]:
+    """The attached TUI's states in the window: how many a second, and the share of them
+    pushed slowed (the view gives way to late buses: service/view_pace.py)."""
+    lines = [line.split() for line in states.read_text().splitlines()]
+    seen = [int(by) for t, by in lines if window.start <= float(t) <= window.end]
+    return {
+        "tui_state_hz": len(seen) / (window.end - window.start),
+        "tui_slowed_percent": 100 * sum(by > 1 for by in seen) / len(seen) if seen else 0.0,
+    }
 
 
 class NotStarted(RuntimeError):
@@ -255,7 +270,8 @@ def _supervised(
                 raise NotStarted(f"not running within {deadline - started:.0f} s, {_said(log)}")
             time.sleep(0.05)
         tui_err = tmp / "tui.err"
-        with _tui(sock, tui_err) if tui else contextlib.nullcontext() as attached:
+        tui_states = tmp / "tui.states"
+        with _tui(sock, tui_err, tui_states) if tui else contextlib.nullcontext() as attached:
             time.sleep(SETTLE_S + alone.WARMUP_S)  # attached, drawn, discovered
             before, held = asyncio.run(_counters(sock)), limit.throttled()
             window = alone._measure({"supervisor": sup.pid, "simulator": sim_pid}, seconds)
@@ -307,6 +323,9 @@ def rows(
              lambda v: v == 0),
         _row(ran, base, "  supervisor CPU % of one core", "supervisor_cpu_percent", "%"),
         _row(ran, base, "  periods the limit held it back", "throttled_percent", "%"),
+        _row(ran, base, f"  the TUI's states /s (asked: {STATE_HZ:g}; fewer: slowed)",
+             "tui_state_hz", "/s"),
+        _row(ran, base, "  the TUI's states pushed slowed", "tui_slowed_percent", "%"),
         _row(ran, base, "  the simulator's CPU % (outside the limit)",
              "simulator_cpu_percent", "%"),
     ]  # fmt: skip

@@ -398,3 +398,29 @@ def test_a_client_holds_motion_on_each_unit_and_is_told_when_it_lapsed(served: S
         assert served.on_loop(lambda: sup.units["left"].setpoint.ay) == 0.0
     finally:
         client.close()
+
+
+def test_pushes_give_way_while_the_buses_run_late(served: Served) -> None:
+    """A bus step that came late (its pump says so) slows every subscriber's pushes, and
+    the pushed state says by how much, as the ``state`` method does, on either socket."""
+    assert served.rt is not None
+    lateness = iter([0.05])  # one step 50 ms late, then none
+    served.on_loop(setattr, served.rt.pumps["b"], "take_late", lambda: next(lateness, 0.0))
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(5)
+        sock.connect(str(served.path))
+        reader = sock.makefile("rb")
+        sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe",
+                                 "params": {"events": False, "state_hz": 20}}))  # fmt: skip
+        assert json.loads(reader.readline())["result"] == {"events": False, "state_hz": 20}
+        pushed: list[dict[str, Any] | None] = []
+        while len(pushed) < 3:
+            message = json.loads(reader.readline())
+            assert message["method"] == "state"
+            pushed.append(message["params"]["slowed"])
+    slowed = {"by": 2, "late_ms": 50.0}
+    assert pushed == [None, slowed, slowed]  # the first push came before the late step was told
+    for path in (served.path, served.ro_path):
+        client = ControlClient(path)
+        assert client.call("state")["slowed"] == slowed
+        client.close()

@@ -47,8 +47,10 @@ def decoded(data: bytes) -> dict[str, Any]:
 
 def test_the_push_is_the_state_method_s_snapshot_byte_for_byte_in_meaning() -> None:
     rt = runtime()
-    data = asyncio.run(SharedState(rt, 0.005).latest())
-    assert decoded(data) == json.loads(json.dumps(supervisor_state(rt.supervisor, {})))
+    slowed = {"by": 2, "late_ms": 37.2}  # the pace's word (service/view_pace.py), as given
+    data = asyncio.run(SharedState(rt, 0.005, lambda: slowed).latest())
+    method = {**supervisor_state(rt.supervisor, {}), "slowed": slowed}  # as server._state
+    assert decoded(data) == json.loads(json.dumps(method))
 
 
 def test_the_loop_runs_between_units_while_a_snapshot_is_built(

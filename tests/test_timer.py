@@ -186,3 +186,32 @@ def test_a_grid_keeps_its_phase_after_a_stall() -> None:
     # a stall of 3.7 periods: the next point of the same grid, missed ones skipped
     assert next_on_grid(1.0, 0.01, 1.037) == pytest.approx(1.04)
     assert next_on_grid(1.0, 0.01, 1.04) == pytest.approx(1.05)  # exactly on a point: the next
+
+
+@pytest.mark.parametrize("precise", [True, False], ids=["timerfd", "call_at"])
+def test_a_firing_says_how_late_it_came_until_taken(
+    precise: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The live view gives way when the loop runs late (service/view_pace.py): a deadline
+    already past when the timer is serviced is reported as late by as much, once."""
+    if not precise:
+        monkeypatch.setattr(timer_module, "_LIBC", None)
+
+    async def scenario() -> tuple[float, float, float]:
+        loop = asyncio.get_running_loop()
+        done = loop.create_future()
+        t = DeadlineTimer(loop, lambda: done.set_result(loop.time()))
+        if precise and timer_module._LIBC is None:
+            pytest.skip("no timerfd on this platform")
+        before = t.late_s
+        deadline = loop.time() - 0.03  # the loop comes to it 30 ms after it fell due
+        t.arm(deadline)
+        fired = await asyncio.wait_for(done, 5)
+        late = t.take_late()
+        t.close()
+        return before, late - (fired - deadline), t.take_late()
+
+    before, error, after = asyncio.run(scenario())
+    assert before == 0.0
+    assert abs(error) < 0.005  # as late as the callback saw it (both read the same clock)
+    assert after == 0.0  # taken: forgotten

@@ -496,3 +496,26 @@ def test_the_unit_tab_shows_the_drives_firmware_version() -> None:
         await until(pilot, lambda: "firmware 2.3.0.1" in str(head.render()), "firmware shown")
 
     run_app(check)
+
+
+def test_the_title_bar_says_when_the_view_gives_way_to_late_buses() -> None:
+    """The pushed state's ``slowed`` (service/view_pace.py) shows in the title bar while
+    it lasts, and goes with it."""
+    rig = snapshot_rig()
+    mirror = mirror_of(rig)
+
+    async def scenario() -> list[str]:
+        app = SupervisorApp(mirror, None)
+        titles = []
+        async with app.run_test(size=(160, 45)) as pilot:
+            for slowed in (None, {"by": 4, "late_ms": 37.2}, None):
+                rig.run(0.1)
+                mirror.apply({**supervisor_state(rig.sup, {}), "slowed": slowed})
+                app.refresh_view()
+                await pilot.pause()
+                titles.append(app.sub_title)
+        return titles
+
+    before, slowed, after = asyncio.run(scenario())
+    assert "view" not in before and "view" not in after
+    assert slowed.endswith(" · view 1/4 rate: a bus step ran 37.2 ms late")

@@ -91,6 +91,8 @@ class Mirror:
     t: float = 0.0
     estop: bool = False
     stopping: bool = False
+    # the pushes give way to late buses: {"by": n, "late_ms": …}, none at the rate asked
+    slowed: dict[str, Any] | None = None
 
     @classmethod
     def of(cls, config: Config, simulated: list[str] | tuple[str, ...] = ()) -> Mirror:
@@ -114,6 +116,7 @@ class Mirror:
             return False
         self.t, self.estop = state["t"], state["estop"]
         self.stopping = state.get("stopping", False)
+        self.slowed = state.get("slowed")
         for name, data in state["units"].items():
             if name in self.units:
                 _apply_unit(self.units[name], data)

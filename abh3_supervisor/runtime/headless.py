@@ -21,6 +21,7 @@ from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.recording import recorded, write_failures
 from abh3_supervisor.runtime.stopping import final_report
 from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight, release
+from abh3_supervisor.service.view_pace import of_runtime
 
 log = logging.getLogger("abh3")
 
@@ -172,11 +173,12 @@ async def _serve(
     if service is None:
         return []
     main = bound.pop(service.path)
-    servers = [ControlServer(rt, plugins, service.path, group=service.group, sock=main)]
+    pace = of_runtime(rt)  # one live view's pace for both sockets: late steps told once
+    servers = [ControlServer(rt, plugins, service.path, group=service.group, sock=main, pace=pace)]
     if service.read_only_path is not None:
         sock = bound.pop(service.read_only_path)
         servers.append(
-            ControlServer(rt, plugins, service.read_only_path, read_only=True, sock=sock)
+            ControlServer(rt, plugins, service.read_only_path, read_only=True, sock=sock, pace=pace)
         )
     try:
         for server in servers:

@@ -268,6 +268,11 @@ class BusPump:
         if self._running:
             self._timer.arm(self.loop.time())
 
+    def take_late(self) -> float:
+        """The most a timed step came after its deadline since the last call: a loop short
+        of CPU (what slows the live view: service/view_pace.py)."""
+        return self._timer.take_late()
+
     def send(self, arbitration_id: int, data: bytes) -> bool:
         """Send one frame now; a refused frame is counted and reported, never fatal."""
         msg = can.Message(

@@ -12,6 +12,9 @@ that the next deadline will be as far after this one as this one was after the l
 firing, and lets the kernel repeat it (the timerfd's interval, a little short, so that a
 repetition never comes after its deadline): a deadline that falls just after the
 repetition then costs nothing; any other is armed as before.
+
+``late_s``: the most a firing came after its deadline since :meth:`take_late` (a loop
+that runs late, for want of CPU: what slows the live view, service/view_pace.py).
 """
 
 from __future__ import annotations
@@ -75,6 +78,7 @@ class DeadlineTimer:
         self._fired_ns = -1  # the expiry whose callback runs now; -1: outside the callback
         self._armed = False  # the callback armed or cancelled the timer
         self._spec = _Itimerspec()  # reused: arming happens on every scheduler step
+        self.late_s = 0.0
         # the loop must tell time with CLOCK_MONOTONIC for absolute timerfd deadlines
         if _LIBC is not None and abs(loop.time() - time.monotonic()) < 0.01:
             fd = _LIBC.timerfd_create(_CLOCK_MONOTONIC, os.O_NONBLOCK | os.O_CLOEXEC)
@@ -85,6 +89,11 @@ class DeadlineTimer:
     @property
     def precise(self) -> bool:
         return self._fd >= 0
+
+    def take_late(self) -> float:
+        """The most a firing came after its deadline since the last call (0: none late)."""
+        late, self.late_s = self.late_s, 0.0
+        return late
 
     def arm(self, when: float) -> None:
         """Fire at ``when`` — or earlier: a later deadline keeps the armed one (lazy re-arm).
@@ -104,7 +113,7 @@ class DeadlineTimer:
         self.when = when
         if self._handle is not None:
             self._handle.cancel()
-        self._handle = self.loop.call_at(when, self._fire)
+        self._handle = self.loop.call_at(when, self._fire_late)
 
     def _arm_fd(self, when: float) -> None:
         self._armed = True
@@ -155,6 +164,8 @@ class DeadlineTimer:
             expiries = int.from_bytes(os.read(self._fd, 8), sys.byteorder)
         except BlockingIOError:
             return  # re-armed after expiring: nothing due now
+        if self._next_ns >= 0:  # after the first expiry due (the kernel may repeat it since)
+            self._note_late((time.monotonic_ns() - self._next_ns) * 1e-9)
         interval = self._interval_ns
         if interval:  # the kernel has armed the next repetition already (past any missed)
             self._fired_ns = self._next_ns + (expiries - 1) * interval
@@ -168,6 +179,15 @@ class DeadlineTimer:
             self._fired_ns = -1
             if interval and not self._armed and self._fd >= 0:  # nobody wants the repetition
                 self.cancel()
+
+    def _fire_late(self) -> None:
+        if self.when is not None:
+            self._note_late(self.loop.time() - self.when)
+        self._fire()
+
+    def _note_late(self, late: float) -> None:
+        if late > self.late_s:
+            self.late_s = late
 
     def _fire(self) -> None:
         self.when = None

@@ -66,6 +66,7 @@ from abh3_supervisor.service.connection import Connection
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
 from abh3_supervisor.service.snapshot import state
 from abh3_supervisor.service.state_push import SharedState
+from abh3_supervisor.service.view_pace import ViewPace, of_runtime
 
 if TYPE_CHECKING:
     from abh3_supervisor.core.supervisor import SupervisorEvent
@@ -251,8 +252,10 @@ class ControlServer:
         read_only: bool = False,
         group: str | None = None,
         sock: socket.socket | None = None,
+        pace: ViewPace | None = None,
     ) -> None:
-        """``sock``: the socket :func:`preflight` bound at ``path`` (else bound on start)."""
+        """``sock``: the socket :func:`preflight` bound at ``path`` (else bound on start);
+        ``pace``: the pushes' pace, shared with the runtime's other sockets (else its own)."""
         self.rt, self.host, self.path = rt, host, path
         self.read_only = read_only
         self.gid = paths.group_id(group)
@@ -286,7 +289,9 @@ class ControlServer:
             "verify": self._verify,
         }
         self._log_handler = _Forward(self)
-        self._pushed = SharedState(rt, SHARE_S)  # one build per tick for every client
+        # pushes give way while the buses' steps come late (view_pace.py)
+        self._pace = pace if pace is not None else of_runtime(rt)
+        self._pushed = SharedState(rt, SHARE_S, self._pace.to_json)  # one build a tick for all
         self._check_queued = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._params = ParamOps(rt.supervisor, lambda bus: rt.pumps[bus].wake())
@@ -493,7 +498,7 @@ class ControlServer:
         }
 
     async def _state(self, client: _Client, params: dict[str, Any]) -> Any:
-        return state(self.rt)
+        return {**state(self.rt), "slowed": self._pace.to_json()}
 
     async def _subscribe(self, client: _Client, params: dict[str, Any]) -> Any:
         events = params.get("events", True)
@@ -521,13 +526,14 @@ class ControlServer:
                 if line is not None:
                     self.broadcast([client], line[0], line[1], name)
 
-    async def _push_state(self, client: _Client, period: float) -> None:
-        """On a grid of ``period`` shared by every client at that rate: one snapshot built
-        per tick for all of them, unit by unit between the buses' steps (state_push.py)."""
+    async def _push_state(self, client: _Client, asked: float) -> None:
+        """On a grid of the period ``asked`` (longer while the buses run late: view_pace.py)
+        shared by every client at that pace: one snapshot built per tick for all of them,
+        unit by unit between the buses' steps (state_push.py)."""
         loop = asyncio.get_running_loop()
         while not client.writer.is_closing():
             client.send(await self._pushed.latest())
-            now = loop.time()
+            period, now = self._pace.period(asked), loop.time()
             await asyncio.sleep((math.floor(now / period) + 1) * period - now)
 
     def _commanded(self, params: dict[str, Any]) -> tuple[str, ...]:

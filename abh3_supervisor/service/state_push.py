@@ -9,13 +9,15 @@ units: no single step of the push holds the loop for more than one unit's ~50 µ
 
 Every client woken on the same tick shares one build (``share_s``), and a build already
 under way is joined rather than started again. The snapshot's ``t`` is when its build
-began; each unit's values carry their own times (feedback ``t``, ``reported.t``).
+began; each unit's values carry their own times (feedback ``t``, ``reported.t``). Its
+``slowed`` says whether the pushes give way to late buses (service/view_pace.py).
 """
 
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor.service.protocol import dumps
 from abh3_supervisor.service.snapshot import bus_state, head, unit_json
@@ -28,8 +30,13 @@ class SharedState:
     """``await latest()``: the encoded ``state`` notification, at most ``share_s`` old,
     and never one whose build began before the last :meth:`forget`."""
 
-    def __init__(self, rt: Runtime, share_s: float) -> None:
-        self.rt, self.share_s = rt, share_s
+    def __init__(
+        self,
+        rt: Runtime,
+        share_s: float,
+        slowed: Callable[[], dict[str, Any] | None] = lambda: None,
+    ) -> None:
+        self.rt, self.share_s, self.slowed = rt, share_s, slowed
         self._generation = 0  # counts forget(): a build of an older generation is stale
         self._cached: tuple[int, float, bytes] = (-1, -1e300, b"")  # generation, began, data
         self._building: tuple[int, asyncio.Future[bytes]] | None = None
@@ -53,7 +60,7 @@ class SharedState:
 
     async def _build(self, generation: int, began: float) -> bytes:
         sup = self.rt.supervisor
-        opening = dumps(head(sup))
+        opening = dumps({**head(sup), "slowed": self.slowed()})
         units: list[bytes] = []
         for name, unit in list(sup.units.items()):
             units.append(dumps(name) + b":" + unit_json(sup, unit))

@@ -19,6 +19,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
+from abh3_supervisor.service.view_pace import of_runtime
 from tests.support.rig import TWO_UNITS
 
 
@@ -40,9 +41,10 @@ class Served:
         host = PluginHost(self.config)
         async with Runtime(self.config, plugins=host) as rt:
             self.rt = rt
+            pace = of_runtime(rt)  # shared, as `abh3 run` shares it (runtime/headless.py)
             servers = [
-                ControlServer(rt, host, self.path),
-                ControlServer(rt, host, self.ro_path, read_only=True),
+                ControlServer(rt, host, self.path, pace=pace),
+                ControlServer(rt, host, self.ro_path, read_only=True, pace=pace),
             ]
             for server in servers:
                 await server.start()

@@ -1,0 +1,80 @@
+"""The live view gives way while the buses' steps come late (service/view_pace.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from abh3_supervisor.service.view_pace import CALM_S, LATE_S, MIN_HZ, ViewPace
+
+
+class Loop:
+    """A fake clock and the lateness the pumps report, taken (and forgotten) as asked."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.late = 0.0
+
+    def take(self) -> float:
+        late, self.late = self.late, 0.0
+        return late
+
+
+def paced() -> tuple[Loop, ViewPace]:
+    loop = Loop()
+    return loop, ViewPace(loop.take, lambda: loop.now)
+
+
+def test_at_the_rate_asked_while_the_steps_come_on_time() -> None:
+    loop, pace = paced()
+    for _ in range(50):
+        loop.late = LATE_S / 2  # a moment's wait is not a loop short of CPU
+        assert pace.period(0.1) == 0.1
+        loop.now += 0.1
+    assert pace.to_json() is None
+
+
+def test_each_late_step_halves_the_rate_down_to_the_slowest() -> None:
+    loop, pace = paced()
+    periods = []
+    for late in (0.037, 0.02, 0.05, 0.09, 0.03):
+        loop.late = late
+        periods.append(pace.period(0.1))
+        loop.now += periods[-1]
+    assert periods == pytest.approx([0.2, 0.4, 0.8, 1 / MIN_HZ, 1 / MIN_HZ])
+    assert pace.to_json() == {"by": 16, "late_ms": 30.0}  # the step that last slowed it
+
+
+def test_calm_brings_the_rate_back_one_step_at_a_time() -> None:
+    loop, pace = paced()
+    for _ in range(3):
+        loop.late = 0.05
+        pace.period(0.1)
+    assert pace.slowdown == 8
+    seen = []
+    for _ in range(int(4 * CALM_S) + 5):  # pushes a second apart, no late step
+        loop.now += 1.0
+        seen.append(pace.period(0.1))
+    assert sorted(set(seen), reverse=True) == pytest.approx([0.8, 0.4, 0.2, 0.1])
+    # each step back waited CALM_S without a late step
+    assert min(i for i, p in enumerate(seen) if p < 0.7) >= CALM_S - 1
+    assert pace.to_json() is None
+
+
+def test_a_late_step_in_the_calm_starts_it_again() -> None:
+    loop, pace = paced()
+    loop.late = 0.05
+    pace.period(0.1)
+    loop.now += CALM_S - 1
+    loop.late = 0.05
+    assert pace.period(0.1) == pytest.approx(0.4)
+    loop.now += CALM_S - 1  # a whole CALM_S since the first, not since the last
+    assert pace.period(0.1) == pytest.approx(0.4)
+    loop.now += 1
+    assert pace.period(0.1) == pytest.approx(0.2)
+
+
+def test_a_rate_slower_than_the_slowest_is_kept() -> None:
+    loop, pace = paced()
+    loop.late = 0.05
+    assert pace.period(2.0) == 2.0  # 0.5 Hz asked: already slower than MIN_HZ
+    assert pace.period(0.1) == pytest.approx(0.2)  # the other clients still give way
