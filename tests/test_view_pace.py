@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from abh3_supervisor.service.view_pace import CALM_S, LATE_S, MIN_HZ, ViewPace
+from abh3_supervisor.service.view_pace import CALM_S, LATE_S, MIN_HZ, STALE_S, ViewPace
 
 
 class Loop:
@@ -20,8 +20,25 @@ class Loop:
 
 
 def paced() -> tuple[Loop, ViewPace]:
+    """A pace whose first client has just had its first push."""
     loop = Loop()
-    return loop, ViewPace(loop.take, lambda: loop.now)
+    pace = ViewPace(loop.take, lambda: loop.now)
+    assert pace.period(0.1) == 0.1
+    return loop, pace
+
+
+def test_late_steps_before_anyone_watched_are_old_news() -> None:
+    """The start-up's late steps, or those while no client was pushed to for a while."""
+    loop = Loop()
+    pace = ViewPace(loop.take, lambda: loop.now)
+    loop.late = 0.5
+    assert pace.period(0.1) == 0.1  # the first push: what came before it is not told
+    loop.now += STALE_S + 0.5
+    loop.late = 0.5
+    assert pace.period(0.1) == 0.1  # nobody asked for that long
+    loop.now += 0.1
+    loop.late = 0.5
+    assert pace.period(0.1) == pytest.approx(0.2)
 
 
 def test_at_the_rate_asked_while_the_steps_come_on_time() -> None:
@@ -62,15 +79,19 @@ def test_calm_brings_the_rate_back_one_step_at_a_time() -> None:
 
 def test_a_late_step_in_the_calm_starts_it_again() -> None:
     loop, pace = paced()
-    loop.late = 0.05
-    pace.period(0.1)
-    loop.now += CALM_S - 1
-    loop.late = 0.05
-    assert pace.period(0.1) == pytest.approx(0.4)
-    loop.now += CALM_S - 1  # a whole CALM_S since the first, not since the last
-    assert pace.period(0.1) == pytest.approx(0.4)
-    loop.now += 1
-    assert pace.period(0.1) == pytest.approx(0.2)
+
+    def after(seconds: int, late: float = 0.0) -> float:
+        """The period of the last of pushes a second apart, the last told ``late``."""
+        for i in range(seconds):
+            loop.now += 1.0
+            loop.late = late if i == seconds - 1 else 0.0
+            period = pace.period(0.1)
+        return period
+
+    assert after(1, late=0.05) == pytest.approx(0.2)
+    assert after(int(CALM_S) - 1, late=0.05) == pytest.approx(0.4)
+    assert after(int(CALM_S) - 1) == pytest.approx(0.4)  # CALM_S since the last, not the first
+    assert after(1) == pytest.approx(0.2)
 
 
 def test_a_rate_slower_than_the_slowest_is_kept() -> None:

@@ -26,6 +26,9 @@ LATE_S = 0.010
 CALM_S = 10.0  # this long without one: one step back towards the rate asked for
 MIN_HZ = 1.0  # the slowest the view gets (a slower rate asked for is kept)
 MAX_SLOWDOWN = 16  # 10 Hz asked: 5, 2.5, 1.25, then 1 Hz
+# a late step told this long after the last push is old news (the start-up's, before any
+# client subscribed): the pushes come at least every 1 / MIN_HZ while anyone watches
+STALE_S = 2.0
 
 
 class ViewPace:
@@ -37,11 +40,13 @@ class ViewPace:
         self.slowdown = 1  # the pushes come this many times less often than asked
         self.late_s = 0.0  # the lateness that last slowed them
         self._since = -math.inf  # when the slowdown last changed
+        self._asked_at = -math.inf  # when the late steps were last asked for
 
     def period(self, asked: float) -> float:
         """The time until the next push, for a client that asked for one every ``asked``."""
         now, late = self._clock(), self._late()
-        if late > LATE_S:
+        fresh, self._asked_at = now - self._asked_at <= STALE_S, now
+        if late > LATE_S and fresh:
             self.late_s, self._since = late, now
             self.slowdown = min(2 * self.slowdown, MAX_SLOWDOWN)
         elif self.slowdown > 1 and now - self._since >= CALM_S:
