@@ -99,13 +99,14 @@ async def run_headless(
                     log.log(*line)
 
             sup.subscribe(on_event)
+            servers = await _serve(rt, plugins, service, bound)
+            # said once the sockets listen: a client that waits for this line can attach
             log.info(
                 "running %d unit(s) on %d bus(es)%s; Ctrl-C stops the drives and exits",
                 len(config.units),
                 len(config.buses),
                 f" for {duration:g} s" if duration is not None else "",
             )
-            servers = await _serve(rt, plugins, service, bound)
             # what start-up built lives as long as the run: the collector's full passes
             # need not walk it (10-15 ms on the bus loop once clients come and go by the
             # thousand, whose asyncio objects leave cycles to collect)
