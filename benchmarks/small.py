@@ -77,8 +77,11 @@ def config(units: int, rate: float, bridge: bool) -> str:
         "simulate: true}"
     )
     text = f"buses:\n  {bus}\nunits:\n{listed}"
-    if bridge:
-        text += f"plugins: {{ros2: {{domain_id: {DOMAIN}, transport: dds}}}}\n"
+    if bridge:  # its DDS start on the smallest share takes longer than the 5 s default
+        text += (
+            f"plugins: {{ros2: {{domain_id: {DOMAIN}, transport: dds, "
+            f"start_timeout_s: {START_CPU_S / (min(SHARES) / 100):g}}}}}\n"
+        )
     return text
 
 

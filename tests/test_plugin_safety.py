@@ -730,6 +730,47 @@ def test_critical_is_a_host_key_checked_like_on_error() -> None:
     assert host.critical == {"bad"}
 
 
+@pytest.mark.parametrize("value", ["0", "-1", "soon", "601"])
+def test_start_timeout_is_a_host_key_checked_like_on_error(value: str) -> None:
+    with pytest.raises(Exception, match=r"c\.yaml:\d+: plugins\.bad\.start_timeout_s"):
+        configured(f"  bad: {{start_timeout_s: {value}}}\n", bad=Raises)
+
+
+def test_start_timeout_gives_that_plugin_s_start_longer_and_no_other(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A slow board's DDS: ``start_timeout_s`` bounds the plugin's start hooks and its
+    sources' starts instead of the 5 s every other plugin gets."""
+    given: dict[str, float] = {}
+    real = plugin_host.bounded
+
+    def recorded(label: str, deadline: float, fn: Any) -> str | None:
+        given[label] = deadline
+        return real(label, deadline, fn)
+
+    monkeypatch.setattr(plugin_host, "bounded", recorded)
+    config, host = configured(
+        "  dds: {start_timeout_s: 30}\n  good: {}\n", dds=ProvidesAB, good=Records
+    )
+
+    async def scenario() -> None:
+        async with Runtime(config, plugins=host):
+            pass
+
+    asyncio.run(scenario())
+    assert given == {
+        "plugin dds abh3_start": 30.0,
+        "plugin dds abh3_input_sources": 30.0,
+        "input ab start": 30.0,
+        "plugin good abh3_start": plugin_host.START_DEADLINE_S,
+        "plugin good abh3_input_sources": plugin_host.START_DEADLINE_S,
+        # the way out is not the start's: it keeps its own bound
+        "input ab stop": plugin_host.STOP_DEADLINE_S,
+        "plugin dds abh3_stop": plugin_host.STOP_DEADLINE_S,
+        "plugin good abh3_stop": plugin_host.STOP_DEADLINE_S,
+    }
+
+
 FOREVER_PLUGIN = """
 import threading
 from abh3_supervisor.plugin_host.hookspecs import THREADS_BELOW_LOOP, hookimpl

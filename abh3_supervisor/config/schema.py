@@ -378,14 +378,23 @@ ON_ERROR = choice(
 CRITICAL = boolean("the run ends (drives stopped, non-zero exit) if this plugin is disabled", False)
 # every plugin section's tick_hz (plugin_host/tick.py): the rate of its abh3_tick
 TICK_HZ = number(0, 100, "how often abh3_tick is called [Hz]", 10.0, lo_open=True)
+# every plugin section's start_timeout_s (plugin_host): how long its start may take
+START_TIMEOUT_S = number(
+    0, 600, "how long abh3_start, abh3_input_sources and each input's start may take [s]", 5.0,
+    lo_open=True,
+)  # fmt: skip
 # the host's keys, in every plugin section
-HOST_KEYS = {"on_error": ON_ERROR, "critical": CRITICAL, "tick_hz": TICK_HZ}
+HOST_KEYS = {
+    "on_error": ON_ERROR,
+    "critical": CRITICAL,
+    "tick_hz": TICK_HZ,
+    "start_timeout_s": START_TIMEOUT_S,
+}
 
 
 def plugin_section(schema: Schema | None, description: str) -> Schema:
-    """A plugin's section: its own schema plus the host's ``on_error``, ``critical``
-    and ``tick_hz``;
-    free-form when the plugin gives none."""
+    """A plugin's section: its own schema plus the host's ``on_error``, ``critical``,
+    ``tick_hz`` and ``start_timeout_s``; free-form when the plugin gives none."""
     if schema is None:
         section = free_mapping(description)
         section["properties"] = dict(HOST_KEYS)

@@ -55,6 +55,7 @@ GROUP = "abh3_supervisor"
 MAX_FAILURES = 5
 QUEUE_SIZE = 10_000
 START_DEADLINE_S = 5.0  # abh3_start, abh3_input_sources and each source's start()
+MAX_START_S = 600.0  # the most a plugin's start_timeout_s may give it (a slow board)
 STOP_DEADLINE_S = 2.0  # abh3_stop per plugin; then it is abandoned
 DRAIN_DEADLINE_S = 5.0  # every worker's queue together, on the way out
 LEFTOVER_GRACE_S = 1.0  # threads (not daemons) a plugin left running, after the run
@@ -298,6 +299,7 @@ class PluginHost:
         self.end_run: Callable[[str], None] | None = None
         self.views: dict[str, SupervisorView] = {}  # what each plugin sees (plugin_host/view.py)
         self.tick_hz: dict[str, float] = {}
+        self.start_s: dict[str, float] = {}  # start_timeout_s where given
         self.tickers: list[tick.Ticker] = []
         # run first on every thread plugins run on (and so inherited by the threads they
         # start); the runtime drops the bus loop's real-time priority there
@@ -350,15 +352,19 @@ class PluginHost:
     def _configure(self, name: str, config: Config, src: Source) -> None:
         """The plugin checks its own section (keys with section.only(...)); whatever it
         raises is a problem with that section, reported like the core's (`check` too).
-        ``on_error`` and ``critical`` are the host's keys, valid in every section: the
-        plugin never sees them."""
+        ``on_error``, ``critical`` and ``start_timeout_s`` are the host's keys, valid in
+        every section: the plugin never sees them."""
         raw = config.plugins[name]
-        if isinstance(raw, dict) and ("on_error" in raw or "critical" in raw):
+        if isinstance(raw, dict) and any(key in raw for key in validate.HOST_KEYS):
             host = Section(src, ("plugins", name), raw, None)
             self.on_error[name] = host.choice("on_error", "continue", list(ON_ERROR_VALUES))
             if host.boolean("critical", False):
                 self.critical.add(name)
-            raw = {k: v for k, v in raw.items() if k not in ("on_error", "critical")}
+            if host.has("start_timeout_s"):
+                self.start_s[name] = host.number(
+                    "start_timeout_s", START_DEADLINE_S, 0.0, MAX_START_S, lo_open=True
+                )
+            raw = {k: v for k, v in raw.items() if k not in validate.HOST_KEYS}
         self.tick_hz[name], raw = tick.take_rate(Section(src, ("plugins", name), raw, None))
         section = Section(src, ("plugins", name), raw, None)
         try:
@@ -460,6 +466,10 @@ class PluginHost:
         if self.request_stop is not None:
             self.request_stop(ending)
         return True
+
+    def _start_deadline(self, name: str) -> float:
+        """How long plugin ``name``'s start may take: its ``start_timeout_s``, else 5 s."""
+        return self.start_s.get(name, START_DEADLINE_S)
 
     def _policy(self, name: str) -> str | None:
         """What makes the plugin's being disabled end the run, or None."""
@@ -570,7 +580,7 @@ class PluginHost:
                 ("abh3_start", {"supervisor": view}),
                 ("abh3_input_sources", {"register": register, "supervisor": view}),
             ):
-                problem = self._bounded(name, hook, START_DEADLINE_S, **kwargs)
+                problem = self._bounded(name, hook, self._start_deadline(name), **kwargs)
                 if problem is not None:  # the user asked for it: run without it, never
                     raise PluginError(f"plugin {name} could not start ({hook}): {problem}")
             if any(self._has(name, hook) for hook in observing):
@@ -607,7 +617,7 @@ class PluginHost:
             self._modules.setdefault(type(source).__module__, set()).add(owner)
             label = f"input {source.name} start"
             start = functools.partial(source.start, feed)
-            problem = self._starting(owner, label, START_DEADLINE_S, start)
+            problem = self._starting(owner, label, self._start_deadline(owner), start)
             if problem is not None:  # like a plugin that cannot start: the run fails
                 raise PluginError(
                     f"plugin {owner} could not start (input {source.name}): {problem}"

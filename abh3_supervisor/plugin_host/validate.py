@@ -18,7 +18,7 @@ import pluggy
 from abh3_supervisor.config.source import Source
 
 PREFIX = "abh3_"
-HOST_KEYS = ("on_error", "critical")
+HOST_KEYS = ("on_error", "critical", "start_timeout_s")
 DEFS = ("def ", "async def ")  # the host's keys, valid in every plugin section
 
 

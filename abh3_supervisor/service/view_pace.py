@@ -1,14 +1,15 @@
 """The live view's pace: the pushed state slows while the buses' steps come late.
 
-A pushed state costs the loop about 0.1 ms a unit, 10 times a second per rate: on a
-small computer, or under a container's CPU quota, about a tenth of what the supervisor
-spends (docs/performance.md, section 12, "The view gives way"). When the loop is short of
-CPU the buses' steps come late; a view that kept its rate would take from them what they
-lack. So whenever a bus step came more than :data:`LATE_S` after its deadline since the
-last push, the pushes come half as often (down to :data:`MIN_HZ`); after :data:`CALM_S`
-without such a step, twice as often again, one step at a time, up to the rate asked for.
-The buses, the recording, the bridge and every plugin keep their pace: only what a person
-watches gives way, and it says so (the state's ``slowed``).
+A pushed state costs the loop about 0.1 ms a unit, 10 times a second: an attached TUI
+is about an eighth of what the supervisor spends with a recording and the ROS 2 bridge,
+most of it the pushes (docs/performance.md, section 12, "The view gives way"). On a small
+computer, or under a container's CPU quota, a loop short of CPU brings the buses' steps
+late; a view that kept its rate would take from them what they lack. So whenever a bus
+step came more than :data:`LATE_S` after its deadline since the last push, the pushes
+come half as often (down to :data:`MIN_HZ`); after :data:`CALM_S` without such a step,
+twice as often again, one step at a time, up to the rate asked for. The buses, the
+recording, the bridge and every plugin keep their pace: only what a person watches gives
+way, and it says so (the state's ``slowed``).
 """
 
 from __future__ import annotations
