@@ -500,22 +500,25 @@ def test_the_unit_tab_shows_the_drives_firmware_version() -> None:
 
 def test_the_title_bar_says_when_the_view_gives_way_to_late_buses() -> None:
     """The pushed state's ``slowed`` (service/view_pace.py) shows in the title bar while
-    it lasts, and goes with it."""
+    it lasts, and goes with it; meanwhile a state is stale only once its push is late."""
     rig = snapshot_rig()
     mirror = mirror_of(rig)
 
-    async def scenario() -> list[str]:
+    async def scenario() -> list[tuple[str, float]]:
         app = SupervisorApp(mirror, None)
-        titles = []
+        seen = []
         async with app.run_test(size=(160, 45)) as pilot:
-            for slowed in (None, {"by": 4, "late_ms": 37.2}, None):
+            for by in (None, 4, 16, None):
                 rig.run(0.1)
+                slowed = None if by is None else {"by": by, "late_ms": 37.2}
                 mirror.apply({**supervisor_state(rig.sup, {}), "slowed": slowed})
                 app.refresh_view()
                 await pilot.pause()
-                titles.append(app.sub_title)
-        return titles
+                seen.append((app.sub_title, app.stale_after()))
+        return seen
 
-    before, slowed, after = asyncio.run(scenario())
-    assert "view" not in before and "view" not in after
-    assert slowed.endswith(" · view 1/4 rate: a bus step ran 37.2 ms late")
+    before, by4, by16, after = asyncio.run(scenario())
+    assert "view" not in before[0] and "view" not in after[0]
+    assert by4[0].endswith(" · view 1/4 rate: a bus step ran 37.2 ms late")
+    # not stale between pushes that come less often: stale once one is half a second late
+    assert (before[1], by4[1], by16[1], after[1]) == pytest.approx((0.5, 0.9, 1.5, 0.5))

@@ -59,6 +59,7 @@ from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.planner import plan
 from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.params import table
+from abh3_supervisor.service.view_pace import MIN_HZ
 
 REFRESH_S = 0.1
 STATE_HZ = 10  # what the service pushes: the refresh rate, no more
@@ -308,7 +309,15 @@ class SupervisorApp(App[None]):
         if self.link is None:
             return None
         seconds = time.monotonic() - self.state_at
-        return seconds if self.gone is not None or seconds > STALE_S else None
+        return seconds if self.gone is not None or seconds > self.stale_after() else None
+
+    def stale_after(self) -> float:
+        """``STALE_S``; while the service pushes less often (its pace gives way to late
+        buses: service/view_pace.py), a push overdue by that much."""
+        slowed = self.sup.slowed
+        if not slowed:
+            return STALE_S
+        return min(float(slowed["by"]) / STATE_HZ, 1 / MIN_HZ) + STALE_S
 
     def _refresh(self) -> None:
         stale = self.stale_for()
