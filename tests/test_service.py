@@ -145,14 +145,21 @@ def test_estop_from_a_client_reaches_every_unit(served: Served, wire: WireMonito
     client.close()
 
 
+def subscribed(path: Path, *, events: bool, state_hz: float) -> tuple[socket.socket, Any]:
+    """A raw client of ``path`` subscribed (its echo read): the socket and its reader."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(5)
+    sock.connect(str(path))
+    reader = sock.makefile("rb")
+    params = {"events": events, "state_hz": state_hz}
+    sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe", "params": params}))
+    assert json.loads(reader.readline())["result"] == params
+    return sock, reader
+
+
 def test_events_and_state_are_pushed_to_subscribers(served: Served) -> None:
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(5)
-        sock.connect(str(served.path))
-        reader = sock.makefile("rb")
-        sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe",
-                                 "params": {"events": True, "state_hz": 20}}))  # fmt: skip
-        assert json.loads(reader.readline())["result"] == {"events": True, "state_hz": 20}
+    sock, reader = subscribed(served.path, events=True, state_hz=20)
+    with sock:
         sock.sendall(b'{"jsonrpc":"2.0","method":"estop"}\n')  # a notification: no reply
         states, events = 0, list[dict[str, Any]]()
         while not states or not any("EMERGENCY STOP" in e["text"] for e in events):
@@ -297,25 +304,19 @@ def test_clients_at_one_rate_share_each_state_snapshot(
 ) -> None:
     """The snapshot is built on the bus loop: once per tick for every client at a rate,
     not once per client (two TUIs cost what one does)."""
-    from abh3_supervisor.service import server as server_module
-    from abh3_supervisor.service.snapshot import state as real
+    from abh3_supervisor.service import state_push
+    from abh3_supervisor.service.snapshot import unit_json as real
 
-    built: list[int] = []
+    built: list[str] = []  # a unit's part of a pushed state, each time one is built
 
-    def counted(rt: Any) -> dict[str, Any]:
-        built.append(1)
-        return real(rt)
+    def counted(sup: Any, unit: Any) -> bytes:
+        built.append(unit.name)
+        return real(sup, unit)
 
-    monkeypatch.setattr(server_module, "state", counted)
-    socks = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(2)]
+    monkeypatch.setattr(state_push, "unit_json", counted)
+    clients = [subscribed(served.path, events=False, state_hz=20) for _ in range(2)]
+    socks, readers = [c[0] for c in clients], [c[1] for c in clients]
     try:
-        readers = []
-        for sock in socks:
-            sock.settimeout(5)
-            sock.connect(str(served.path))
-            sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe",
-                                     "params": {"events": False, "state_hz": 20}}))  # fmt: skip
-            readers.append(sock.makefile("rb"))
         received = 0
         for _ in range(20):  # 20 ticks' worth for each client
             for reader in readers:
@@ -323,7 +324,8 @@ def test_clients_at_one_rate_share_each_state_snapshot(
                     pass
                 received += 1
         assert received == 40
-        assert len(built) <= 20 + 4  # one per tick (and the first of each), not one per client
+        # one build of both units per tick (and the first of each), not one per client
+        assert built.count("left") == built.count("right") <= 20 + 4
     finally:
         for sock in socks:
             sock.close()
@@ -406,13 +408,8 @@ def test_pushes_give_way_while_the_buses_run_late(served: Served) -> None:
     assert served.rt is not None
     lateness = iter([0.5, 0.05])  # the first told before any push: old news (view_pace.py)
     served.on_loop(setattr, served.rt.pumps["b"], "take_late", lambda: next(lateness, 0.0))
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(5)
-        sock.connect(str(served.path))
-        reader = sock.makefile("rb")
-        sock.sendall(rpc.encode({"jsonrpc": "2.0", "id": 1, "method": "subscribe",
-                                 "params": {"events": False, "state_hz": 20}}))  # fmt: skip
-        assert json.loads(reader.readline())["result"] == {"events": False, "state_hz": 20}
+    sock, reader = subscribed(served.path, events=False, state_hz=20)
+    with sock:
         pushed: list[dict[str, Any] | None] = []
         while len(pushed) < 4:
             message = json.loads(reader.readline())
