@@ -372,14 +372,14 @@ class SupervisorApp(App[None]):
             )
         robots = self.arrow_robots()
         arrows = "" if all(r.implicit for r in robots) else f" · arrows: {_names(robots)}"
-        slowed = self.sup.slowed
+        slowed = self.sup.slowed  # first: a long title is cut at its end
         self.sub_title = (
-            f"unit {self.unit}{' (all units)' if self.drive_all else ''}{arrows} · "
-            f"speed {self.speed:.2f} m/s, turn {self.turn:.2f} rad/s"
-        ) + (
             ""
             if not slowed
-            else f" · view 1/{slowed['by']} rate: a bus step ran {slowed['late_ms']:g} ms late"
+            else f"view 1/{slowed['by']} rate (bus {slowed['late_ms']:g} ms late) · "
+        ) + (
+            f"unit {self.unit}{' (all units)' if self.drive_all else ''}{arrows} · "
+            f"speed {self.speed:.2f} m/s, turn {self.turn:.2f} rad/s"
         )
 
     def _refresh_unit(self, stale: float | None) -> None:
