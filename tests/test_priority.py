@@ -86,3 +86,45 @@ def test_the_shipped_systemd_unit_allows_what_the_advice_names() -> None:
     assert f"LimitRTPRIO={limit}" in priority.HOW_TO_ALLOW
     service = (root / "docs/service.md").read_text()
     assert f"`LimitRTPRIO={limit}`" in service and "CPUSchedulingPolicy=fifo" not in service
+
+
+def cgroup_v1(tmp_path: Path, rt_runtime_us: int) -> tuple[Path, Path]:
+    """A v1 ``cpu`` hierarchy with this process in ``/limited``: the mounts and own files."""
+    group = tmp_path / "cpu" / "limited"
+    group.mkdir(parents=True)
+    (group / "cpu.rt_runtime_us").write_text(f"{rt_runtime_us}\n")
+    mounts = tmp_path / "mounts"
+    mounts.write_text(
+        "proc /proc proc rw 0 0\n"
+        f"cgroup {tmp_path / 'cpu'} cgroup rw,relatime,cpu 0 0\n"
+        f"cgroup {tmp_path / 'memory'} cgroup rw,relatime,memory 0 0\n"
+    )
+    own = tmp_path / "cgroup"
+    own.write_text("4:memory:/elsewhere\n1:cpu:/limited\n0::/\n")
+    return mounts, own
+
+
+@pytest.mark.parametrize("rt_runtime_us", [0, 950000])
+def test_a_user_who_may_is_told_when_the_cgroup_is_what_refuses(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, rt_runtime_us: int
+) -> None:
+    """Root in a CPU-limited cgroup (a container, a benchmark's limit) is refused by the
+    kernel: the advice names the cgroup, not the permissions root already has."""
+    mounts, own = cgroup_v1(tmp_path, rt_runtime_us)
+    monkeypatch.setattr(priority, "MOUNTS", mounts)
+    monkeypatch.setattr(priority, "OWN_CGROUP", own)
+    monkeypatch.setattr(priority, "_may_realtime", lambda: True)
+
+    def refused(pid: int, policy: int, param: object) -> None:
+        if policy == os.SCHED_FIFO:
+            raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refused)
+    with bus_priority(Priority.AUTO) as note:
+        pass
+    if rt_runtime_us == 0:
+        where = tmp_path / "cpu" / "limited" / "cpu.rt_runtime_us"
+        assert f"gives real-time tasks no time ({where} is 0" in note
+        assert "--priority normal" in note and "LimitRTPRIO" not in note
+    else:  # the cgroup is not why: the usual advice
+        assert "LimitRTPRIO" in note

@@ -27,6 +27,7 @@ import os
 import resource
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 from abh3_supervisor.errors import Abh3Error
 
@@ -39,6 +40,30 @@ HOW_TO_ALLOW = (
     f"in a systemd unit (docs/service.md), or `@group - rtprio {FIFO_PRIORITY}` in "
     "/etc/security/limits.conf"
 )
+MOUNTS = Path("/proc/self/mounts")  # where a cgroup v1 cpu hierarchy is mounted …
+OWN_CGROUP = Path("/proc/self/cgroup")  # … and where in it this process is
+
+
+def _cgroup_budget() -> str | None:
+    """Why the kernel refuses real-time scheduling to a user who may ask for it, where
+    it is this process's CPU cgroup (cgroup v1 with real-time group scheduling: a
+    container, a CPU limit): one that gives real-time tasks no time, or None."""
+    with contextlib.suppress(OSError, ValueError):
+        cpu_mount = next(
+            (fields[1] for fields in (line.split() for line in MOUNTS.read_text().splitlines())
+             if fields[2] == "cgroup" and "cpu" in fields[3].split(",")),
+            None,
+        )  # fmt: skip
+        for entry in OWN_CGROUP.read_text().splitlines():
+            _, controllers, path = entry.split(":", 2)
+            if cpu_mount is not None and "cpu" in controllers.split(","):
+                runtime = Path(cpu_mount) / path.lstrip("/") / "cpu.rt_runtime_us"
+                if int(runtime.read_text()) == 0:
+                    return (
+                        f"this process's CPU cgroup gives real-time tasks no time ({runtime} is "
+                        "0: a container or a CPU limit): give it some, or use --priority normal"
+                    )
+    return None
 
 
 class Priority(enum.StrEnum):
@@ -101,9 +126,11 @@ def bus_priority(mode: Priority) -> Iterator[str]:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
     except OSError as exc:
         why = f"real-time scheduling refused ({exc.strerror or exc})"
+        # a user who may ask, refused all the same: the cgroup, where that is why
+        how = (_may_realtime() and _cgroup_budget()) or HOW_TO_ALLOW
         if mode is Priority.REALTIME:
-            raise PriorityError(f"--priority realtime: {why}; {HOW_TO_ALLOW}") from exc
-        yield f"bus loop at normal priority: {why}; {HOW_TO_ALLOW}"
+            raise PriorityError(f"--priority realtime: {why}; {how}") from exc
+        yield f"bus loop at normal priority: {why}; {how}"
         return
     # the loop woken while another thread of ours runs Python waits for the interpreter
     # lock up to the switch interval: 5 ms by default, the whole jitter budget
