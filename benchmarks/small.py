@@ -214,7 +214,8 @@ def run(
 def _view(states: Path, window: alone.Window) -> dict[str, float]:
     """The attached TUI's states in the window: how many a second, and the share of them
     pushed slowed (the view gives way to late buses: service/view_pace.py)."""
-    lines = [line.split() for line in states.read_text().splitlines()]
+    text = states.read_text() if states.exists() else ""  # none: it never got a hello
+    lines = [line.split() for line in text.splitlines()]
     seen = [int(by) for t, by in lines if window.start <= float(t) <= window.end]
     return {
         "tui_state_hz": len(seen) / (window.end - window.start),
