@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from abh3_supervisor.runtime import priority
+from abh3_supervisor.runtime import cgroups, priority
 from abh3_supervisor.runtime.priority import Priority, PriorityError, bus_priority
 
 
@@ -111,8 +111,8 @@ def test_a_user_who_may_is_told_when_the_cgroup_is_what_refuses(
     """Root in a CPU-limited cgroup (a container, a benchmark's limit) is refused by the
     kernel: the advice names the cgroup, not the permissions root already has."""
     mounts, own = cgroup_v1(tmp_path, rt_runtime_us)
-    monkeypatch.setattr(priority, "MOUNTS", mounts)
-    monkeypatch.setattr(priority, "OWN_CGROUP", own)
+    monkeypatch.setattr(cgroups, "MOUNTS", mounts)
+    monkeypatch.setattr(cgroups, "OWN", own)
     monkeypatch.setattr(priority, "_may_realtime", lambda: True)
 
     def refused(pid: int, policy: int, param: object) -> None:

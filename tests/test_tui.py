@@ -510,7 +510,7 @@ def test_the_title_bar_says_when_the_view_gives_way_to_late_buses() -> None:
         async with app.run_test(size=(160, 45)) as pilot:
             for by in (None, 4, 16, None):
                 rig.run(0.1)
-                slowed = None if by is None else {"by": by, "late_ms": 37.2}
+                slowed = None if by is None else {"by": by, "late_ms": 37.2, "quota": by == 16}
                 mirror.apply({**supervisor_state(rig.sup, {}), "slowed": slowed})
                 app.refresh_view()
                 await pilot.pause()
@@ -520,5 +520,6 @@ def test_the_title_bar_says_when_the_view_gives_way_to_late_buses() -> None:
     before, by4, by16, after = asyncio.run(scenario())
     assert "view" not in before[0] and "view" not in after[0]
     assert by4[0].startswith("view 1/4 rate (bus 37.2 ms late) · unit ")
+    assert by16[0].startswith("view 1/16 rate (CPU quota reached) · unit ")
     # not stale between pushes that come less often: stale once one is half a second late
     assert (before[1], by4[1], by16[1], after[1]) == pytest.approx((0.5, 0.9, 1.5, 0.5))

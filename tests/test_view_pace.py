@@ -8,21 +8,27 @@ from abh3_supervisor.service.view_pace import CALM_S, LATE_S, MIN_HZ, STALE_S, V
 
 
 class Loop:
-    """A fake clock and the lateness the pumps report, taken (and forgotten) as asked."""
+    """A fake clock, the lateness the pumps report and whether the CPU quota held the
+    process back, each taken (and forgotten) as asked."""
 
     def __init__(self) -> None:
         self.now = 100.0
         self.late = 0.0
+        self.throttled = False
 
     def take(self) -> float:
         late, self.late = self.late, 0.0
         return late
 
+    def held(self) -> bool:
+        held, self.throttled = self.throttled, False
+        return held
+
 
 def paced() -> tuple[Loop, ViewPace]:
     """A pace whose first client has just had its first push."""
     loop = Loop()
-    pace = ViewPace(loop.take, lambda: loop.now)
+    pace = ViewPace(loop.take, lambda: loop.now, loop.held)
     assert pace.period(0.1) == 0.1
     return loop, pace
 
@@ -58,7 +64,8 @@ def test_each_late_step_halves_the_rate_down_to_the_slowest() -> None:
         periods.append(pace.period(0.1))
         loop.now += periods[-1]
     assert periods == pytest.approx([0.2, 0.4, 0.8, 1 / MIN_HZ, 1 / MIN_HZ])
-    assert pace.to_json() == {"by": 16, "late_ms": 30.0}  # the step that last slowed it
+    # the step that last slowed it
+    assert pace.to_json() == {"by": 16, "late_ms": 30.0, "quota": False}
 
 
 def test_calm_brings_the_rate_back_one_step_at_a_time() -> None:
@@ -99,3 +106,16 @@ def test_a_rate_slower_than_the_slowest_is_kept() -> None:
     loop.late = 0.05
     assert pace.period(2.0) == 2.0  # 0.5 Hz asked: already slower than MIN_HZ
     assert pace.period(0.1) == pytest.approx(0.2)  # the other clients still give way
+
+
+def test_the_cpu_quota_holding_the_process_back_slows_it_though_no_step_was_that_late() -> None:
+    """A quota that holds the process back a few ms at a time: the steps fall short of
+    LATE_S, yet the jitter a small board allows is gone (runtime/cgroups.py)."""
+    loop, pace = paced()
+    loop.late, loop.throttled = 0.004, True
+    assert pace.period(0.1) == pytest.approx(0.2)
+    assert pace.to_json() == {"by": 2, "late_ms": 4.0, "quota": True}
+    loop.now += 0.2
+    loop.late = 0.03  # then a step late past LATE_S: that is what it says
+    assert pace.period(0.1) == pytest.approx(0.4)
+    assert pace.to_json() == {"by": 4, "late_ms": 30.0, "quota": False}

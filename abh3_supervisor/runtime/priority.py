@@ -27,9 +27,9 @@ import os
 import resource
 import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 from abh3_supervisor.errors import Abh3Error
+from abh3_supervisor.runtime import cgroups
 
 FIFO_PRIORITY = 20
 BELOW_LOOP_PRIORITY = FIFO_PRIORITY - 10  # plugin threads that asked (plugin_thread)
@@ -40,29 +40,20 @@ HOW_TO_ALLOW = (
     f"in a systemd unit (docs/service.md), or `@group - rtprio {FIFO_PRIORITY}` in "
     "/etc/security/limits.conf"
 )
-MOUNTS = Path("/proc/self/mounts")  # where a cgroup v1 cpu hierarchy is mounted …
-OWN_CGROUP = Path("/proc/self/cgroup")  # … and where in it this process is
 
 
 def _cgroup_budget() -> str | None:
     """Why the kernel refuses real-time scheduling to a user who may ask for it, where
     it is this process's CPU cgroup (cgroup v1 with real-time group scheduling: a
     container, a CPU limit): one that gives real-time tasks no time, or None."""
+    where = cgroups.cpu_dir()
     with contextlib.suppress(OSError, ValueError):
-        cpu_mount = next(
-            (fields[1] for fields in (line.split() for line in MOUNTS.read_text().splitlines())
-             if fields[2] == "cgroup" and "cpu" in fields[3].split(",")),
-            None,
-        )  # fmt: skip
-        for entry in OWN_CGROUP.read_text().splitlines():
-            _, controllers, path = entry.split(":", 2)
-            if cpu_mount is not None and "cpu" in controllers.split(","):
-                runtime = Path(cpu_mount) / path.lstrip("/") / "cpu.rt_runtime_us"
-                if int(runtime.read_text()) == 0:
-                    return (
-                        f"this process's CPU cgroup gives real-time tasks no time ({runtime} is "
-                        "0: a container or a CPU limit): give it some, or use --priority normal"
-                    )
+        runtime = None if where is None else where / "cpu.rt_runtime_us"
+        if runtime is not None and int(runtime.read_text()) == 0:
+            return (
+                f"this process's CPU cgroup gives real-time tasks no time ({runtime} is "
+                "0: a container or a CPU limit): give it some, or use --priority normal"
+            )
     return None
 
 

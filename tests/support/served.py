@@ -41,7 +41,7 @@ class Served:
         host = PluginHost(self.config)
         async with Runtime(self.config, plugins=host) as rt:
             self.rt = rt
-            pace = of_runtime(rt)  # shared, as `abh3 run` shares it (runtime/headless.py)
+            pace = self.pace = of_runtime(rt)  # shared, as `abh3 run` shares it (headless.py)
             servers = [
                 ControlServer(rt, host, self.path, pace=pace),
                 ControlServer(rt, host, self.ro_path, read_only=True, pace=pace),

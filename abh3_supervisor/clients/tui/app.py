@@ -77,6 +77,15 @@ HARDWARE = (
 )
 
 
+def _slowed_note(slowed: dict[str, Any] | None) -> str:
+    """The title bar's first words while the view gives way (a long title is cut at its
+    end): by how much, and why — the CPU quota, or how late a bus step came."""
+    if not slowed:
+        return ""
+    why = "CPU quota reached" if slowed.get("quota") else f"bus {slowed['late_ms']:g} ms late"
+    return f"view 1/{slowed['by']} rate ({why}) · "
+
+
 def styled(level: int, text: str) -> Text:
     style = "bold red" if level >= logging.ERROR else "yellow" if level >= logging.WARNING else ""
     return Text(f"{time.strftime('%H:%M:%S')} {text}", style=style)
@@ -372,12 +381,7 @@ class SupervisorApp(App[None]):
             )
         robots = self.arrow_robots()
         arrows = "" if all(r.implicit for r in robots) else f" · arrows: {_names(robots)}"
-        slowed = self.sup.slowed  # first: a long title is cut at its end
-        self.sub_title = (
-            ""
-            if not slowed
-            else f"view 1/{slowed['by']} rate (bus {slowed['late_ms']:g} ms late) · "
-        ) + (
+        self.sub_title = _slowed_note(self.sup.slowed) + (
             f"unit {self.unit}{' (all units)' if self.drive_all else ''}{arrows} · "
             f"speed {self.speed:.2f} m/s, turn {self.turn:.2f} rad/s"
         )
