@@ -47,14 +47,18 @@ def _cgroup_budget() -> str | None:
     it is this process's CPU cgroup (cgroup v1 with real-time group scheduling: a
     container, a CPU limit): one that gives real-time tasks no time, or None."""
     where = cgroups.cpu_dir()
-    with contextlib.suppress(OSError, ValueError):
-        runtime = None if where is None else where / "cpu.rt_runtime_us"
-        if runtime is not None and int(runtime.read_text()) == 0:
-            return (
-                f"this process's CPU cgroup gives real-time tasks no time ({runtime} is "
-                "0: a container or a CPU limit): give it some, or use --priority normal"
-            )
-    return None
+    if where is None:
+        return None
+    runtime = where / "cpu.rt_runtime_us"
+    try:
+        if int(runtime.read_text()) != 0:
+            return None
+    except (OSError, ValueError):  # no real-time group scheduling: not the cgroup
+        return None
+    return (
+        f"this process's CPU cgroup gives real-time tasks no time ({runtime} is 0: a "
+        "container or a CPU limit): give it some, or use --priority normal"
+    )
 
 
 class Priority(enum.StrEnum):

@@ -498,7 +498,7 @@ class ControlServer:
         }
 
     async def _state(self, client: _Client, params: dict[str, Any]) -> Any:
-        return {**state(self.rt), "slowed": self._pace.to_json()}
+        return state(self.rt, self._pace.to_json())
 
     async def _subscribe(self, client: _Client, params: dict[str, Any]) -> Any:
         events = params.get("events", True)

@@ -191,8 +191,8 @@ def _unit_changing(sup: Supervisor, unit: UnitState, words: dict[str, int]) -> d
     }
 
 
-def state(rt: Runtime) -> dict[str, Any]:
-    return supervisor_state(rt.supervisor, rt.pumps)
+def state(rt: Runtime, slowed: dict[str, Any] | None = None) -> dict[str, Any]:
+    return supervisor_state(rt.supervisor, rt.pumps, slowed)
 
 
 def _health(sup: Supervisor, bus: str) -> dict[str, Any]:
@@ -201,15 +201,18 @@ def _health(sup: Supervisor, bus: str) -> dict[str, Any]:
     return {"state": health.state.value, "since": health.since, "detail": health.detail}
 
 
-def head(sup: Supervisor) -> dict[str, Any]:
-    """What a state says before its units: when, and the supervisor's own switches."""
-    return {"t": sup.clock(), "estop": sup.estop, "stopping": sup.stopping}
+def head(sup: Supervisor, slowed: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What a state says before its units: when, the supervisor's own switches, and
+    whether pushes give way to late buses (``slowed``: service/view_pace.py)."""
+    return {"t": sup.clock(), "estop": sup.estop, "stopping": sup.stopping, "slowed": slowed}
 
 
-def supervisor_state(sup: Supervisor, pumps: Mapping[str, BusPump]) -> dict[str, Any]:
+def supervisor_state(
+    sup: Supervisor, pumps: Mapping[str, BusPump], slowed: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """The state of a supervisor and the pumps of its buses (none: a test's fake time)."""
     return {
-        **head(sup),
+        **head(sup, slowed),
         "units": {name: unit_state(sup, unit) for name, unit in sup.units.items()},
         "buses": {name: bus_state(sup, name, pumps.get(name)) for name in sup.schedulers},
     }

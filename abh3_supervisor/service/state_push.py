@@ -60,7 +60,7 @@ class SharedState:
 
     async def _build(self, generation: int, began: float) -> bytes:
         sup = self.rt.supervisor
-        opening = dumps({**head(sup), "slowed": self.slowed()})
+        opening = dumps(head(sup, self.slowed()))
         units: list[bytes] = []
         for name, unit in list(sup.units.items()):
             units.append(dumps(name) + b":" + unit_json(sup, unit))
