@@ -1,8 +1,9 @@
 """The thin asyncio layer: runs one sans-I/O machine (scheduler or simulator) on a bus.
 
-Frames wait in a source until a step reads them: the bus's own file descriptor where it
-has one (SocketCAN, ``udp_multicast``), else a queue a reader thread of the pump's fills
-(python-can's virtual bus, most USB adapters: :class:`ThreadSource`). Each step reads all
+Frames wait in a source until a step reads them (scheduler/sources.py): the bus's own file
+descriptor where it has one (SocketCAN, ``udp_multicast``), python-can's virtual bus's
+queue, filled on the sender's thread, else a queue a reader thread of the pump's fills
+(most USB adapters). Each step reads all
 that wait (up to :data:`MAX_READ`), hands what they said to the owner (``after_step``),
 and only then decides and sends its own frames. A single deadline timer
 (scheduler/timer.py: a timerfd, which the kernel repeats while the deadlines keep one
@@ -42,7 +43,7 @@ from typing import Protocol
 import can
 
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
-from abh3_supervisor.scheduler.sources import RETRY_S, FdSource, FrameSource, ThreadSource
+from abh3_supervisor.scheduler.sources import RETRY_S, FrameSource, source_for
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 
 # the supervisor's pumps: frames may wait this long for the next step (one period at
@@ -110,13 +111,7 @@ class BusPump:
 
     def start(self) -> None:
         self._running = True
-        fd = _fileno(self.bus)
-        if fd >= 0:
-            self._source = FdSource(self.bus, fd, self.loop, self._step)
-        else:
-            reader = ThreadSource(self.bus, self.loop, self._step, self.on_error, self.name)
-            reader.start()
-            self._source = reader
+        self._source = source_for(self.bus, self.loop, self._step, self.on_error, self.name)
         self._read_at = self._last_t = self.loop.time()
         self._step()
 
@@ -300,11 +295,3 @@ class BusPump:
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         return True
-
-
-def _fileno(bus: can.BusABC) -> int:
-    """The bus's file descriptor, or -1 (python-can's virtual bus, some USB adapters)."""
-    try:
-        return bus.fileno()
-    except NotImplementedError:
-        return -1

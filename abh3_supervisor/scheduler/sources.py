@@ -1,10 +1,11 @@
 """Where a pump's received frames wait until its next step reads them (scheduler/pump.py).
 
 A bus with a file descriptor is its own queue: the step reads it with ``recv(0)``, and the
-loop watches the descriptor when a frame should wake it. A bus without one (python-can's
-virtual bus, most USB adapters) is read by a thread of its own into a queue, which the
-loop is woken for the same way. Both wake the loop once for whatever came meanwhile, not
-once per frame.
+loop watches the descriptor when a frame should wake it. python-can's virtual bus (the
+simulator's, the tests') hands each frame to a queue of ours on the sender's thread,
+which the step reads. A bus with neither (most USB adapters) is read by a thread of its
+own into a queue. All three wake the loop once for whatever came meanwhile, not once per
+frame; :func:`source_for` picks one.
 """
 
 from __future__ import annotations
@@ -12,13 +13,15 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import queue
 import select
 import threading
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Protocol, cast
 
 import can
+from can.interfaces import virtual
 
 RECV_TIMEOUT_S = 0.05  # the reader thread's wait for a frame: how long stop() may take
 RETRY_S = 0.5  # a bus whose receive failed is read again after this
@@ -189,3 +192,117 @@ class ThreadSource:
             self.loop.call_soon_threadsafe(fn, *args)
         except RuntimeError:  # the loop closed (a pump nobody stopped): the run is over
             self._stopped.set()
+
+
+class VirtualSource:
+    """python-can's virtual bus, read on the loop: no thread of its own.
+
+    The virtual bus hands each frame to every other bus of its channel by putting it in
+    that bus's queue, on the sender's thread. The source puts a queue of its own in its
+    bus's place (in the channel's list too, under python-can's lock), whose ``put`` wakes
+    the loop when the source is watched and no wake is on its way: a plain ``call_soon``
+    when the sender is the loop itself (``abh3 run``'s simulated drives), else
+    ``call_soon_threadsafe``. A reader thread would cost a thread, and on the loop the
+    same wake-up (docs/performance.md, section 2). The step takes the frames off the
+    queue without its lock: a deque's ends are safe from any thread. A full queue (the
+    bus's ``rx_queue_size``) refuses the frame — the sender's ``send`` fails — where
+    python-can's own would block the sender, which may be this loop."""
+
+    def __init__(
+        self, bus: virtual.VirtualBus, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]
+    ) -> None:
+        self.bus, self.loop, self.wake = bus, loop, wake
+        self._watching = False
+        self._waking = False  # a wake is on its way to the loop
+        self._stopped = False
+        self._loop_thread = threading.get_ident()  # made on the loop (the pump's start)
+        new = _WakingQueue(bus.queue.maxsize, self._arrived)
+        with virtual.channels_lock:  # a send copies the channel's list under it
+            old, bus.queue = bus.queue, new
+            bus.channel[bus.channel.index(old)] = new
+            new.queue.extend(old.queue)  # sent before the pump started
+        self._frames = new.queue
+
+    @staticmethod
+    def fits(bus: can.BusABC) -> bool:
+        """A virtual bus laid out as this python-can's: its queue in its channel's list."""
+        return (
+            type(bus) is virtual.VirtualBus
+            and type(getattr(bus, "queue", None)) is queue.Queue
+            and any(q is bus.queue for q in getattr(bus, "channel", ()))
+        )
+
+    def recv(self) -> tuple[can.Message, float | None] | None:
+        frames, matches = self._frames, self.bus._matches_filters
+        for _ in range(REFUSED_PER_RECV + 1):
+            try:
+                msg = frames.popleft()
+            except IndexError:
+                return None
+            if matches(msg):
+                return msg, None  # its timestamp: the wall time it was sent
+        return None  # a flood of refused frames: the rest waits for the next step
+
+    def watch(self, on: bool) -> None:
+        self._watching = on
+        if on and self._frames:  # came while nobody watched
+            self._wake_once()
+
+    def stop(self) -> None:
+        self._watching = False
+        self._stopped = True
+
+    def _arrived(self) -> None:  # on the sender's thread
+        if self._watching:
+            self._wake_once()
+
+    def _wake_once(self) -> None:  # from either thread
+        if self._waking or self._stopped:
+            return
+        self._waking = True
+        try:
+            if threading.get_ident() == self._loop_thread:
+                self.loop.call_soon(self._woken)
+            else:
+                self.loop.call_soon_threadsafe(self._woken)
+        except RuntimeError:  # the loop closed (a pump nobody stopped): the run is over
+            self._stopped = True
+
+    def _woken(self) -> None:  # on the loop
+        self._waking = False
+        if not self._stopped:
+            self.wake()
+
+
+class _WakingQueue(queue.Queue[can.Message]):
+    """A virtual bus's receive queue that says when a frame came, and never blocks."""
+
+    def __init__(self, maxsize: int, arrived: Callable[[], None]) -> None:
+        super().__init__(maxsize)
+        self._arrived = arrived
+
+    def put(self, item: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        super().put(item, block=False)  # full: queue.Full, the sender's send fails
+        self._arrived()
+
+
+def source_for(
+    bus: can.BusABC,
+    loop: asyncio.AbstractEventLoop,
+    wake: Callable[[], None],
+    on_error: Callable[[Exception], None],
+    name: str,
+) -> FrameSource:
+    """Where ``bus``'s frames wait: its file descriptor, a virtual bus's queue, or a
+    reader thread's (started)."""
+    try:
+        fd = bus.fileno()
+    except NotImplementedError:  # python-can's virtual bus, some USB adapters
+        fd = -1
+    if fd >= 0:
+        return FdSource(bus, fd, loop, wake)
+    if VirtualSource.fits(bus):
+        return VirtualSource(cast(virtual.VirtualBus, bus), loop, wake)
+    reader = ThreadSource(bus, loop, wake, on_error, name)
+    reader.start()
+    return reader
