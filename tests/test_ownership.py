@@ -178,6 +178,30 @@ def test_a_gap_still_voids_a_standing_command(rig: Rig) -> None:
     assert commanded(rig) == 0.0
 
 
+def test_a_command_the_arbitration_gives_back_later_is_checked_anew(rig: Rig) -> None:
+    """set_velocity's command is checked once as it is submitted (Supervisor._submit),
+    not again as the arbitration applies it on the same call; given back later (the
+    source that took over let go), it is checked afresh: refused, with a notice, and
+    the drive is told zero."""
+    arb, node = owned_rig(rig)
+    notes: list[str] = []
+    rig.sup.subscribe(lambda e: notes.append(e.message) if isinstance(e, Notice) else None)
+    mine = rig.own("left")
+    rig.sup.set_velocity("left", 300, 0, source=mine)
+    assert rig.sup._checked is None  # nothing kept past the call
+    rig.run(0.1)
+    assert commanded(rig) == 300.0
+    node.alive["tui1"] = 10.0
+    arb.submit("tui1", VelocityCommand(100, 0), rig.timeline.now, standing=True)  # priority 50
+    rig.run(0.1)
+    assert commanded(rig) == 100.0
+    rig.sup.gate.foreign["left"] = "another host commands it"  # as core/foreign.py says it
+    arb.remove("tui1", rig.timeline.now)  # mine is fresh again: given back, and refused
+    rig.run(0.1)
+    assert commanded(rig) == 0.0 and arb.owner("left") is None
+    assert notes[-1].startswith(f"input {mine} refused: unit 'left' is stopped: another host")
+
+
 def test_clamp_note_names_the_limit_and_reaches_the_event_log(rig: Rig) -> None:
     notes: list[str] = []
     rig.sup.subscribe(lambda e: notes.append(e.message) if isinstance(e, Notice) else None)

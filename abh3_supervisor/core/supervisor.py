@@ -160,6 +160,11 @@ class Supervisor:
         self.gate = MotionGate()
         # who owns each unit's motion (core/inputs.py): every setpoint is a source's
         self.arbiter = InputArbiter(apply=self._arbitrated, clock=clock)
+        # the command _submit is handing the arbitration and the values it checked for
+        # each target: applied on the same stack, it is not checked again
+        self._checked: tuple[InputCommand, dict[str, tuple[float, float, ControlMode]]] | None = (
+            None
+        )
         # each robot's twist, decided once for all its drives (core/robot_motion.py)
         self.robots = {
             name: RobotMotion(robot, config.units) for name, robot in config.robots.items()
@@ -504,7 +509,12 @@ class Supervisor:
             self.arbiter.add(_Api(owner, targets, timeout=timeout))
         if self.arbiter.closed:
             raise CommandError("the supervisor is stopping: commands are refused")
-        self.arbiter.submit(owner, command, self.clock(), standing=standing)
+        if not isinstance(command, Twist):  # a twist's plan is made when it is applied
+            self._checked = (command, wanted)
+        try:
+            self.arbiter.submit(owner, command, self.clock(), standing=standing)
+        finally:
+            self._checked = None
         for target in targets:
             ay, bx, _ = wanted[target]
             if self.units[target].setpoint.owner != owner and (ay or bx):
@@ -552,9 +562,14 @@ class Supervisor:
             self._zero(unit)
             return True
         try:
-            self._commandable(name)
-            _finite(*_values(command))
-            ay, bx, kind = self._target(unit, command)
+            checked = self._checked
+            if checked is not None and checked[0] is command and name in checked[1]:
+                ay, bx, kind = checked[1][name]  # _submit checked it just now, on this stack
+            else:
+                self._commandable(name)
+                _finite(*_values(command))
+                ay, bx, kind = self._target(unit, command)
+                self._check(unit, ay, bx, kind)
             self._set(unit, ay, bx, kind, self.arbiter.owner(name))
             if isinstance(command, Twist):
                 self._twisted(name)
@@ -645,7 +660,7 @@ class Supervisor:
     def _set(
         self, unit: UnitState, ay: float, bx: float, kind: ControlMode, owner: str | None
     ) -> None:
-        self._check(unit, ay, bx, kind)
+        """Store a setpoint the caller checked (:meth:`_check`), within the limits."""
         ay, bx, note = _limited(unit, ay, bx, kind)
         if note is not None:  # a stream beyond the limit (a joystick) says it once a second
             held = self._throttle.allow((unit.name, "clamped"), self.clock())
