@@ -123,21 +123,26 @@ def main(argv: list[str] | None = None) -> int:
     # 2. host CPU per exchange
     section = "2. host CPU per DP0 exchange (virtual bus, same echo drive)"
     n = 2000 if a.quick else 10000
-    ours_runs, bare_runs = host_cpu.interleaved(n, runs)  # ours, bare, ours, bare …
-    bare, ours = statistics.median(bare_runs) * 1e6, statistics.median(ours_runs) * 1e6
-    ratios = [o / b for o, b in zip(ours_runs, bare_runs, strict=True)]
-    spread = f"; each run's pair {min(ratios):.3g}–{max(ratios):.3g}x" if runs > 1 else ""
-    rows.append(
-        Row(
-            section,
-            "CPU per exchange: ours vs bare python-can",
-            ours,
-            bare,
-            "us",
-            "<=1.5x every run" + spread,
-            max(ratios) <= 1.5,
+    ours_runs, once_runs, bare_runs = host_cpu.interleaved(n, runs)  # ours, once, bare …
+    bare = statistics.median(bare_runs) * 1e6
+    for label, runs_of, target in (
+        ("CPU per exchange: ours vs bare python-can", ours_runs, "<=1.5x every run"),
+        ("  the same, the setpoint set once (not per exchange)", once_runs, "–"),
+    ):
+        ratios = [o / b for o, b in zip(runs_of, bare_runs, strict=True)]
+        spread = f"each run's pair {min(ratios):.3g}–{max(ratios):.3g}x" if runs > 1 else ""
+        targeted = target != "–"
+        rows.append(
+            Row(
+                section,
+                label,
+                statistics.median(runs_of) * 1e6,
+                bare,
+                "us",
+                "; ".join(t for t in (target if targeted else "", spread) if t),
+                max(ratios) <= 1.5 if targeted else None,
+            )
         )
-    )
 
     # 3. cycle timing, 8 units at 100 Hz
     section = "3. cycle timing at 100 Hz (baseline: 1 unit headless; TUI rows: 8 units headless)"

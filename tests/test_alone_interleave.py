@@ -4,8 +4,6 @@ medians. On made-up figures: no process is started."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import pytest
 
 from abh3_supervisor.runtime import netns
@@ -54,19 +52,22 @@ def test_the_target_holds_in_every_run(
     assert "each run's pair runs 1.4–" in row.target and "ours runs 140–" in row.target
 
 
-def test_section_2_runs_its_pairs_ours_then_bare(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_section_2_runs_its_rounds_ours_ours_with_one_setpoint_then_bare(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     from benchmarks import host_cpu
 
     calls: list[str] = []
 
-    def timed(name: str, seconds: float) -> Callable[[int], float]:
-        def run(exchanges: int) -> float:
-            calls.append(name)
-            return seconds
+    def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
+        calls.append("ours" if new_setpoint else "once")
+        return 2.0 if new_setpoint else 1.5
 
-        return run
+    def bare(exchanges: int) -> float:
+        calls.append("bare")
+        return 1.0
 
-    monkeypatch.setattr(host_cpu, "ours", timed("ours", 2.0))
-    monkeypatch.setattr(host_cpu, "bare", timed("bare", 1.0))
-    assert host_cpu.interleaved(10, 3) == ([2.0] * 3, [1.0] * 3)
-    assert calls == ["ours", "bare"] * 3
+    monkeypatch.setattr(host_cpu, "ours", ours)
+    monkeypatch.setattr(host_cpu, "bare", bare)
+    assert host_cpu.interleaved(10, 3) == ([2.0] * 3, [1.5] * 3, [1.0] * 3)
+    assert calls == ["ours", "once", "bare"] * 3
