@@ -31,6 +31,8 @@ class HandOver:
     def call_soon_threadsafe(self, fn: Callable[..., None], *args: Any) -> None:
         self.queued.append((fn, args))
 
+    call_soon = call_soon_threadsafe  # the test's thread plays the reader's and the loop's
+
     def run(self) -> None:
         queued, self.queued = self.queued, []
         for fn, args in queued:
@@ -162,6 +164,8 @@ def test_the_reader_ends_when_the_loop_is_gone() -> None:
     class Closed(HandOver):
         def call_soon_threadsafe(self, fn: Callable[..., None], *args: Any) -> None:
             raise RuntimeError("Event loop is closed")
+
+        call_soon = call_soon_threadsafe
 
     bus = Scripted([can.CanOperationError("bus shut down")] * 3)
     source = ThreadSource(bus, cast(asyncio.AbstractEventLoop, Closed()), print, print, "c")

@@ -114,9 +114,50 @@ class FdSource:
                 self._set = None
 
 
-class ThreadSource:
-    """A reader thread's queue. The thread hands the loop a wake only when it is watched
-    and none is already on its way, so a late loop gets one call for a burst of frames. A
+class _HandOver:
+    """Frames kept for the loop's step, and the one wake on its way to the loop for them:
+    watched, a source wakes the loop once for whatever comes meanwhile (a late loop gets
+    one call for a burst of frames); unwatched, the frames wait for the next step."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]) -> None:
+        self.loop, self.wake = loop, wake
+        self._watching = False
+        self._waking = False  # a wake is on its way to the loop
+        self._stopped = threading.Event()
+        self._loop_thread = threading.get_ident()  # made on the loop (the pump's start)
+
+    def _waiting(self) -> bool:
+        """Whether frames wait for the step."""
+        raise NotImplementedError
+
+    def watch(self, on: bool) -> None:
+        self._watching = on
+        if on and self._waiting():  # came while nobody watched
+            self._wake_once()
+
+    def _wake_once(self) -> None:  # from any thread
+        if not self._waking and not self._stopped.is_set():
+            self._waking = True
+            self._to_loop(self._woken)
+
+    def _woken(self) -> None:  # on the loop
+        self._waking = False
+        if not self._stopped.is_set():
+            self.wake()
+
+    def _to_loop(self, fn: Callable[..., None], *args: object) -> None:
+        """``fn`` on the loop, soon: without the self-pipe from the loop's own thread."""
+        try:
+            if threading.get_ident() == self._loop_thread:
+                self.loop.call_soon(fn, *args)
+            else:
+                self.loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:  # the loop closed (a pump nobody stopped): the run is over
+            self._stopped.set()
+
+
+class ThreadSource(_HandOver):
+    """A reader thread's queue, handed over to the loop as :class:`_HandOver` does. A
     receive that fails is told to the loop (``on_error``) and tried again after
     ``RETRY_S``: the thread never dies of it (python-can's Notifier's thread did, when
     it ran for a loop, and the bus went deaf for the rest of the run). Each frame keeps
@@ -132,11 +173,9 @@ class ThreadSource:
         on_error: Callable[[Exception], None],
         name: str,
     ) -> None:
-        self.bus, self.loop, self.wake, self.on_error = bus, loop, wake, on_error
+        super().__init__(loop, wake)
+        self.bus, self.on_error = bus, on_error
         self._frames: collections.deque[tuple[can.Message, float]] = collections.deque()
-        self._watching = False
-        self._waking = False  # a wake is on its way to the loop
-        self._stopped = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"can reader {name}", daemon=True)
 
     def start(self) -> None:
@@ -148,21 +187,14 @@ class ThreadSource:
         except IndexError:
             return None
 
-    def watch(self, on: bool) -> None:
-        self._watching = on
-        if on and self._frames:  # came while nobody watched
-            self._wake_once()
+    def _waiting(self) -> bool:
+        return bool(self._frames)
 
     def stop(self) -> None:
         self._watching = False
         self._stopped.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout=1.0)
-
-    def _woken(self) -> None:  # on the loop
-        self._waking = False
-        if not self._stopped.is_set():
-            self.wake()
 
     def _failed(self, exc: Exception) -> None:  # on the loop
         if not self._stopped.is_set():  # a pump stopped meanwhile hears of it no more
@@ -182,40 +214,26 @@ class ThreadSource:
             if self._watching:
                 self._wake_once()
 
-    def _wake_once(self) -> None:  # from either thread
-        if not self._waking:
-            self._waking = True
-            self._to_loop(self._woken)
 
-    def _to_loop(self, fn: Callable[..., None], *args: object) -> None:
-        try:
-            self.loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:  # the loop closed (a pump nobody stopped): the run is over
-            self._stopped.set()
-
-
-class VirtualSource:
+class VirtualSource(_HandOver):
     """python-can's virtual bus, read on the loop: no thread of its own.
 
     The virtual bus hands each frame to every other bus of its channel by putting it in
     that bus's queue, on the sender's thread. The source puts a queue of its own in its
-    bus's place (in the channel's list too, under python-can's lock), whose ``put`` wakes
-    the loop when the source is watched and no wake is on its way: a plain ``call_soon``
-    when the sender is the loop itself (``abh3 run``'s simulated drives), else
-    ``call_soon_threadsafe``. A reader thread would cost a thread, and on the loop the
-    same wake-up (docs/performance.md, section 2). The step takes the frames off the
-    queue without its lock: a deque's ends are safe from any thread. A full queue (the
-    bus's ``rx_queue_size``) refuses the frame — the sender's ``send`` fails — where
+    bus's place (in the channel's list too, under python-can's lock), whose ``put`` hands
+    the frame over as :class:`_HandOver` does: a plain ``call_soon`` when the sender is
+    the loop itself (``abh3 run``'s simulated drives), else ``call_soon_threadsafe``. A
+    reader thread would cost a thread, and on the loop the same wake-up
+    (docs/performance.md, section 2). The step takes the frames off the queue without
+    its lock: a deque's ends are safe from any thread. A full queue (the bus's
+    ``rx_queue_size``) refuses the frame — the sender's ``send`` fails — where
     python-can's own would block the sender, which may be this loop."""
 
     def __init__(
         self, bus: virtual.VirtualBus, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]
     ) -> None:
-        self.bus, self.loop, self.wake = bus, loop, wake
-        self._watching = False
-        self._waking = False  # a wake is on its way to the loop
-        self._stopped = False
-        self._loop_thread = threading.get_ident()  # made on the loop (the pump's start)
+        super().__init__(loop, wake)
+        self.bus = bus
         new = _WakingQueue(bus.queue.maxsize, self._arrived)
         with virtual.channels_lock:  # a send copies the channel's list under it
             old, bus.queue = bus.queue, new
@@ -243,35 +261,16 @@ class VirtualSource:
                 return msg, None  # its timestamp: the wall time it was sent
         return None  # a flood of refused frames: the rest waits for the next step
 
-    def watch(self, on: bool) -> None:
-        self._watching = on
-        if on and self._frames:  # came while nobody watched
-            self._wake_once()
+    def _waiting(self) -> bool:
+        return bool(self._frames)
 
     def stop(self) -> None:
         self._watching = False
-        self._stopped = True
+        self._stopped.set()
 
     def _arrived(self) -> None:  # on the sender's thread
         if self._watching:
             self._wake_once()
-
-    def _wake_once(self) -> None:  # from either thread
-        if self._waking or self._stopped:
-            return
-        self._waking = True
-        try:
-            if threading.get_ident() == self._loop_thread:
-                self.loop.call_soon(self._woken)
-            else:
-                self.loop.call_soon_threadsafe(self._woken)
-        except RuntimeError:  # the loop closed (a pump nobody stopped): the run is over
-            self._stopped = True
-
-    def _woken(self) -> None:  # on the loop
-        self._waking = False
-        if not self._stopped:
-            self.wake()
 
 
 class _WakingQueue(queue.Queue[can.Message]):
