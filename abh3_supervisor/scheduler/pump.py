@@ -3,9 +3,8 @@
 Frames wait in a source until a step reads them (scheduler/sources.py): the bus's own file
 descriptor where it has one (SocketCAN, ``udp_multicast``), python-can's virtual bus's
 queue, filled on the sender's thread, else a queue a reader thread of the pump's fills
-(most USB adapters). Each step reads all
-that wait (up to :data:`MAX_READ`), hands what they said to the owner (``after_step``),
-and only then decides and sends its own frames. A single deadline timer
+(most USB adapters). Each step reads all that wait (up to :data:`MAX_READ`), hands what
+they said to the owner (``after_step``), and only then decides and sends its own frames. A single deadline timer
 (scheduler/timer.py: a timerfd, which the kernel repeats while the deadlines keep one
 period) wakes the machine at its next deadline; a frame wakes it only while the source is
 watched. Everything the machine does therefore happens on the loop thread, one step at a
