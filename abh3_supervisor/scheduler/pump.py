@@ -4,12 +4,13 @@ Frames wait in a source until a step reads them (scheduler/sources.py): the bus'
 descriptor where it has one (SocketCAN, ``udp_multicast``), python-can's virtual bus's
 queue, filled on the sender's thread, else a queue a reader thread of the pump's fills
 (most USB adapters). Each step reads all that wait (up to :data:`MAX_READ`), hands what
-they said to the owner (``after_step``), and only then decides and sends its own frames. A single deadline timer
-(scheduler/timer.py: a timerfd, which the kernel repeats while the deadlines keep one
-period) wakes the machine at its next deadline; a frame wakes it only while the source is
-watched. Everything the machine does therefore happens on the loop thread, one step at a
-time, on frames all read: a loop that was late acts on every reply that came meanwhile at
-once (a robot's drives, each waiting for its own reply, still send in one step).
+they said to the owner (``after_step``), and only then decides and sends its own frames.
+A single deadline timer (scheduler/timer.py: a timerfd, which the kernel repeats while the
+deadlines keep one period) wakes the machine at its next deadline; a frame wakes it only
+while the source is watched. Everything the machine does therefore happens on the loop
+thread, one step at a time, on frames all read: a loop that was late acts on every reply
+that came meanwhile at once (a robot's drives, each waiting for its own reply, still send
+in one step).
 
 ``batch_s`` (the supervisor's pumps: :data:`READ_BATCH_S`): while the next deadline is at
 most ``batch_s`` away the source is not watched — that step reads what came meanwhile.
