@@ -159,7 +159,7 @@ def test_after_stop_no_wake_follows_and_the_bus_still_receives(channel: str) -> 
     source.stop()
     send_from_another_thread(channel, [9])
     assert loop.queued == [] and woken == []
-    assert bus.recv(0) is not None  # the queue in the bus's place is still a queue
+    assert bus.recv(0) is not None  # its queue, made a waking one, is still a queue
     bus.shutdown()
 
 

@@ -219,10 +219,11 @@ class VirtualSource(_HandOver):
     """python-can's virtual bus, read on the loop: no thread of its own.
 
     The virtual bus hands each frame to every other bus of its channel by putting it in
-    that bus's queue, on the sender's thread. The source puts a queue of its own in its
-    bus's place (in the channel's list too, under python-can's lock), whose ``put`` hands
-    the frame over as :class:`_HandOver` does: a plain ``call_soon`` when the sender is
-    the loop itself (``abh3 run``'s simulated drives), else ``call_soon_threadsafe``. A
+    that bus's queue, on the sender's thread. The source makes its bus's queue a
+    :class:`_WakingQueue` (the same object: a sender already on its way to it, on another
+    thread, still finds it), whose ``put`` hands the frame over as :class:`_HandOver`
+    does: a plain ``call_soon`` when the sender is the loop itself (``abh3 run``'s
+    simulated drives), else ``call_soon_threadsafe``. A
     reader thread would cost a thread, and on the loop the same wake-up
     (docs/performance.md, section 2). The step takes the frames off the queue without
     its lock: a deque's ends are safe from any thread. A full queue (the bus's
@@ -234,16 +235,15 @@ class VirtualSource(_HandOver):
     ) -> None:
         super().__init__(loop, wake)
         self.bus = bus
-        new = _WakingQueue(bus.queue.maxsize, self._arrived)
-        with virtual.channels_lock:  # a send copies the channel's list under it
-            old, bus.queue = bus.queue, new
-            bus.channel[bus.channel.index(old)] = new
-            new.queue.extend(old.queue)  # sent before the pump started
-        self._frames = new.queue
+        frames = bus.queue
+        frames._arrived = self._arrived  # type: ignore[attr-defined]
+        frames.__class__ = _WakingQueue  # what it holds (sent before the start) stays
+        self._frames = frames.queue
 
     @staticmethod
     def fits(bus: can.BusABC) -> bool:
-        """A virtual bus laid out as this python-can's: its queue in its channel's list."""
+        """A virtual bus laid out as this python-can's: a plain queue, in its channel's
+        list of the queues a send puts each frame in."""
         return (
             type(bus) is virtual.VirtualBus
             and type(getattr(bus, "queue", None)) is queue.Queue
@@ -274,11 +274,10 @@ class VirtualSource(_HandOver):
 
 
 class _WakingQueue(queue.Queue[can.Message]):
-    """A virtual bus's receive queue that says when a frame came, and never blocks."""
+    """A virtual bus's receive queue that says when a frame came (``_arrived``, set
+    before a queue becomes one), and never blocks."""
 
-    def __init__(self, maxsize: int, arrived: Callable[[], None]) -> None:
-        super().__init__(maxsize)
-        self._arrived = arrived
+    _arrived: Callable[[], None]
 
     def put(self, item: can.Message, block: bool = True, timeout: float | None = None) -> None:
         super().put(item, block=False)  # full: queue.Full, the sender's send fails
