@@ -1,5 +1,5 @@
 """``python -m abh3_supervisor`` is the ``abh3`` command."""
 
-from abh3_supervisor.clients.cli import main
+from abh3_supervisor.clients.cli import run
 
-raise SystemExit(main())
+run()

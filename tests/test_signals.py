@@ -78,6 +78,27 @@ def test_handlers_installed_from_c_are_not_in_the_way() -> None:
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
 
 
+def test_the_process_leaves_the_stop_signals_ignored_as_it_exits_and_main_gives_them_back(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A quick way out (a commissioning stopped in under 50 ms) met the operator's second
+    Ctrl-C while the interpreter wound down: it ended the process by SIGINT, not with the
+    stop's code. The ``abh3`` process (``cli.run``) ignores them once ``main`` is done;
+    ``main`` called in a process that goes on gives the handlers it found back."""
+    from abh3_supervisor.clients import cli
+
+    before = {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS}
+    try:
+        assert cli.main(["schema"]) == 0
+        assert {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS} == before
+        assert cli.main(["schema"], exiting=True) == 0
+        assert {signal.getsignal(sig) for sig in signals.STOP_SIGNALS} == {signal.SIG_IGN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert capsys.readouterr().out.startswith("{")
+
+
 # ---------------------------------------------------------------- helpers
 
 

@@ -284,10 +284,18 @@ def _address(text: str) -> int:
     return int(text)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def run() -> None:
+    """The ``abh3`` command as a process: :func:`main`, then the exit, which no late stop
+    signal changes (docs/signals.md)."""
+    raise SystemExit(main(exiting=True))
+
+
+def main(argv: Sequence[str] | None = None, *, exiting: bool = False) -> int:
+    """``exiting``: the process ends when this returns — the stop signals are left
+    ignored rather than given back to their defaults (:func:`run`)."""
     command = ""
     try:
-        with _interruptible() as release:
+        with _interruptible(exiting) as release:
             args = _parser().parse_args(argv)
             command = args.cmd
             logging.basicConfig(
@@ -440,12 +448,15 @@ def report(problems: Sequence[str]) -> None:
 
 
 @contextlib.contextmanager
-def _interruptible() -> Iterator[Callable[[], None]]:
+def _interruptible(exiting: bool = False) -> Iterator[Callable[[], None]]:
     """Until the runtime installs its own handlers, a stop signal ends the program at once.
 
     Python's default turns SIGINT into a KeyboardInterrupt traceback, and the runtime's
     loop handlers cannot interrupt a bus or a recording that blocks while it opens.
-    Yields a function that gives the previous handlers back early (for the TUI).
+    Yields a function that gives the previous handlers back early (for the TUI). At the
+    end they are given back, or, when the process then ends (``exiting``), the stop
+    signals are ignored: a second Ctrl-C after a quick way out came while the interpreter
+    wound down and ended the process by SIGINT, not with the stop's exit code.
     """
     if threading.current_thread() is not threading.main_thread():
         yield lambda: None  # signals are only ever delivered to the main thread
@@ -459,7 +470,10 @@ def _interruptible() -> Iterator[Callable[[], None]]:
     try:
         yield release
     finally:
-        release()
+        if exiting:
+            signals.ignore_stops()
+        else:
+            release()
 
 
 def _interrupt(signum: int, frame: FrameType | None) -> None:

@@ -159,6 +159,14 @@ def report_faults() -> None:
         faulthandler.enable(sys.stderr, all_threads=True)
 
 
+def ignore_stops() -> None:
+    """The way out is over and the process ends: a stop signal that comes now, while the
+    interpreter winds down, changes neither the exit code nor prints a traceback (the
+    defaults would end the process by that signal instead)."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+
+
 _Handler = Callable[[int, "FrameType | None"], object]
 
 
