@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import queue
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any, cast
@@ -173,7 +174,41 @@ def test_a_shut_down_bus_leaves_the_channel_to_the_others(channel: str) -> None:
         assert all(q is not source.bus.queue for q in virtual.channels[channel])
         a.send(frame(3))
         assert (got := b.recv(0)) is not None and got.arbitration_id == 3
-    assert drained(source) == []
+    with pytest.raises(can.CanOperationError):  # the pump's read fails, and says so
+        source.recv()
+
+
+def test_a_sender_waiting_for_room_in_a_full_queue_is_let_in_by_the_step(channel: str) -> None:
+    """A sender already inside python-can's own ``put`` of a full queue when the pump
+    starts: the step's read makes room for it, as python-can's ``get`` would."""
+    bus = cast(virtual.VirtualBus, can.Bus(interface="virtual", channel=channel, rx_queue_size=1))
+    bus.queue.put(frame(1))
+    waiting = threading.Thread(target=bus.queue.put, args=(frame(2),), daemon=True)
+    waiting.start()  # blocks: the queue is full
+    source = VirtualSource(bus, cast(asyncio.AbstractEventLoop, FakeLoop()), print)
+    assert (got := source.recv()) is not None and got[0].arbitration_id == 1
+    waiting.join(timeout=10)
+    assert not waiting.is_alive()
+    assert drained(source) == [2]
+    bus.shutdown()
+
+
+def test_another_reader_of_the_bus_is_served_as_python_can_serves_it(channel: str) -> None:
+    source, _, _, bus = read_on_loop(channel)
+    with can.Bus(interface="virtual", channel=channel) as peer:
+        peer.send(frame(1))
+        peer.send(frame(2))
+    assert (got := bus.recv(0)) is not None and got.arbitration_id == 1
+    assert drained(source) == [2] and bus.recv(0) is None
+    bus.shutdown()
+
+
+def test_a_stopped_source_gives_the_bus_its_own_queue_back(channel: str) -> None:
+    source, _, _, bus = read_on_loop(channel)
+    source.stop()
+    assert type(source.bus.queue) is queue.Queue and not hasattr(source.bus.queue, "_arrived")
+    assert VirtualSource.fits(bus)  # a next pump on it reads it the same way
+    bus.shutdown()
 
 
 class Subclassed(virtual.VirtualBus):

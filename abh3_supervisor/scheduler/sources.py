@@ -219,26 +219,27 @@ class VirtualSource(_HandOver):
     """python-can's virtual bus, read on the loop: no thread of its own.
 
     The virtual bus hands each frame to every other bus of its channel by putting it in
-    that bus's queue, on the sender's thread. The source makes its bus's queue a
-    :class:`_WakingQueue` (the same object: a sender already on its way to it, on another
-    thread, still finds it), whose ``put`` hands the frame over as :class:`_HandOver`
-    does: a plain ``call_soon`` when the sender is the loop itself (``abh3 run``'s
-    simulated drives), else ``call_soon_threadsafe``. A
-    reader thread would cost a thread, and on the loop the same wake-up
-    (docs/performance.md, section 2). The step takes the frames off the queue without
-    its lock: a deque's ends are safe from any thread. A full queue (the bus's
-    ``rx_queue_size``) refuses the frame — the sender's ``send`` fails — where
-    python-can's own would block the sender, which may be this loop."""
+    that bus's queue, on the sender's thread. While the pump runs, the source makes its
+    bus's queue a :class:`_WakingQueue` (the same object: a sender already on its way to
+    it, on another thread, still finds it), whose ``put`` hands the frame over as
+    :class:`_HandOver` does: a plain ``call_soon`` when the sender is the loop itself
+    (``abh3 run``'s simulated drives), else ``call_soon_threadsafe``. A reader thread
+    would cost a thread, and on the loop the same wake-up (docs/performance.md, section
+    2). The step takes the frames off with the queue's own ``get_nowait`` (under its
+    lock: another reader of the bus, a sender waiting for room, are served as before).
+    A full queue (the bus's ``rx_queue_size``) refuses the frame — the sender's ``send``
+    fails — where python-can's own would block the sender, which may be this loop. A
+    sender already inside the queue's ``put`` when the pump starts wakes nobody: its
+    frame is read by the next step, as one that came unwatched."""
 
     def __init__(
         self, bus: virtual.VirtualBus, loop: asyncio.AbstractEventLoop, wake: Callable[[], None]
     ) -> None:
         super().__init__(loop, wake)
         self.bus = bus
-        frames = bus.queue
-        frames._arrived = self._arrived  # type: ignore[attr-defined]
-        frames.__class__ = _WakingQueue  # what it holds (sent before the start) stays
-        self._frames = frames.queue
+        self._frames = bus.queue
+        self._frames._arrived = self._arrived  # type: ignore[attr-defined]
+        self._frames.__class__ = _WakingQueue  # what it holds (sent before the start) stays
 
     @staticmethod
     def fits(bus: can.BusABC) -> bool:
@@ -251,22 +252,28 @@ class VirtualSource(_HandOver):
         )
 
     def recv(self) -> tuple[can.Message, float | None] | None:
-        frames, matches = self._frames, self.bus._matches_filters
+        bus, frames = self.bus, self._frames
+        bus._check_if_open()  # shut down under the pump: a receive that fails, told
         for _ in range(REFUSED_PER_RECV + 1):
             try:
-                msg = frames.popleft()
-            except IndexError:
+                msg = frames.get_nowait()
+            except queue.Empty:
                 return None
-            if matches(msg):
+            if bus._matches_filters(msg):
                 return msg, None  # its timestamp: the wall time it was sent
         return None  # a flood of refused frames: the rest waits for the next step
 
     def _waiting(self) -> bool:
-        return bool(self._frames)
+        return bool(self._frames.qsize())
 
     def stop(self) -> None:
+        """The bus's queue is python-can's own again (the bus may outlive the pump)."""
         self._watching = False
         self._stopped.set()
+        frames = self._frames
+        if isinstance(frames, _WakingQueue):
+            del frames._arrived
+            frames.__class__ = queue.Queue  # type: ignore[assignment]  # the same object
 
     def _arrived(self) -> None:  # on the sender's thread
         if self._watching:
