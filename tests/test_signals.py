@@ -78,6 +78,42 @@ def test_handlers_installed_from_c_are_not_in_the_way() -> None:
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
 
 
+def test_after_a_signal_the_loop_handlers_leave_the_stop_signals_ignored() -> None:
+    """A second Ctrl-C a few milliseconds after a quick way out came while the loop's
+    handlers were being taken down: Python's KeyboardInterrupt traceback, or the CLI's
+    "stopped while starting". Once a signal began the way out, the stop signals stay
+    ignored; a block that ended without one gives the handlers back."""
+    import asyncio
+
+    before = {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS}
+    seen: list[int] = []
+
+    async def block(send: bool) -> None:
+        loop = asyncio.get_running_loop()
+        got = loop.create_future()
+
+        def caught(signum: int) -> None:
+            seen.append(signum)
+            if not got.done():
+                got.set_result(None)
+
+        with signals.on_loop(loop, caught):
+            if send:
+                signal.raise_signal(signal.SIGINT)
+                await got
+
+    try:
+        asyncio.run(block(send=False))
+        assert {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS} == before
+        asyncio.run(block(send=True))
+        assert seen == [signal.SIGINT]
+        assert {signal.getsignal(sig) for sig in signals.STOP_SIGNALS} == {signal.SIG_IGN}
+        signal.raise_signal(signal.SIGINT)  # the second Ctrl-C: nothing happens
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
 def test_the_process_leaves_the_stop_signals_ignored_as_it_exits_and_main_gives_them_back(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

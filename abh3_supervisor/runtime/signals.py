@@ -192,21 +192,38 @@ def on_loop(
 ) -> Iterator[tuple[int, ...]]:
     """``caught(signum)`` on ``loop`` for every stop signal while the block runs (every
     time one comes: a second one must change nothing), and job control ignored; the
-    handlers before it come back after. Yields the signals handled (none off the main
-    thread: signals reach only it)."""
+    handlers before it come back after — unless a stop signal came: the way out it began
+    is then over, and the stop signals stay ignored (a second Ctrl-C a few milliseconds
+    after a quick way out met Python's KeyboardInterrupt, or the CLI's "stopped while
+    starting"). Yields the signals handled (none off the main thread: signals reach only
+    it)."""
     if threading.current_thread() is not threading.main_thread():
         yield ()
         return
     ignore_harmless()
     report_faults()
     saved = {sig: signal.getsignal(sig) for sig in (*STOP_SIGNALS, *JOB_CONTROL)}
+    stopped: list[int] = []
+
+    def on_signal(signum: int) -> None:
+        stopped.append(signum)
+        caught(signum)
+
     for sig in JOB_CONTROL:
         signal.signal(sig, signal.SIG_IGN)
     for sig in STOP_SIGNALS:
-        loop.add_signal_handler(sig, caught, sig)
+        loop.add_signal_handler(sig, on_signal, sig)
     try:
         yield STOP_SIGNALS
     finally:
-        for sig in STOP_SIGNALS:
-            loop.remove_signal_handler(sig)
-        restore(saved)
+        # held back while the handlers change: asyncio puts the defaults back as it
+        # removes its own, and one coming then would meet them
+        signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            for sig in STOP_SIGNALS:
+                loop.remove_signal_handler(sig)
+            restore(saved)
+            if stopped:
+                ignore_stops()  # what was held back is dropped with it
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
