@@ -121,4 +121,5 @@ def interleaved(exchanges: int, runs: int) -> tuple[list[float], list[float], li
     rounds = [
         (ours(exchanges), ours(exchanges, new_setpoint=False), bare(exchanges)) for _ in range(runs)
     ]
-    return [r[0] for r in rounds], [r[1] for r in rounds], [r[2] for r in rounds]
+    new, once, plain = (list(column) for column in zip(*rounds, strict=True))
+    return new, once, plain

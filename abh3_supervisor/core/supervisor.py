@@ -60,6 +60,8 @@ from abh3_supervisor.scheduler.core import (
 log = logging.getLogger(__name__)
 API_SOURCE = "api"  # the source of a programmatic command: api:<unit>
 STARTUP_SOURCE = "startup"  # the source of a unit's startup: motion: startup:<unit>
+# a command _submit checked, and the values it checked for each target unit
+_Checked = tuple[InputCommand, dict[str, tuple[float, float, ControlMode]]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,9 +164,7 @@ class Supervisor:
         self.arbiter = InputArbiter(apply=self._arbitrated, clock=clock)
         # the command _submit is handing the arbitration and the values it checked for
         # each target: applied on the same stack, it is not checked again
-        self._checked: tuple[InputCommand, dict[str, tuple[float, float, ControlMode]]] | None = (
-            None
-        )
+        self._checked: _Checked | None = None
         # each robot's twist, decided once for all its drives (core/robot_motion.py)
         self.robots = {
             name: RobotMotion(robot, config.units) for name, robot in config.robots.items()
