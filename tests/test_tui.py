@@ -339,8 +339,15 @@ def test_servo_after_an_error_reset_acts_on_what_the_drive_reports() -> None:
         await app.workers.wait_for_complete()
         assert not left.inputs & lay.servo.both
         await until(pilot, lambda: not reported_servo(), "servo off after r")
-        await until(  # the TUI acts on what it was told: the next state push
-            pilot, lambda: not app.sup.units["left"].words.get("control", 0) & 1, "shown off"
+        # the TUI acts on what it was told: the reset alone turns the reported servo off,
+        # so a push from between the reset and SERVO OFF shows it off but still commanded on
+        await until(
+            pilot,
+            lambda: (
+                not app.sup.units["left"].words.get("control", 0) & 1
+                and not app.sup.units["left"].inputs & lay.servo.both
+            ),
+            "shown off and commanded off",
         )
         await pilot.press("v")
         await pilot.pause()
