@@ -7,6 +7,7 @@ import): what goes over the wire is built and checked here, sent elsewhere.
 from abh3_supervisor.fleet import ids, payloads, schemas, topics
 from abh3_supervisor.fleet.ids import (
     client_id,
+    commands_client_id,
     default_name,
     fleet_id,
     safe,
@@ -40,6 +41,7 @@ __all__ = [
     "Where",
     "client_id",
     "command_kind",
+    "commands_client_id",
     "default_name",
     "fleet_id",
     "ids",

@@ -29,6 +29,12 @@ def client_id(fid: str) -> str:
     return f"abh3-{fid}"
 
 
+def commands_client_id(fid: str) -> str:
+    """The client id of a robot's commands connection (the fleet's twists only: its reading
+    is held to a cap, and nothing we publish waits behind what it has not read)."""
+    return f"abh3-{fid}.cmd"
+
+
 def stop_client_id(fid: str) -> str:
     """The client id of a robot's stop connection (e-stop and clear only: never behind
     another command)."""

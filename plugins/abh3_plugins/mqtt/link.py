@@ -1,16 +1,25 @@
-"""One robot's connections to the broker: its own client id, its own last will.
+"""One robot's connections to the broker: its own client ids, its own last will.
 
-Up to three paho clients per robot: the main one (``abh3-{fleet_id}``: status, states,
-events, health, the fleet's twists; its will the retained ``status``
-``connection_broken``); the stop one (``abh3-{fleet_id}.stop``: the e-stop and clear
-topics only, so that no flood of other commands, held back by the reading cap below, can
-keep an e-stop waiting behind it); and, with ``vda5050`` on, the VDA 5050 one
-(``abh3-{fleet_id}.vda``: ``connection``, its will ``CONNECTIONBROKEN`` — one MQTT
-connection carries one last will — and ``instantActions``). paho's own thread reads,
-writes, pings and reconnects each; a sender thread of ours moves the outbox into the
-main client only while it is connected, with at most ``MAX_INFLIGHT`` messages paho has
-not written yet: whatever the broker does, nothing but the bounded outbox grows, and the
-hooks never wait for it.
+Up to four paho clients per robot, each with one job:
+
+* the main one (``abh3-{fleet_id}``): everything we publish — status, states, events,
+  health — and its will, the retained ``status`` ``connection_broken``. It subscribes to
+  nothing, so its acknowledgements never wait behind unread messages;
+* the commands one (``abh3-{fleet_id}.cmd``): the fleet's twists, read at most
+  ``INCOMING_PER_S`` a second. Beyond, paho's thread waits before reading the next: a
+  flood queues in TCP and at the broker, and whatever came on that connection after it
+  (the broker's acknowledgements too) comes as late — so nothing else is on it;
+* the stop one (``abh3-{fleet_id}.stop``): the e-stop and clear topics only, never read
+  behind a flood of other commands;
+* with ``vda5050`` on, the VDA 5050 one (``abh3-{fleet_id}.vda``: ``connection``, its
+  will ``CONNECTIONBROKEN`` — one MQTT connection carries one last will — and
+  ``instantActions``).
+
+paho's own thread reads, writes, pings and reconnects each; a sender thread of ours moves
+the outbox into the main client only while it is connected, with at most
+``MAX_INFLIGHT`` messages paho has not written (or, at QoS 1 and 2, the broker not
+acknowledged) yet: whatever the broker does, nothing but the bounded outbox grows, and
+the hooks never wait for it.
 """
 
 from __future__ import annotations
@@ -94,7 +103,9 @@ class Link:
         self.client.on_pre_connect = self._pre_connect
         self.client.on_connect = self._connected
         self.client.on_disconnect = self._disconnected
-        self.client.on_message = self._message
+        self.commands = self._client(fleet.commands_client_id(fleet_id))
+        self.commands.on_connect = self._commands_connected
+        self.commands.on_message = self._message
         self.stop = self._client(fleet.stop_client_id(fleet_id))
         self.stop.on_connect = self._stop_connected
         self.stop.on_subscribe = self._stops_subscribed
@@ -132,7 +143,7 @@ class Link:
         if self.settings.protocol == "5":
             properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
             properties.MaximumPacketSize = MAX_PACKET
-        for client in (self.client, self.stop, self.vda):
+        for client in (self.client, self.commands, self.stop, self.vda):
             if client is not None:
                 client.connect_async(
                     self.settings.host,
@@ -185,7 +196,6 @@ class Link:
                 "mqtt %s: %s refused the connection: %s", self.fleet_id, self.settings.url, reason
             )
             return
-        client.subscribe([(self.topics.command("twist"), self._options())])
         with self._birth:
             self._main_up = True
             self._born_if_ready()
@@ -209,6 +219,18 @@ class Link:
             log.info("mqtt %s: connected to %s", self.fleet_id, self.settings.url)
         self._ever = True
         self.connected.set()
+
+    def _commands_connected(
+        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        # the birth does not wait for it: a twist not heard moves nothing
+        if reason.is_failure:
+            if self._main_up:  # else the main connection says it, refused alike
+                log.warning(
+                    "mqtt %s: the commands connection was refused: %s", self.fleet_id, reason
+                )
+            return
+        client.subscribe([(self.topics.command("twist"), self._options())])
 
     def _stop_connected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
@@ -344,6 +366,6 @@ class Link:
                 info.wait_for_publish(0.3)
             self.vda.disconnect()
             self.vda.loop_stop()
-        for client in (self.stop, self.client):
+        for client in (self.commands, self.stop, self.client):
             client.disconnect()
             client.loop_stop()
