@@ -47,11 +47,15 @@ class PluginError(RunError):
 
 
 class Interrupted(BaseException):
-    """A stop signal before the runtime took over signals (or in a one-shot client).
+    """A stop signal before the runtime took over signals (or in a one-shot client), or
+    after it gave them back.
 
     A BaseException, so no ``except Exception`` on the way (plugin loading) swallows it.
     """
 
-    def __init__(self, signum: int) -> None:
+    def __init__(self, signum: int, *, ending: bool = False) -> None:
         super().__init__(signum)
         self.signum = signum
+        # after the runtime's own handlers had done their work and given the CLI's back:
+        # the program was on its way out, not starting
+        self.ending = ending

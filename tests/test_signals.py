@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -133,6 +134,45 @@ def test_the_process_leaves_the_stop_signals_ignored_as_it_exits_and_main_gives_
         for sig, handler in before.items():
             signal.signal(sig, handler)
     assert capsys.readouterr().out.startswith("{")
+
+
+def test_a_signal_after_the_loop_gave_the_handlers_back_is_not_said_to_come_while_starting(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run that ended by itself (``--duration``, its stop confirmed) gives the CLI's
+    handler back; a Ctrl-C as the interpreter wound down was then said to come "while
+    starting; no drive was started". It is said to come while exiting, after the way out;
+    one before any loop took over is still said to come while starting."""
+    import asyncio
+
+    from abh3_supervisor.clients import cli
+
+    async def ran_and_ended() -> None:
+        with signals.on_loop(asyncio.get_running_loop(), lambda signum: None):
+            pass  # the run: its way out done without a signal
+
+    def command(loop_first: bool) -> Callable[..., int]:
+        def run(args: object, release: object) -> int:
+            if loop_first:
+                asyncio.run(ran_and_ended())
+            signal.raise_signal(signal.SIGINT)
+            return 0
+
+        return run
+
+    before = {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS}
+    try:
+        monkeypatch.setattr(cli, "_command", command(loop_first=True))
+        assert cli.main(["run", "configs/demo.yaml", "--headless"]) == 128 + signal.SIGINT
+        said = capsys.readouterr().err
+        assert "while exiting, after its way out" in said and "starting" not in said
+        monkeypatch.setattr(cli, "_command", command(loop_first=False))
+        assert cli.main(["run", "configs/demo.yaml", "--headless"]) == 128 + signal.SIGINT
+        assert "while starting; no drive was started" in capsys.readouterr().err
+        assert {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS} == before
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 # ---------------------------------------------------------------- helpers

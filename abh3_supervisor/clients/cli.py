@@ -16,6 +16,7 @@ from __future__ import annotations
 # Only what is needed to catch signals is imported here: the rest (asyncio, YAML, the
 # configuration, ~0.1 s) loads after main() has its handlers in place.
 import contextlib
+import functools
 import logging
 import os
 import sys
@@ -307,8 +308,11 @@ def main(argv: Sequence[str] | None = None, *, exiting: bool = False) -> int:
             return _command(args, release)
     except Interrupted as exc:
         name = signals.name(exc.signum)
-        starting = " while starting; no drive was started" if command == "run" else ""
-        print(f"abh3: stopped by {name}{starting}", file=sys.stderr)
+        if exc.ending:  # the command's own way out had run: nothing was left to stop
+            when = " while exiting, after its way out"
+        else:
+            when = " while starting; no drive was started" if command == "run" else ""
+        print(f"abh3: stopped by {name}{when}", file=sys.stderr)
         return 128 + exc.signum
     except ConfigError as exc:
         report(exc.problems)
@@ -462,7 +466,7 @@ def _interruptible(exiting: bool = False) -> Iterator[Callable[[], None]]:
         yield lambda: None  # signals are only ever delivered to the main thread
         return
     signals.ignore_harmless()
-    saved = signals.catch(_interrupt)
+    saved = signals.catch(functools.partial(_interrupt, signals.took_over()))
 
     def release() -> None:
         signals.restore(saved)
@@ -476,13 +480,16 @@ def _interruptible(exiting: bool = False) -> Iterator[Callable[[], None]]:
             release()
 
 
-def _interrupt(signum: int, frame: FrameType | None) -> None:
+def _interrupt(took_over: int, signum: int, frame: FrameType | None) -> None:
+    """``took_over``: :func:`signals.took_over` when this handler was installed; more now,
+    and the signal came after a loop's handlers had done their work and given this one
+    back (a run that ended by itself, as its interpreter winds down)."""
     if _in_machinery(frame):
         # raised here it could leave the event loop half built (a traceback at exit): ask
         # again in a moment, when our own code runs or the runtime's handler has taken over
         threading.Timer(0.01, os.kill, (os.getpid(), signum)).start()
         return
-    raise Interrupted(signum)
+    raise Interrupted(signum, ending=signals.took_over() != took_over)
 
 
 _STDLIB = os.path.dirname(os.__file__)

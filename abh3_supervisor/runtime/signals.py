@@ -186,6 +186,15 @@ def restore(saved: Mapping[int, object]) -> None:
             signal.signal(sig, signal.SIG_DFL)
 
 
+_took_over = 0  # on_loop blocks begun on the main thread in this process
+
+
+def took_over() -> int:
+    """How many times a loop's handlers (:func:`on_loop`) took over the stop signals in
+    this process: a handler installed before can tell whether the way out is the loop's."""
+    return _took_over
+
+
 @contextlib.contextmanager
 def on_loop(
     loop: asyncio.AbstractEventLoop, caught: Callable[[int], None]
@@ -197,9 +206,11 @@ def on_loop(
     after a quick way out met Python's KeyboardInterrupt, or the CLI's "stopped while
     starting"). Yields the signals handled (none off the main thread: signals reach only
     it)."""
+    global _took_over
     if threading.current_thread() is not threading.main_thread():
         yield ()
         return
+    _took_over += 1
     ignore_harmless()
     report_faults()
     saved = {sig: signal.getsignal(sig) for sig in (*STOP_SIGNALS, *JOB_CONTROL)}
