@@ -4,6 +4,8 @@ medians. On made-up figures: no process is started."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from abh3_supervisor.runtime import netns
@@ -71,3 +73,27 @@ def test_section_2_runs_its_rounds_ours_ours_with_one_setpoint_then_bare(
     monkeypatch.setattr(host_cpu, "bare", bare)
     assert host_cpu.interleaved(10, 3) == ([2.0] * 3, [1.5] * 3, [1.0] * 3)
     assert calls == ["ours", "once", "bare"] * 3
+
+
+def test_section_2_pinned_runs_every_round_on_one_core_and_gives_the_cores_back(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The pinned rounds run on one core (the threads they start inherit it); afterwards
+    the process may use every core it could before."""
+    from benchmarks import host_cpu
+
+    before = os.sched_getaffinity(0)
+    seen: list[set[int]] = []
+
+    def measured(exchanges: int, **_: object) -> float:
+        seen.append(os.sched_getaffinity(0))
+        return 1.0
+
+    monkeypatch.setattr(host_cpu, "ours", measured)
+    monkeypatch.setattr(host_cpu, "bare", measured)
+    host_cpu.interleaved(10, 2, pinned=True)
+    expected = {max(before)} if len(before) > 1 else before
+    assert seen == [expected] * 6
+    assert os.sched_getaffinity(0) == before
+    host_cpu.interleaved(10, 1)
+    assert seen[6:] == [before] * 3
