@@ -14,42 +14,24 @@ import os
 from pathlib import Path
 from types import TracebackType
 
+from abh3_supervisor.runtime import cgroups
+
 PERIOD_US = 100_000  # the CFS period: a quota of 10 % is 10 ms of every 100 ms
-MOUNTS = Path("/proc/self/mounts")
-OWN = Path("/proc/self/cgroup")
-
-
-def _v1() -> Path | None:
-    """The directory this process sits in, in the v1 hierarchy with the cpu controller."""
-    for line in MOUNTS.read_text().splitlines():
-        _, where, kind, options, *_ = line.split()
-        if kind == "cgroup" and "cpu" in options.split(","):
-            for entry in OWN.read_text().splitlines():
-                _, controllers, path = entry.split(":", 2)
-                own = Path(where) / path.lstrip("/")
-                # in a container the mount may be its own cgroup, not the hierarchy's root
-                if "cpu" in controllers.split(",") and own.is_dir():
-                    return own
-            return Path(where)
-    return None
-
-
-def _v2() -> Path | None:
-    """The root of a v2 hierarchy that offers the cpu controller."""
-    for line in MOUNTS.read_text().splitlines():
-        _, where, kind, *_ = line.split()
-        controllers = Path(where) / "cgroup.controllers"
-        if kind == "cgroup2" and controllers.exists() and "cpu" in controllers.read_text().split():
-            return Path(where)
-    return None
 
 
 def parent() -> tuple[Path, int] | None:
-    """Where a child cgroup is made, and the cgroup version; None if no cpu controller."""
-    if (v1 := _v1()) is not None:
-        return v1, 1
-    if (v2 := _v2()) is not None:
-        return v2, 2
+    """Where a child cgroup is made, and the cgroup version; None if no cpu controller:
+    in v1 this process's own cpu cgroup (in a container the mount may be its own cgroup,
+    not the hierarchy's root), in v2 the root, if it offers the cpu controller."""
+    found = cgroups.cpu_hierarchy()
+    if found is None:
+        return None
+    mount, version = found
+    if version == 1:
+        return cgroups.cpu_dir() or mount, 1
+    controllers = mount / "cgroup.controllers"
+    if controllers.exists() and "cpu" in controllers.read_text().split():
+        return mount, 2
     return None
 
 
@@ -112,20 +94,16 @@ class CpuLimit:
     def throttled(self) -> dict[str, float]:
         """The cgroup's ``cpu.stat``: periods, throttled periods, throttled seconds."""
         assert self.path is not None
-        stat = dict(
-            (k, int(v))
-            for k, v in (line.split() for line in (self.path / "cpu.stat").read_text().splitlines())
+        stat = cgroups.cpu_stat(self.path)
+        seconds = (
+            stat.get("throttled_time", 0) / 1e9
+            if self.version == 1
+            else stat.get("throttled_usec", 0) / 1e6
         )
-        if self.version == 1:
-            return {
-                "periods": stat.get("nr_periods", 0),
-                "throttled": stat.get("nr_throttled", 0),
-                "throttled_s": stat.get("throttled_time", 0) / 1e9,
-            }
         return {
             "periods": stat.get("nr_periods", 0),
             "throttled": stat.get("nr_throttled", 0),
-            "throttled_s": stat.get("throttled_usec", 0) / 1e6,
+            "throttled_s": seconds,
         }
 
     def _remove(self) -> None:

@@ -9,15 +9,15 @@ from pathlib import Path
 
 import pytest
 
-from abh3_supervisor.runtime import netns
+from abh3_supervisor.runtime import cgroups, netns
 from benchmarks import cgroup, small
 
 
 def _mounts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, *lines: str, own: str) -> None:
     (tmp_path / "mounts").write_text("".join(f"{line}\n" for line in lines))
     (tmp_path / "cgroup").write_text(own)
-    monkeypatch.setattr(cgroup, "MOUNTS", tmp_path / "mounts")
-    monkeypatch.setattr(cgroup, "OWN", tmp_path / "cgroup")
+    monkeypatch.setattr(cgroups, "MOUNTS", tmp_path / "mounts")  # read by the runtime's
+    monkeypatch.setattr(cgroups, "OWN", tmp_path / "cgroup")
 
 
 def test_a_v1_cpu_hierarchy_gets_quota_over_period(
