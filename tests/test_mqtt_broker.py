@@ -327,8 +327,8 @@ def test_a_flood_of_twists_never_holds_an_e_stop_back(broker: Broker, tmp_path: 
     would be held back by the test, not by the supervisor; and the test listens to the
     robot's status and events only: subscribed to the twists too, its own client would
     read (and check against the schema) the whole flood before the event, seconds on a
-    busy machine, and the test would time itself. Six seconds into the flood: the broker's
-    acknowledgements of the robot's events were once read behind the unread twists, and
+    busy machine, and the test would time itself. The e-stop comes sixty refusal events
+    (4–6 s) into the flood: the broker's acknowledgements of the robot's events were once read behind the unread twists, and
     after paho's 20 unacknowledged the robot fell silent — its e-stop event too."""
     fid, t = "sup11-rover", Topics("sup11-rover")
     fleet = Watcher(broker, FLEET, client_id=f"t-{FLEET}-{time.monotonic_ns()}")
