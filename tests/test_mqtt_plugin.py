@@ -67,6 +67,9 @@ def test_a_dead_broker_blocks_no_hook_and_the_outbox_stays_bounded() -> None:
     assert run.exit_code == 0, run.log
     said = [line for line in run.log if "does not keep up" in line]
     assert len(said) == 1 and "mqtt dead-left" in said[0]  # once, not per drop
+    # each robot's four connections wait to reconnect, up to a second each to notice the
+    # way out: told all at once, they end within abh3_stop's deadline, not one by one
+    assert not any("abh3_stop" in line for line in run.log), run.log
 
 
 def test_a_flooding_fleet_and_a_10_mb_message_block_no_hook(tmp_path: Path) -> None:

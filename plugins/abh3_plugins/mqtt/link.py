@@ -24,6 +24,7 @@ the hooks never wait for it.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import socket
@@ -53,6 +54,8 @@ MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands a
 # broker, not by our Python (which shares its interpreter lock with the bus loop)
 INCOMING_PER_S = 100.0
 STOPS = ("estop", "estop_clear")  # on the stop connection, for this robot and for `all`
+# the connections that only read, and what they hear
+LISTENERS = {"stop": "e-stops", "commands": "twists"}
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
 
 OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
@@ -88,11 +91,13 @@ class Link:
         self.reconnects = 0
         self.connected = threading.Event()  # the birth said: the sender may publish
         self._ever = False
-        # the birth waits for both: the main connection, and the e-stops subscribed on the
-        # stop one (or that one refused), so that `online` never comes before an e-stop
-        # would be heard
+        # the birth waits for the main connection and for each listening one's topics
+        # subscribed (or that connection refused), so that `online` never comes before an
+        # e-stop or a twist would be heard
         self._birth = threading.Lock()
-        self._main_up = self._stops_up = False
+        self._main_up = False
+        self._heard = {name: False for name in LISTENERS}
+        self._said_refused: set[str] = set()  # listeners whose refusal was logged
         self._on_message, self._on_lost = on_message, on_lost
         self._closing = threading.Event()
         self._inflight: deque[mqtt.MQTTMessageInfo] = deque()
@@ -103,14 +108,8 @@ class Link:
         self.client.on_pre_connect = self._pre_connect
         self.client.on_connect = self._connected
         self.client.on_disconnect = self._disconnected
-        self.commands = self._client(fleet.commands_client_id(fleet_id))
-        self.commands.on_connect = self._commands_connected
-        self.commands.on_message = self._message
-        self.stop = self._client(fleet.stop_client_id(fleet_id))
-        self.stop.on_connect = self._stop_connected
-        self.stop.on_subscribe = self._stops_subscribed
-        self.stop.on_disconnect = self._stop_disconnected
-        self.stop.on_message = self._message
+        self.commands = self._listener("commands", fleet.commands_client_id(fleet_id))
+        self.stop = self._listener("stop", fleet.stop_client_id(fleet_id))
         self.vda: mqtt.Client | None = None
         if settings.vda5050:
             self.vda = self._client(fleet.vda_client_id(fleet_id))
@@ -201,9 +200,9 @@ class Link:
             self._born_if_ready()
 
     def _born_if_ready(self) -> None:
-        """The birth, once the main connection is up and the e-stops are heard (the lock
-        held; any of paho's threads)."""
-        if not (self._main_up and self._stops_up) or self.connected.is_set():
+        """The birth, once the main connection is up and the e-stops and twists are heard
+        (the lock held; any of paho's threads)."""
+        if not (self._main_up and all(self._heard.values())) or self.connected.is_set():
             return
         # the birth first: the retained status says online before anything else
         self.client.publish(
@@ -220,38 +219,69 @@ class Link:
         self._ever = True
         self.connected.set()
 
-    def _commands_connected(
-        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
-    ) -> None:
-        # the birth does not wait for it: a twist not heard moves nothing
-        if reason.is_failure:
-            if self._main_up:  # else the main connection says it, refused alike
-                log.warning(
-                    "mqtt %s: the commands connection was refused: %s", self.fleet_id, reason
-                )
-            return
-        client.subscribe([(self.topics.command("twist"), self._options())])
+    # ------------------------------------------------------------ the listening ones
 
-    def _stop_connected(
-        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
-    ) -> None:
-        if reason.is_failure:  # no e-stops from the fleet; the birth is not held for them
-            if self._main_up:  # else the main connection says it, refused alike
-                log.warning("mqtt %s: the stop connection was refused: %s", self.fleet_id, reason)
-            self._stops_subscribed(client, userdata, 0)
-            return
+    def _listener(self, name: str, cid: str) -> mqtt.Client:
+        """A connection that only reads: ``name``'s topics (:data:`LISTENERS`)."""
+        client = self._client(cid)
+        client.on_connect = functools.partial(self._listener_connected, name)
+        client.on_subscribe = functools.partial(self._listener_subscribed, name)
+        client.on_disconnect = functools.partial(self._listener_disconnected, name)
+        client.on_message = self._message
+        return client
+
+    def _listener_topics(self, name: str) -> list[str]:
         t = self.topics
-        stops = [t.command(kind, everyone=every) for kind in STOPS for every in (False, True)]
-        client.subscribe([(topic, self._options()) for topic in stops])
+        if name == "stop":  # the robot's and everyone's
+            return [t.command(kind, everyone=every) for kind in STOPS for every in (False, True)]
+        return [t.command("twist")]
 
-    def _stops_subscribed(self, client: mqtt.Client, userdata: Any, mid: int, *rest: Any) -> None:
+    def _listener_connected(
+        self, name: str, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        if reason.is_failure:  # not heard; the birth is not held for it
+            # said once (the main connection says a refusal of its own, alike)
+            if self._main_up and name not in self._said_refused:
+                self._said_refused.add(name)
+                log.warning(
+                    "mqtt %s: the %s connection was refused: %s (%s from the fleet are not heard)",
+                    self.fleet_id,
+                    name,
+                    reason,
+                    LISTENERS[name],
+                )
+            self._heard_now(name)
+            return
+        self._said_refused.discard(name)
+        client.subscribe([(topic, self._options()) for topic in self._listener_topics(name)])
+
+    def _listener_subscribed(
+        self, name: str, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
+    ) -> None:
+        refused = [code for code in codes if code.is_failure]
+        if refused:  # a broker that refuses at SUBACK (the ACL): the birth is not held
+            log.warning(
+                "mqtt %s: the broker refused the subscription to %s: %s",
+                self.fleet_id,
+                LISTENERS[name],
+                ", ".join(str(code) for code in refused),
+            )
+        self._heard_now(name)
+
+    def _heard_now(self, name: str) -> None:
         with self._birth:
-            self._stops_up = True
+            self._heard[name] = True
             self._born_if_ready()
 
-    def _stop_disconnected(self, client: mqtt.Client, userdata: Any, *rest: Any) -> None:
+    def _listener_disconnected(
+        self, name: str, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
         with self._birth:
-            self._stops_up = False
+            self._heard[name] = False
+            alone = self._main_up  # the main connection says a loss of the broker
+        if alone and not self._closing.is_set():
+            what = f"the {name} connection was lost ({reason}); reconnecting"
+            log.warning("mqtt %s: %s", self.fleet_id, what)
 
     def _vda_connected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
@@ -351,21 +381,25 @@ class Link:
         self.outbox.put_last(Message(self.topics.status, status, self.settings.qos["status"], True))
 
     def close(self) -> None:
-        """Disconnect in order (no last will), once the sender is done or given up."""
+        """Disconnect in order (no last will), once the sender is done or given up; paho's
+        threads are told to end, and :meth:`join` waits for them."""
         self._closing.set()
         self.outbox.close()
         self._sender.join(0.5)
-        if self.vda is not None:
-            if self.vda.is_connected():
-                info = self.vda.publish(
-                    self.topics.connection,
-                    payloads.encode(self.connection("offline")),
-                    1,
-                    retain=True,
-                )
-                info.wait_for_publish(0.3)
-            self.vda.disconnect()
-            self.vda.loop_stop()
-        for client in (self.commands, self.stop, self.client):
+        if self.vda is not None and self.vda.is_connected():
+            info = self.vda.publish(
+                self.topics.connection, payloads.encode(self.connection("offline")), 1, retain=True
+            )
+            info.wait_for_publish(0.3)
+        for client in self._clients():
             client.disconnect()
+
+    def join(self) -> None:
+        """paho's threads ended. One waiting to reconnect takes up to a second to notice
+        it was told (:meth:`close`): told all first, every link's, the waits overlap
+        rather than add up past ``abh3_stop``'s deadline."""
+        for client in self._clients():
             client.loop_stop()
+
+    def _clients(self) -> list[mqtt.Client]:
+        return [c for c in (self.vda, self.commands, self.stop, self.client) if c is not None]

@@ -485,6 +485,8 @@ class MqttPlugin:
             self._stop.wait(0.02)
         for link in self.links.values():
             link.close()
+        for link in self.links.values():  # after every link was told: the waits overlap
+            link.join()
 
 
 def _foreign_news(unit: str, host: tuple[int, int] | None) -> tuple[str, dict[str, Any]]:
