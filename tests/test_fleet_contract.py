@@ -105,10 +105,20 @@ def test_every_payload_we_build_validates() -> None:
     )
     valid("event", event)
     bus = {"frames_sent": 1, "frames_received": 2, "send_errors": 0, "state": "ok"}
-    valid(
-        "health",
-        payloads.health(4, NOW, **common, buses={"b": bus}, queued=0, dropped=3, reconnects=1),
-    )
+    for not_heard in (None, ["twist", "estop"]):
+        health = payloads.health(
+            4,
+            NOW,
+            fleet_id="h-rover",
+            robot="rover",
+            buses={"b": bus},
+            queued=0,
+            dropped=3,
+            reconnects=1,
+            not_heard=not_heard,
+        )
+        valid("health", health)
+    assert health["mqtt"]["not_heard"] == ["estop", "twist"]
     valid("estop_command", payloads.estop_command(1, NOW, sender="scada", reason="door"))
     valid("twist_command", payloads.twist_command(1, NOW, sender="f", linear=0.1, angular=0))
     with pytest.raises(ValueError):

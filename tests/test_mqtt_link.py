@@ -68,6 +68,9 @@ def test_a_refused_subscription_is_said_and_holds_nothing_back(
     assert link.connected.is_set()
     said = [r.getMessage() for r in caplog.records]
     assert said == ["mqtt t-rover: the broker refused the subscription to e-stops: Not authorized"]
+    assert link.not_heard == {"estop"}  # the robot's health tells the fleet so
+    subscribed(link, "stop", GRANTED, GRANTED)  # granted on the next connection
+    assert link.not_heard == set()
 
 
 def test_a_refused_listening_connection_is_said_once_not_at_every_retry(
@@ -79,6 +82,7 @@ def test_a_refused_listening_connection_is_said_once_not_at_every_retry(
         for _ in range(3):  # paho tries again every 1-5 s
             connect(link, "commands", NOT_AUTHORIZED)
     assert link.connected.is_set()  # not held for twists that cannot come
+    assert link.not_heard == {"twist"}
     said = [r.getMessage() for r in caplog.records]
     assert said == [
         "mqtt t-rover: the commands connection was refused: Not authorized "

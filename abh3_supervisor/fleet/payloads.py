@@ -178,7 +178,11 @@ def health(
     queued: int,
     dropped: int,
     reconnects: int,
+    not_heard: list[str] | None = None,
 ) -> dict[str, Any]:
+    """``not_heard``: the fleet's commands (``estop``, ``twist``) the robot cannot hear,
+    its connection or subscription for them refused by the broker."""
+    mqtt = {"queued": queued, "dropped": dropped, "reconnects": reconnects}
     return stamped(
         seq,
         now,
@@ -186,7 +190,7 @@ def health(
             "fleet_id": fleet_id,
             "robot": robot,
             "buses": buses,
-            "mqtt": {"queued": queued, "dropped": dropped, "reconnects": reconnects},
+            "mqtt": {**mqtt, "not_heard": sorted(not_heard or [])},
         },
     )
 

@@ -134,7 +134,8 @@ def _events(text: Text, robot: Robot, now: float) -> None:
 
 
 def _health(robot: Robot, model: FleetModel, now: float) -> list[tuple[str, str]]:
-    """Trouble in its last health (a bus not ok, messages its plugin dropped)."""
+    """Trouble in its last health (a bus not ok, messages its plugin dropped, commands it
+    cannot hear)."""
     if robot.health is None or not model.health_live(robot, now):
         return []
     notes: list[tuple[str, str]] = []
@@ -143,9 +144,14 @@ def _health(robot: Robot, model: FleetModel, now: float) -> list[tuple[str, str]
         state = bus.get("state") if isinstance(bus, dict) else None
         if state != "ok":
             notes.append((f"bus {name}: {state}", "bold red"))
-    dropped = robot.health.get("mqtt", {}).get("dropped")
+    mqtt = robot.health.get("mqtt", {})
+    dropped = mqtt.get("dropped")
     if isinstance(dropped, int) and dropped:
         notes.append((f"{dropped} messages dropped by its plugin", "yellow"))
+    not_heard = mqtt.get("not_heard")
+    for kind, what, style in (("estop", "e-stops", "bold red"), ("twist", "twists", "yellow")):
+        if isinstance(not_heard, list) and kind in not_heard:
+            notes.append((f"it does not hear the fleet's {what}: the broker refused them", style))
     return notes
 
 

@@ -54,8 +54,9 @@ MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands a
 # broker, not by our Python (which shares its interpreter lock with the bus loop)
 INCOMING_PER_S = 100.0
 STOPS = ("estop", "estop_clear")  # on the stop connection, for this robot and for `all`
-# the connections that only read, and what they hear
+# the connections that only read, and what they hear (as said, and as health names it)
 LISTENERS = {"stop": "e-stops", "commands": "twists"}
+HEARS = {"stop": "estop", "commands": "twist"}
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
 
 OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
@@ -98,6 +99,8 @@ class Link:
         self._main_up = False
         self._heard = {name: False for name in LISTENERS}
         self._said_refused: set[str] = set()  # listeners whose refusal was logged
+        # the fleet's commands not heard: their connection or subscription refused (health)
+        self.not_heard: set[str] = set()
         self._on_message, self._on_lost = on_message, on_lost
         self._closing = threading.Event()
         self._inflight: deque[mqtt.MQTTMessageInfo] = deque()
@@ -250,6 +253,7 @@ class Link:
                     reason,
                     LISTENERS[name],
                 )
+            self.not_heard.add(HEARS[name])
             self._heard_now(name)
             return
         self._said_refused.discard(name)
@@ -259,7 +263,10 @@ class Link:
         self, name: str, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
     ) -> None:
         refused = [code for code in codes if code.is_failure]
-        if refused:  # a broker that refuses at SUBACK (the ACL): the birth is not held
+        if not refused:
+            self.not_heard.discard(HEARS[name])
+        else:  # a broker that refuses at SUBACK (the ACL): the birth is not held
+            self.not_heard.add(HEARS[name])
             log.warning(
                 "mqtt %s: the broker refused the subscription to %s: %s",
                 self.fleet_id,

@@ -270,6 +270,7 @@ class MqttPlugin:
                 queued=len(link.outbox),
                 dropped=link.outbox.dropped,
                 reconnects=link.reconnects,
+                not_heard=list(link.not_heard),
             )
             link.put(topic, payload, self.settings.qos["health"], retain=True, lossy=True)
 
