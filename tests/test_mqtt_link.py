@@ -41,7 +41,9 @@ def connect(link: Link, name: str, reason: ReasonCode = OK) -> None:
 
 
 def subscribed(link: Link, name: str, *codes: ReasonCode) -> None:
-    client(link, name).on_subscribe(client(link, name), None, 1, list(codes), None)
+    """paho's ``on_subscribe``: ``codes``, or every topic of ``name`` granted."""
+    answer = list(codes) or [GRANTED] * len(link._listener_topics(name))
+    client(link, name).on_subscribe(client(link, name), None, 1, answer, None)
 
 
 def test_online_waits_for_the_e_stops_and_the_twists_to_be_heard(link: Link) -> None:
@@ -52,7 +54,7 @@ def test_online_waits_for_the_e_stops_and_the_twists_to_be_heard(link: Link) -> 
         assert not link.connected.is_set()
         connect(link, name)
         assert not link.connected.is_set()  # connected, not yet subscribed
-        subscribed(link, name, GRANTED)
+        subscribed(link, name)
     assert link.connected.is_set()
 
 
@@ -62,14 +64,19 @@ def test_a_refused_subscription_is_said_and_holds_nothing_back(
     """A broker whose ACL refuses at SUBACK: the warning names what is not heard; the
     robot still says ``online`` (as for a refused connection)."""
     link._connected(link.client, None, None, OK, None)
-    subscribed(link, "commands", GRANTED)
+    subscribed(link, "commands")
     with caplog.at_level(logging.WARNING, logger="abh3_plugins.mqtt"):
-        subscribed(link, "stop", REFUSED, GRANTED)
+        subscribed(link, "stop", REFUSED, GRANTED, GRANTED, GRANTED)
     assert link.connected.is_set()
     said = [r.getMessage() for r in caplog.records]
-    assert said == ["mqtt t-rover: the broker refused the subscription to e-stops: Not authorized"]
+    assert said == [
+        "mqtt t-rover: the broker refused the subscription to e-stops: "
+        "abh3/v1/t-rover/cmd/estop (Not authorized)"
+    ]
     assert link.not_heard == {"estop"}  # the robot's health tells the fleet so
-    subscribed(link, "stop", GRANTED, GRANTED)  # granted on the next connection
+    subscribed(link, "stop", GRANTED)  # an answer short of the four topics asked
+    assert link.not_heard == {"estop"}
+    subscribed(link, "stop")  # granted on the next connection
     assert link.not_heard == set()
 
 
@@ -77,7 +84,7 @@ def test_a_refused_listening_connection_is_said_once_not_at_every_retry(
     link: Link, caplog: pytest.LogCaptureFixture
 ) -> None:
     link._connected(link.client, None, None, OK, None)
-    subscribed(link, "stop", GRANTED)
+    subscribed(link, "stop")
     with caplog.at_level(logging.WARNING, logger="abh3_plugins.mqtt"):
         for _ in range(3):  # paho tries again every 1-5 s
             connect(link, "commands", NOT_AUTHORIZED)

@@ -25,6 +25,7 @@ the hooks never wait for it.
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 import os
 import socket
@@ -262,16 +263,24 @@ class Link:
     def _listener_subscribed(
         self, name: str, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
     ) -> None:
-        refused = [code for code in codes if code.is_failure]
+        # the codes answer the topics in the order they were asked; a topic a broker's
+        # short answer leaves out is not heard either
+        pairs = itertools.zip_longest(self._listener_topics(name), codes)
+        refused = [
+            f"{topic} ({'no answer' if code is None else code})"
+            for topic, code in pairs
+            if code is None or code.is_failure
+        ]
         if not refused:
             self.not_heard.discard(HEARS[name])
-        else:  # a broker that refuses at SUBACK (the ACL): the birth is not held
+        else:  # a broker that refuses at SUBACK (the ACL): the birth is not held; any
+            # topic refused counts as not heard (the robot's own or everyone's e-stop)
             self.not_heard.add(HEARS[name])
             log.warning(
                 "mqtt %s: the broker refused the subscription to %s: %s",
                 self.fleet_id,
                 LISTENERS[name],
-                ", ".join(str(code) for code in refused),
+                ", ".join(refused),
             )
         self._heard_now(name)
 
