@@ -113,3 +113,23 @@ def test_a_listening_connection_lost_alone_is_said(
     assert [r.getMessage() for r in caplog.records] == [
         "mqtt t-rover: the commands connection was lost (Keep alive timeout); reconnecting"
     ]
+
+
+def test_online_waits_for_vda5050_instant_actions_too() -> None:
+    """A VDA 5050 ``stopPause`` is an e-stop: with ``vda5050`` on, the status says
+    ``online`` only once instantActions are subscribed (a fleet that read ``online`` and
+    sent at once found the subscription not yet made: CI on 78fb17f)."""
+    link = Link(
+        Settings(name="t", vda5050=True),
+        "t-rover",
+        "rover",
+        ["front"],
+        on_message=lambda link, message: None,
+        on_lost=lambda link: None,
+    )
+    link._connected(link.client, None, None, OK, None)
+    for name in LISTENERS:
+        subscribed(link, name)
+    assert not link.connected.is_set() and link.vda is not None
+    link._vda_subscribed(link.vda, None, 1, [GRANTED], None)
+    assert link.connected.is_set()

@@ -98,7 +98,9 @@ class Link:
         # e-stop or a twist would be heard
         self._birth = threading.Lock()
         self._main_up = False
-        self._heard = {name: False for name in LISTENERS}
+        # the VDA 5050 connection's instantActions too (its stopPause is an e-stop)
+        heard = [*LISTENERS, "vda"] if settings.vda5050 else list(LISTENERS)
+        self._heard = dict.fromkeys(heard, False)
         self._said_refused: set[str] = set()  # listeners whose refusal was logged
         # the fleet's commands not heard: their connection or subscription refused (health)
         self.not_heard: set[str] = set()
@@ -119,6 +121,8 @@ class Link:
             self.vda = self._client(fleet.vda_client_id(fleet_id))
             self.vda.on_pre_connect = self._vda_pre_connect
             self.vda.on_connect = self._vda_connected
+            self.vda.on_subscribe = self._vda_subscribed
+            self.vda.on_disconnect = self._vda_disconnected
             self.vda.on_message = self._message
 
     # ------------------------------------------------------------ set-up
@@ -302,13 +306,31 @@ class Link:
     def _vda_connected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
-        if reason.is_failure:
-            return  # said by the main connection, refused alike
+        if reason.is_failure:  # said by the main connection, refused alike
+            self._heard_now("vda")  # the birth is not held for it
+            return
         # subscribed first: the broker takes one connection's packets in order, so whoever
         # reads ONLINE can be sure its instantActions are heard
         client.subscribe([(self.topics.instant_actions, self._options())])
         online = payloads.encode(self.connection("online"))
         client.publish(self.topics.connection, online, 1, retain=True)
+
+    def _vda_subscribed(
+        self, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
+    ) -> None:
+        if any(code.is_failure for code in codes):
+            log.warning(
+                "mqtt %s: the broker refused the subscription to %s",
+                self.fleet_id,
+                self.topics.instant_actions,
+            )
+        self._heard_now("vda")  # whoever reads our status online is heard there too
+
+    def _vda_disconnected(
+        self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
+    ) -> None:
+        with self._birth:
+            self._heard["vda"] = False
 
     def _options(self) -> Any:
         """A command subscription's QoS; under MQTT 5 with "retain as published", so that a
