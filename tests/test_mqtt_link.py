@@ -19,16 +19,20 @@ GRANTED = ReasonCode(PacketTypes.SUBACK, "Granted QoS 1")
 REFUSED = ReasonCode(PacketTypes.SUBACK, "Not authorized")
 
 
-@pytest.fixture
-def link() -> Link:
+def new_link(*, vda5050: bool) -> Link:
     return Link(
-        Settings(name="t", vda5050=False),
+        Settings(name="t", vda5050=vda5050),
         "t-rover",
         "rover",
         ["front"],
         on_message=lambda link, message: None,
         on_lost=lambda link: None,
     )
+
+
+@pytest.fixture
+def link() -> Link:
+    return new_link(vda5050=False)
 
 
 def client(link: Link, name: str) -> Any:
@@ -119,14 +123,7 @@ def test_online_waits_for_vda5050_instant_actions_too() -> None:
     """A VDA 5050 ``stopPause`` is an e-stop: with ``vda5050`` on, the status says
     ``online`` only once instantActions are subscribed (a fleet that read ``online`` and
     sent at once found the subscription not yet made: CI on 78fb17f)."""
-    link = Link(
-        Settings(name="t", vda5050=True),
-        "t-rover",
-        "rover",
-        ["front"],
-        on_message=lambda link, message: None,
-        on_lost=lambda link: None,
-    )
+    link = new_link(vda5050=True)
     link._connected(link.client, None, None, OK, None)
     for name in LISTENERS:
         subscribed(link, name)
