@@ -55,9 +55,8 @@ MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands a
 # broker, not by our Python (which shares its interpreter lock with the bus loop)
 INCOMING_PER_S = 100.0
 STOPS = ("estop", "estop_clear")  # on the stop connection, for this robot and for `all`
-# the connections that only read, and what they hear (as said, and as health names it)
-LISTENERS = {"stop": "e-stops", "commands": "twists"}
-HEARS = {"stop": "estop", "commands": "twist"}
+# the connections that only read: what they hear, as said and as health names it
+LISTENERS = {"stop": ("e-stops", "estop"), "commands": ("twists", "twist")}
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
 
 OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
@@ -256,9 +255,9 @@ class Link:
                     self.fleet_id,
                     name,
                     reason,
-                    LISTENERS[name],
+                    LISTENERS[name][0],
                 )
-            self.not_heard.add(HEARS[name])
+            self.not_heard.add(LISTENERS[name][1])
             self._heard_now(name)
             return
         self._said_refused.discard(name)
@@ -267,23 +266,17 @@ class Link:
     def _listener_subscribed(
         self, name: str, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
     ) -> None:
-        # the codes answer the topics in the order they were asked; a topic a broker's
-        # short answer leaves out is not heard either
-        pairs = itertools.zip_longest(self._listener_topics(name), codes)
-        refused = [
-            f"{topic} ({'no answer' if code is None else code})"
-            for topic, code in pairs
-            if code is None or code.is_failure
-        ]
+        what, kind = LISTENERS[name]
+        refused = _refused(self._listener_topics(name), codes)
         if not refused:
-            self.not_heard.discard(HEARS[name])
+            self.not_heard.discard(kind)
         else:  # a broker that refuses at SUBACK (the ACL): the birth is not held; any
             # topic refused counts as not heard (the robot's own or everyone's e-stop)
-            self.not_heard.add(HEARS[name])
+            self.not_heard.add(kind)
             log.warning(
                 "mqtt %s: the broker refused the subscription to %s: %s",
                 self.fleet_id,
-                LISTENERS[name],
+                what,
                 ", ".join(refused),
             )
         self._heard_now(name)
@@ -293,12 +286,17 @@ class Link:
             self._heard[name] = True
             self._born_if_ready()
 
+    def _unheard(self, name: str) -> bool:
+        """``name``'s connection lost: the next birth waits for it; whether the main
+        connection is still up (else that one says the broker is lost)."""
+        with self._birth:
+            self._heard[name] = False
+            return self._main_up
+
     def _listener_disconnected(
         self, name: str, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
-        with self._birth:
-            self._heard[name] = False
-            alone = self._main_up  # the main connection says a loss of the broker
+        alone = self._unheard(name)
         if alone and not self._closing.is_set():
             what = f"the {name} connection was lost ({reason}); reconnecting"
             log.warning("mqtt %s: %s", self.fleet_id, what)
@@ -318,19 +316,19 @@ class Link:
     def _vda_subscribed(
         self, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
     ) -> None:
-        if any(code.is_failure for code in codes):
+        refused = _refused([self.topics.instant_actions], codes)
+        if refused:
             log.warning(
                 "mqtt %s: the broker refused the subscription to %s",
                 self.fleet_id,
-                self.topics.instant_actions,
+                ", ".join(refused),
             )
         self._heard_now("vda")  # whoever reads our status online is heard there too
 
     def _vda_disconnected(
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
-        with self._birth:
-            self._heard["vda"] = False
+        self._unheard("vda")  # the main connection says a loss of the broker
 
     def _options(self) -> Any:
         """A command subscription's QoS; under MQTT 5 with "retain as published", so that a
@@ -441,3 +439,14 @@ class Link:
 
     def _clients(self) -> list[mqtt.Client]:
         return [c for c in (self.vda, self.commands, self.stop, self.client) if c is not None]
+
+
+def _refused(topics: list[str], codes: Any) -> list[str]:
+    """The topics a SUBACK refused, each with its reason: its codes answer the topics in
+    the order they were asked, and a topic a broker's short answer leaves out is not heard
+    either."""
+    return [
+        f"{topic} ({'no answer' if code is None else code})"
+        for topic, code in itertools.zip_longest(topics, codes)
+        if code is None or code.is_failure
+    ]
