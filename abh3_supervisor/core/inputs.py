@@ -482,18 +482,23 @@ class InputArbiter:
         command drives the units its source targets and the rest of the robot gets zero,
         so a robot never has two owners. All or nothing: a unit that refuses stops the
         robot. ``again``: apply the winner's commands anew (a ramp's next step)."""
-        since = max(self.held.get(u, 0) for u in domain)
-        replaced = max(self.superseded.get(u, -math.inf) for u in domain)
-        candidates = [
-            s
-            for s in self.sources.values()
-            if any(u in s.units for u in domain)
-            and s.fresh(now)
-            and s.seq > since
-            and not (s.standing and s.heard < replaced)
-        ]
-        best = max(candidates, key=lambda s: (s.priority, s.heard)) if candidates else None
-        previous = next((c[0] for u in domain if (c := self.current.get(u)) is not None), None)
+        # plain loops, no generators: a setpoint may come every exchange
+        since, replaced, previous = 0, -math.inf, None
+        for u in domain:
+            since = max(since, self.held.get(u, 0))
+            replaced = max(replaced, self.superseded.get(u, -math.inf))
+            if previous is None and (c := self.current.get(u)) is not None:
+                previous = c[0]
+        best: _SourceState | None = None  # the first of the highest (priority, heard)
+        for s in self.sources.values():
+            if (
+                s.seq > since
+                and s.fresh(now)
+                and not (s.standing and s.heard < replaced)
+                and any(u in s.units for u in domain)
+                and (best is None or (s.priority, s.heard) > (best.priority, best.heard))
+            ):
+                best = s
         if previous is not None and (best is None or best.name != previous):
             owner = self.sources.get(previous)
             if owner is None or not owner.fresh(now):

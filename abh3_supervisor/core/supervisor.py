@@ -966,17 +966,21 @@ def _limited(
     """The values within the unit's limit, its robot's axis limits and the wire's range,
     both axes scaled alike (the robot keeps its heading, only slower), and the note saying
     so if they changed."""
-    if kind is ControlMode.VELOCITY:
-        word, key, limit, wire = "VEL", "velocity", unit.cfg.limits.velocity, VELOCITY
-    else:
-        word, key, limit, wire = "CUR", "current", unit.cfg.limits.current, CURRENT
-    scale = min([1.0, *(_bound(v, limit, wire) / abs(v) for v in (ay, bx) if v)])
-    axes = 1.0
-    if kind is ControlMode.VELOCITY and unit.axis_limits is not None:
+    velocity = kind is ControlMode.VELOCITY
+    limit = unit.cfg.limits.velocity if velocity else unit.cfg.limits.current
+    wire = VELOCITY if velocity else CURRENT
+    scale = axes = 1.0  # the largest factors within the bounds (plain loops: no lists
+    for v in (ay, bx):  # built for a setpoint that may come every exchange)
+        if v:
+            scale = min(scale, _bound(v, limit, wire) / abs(v))
+    if velocity and unit.axis_limits is not None:
         motors = (ay, bx) if unit.cfg.velocity_model is VelocityModel.MOTOR else yx_to_ab(ay, bx)
-        axes = min([1.0, *(m / abs(v) for v, m in zip(motors, unit.axis_limits, strict=True) if v)])
+        for v, m in zip(motors, unit.axis_limits, strict=True):
+            if v:
+                axes = min(axes, m / abs(v))
     if min(scale, axes) >= 1.0 - 1e-12:  # a robot's plan scaled exactly to the bound
         return ay, bx, None
+    word, key = ("VEL", "velocity") if velocity else ("CUR", "current")
     # the binding bound: the robot's, the YAML's limit, or the wire's range
     if axes < scale:
         why = "the robot's limits: A ≤ {:.6g}, B ≤ {:.6g} min⁻¹".format(*unit.axis_limits or ())
