@@ -124,16 +124,25 @@ def main(argv: list[str] | None = None) -> int:
     section = "2. host CPU per DP0 exchange (virtual bus, same echo drive)"
     n = 2000 if a.quick else 10000
     for pinned in (False, True):
-        ours_runs, once_runs, bare_runs = host_cpu.interleaved(n, runs, pinned=pinned)
+        ours_runs, once_runs, loop_runs, bare_runs = host_cpu.interleaved(n, runs, pinned=pinned)
         bare = statistics.median(bare_runs) * 1e6
-        first, second = (
-            ("  both on one core: ours", "  on one core, the setpoint set once")
+        first, second, third = (
+            (
+                "  both on one core: ours",
+                "  on one core, the setpoint set once",
+                "  on one core, an event loop alone",
+            )
             if pinned
-            else ("CPU per exchange: ours", "  the same, the setpoint set once")
+            else (
+                "CPU per exchange: ours",
+                "  the same, the setpoint set once",
+                "  an event loop alone",
+            )
         )
         for label, runs_of, targeted in (
             (f"{first} vs bare python-can", ours_runs, not pinned),
             (f"{second} (not per exchange)", once_runs, False),
+            (f"{third} (no scheduler, no supervisor)", loop_runs, False),
         ):
             ratios = [o / b for o, b in zip(runs_of, bare_runs, strict=True)]
             notes = ["<=1.5x every run"] if targeted else []

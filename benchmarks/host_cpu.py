@@ -12,7 +12,11 @@ are timed with process CPU time, so the echo's own cost is in both figures alike
   subscribed observer (the hook path plugins use);
 * **ours, the setpoint set once** — the same with the observer only counting: what an
   exchange costs where the setpoints come slower than the exchanges (a joystick at
-  20–50 Hz, ``cmd_vel`` at 10–50 Hz, drives at 100 Hz), and so what a new setpoint adds.
+  20–50 Hz, ``cmd_vel`` at 10–50 Hz, drives at 100 Hz), and so what a new setpoint adds;
+* **an event loop alone** — asyncio and the pump's hand-over of the reply to the loop
+  (scheduler/sources.py), sending the next command from the wake-up: no scheduler, no
+  supervisor. What any event-loop host pays here before doing anything of its own, so
+  that the three rows part the cost into the loop's, the exchange's and the setpoint's.
 
 :func:`interleaved` runs them free (the threads where the kernel puts them: the figure
 the target is on) or ``pinned`` to one core. Free, each exchange is two wake-ups across
@@ -37,6 +41,7 @@ from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.scheduler.core import FeedbackEvent
 from abh3_supervisor.scheduler.pump import BusPump
+from abh3_supervisor.scheduler.sources import source_for
 
 CMD_ID, REPLY_ID = ids.dp0_command_id(1, 2), ids.dp0_reply_id(1, 2)
 
@@ -123,6 +128,46 @@ def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
     return asyncio.run(run())
 
 
+def event_loop(exchanges: int) -> float:
+    """CPU seconds per exchange for an event loop that only sends the next command when
+    the pump's source hands it the reply."""
+
+    async def run() -> float:
+        loop = asyncio.get_running_loop()
+        done = loop.create_future()
+        count = 0
+        with EchoDrive("bench-loop"):
+            bus = can.Bus(interface="virtual", channel="bench-loop")
+
+            def send() -> None:
+                data = frames.encode_dp0_command(count & 0x7FFF, 0, 0)
+                bus.send(can.Message(arbitration_id=CMD_ID, data=data, is_extended_id=True))
+
+            def woken() -> None:
+                nonlocal count
+                while (got := source.recv()) is not None:
+                    if got[0].arbitration_id != REPLY_ID:
+                        continue
+                    count += 1
+                    if count >= exchanges:
+                        if not done.done():
+                            done.set_result(None)
+                        return
+                    send()
+
+            source = source_for(bus, loop, woken, print, "bench-loop")
+            source.watch(True)
+            start = time.process_time()
+            send()
+            await done
+            cpu = time.process_time() - start
+            source.stop()
+            bus.shutdown()
+        return cpu / count
+
+    return asyncio.run(run())
+
+
 @contextlib.contextmanager
 def _on_one_core(pinned: bool) -> Iterator[None]:
     """This thread, and the threads it starts meanwhile, on one core of those it may use
@@ -140,14 +185,19 @@ def _on_one_core(pinned: bool) -> Iterator[None]:
 
 def interleaved(
     exchanges: int, runs: int, *, pinned: bool = False
-) -> tuple[list[float], list[float], list[float]]:
-    """``runs`` rounds of ours, ours with the setpoint set once, then bare (CPU seconds
-    per exchange), so that each round shares the machine's state of the moment: the three
-    lists, run by run. ``pinned``: every thread of them on one core."""
+) -> tuple[list[float], list[float], list[float], list[float]]:
+    """``runs`` rounds of ours, ours with the setpoint set once, the event loop alone, then
+    bare (CPU seconds per exchange), so that each round shares the machine's state of the
+    moment: the four lists, run by run. ``pinned``: every thread of them on one core."""
     with _on_one_core(pinned):
         rounds = [
-            (ours(exchanges), ours(exchanges, new_setpoint=False), bare(exchanges))
+            (
+                ours(exchanges),
+                ours(exchanges, new_setpoint=False),
+                event_loop(exchanges),
+                bare(exchanges),
+            )
             for _ in range(runs)
         ]
-    new, once, plain = (list(column) for column in zip(*rounds, strict=True))
-    return new, once, plain
+    new, once, alone, plain = (list(column) for column in zip(*rounds, strict=True))
+    return new, once, alone, plain

@@ -54,7 +54,7 @@ def test_the_target_holds_in_every_run(
     assert "each run's pair runs 1.4–" in row.target and "ours runs 140–" in row.target
 
 
-def test_section_2_runs_its_rounds_ours_ours_with_one_setpoint_then_bare(
+def test_section_2_runs_its_rounds_ours_with_one_setpoint_the_loop_alone_then_bare(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     from benchmarks import host_cpu
@@ -69,10 +69,15 @@ def test_section_2_runs_its_rounds_ours_ours_with_one_setpoint_then_bare(
         calls.append("bare")
         return 1.0
 
+    def event_loop(exchanges: int) -> float:
+        calls.append("loop")
+        return 1.2
+
     monkeypatch.setattr(host_cpu, "ours", ours)
+    monkeypatch.setattr(host_cpu, "event_loop", event_loop)
     monkeypatch.setattr(host_cpu, "bare", bare)
-    assert host_cpu.interleaved(10, 3) == ([2.0] * 3, [1.5] * 3, [1.0] * 3)
-    assert calls == ["ours", "once", "bare"] * 3
+    assert host_cpu.interleaved(10, 3) == ([2.0] * 3, [1.5] * 3, [1.2] * 3, [1.0] * 3)
+    assert calls == ["ours", "once", "loop", "bare"] * 3
 
 
 def test_section_2_pinned_runs_every_round_on_one_core_and_gives_the_cores_back(
@@ -90,10 +95,11 @@ def test_section_2_pinned_runs_every_round_on_one_core_and_gives_the_cores_back(
         return 1.0
 
     monkeypatch.setattr(host_cpu, "ours", measured)
+    monkeypatch.setattr(host_cpu, "event_loop", measured)
     monkeypatch.setattr(host_cpu, "bare", measured)
     host_cpu.interleaved(10, 2, pinned=True)
     expected = {max(before)} if len(before) > 1 else before
-    assert seen == [expected] * 6
+    assert seen == [expected] * 8
     assert os.sched_getaffinity(0) == before
     host_cpu.interleaved(10, 1)
-    assert seen[6:] == [before] * 3
+    assert seen[8:] == [before] * 4

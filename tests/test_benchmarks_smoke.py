@@ -27,7 +27,7 @@ def test_planner_matches_the_wire_model() -> None:
 
 @pytest.mark.wallclock
 def test_host_cpu_and_timing_and_scale_run() -> None:
-    assert host_cpu.bare(50) > 0 and host_cpu.ours(50) > 0
+    assert host_cpu.bare(50) > 0 and host_cpu.ours(50) > 0 and host_cpu.event_loop(50) > 0
     for tuis in (0, 1):
         result = cycle_timing.run(2, 100, 0.5, f"smoke-{tuis}", tuis=tuis)
         assert set(result) >= {"jitter_p99_ms", "latency_p99_ms", "rate_error_percent"}
