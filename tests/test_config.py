@@ -323,6 +323,15 @@ def test_one_mistake_gives_one_message() -> None:
     ]
 
 
+def test_an_empty_unit_list_is_told_to_declare_one() -> None:
+    assert problems("buses:\n  can0: {}\nunits: []\n") == [
+        "robot.yaml:3: units: declare at least one unit (each a mapping with at least 'name')"
+    ]
+    assert problems("buses:\n  can0: {}\nunits: {a: 1}\n") == [
+        "robot.yaml:3: units: expected a list of units (each a mapping with at least 'name')"
+    ]
+
+
 # ---------------------------------------------------------------- timing rules
 
 

@@ -266,6 +266,8 @@ def test_through_the_service(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert asyncio.run(scenario()) == [0, 1, 1, 0, 1]
     out, err = capsys.readouterr()
     assert "unit left: this supervisor commands its servo ON (switch it off first)" in err
+    # the refusal without --force points at SERVO OFF, not at a --force that cannot help
+    assert "SERVO OFF first; --force writes with the servo on, but never while this" in err
     assert "the drive refused it (NAK)" in err
     assert "written:" not in out and "FIRMWARE_VERSION   2.3.0.1" in out
     assert logged == []  # nothing was written

@@ -311,7 +311,10 @@ async def _may_write(backend: Backend, args: argparse.Namespace, what: str) -> b
     servo = await backend.servo_on(args.unit)
     if servo is not False and not args.force:  # refused before asking (checked again)
         why = "reports its servo ON" if servo else "did not answer whether its servo is on"
-        raise ParamFailed(f"unit {args.unit} {why}: not writing (--force to write anyway)")
+        raise ParamFailed(
+            f"unit {args.unit} {why}: not writing (SERVO OFF first; --force writes with the "
+            "servo on, but never while this supervisor commands it ON)"
+        )
     if args.yes:
         return True
     if not sys.stdin.isatty():

@@ -289,7 +289,8 @@ def _simulate(b: Section, interface: str) -> SimConfig | None:
 def _units(top: Section, buses: dict[str, BusConfig]) -> dict[str, UnitConfig]:
     raw = top.data.get("units")
     if not isinstance(raw, list) or not raw:
-        top.error("units", "expected a list of units (each a mapping with at least 'name')")
+        what = "declare at least one unit" if raw == [] else "expected a list of units"
+        top.error("units", f"{what} (each a mapping with at least 'name')")
         return {}
     units: dict[str, UnitConfig] = {}
     addresses: dict[tuple[str, int], str] = {}
