@@ -32,7 +32,7 @@ import contextlib
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
 
@@ -117,11 +117,7 @@ def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
                 channel="bench-ours",
                 after_step=lambda: sup.dispatch("b"),
             )
-            start = time.process_time()
-            pump.start()
-            await done
-            cpu = time.process_time() - start
-            pump.stop()
+            cpu = await _cpu_until(done, pump.start, pump.stop)
             bus.shutdown()
         return cpu / count
 
@@ -157,15 +153,23 @@ def event_loop(exchanges: int) -> float:
 
             source = source_for(bus, loop, woken, print, "bench-loop")
             source.watch(True)
-            start = time.process_time()
-            send()
-            await done
-            cpu = time.process_time() - start
-            source.stop()
+            cpu = await _cpu_until(done, send, source.stop)
             bus.shutdown()
         return cpu / count
 
     return asyncio.run(run())
+
+
+async def _cpu_until(
+    done: asyncio.Future[None], start: Callable[[], None], stop: Callable[[], None]
+) -> float:
+    """Process CPU seconds from ``start()`` until ``done``; ``stop()`` after."""
+    begin = time.process_time()
+    start()
+    await done
+    cpu = time.process_time() - begin
+    stop()
+    return cpu
 
 
 @contextlib.contextmanager
