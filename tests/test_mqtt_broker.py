@@ -258,6 +258,14 @@ def test_retained_stale_future_malformed_and_repeated_commands_are_refused(
         fleet.wait_for(event("estop_latched", fid))
         obeyed = fleet.wait_for(event("fleet_command", fid)).body["data"]
         assert obeyed["seq"] == 10
+        # refusals are told at most 10 a second (the rest counted into one later event),
+        # and ten came within about half a second: the repeat goes in a second of its own,
+        # as the robot's own clock shows it
+        said = [m for m in fleet.messages if event("fleet_command_refused", fid)(m)]
+        quiet = said[-1].body["time"] + 1.1
+        fleet.wait_for(
+            lambda m: m.topic.startswith(f"abh3/v1/{fid}/units/") and m.body["time"] > quiet
+        )
         mark = fleet.mark()
         fleet.publish(t.command("estop"), command(10))  # the same seq again
         fleet.wait_for(event("fleet_command_refused", fid, "seq 10 not above 10"), since=mark)
