@@ -126,23 +126,13 @@ def main(argv: list[str] | None = None) -> int:
     for pinned in (False, True):
         ours_runs, once_runs, loop_runs, bare_runs = host_cpu.interleaved(n, runs, pinned=pinned)
         bare = statistics.median(bare_runs) * 1e6
-        first, second, third = (
-            (
-                "  both on one core: ours",
-                "  on one core, the setpoint set once",
-                "  on one core, an event loop alone",
-            )
-            if pinned
-            else (
-                "CPU per exchange: ours",
-                "  the same, the setpoint set once",
-                "  an event loop alone",
-            )
-        )
+        first = "  both on one core: ours" if pinned else "CPU per exchange: ours"
+        where = "on one core, " if pinned else ""
+        once = f"  {where or 'the same, '}the setpoint set once"
         for label, runs_of, targeted in (
             (f"{first} vs bare python-can", ours_runs, not pinned),
-            (f"{second} (not per exchange)", once_runs, False),
-            (f"{third} (no scheduler, no supervisor)", loop_runs, False),
+            (f"{once} (not per exchange)", once_runs, False),
+            (f"  {where}an event loop alone (no scheduler, no supervisor)", loop_runs, False),
         ):
             ratios = [o / b for o, b in zip(runs_of, bare_runs, strict=True)]
             notes = ["<=1.5x every run"] if targeted else []

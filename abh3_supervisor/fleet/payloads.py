@@ -182,7 +182,6 @@ def health(
 ) -> dict[str, Any]:
     """``not_heard``: the fleet's commands (``estop``, ``twist``) the robot cannot hear,
     its connection or subscription for them refused by the broker."""
-    mqtt = {"queued": queued, "dropped": dropped, "reconnects": reconnects}
     return stamped(
         seq,
         now,
@@ -190,7 +189,12 @@ def health(
             "fleet_id": fleet_id,
             "robot": robot,
             "buses": buses,
-            "mqtt": {**mqtt, "not_heard": sorted(not_heard or [])},
+            "mqtt": {
+                "queued": queued,
+                "dropped": dropped,
+                "reconnects": reconnects,
+                "not_heard": sorted(not_heard or []),
+            },
         },
     )
 

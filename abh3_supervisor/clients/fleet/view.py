@@ -149,8 +149,9 @@ def _health(robot: Robot, model: FleetModel, now: float) -> list[tuple[str, str]
     if isinstance(dropped, int) and dropped:
         notes.append((f"{dropped} messages dropped by its plugin", "yellow"))
     not_heard = mqtt.get("not_heard")
+    not_heard = not_heard if isinstance(not_heard, list) else []
     for kind, what, style in (("estop", "e-stops", "bold red"), ("twist", "twists", "yellow")):
-        if isinstance(not_heard, list) and kind in not_heard:
+        if kind in not_heard:
             notes.append((f"it does not hear the fleet's {what}: the broker refused them", style))
     return notes
 
