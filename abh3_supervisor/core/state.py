@@ -52,8 +52,8 @@ class UnitState:
     status: dict[int, tuple[float, frames.Broadcast]] = field(default_factory=dict)
     online: bool | None = None
     words: dict[str, int] = field(default_factory=dict)  # error, alarm, control, io, inputs
-    # the drive's CAN settings against the file (core/verify.py); set in __post_init__
-    verify: Verification = field(default=None)  # type: ignore[assignment]
+    # the drive's CAN settings against the file (core/verify.py)
+    verify: Verification = field(init=False)
     # motor A, B speed limits [min⁻¹] that follow from the unit's robot's limits
     # (core/robot.py RobotConfig.axis_limit); None: its robot sets none
     axis_limits: tuple[float, float] | None = None
@@ -62,8 +62,7 @@ class UnitState:
 
     def __post_init__(self) -> None:
         self.layout = flags.layout(self.cfg.protocol)
-        if self.verify is None:
-            self.verify = Verification.initial(self.cfg)
+        self.verify = Verification.initial(self.cfg)
 
     @classmethod
     def initial(cls, cfg: UnitConfig) -> UnitState:
