@@ -105,7 +105,7 @@ def test_every_payload_we_build_validates() -> None:
     )
     valid("event", event)
     bus = {"frames_sent": 1, "frames_received": 2, "send_errors": 0, "state": "ok"}
-    for not_heard in (None, ["twist", "estop"]):
+    for not_heard in (None, ["twist", "instant_actions", "estop"]):
         health = payloads.health(
             4,
             NOW,
@@ -118,7 +118,7 @@ def test_every_payload_we_build_validates() -> None:
             not_heard=not_heard,
         )
         valid("health", health)
-    assert health["mqtt"]["not_heard"] == ["estop", "twist"]
+    assert health["mqtt"]["not_heard"] == ["estop", "instant_actions", "twist"]
     valid("estop_command", payloads.estop_command(1, NOW, sender="scada", reason="door"))
     valid("twist_command", payloads.twist_command(1, NOW, sender="f", linear=0.1, angular=0))
     with pytest.raises(ValueError):

@@ -265,13 +265,19 @@ def test_the_selected_robots_events_and_its_health_trouble_are_shown() -> None:
                 "state": "error_passive",
             }
         },
-        "mqtt": {"queued": 0, "dropped": 12, "reconnects": 1, "not_heard": ["estop"]},
+        "mqtt": {
+            "queued": 0,
+            "dropped": 12,
+            "reconnects": 1,
+            "not_heard": ["estop", "instant_actions"],
+        },
     }
     model.feed(f"{PREFIX}/{A}/health", json.dumps(health).encode(), False, T0)
     text = shown(model, T0 + 1)
     assert "recent events of plant-a" in text and "latched by tui:operator" in text
     assert "bus can0: error_passive" in text and "12 messages dropped" in text
     assert "it does not hear the fleet's e-stops: the broker refused them" in text
+    assert "VDA 5050 instantActions (a stopPause is an e-stop): the broker refused" in text
     assert "twists" not in text
     assert "recent events" not in shown(model, T0 + 1, selected=None)
     assert "bus can0" not in shown(model, T0 + 16)  # health is every 5 s: 15 s old is stale

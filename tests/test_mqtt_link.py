@@ -130,3 +130,28 @@ def test_online_waits_for_vda5050_instant_actions_too() -> None:
     assert not link.connected.is_set() and link.vda is not None
     link._vda_subscribed(link.vda, None, 1, [GRANTED], None)
     assert link.connected.is_set()
+
+
+def test_refused_vda5050_instant_actions_are_told_in_health(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A broker that refuses instantActions (their connection, or at SUBACK) leaves the
+    fleet without the stopPause, an e-stop: health's ``not_heard`` says so, as for the
+    robot's own e-stop topic, until a later connection is granted them."""
+    link = new_link(vda5050=True)
+    assert link.vda is not None
+    link._connected(link.client, None, None, OK, None)
+    for name in LISTENERS:
+        subscribed(link, name)
+    with caplog.at_level(logging.WARNING, logger="abh3_plugins.mqtt"):
+        link._vda_subscribed(link.vda, None, 1, [REFUSED], None)
+    assert link.connected.is_set()  # not held back for what cannot come
+    assert link.not_heard == {"instant_actions"}
+    assert [r.getMessage() for r in caplog.records] == [
+        "mqtt t-rover: the broker refused the subscription to "
+        "uagv/v2/waco-giken-abh3/t-rover/instantActions (Not authorized)"
+    ]
+    link._vda_subscribed(link.vda, None, 1, [GRANTED], None)  # granted on reconnecting
+    assert link.not_heard == set()
+    link._vda_connected(link.vda, None, None, NOT_AUTHORIZED, None)
+    assert link.not_heard == {"instant_actions"}

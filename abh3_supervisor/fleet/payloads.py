@@ -180,8 +180,9 @@ def health(
     reconnects: int,
     not_heard: list[str] | None = None,
 ) -> dict[str, Any]:
-    """``not_heard``: the fleet's commands (``estop``, ``twist``) the robot cannot hear,
-    its connection or subscription for them refused by the broker."""
+    """``not_heard``: the fleet's commands (``estop``, ``twist``, ``instant_actions``: the
+    VDA 5050 ones) the robot cannot hear, their connection or subscription refused by the
+    broker."""
     return stamped(
         seq,
         now,

@@ -30,6 +30,12 @@ COLUMNS = (  # header, width
 )
 
 
+# health's mqtt.not_heard: the kind, what the fleet cannot give, how loudly it is said
+NOT_HEARD = (
+    ("estop", "e-stops", "bold red"),
+    ("instant_actions", "VDA 5050 instantActions (a stopPause is an e-stop)", "bold red"),
+    ("twist", "twists", "yellow"),
+)
 SELECTED = "▶ "  # the selected robot's line starts with it (the app scrolls to it)
 
 
@@ -150,7 +156,7 @@ def _health(robot: Robot, model: FleetModel, now: float) -> list[tuple[str, str]
         notes.append((f"{dropped} messages dropped by its plugin", "yellow"))
     not_heard = mqtt.get("not_heard")
     not_heard = not_heard if isinstance(not_heard, list) else []
-    for kind, what, style in (("estop", "e-stops", "bold red"), ("twist", "twists", "yellow")):
+    for kind, what, style in NOT_HEARD:
         if kind in not_heard:
             notes.append((f"it does not hear the fleet's {what}: the broker refused them", style))
     return notes

@@ -57,6 +57,8 @@ INCOMING_PER_S = 100.0
 STOPS = ("estop", "estop_clear")  # on the stop connection, for this robot and for `all`
 # the connections that only read: what they hear, as said and as health names it
 LISTENERS = {"stop": ("e-stops", "estop"), "commands": ("twists", "twist")}
+# health's name for the VDA 5050 instantActions, where a stopPause comes from (an e-stop)
+VDA_NOT_HEARD = "instant_actions"
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
 
 OnMessage = Callable[["Link", mqtt.MQTTMessage], None]
@@ -305,6 +307,7 @@ class Link:
         self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, props: Any
     ) -> None:
         if reason.is_failure:  # said by the main connection, refused alike
+            self.not_heard.add(VDA_NOT_HEARD)
             self._heard_now("vda")  # the birth is not held for it
             return
         # subscribed first: the broker takes one connection's packets in order, so whoever
@@ -317,7 +320,10 @@ class Link:
         self, client: mqtt.Client, userdata: Any, mid: int, codes: Any, props: Any
     ) -> None:
         refused = _refused([self.topics.instant_actions], codes)
-        if refused:
+        if not refused:
+            self.not_heard.discard(VDA_NOT_HEARD)
+        else:  # its stopPause is an e-stop the fleet cannot give: health says so
+            self.not_heard.add(VDA_NOT_HEARD)
             log.warning(
                 "mqtt %s: the broker refused the subscription to %s",
                 self.fleet_id,
