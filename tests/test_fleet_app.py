@@ -186,6 +186,25 @@ def test_under_3_1_1_it_is_sent_not_confirmed_until_the_robot_shows_it() -> None
     run(check, v5=False)
 
 
+def test_e_always_e_stops_no_palette_and_no_question_takes_it() -> None:
+    """No command palette (its search line took `e`, and ctrl+p opened it from the
+    footer); `e` and ctrl+e e-stop the selected robot even with a question open."""
+
+    async def check(app: FleetApp, pilot: object, link: FakeLink, clock: Clock) -> None:
+        press = pilot.press  # type: ignore[attr-defined]
+        await press("ctrl+p", "e")
+        assert [t for t, _ in link.published] == [f"{PREFIX}/{A}/cmd/estop"]
+        await press("c")  # the clear question open: e is still the e-stop
+        assert isinstance(app.screen, ConfirmScreen)
+        await press("e")
+        await press("ctrl+e")
+        assert [t for t, _ in link.published][1:] == [f"{PREFIX}/{A}/cmd/estop"] * 2
+        await press("y")  # and the question is still there to answer
+        assert link.published[-1][0] == f"{PREFIX}/{A}/cmd/estop_clear"
+
+    run(check)
+
+
 def test_e_stop_all_and_clear_are_asked_first() -> None:
     async def check(app: FleetApp, pilot: object, link: FakeLink, clock: Clock) -> None:
         press = pilot.press  # type: ignore[attr-defined]

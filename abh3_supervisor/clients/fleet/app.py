@@ -38,11 +38,14 @@ def attach_argv(address: str) -> list[str] | None:
 class FleetApp(App[int]):
     CSS_PATH = "../tui/abh3.tcss"  # the TUI's dialogs
     TITLE = "abh3 fleet"
+    ENABLE_COMMAND_PALETTE = False  # its search line would take `e` from the e-stop
     BINDINGS: ClassVar[list[BindingType]] = [
         # before the list's own scrolling: the selection moves, the list follows it
         Binding("up", "move(-1)", "previous robot", show=False, priority=True),
         Binding("down", "move(1)", "next robot", show=False, priority=True),
-        Binding("e", "estop", "e-stop robot"),
+        # priority: before any question on top (the view has no text input to type `e` in)
+        Binding("ctrl+e", "estop", "e-stop robot", priority=True, show=False),
+        Binding("e", "estop", "e-stop robot", priority=True),
         Binding("E", "estop_all", "e-stop ALL"),
         Binding("c", "clear", "clear robot"),
         Binding("C", "clear_all", "clear all"),
