@@ -4,6 +4,7 @@ frames go from moving (START on) straight to zero with START off, and stay so.""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -87,3 +88,53 @@ def test_estop_without_a_supervisor_says_so(tmp_path: Path) -> None:
     out = abh3("estop", "--connect", str(tmp_path / "none.sock"))
     assert out.returncode == 1 and out.stdout == ""
     assert f"error: no supervisor serves {tmp_path / 'none.sock'}" in out.stderr
+
+
+def test_estop_without_connect_latches_every_supervisor_serving(tmp_path: Path) -> None:
+    """Two supervisors in the default place: `abh3 estop` latches both (a refusal for
+    want of a choice stopped nothing), and each drive's next frame is the stop; `--clear`
+    still asks which."""
+    runtime = tmp_path / "xdg"
+    runtime.mkdir(mode=0o700)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(runtime)}
+    runs, records = [], {}
+    try:
+        for config in ("demo", "skid-steer-demo"):
+            records[config] = tmp_path / f"{config}.log"
+            run = subprocess.Popen(
+                [sys.executable, "-m", "abh3_supervisor", "run", f"configs/{config}.yaml",
+                 "--headless", "--status-interval", "0", "--record", str(records[config])],
+                stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+            )  # fmt: skip
+            runs.append(run)
+            assert run.stderr is not None
+            for line in run.stderr:
+                if "serving the control socket" in line:
+                    break
+        socks = sorted((runtime / "abh3").glob("*.sock"))
+        assert [s.name for s in socks] == ["demo.sock", "skid-steer-demo.sock"]
+        refused = abh3("estop", "--clear", env=env)
+        assert refused.returncode == 1 and "several supervisors serve" in refused.stderr
+        stopped = abh3("estop", env=env)
+        assert stopped.returncode == 0, stopped.stderr
+        assert stopped.stdout.splitlines() == [
+            f"{sock}: EMERGENCY STOP latched: every commanded unit zero, START off (clear "
+            "it with `abh3 estop --clear`)"
+            for sock in socks
+        ]
+        for sock in socks:
+            status = abh3("status", "--connect", str(sock), env=env)
+            assert status.stdout.startswith("EMERGENCY STOP latched"), status.stdout
+    finally:
+        for run in runs:
+            run.terminate()
+        for run in runs:
+            assert run.stderr is not None
+            rest = run.stderr.read()
+            assert run.wait(30) == 0, rest
+    # the drives' side (demo.yaml): once the e-stop came, no frame to either drive moves
+    for abh3_id, sent in commands(records["demo"]).items():
+        start = LAYOUTS[abh3_id].start.both
+        moving = [i for i, c in enumerate(sent) if c.inputs & start and (c.cmd_ay or c.cmd_bx)]
+        assert moving and moving[-1] < len(sent) - 1, f"drive {abh3_id}"
+        assert all(c.inputs & start == 0 for c in sent[moving[-1] + 1 :])

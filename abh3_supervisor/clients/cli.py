@@ -127,9 +127,10 @@ def _parser() -> argparse.ArgumentParser:
         "estop",
         help="latch a running supervisor's emergency stop (scripts, another terminal)",
         description="Latch the emergency stop of a running supervisor: every commanded unit "
-        "gets zero and START off at once, and motion is refused until it is cleared. Exit 0 "
-        "once the supervisor confirms; 1 when it cannot be reached or refuses (use the "
-        "hardware e-stop then).",
+        "gets zero and START off at once, and motion is refused until it is cleared. Without "
+        "--connect, every supervisor of yours serving in the default place latches it. Exit 0 "
+        "once each confirms; 1 when one cannot be reached or refuses (use the hardware "
+        "e-stop then).",
     )
     estop.add_argument(
         "--clear",
@@ -351,11 +352,13 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
     if args.cmd in ("status", "send", "estop"):
         from abh3_supervisor.clients import control as client
 
+        if args.cmd == "estop" and not args.clear:  # every one served, where not told which
+            return client.estop_every(client.find_sockets(args.connect))
         path = client.find_socket(args.connect)
         if args.cmd == "status":
             return client.status(path, args.json)
         if args.cmd == "estop":
-            return client.estop(path, clear=args.clear)
+            return client.estop(path, clear=True)
         return client.send(path, args.text, args.unit, every=args.all, hold=args.hold)
     if args.cmd == "check":
         config = load_config(args.config)

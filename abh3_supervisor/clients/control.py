@@ -328,18 +328,38 @@ def _hold(client: ControlClient, text: str, units: list[str]) -> int:
     return 0
 
 
-def find_socket(connect: Endpoint | None) -> Endpoint:
-    """The socket to talk to: the one given (local or ``ssh://``), else the only one in
-    the default place."""
+def find_sockets(connect: Endpoint | None) -> list[Endpoint]:
+    """The sockets to talk to: the one given (local or ``ssh://``), else every one served
+    in the default place (at least one, or a :class:`RunError` saying where it looked)."""
     if connect is not None:
-        return connect
+        return [connect]
     here = default_socket("x").parent
     if os.path.lexists(here) and (problem := foreign(here)) is not None:
         raise RunError(f"{problem}: no supervisor of yours serves there; give --connect PATH")
     found = [p for p in sorted(here.glob("*.sock")) if served(p, 1.0)] if here.is_dir() else []
-    if len(found) == 1:
-        return found[0]
     if not found:
         raise RunError(f"no supervisor is serving in {here}; give its socket with --connect PATH")
+    return list(found)
+
+
+def find_socket(connect: Endpoint | None) -> Endpoint:
+    """The socket to talk to: the one given, else the only one in the default place."""
+    found = find_sockets(connect)
+    if len(found) == 1:
+        return found[0]
     names = ", ".join(str(p) for p in found)
     raise RunError(f"several supervisors serve ({names}): pick one with --connect PATH")
+
+
+def estop_every(paths: list[Endpoint]) -> int:
+    """``abh3 estop`` with no ``--connect`` where several supervisors serve: each latches
+    its e-stop — one that stops nothing for want of a choice is the worse mistake. 0 once
+    every one confirms; each that does not is said (exit 1)."""
+    failed = 0
+    for path in paths:
+        try:
+            estop(path, clear=False)
+        except RunError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            failed += 1
+    return 1 if failed else 0
