@@ -76,6 +76,29 @@ def test_clients_do_not_look_for_supervisors_in_a_symlinked_default_directory(
         control.find_socket(None)
 
 
+def test_nothing_served_in_the_default_place_names_one_served_in_the_fallback(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A supervisor started without $XDG_RUNTIME_DIR (cron) serves in /tmp/abh3-<uid>; a
+    client of a shell that has it set looks there too before it says nobody serves."""
+    runtime, fallback = Path(tempfile.mkdtemp(dir="/tmp")), Path(tempfile.mkdtemp(dir="/tmp"))
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+    monkeypatch.setattr(control, "fallback_directory", lambda: fallback)
+    with pytest.raises(RunError, match="give its socket with --connect PATH"):
+        control.find_sockets(None)
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listener:
+        listener.bind(str(fallback / "demo.sock"))
+        listener.listen(1)
+        with pytest.raises(RunError) as told:
+            control.find_sockets(None)
+    assert str(told.value) == (
+        f"no supervisor is serving in {runtime / 'abh3'}, but one is in {fallback} (started "
+        f"without $XDG_RUNTIME_DIR): give --connect {fallback / 'demo.sock'}"
+    )
+    shutil.rmtree(runtime)
+    shutil.rmtree(fallback)
+
+
 # ---------------------------------------------------------------- who serves
 
 

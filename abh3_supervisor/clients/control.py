@@ -22,7 +22,7 @@ from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse
 from abh3_supervisor.errors import Abh3Error, CommandError, Interrupted, RunError
 from abh3_supervisor.runtime import signals
 from abh3_supervisor.service import protocol as rpc
-from abh3_supervisor.service.paths import default_socket, foreign, served
+from abh3_supervisor.service.paths import default_socket, fallback_directory, foreign, served
 
 
 class ControlClient:
@@ -334,12 +334,27 @@ def find_sockets(connect: Endpoint | None) -> list[Endpoint]:
     if connect is not None:
         return [connect]
     here = default_socket("x").parent
-    if os.path.lexists(here) and (problem := foreign(here)) is not None:
-        raise RunError(f"{problem}: no supervisor of yours serves there; give --connect PATH")
-    found = [p for p in sorted(here.glob("*.sock")) if served(p, 1.0)] if here.is_dir() else []
+    found = _served_in(here)
     if not found:
-        raise RunError(f"no supervisor is serving in {here}; give its socket with --connect PATH")
+        hint = "; give its socket with --connect PATH"
+        fallback = fallback_directory()
+        if here != fallback and (elsewhere := _served_in(fallback, quiet=True)):
+            hint = (
+                f", but one is in {fallback} (started without $XDG_RUNTIME_DIR): "
+                f"give --connect {elsewhere[0]}"
+            )
+        raise RunError(f"no supervisor is serving in {here}{hint}")
     return list(found)
+
+
+def _served_in(here: Path, *, quiet: bool = False) -> list[Path]:
+    """The sockets served in ``here`` when it is ours and no link (else a
+    :class:`RunError`, or none when ``quiet``)."""
+    if os.path.lexists(here) and (problem := foreign(here)) is not None:
+        if quiet:
+            return []
+        raise RunError(f"{problem}: no supervisor of yours serves there; give --connect PATH")
+    return [p for p in sorted(here.glob("*.sock")) if served(p, 1.0)] if here.is_dir() else []
 
 
 def find_socket(connect: Endpoint | None) -> Endpoint:

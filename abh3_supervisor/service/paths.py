@@ -30,11 +30,16 @@ from abh3_supervisor.errors import Abh3Error, RunError
 MAX_PATH_BYTES = 107  # sockaddr_un.sun_path holds 108 bytes with the terminating NUL
 
 
+def fallback_directory() -> Path:
+    """Where sockets go without a usable ``$XDG_RUNTIME_DIR`` (cron, a bare ``su``)."""
+    return Path("/tmp") / f"abh3-{os.getuid()}"
+
+
 def default_socket(config_file: str) -> Path:
     runtime = os.environ.get("XDG_RUNTIME_DIR")
     base = Path(runtime) / "abh3" if runtime and Path(runtime).is_dir() else None
     if base is None:
-        base = Path("/tmp") / f"abh3-{os.getuid()}"
+        base = fallback_directory()
     return base / f"{Path(config_file).stem or 'abh3'}.sock"
 
 
