@@ -242,6 +242,19 @@ def test_decode_without_config_guesses_each_addresses_generation_and_says_so(
     cfg.write_text(TWO_UNITS.replace("channel: t", "channel: can0"))
     known, err = decoded([str(log), "--config", str(cfg)], capsys)
     assert err == []  # told: nothing guessed
+    swapped = tmp_path / "swapped.yaml"  # another robot's file: the generations the other way
+    swapped.write_text(
+        TWO_UNITS.replace("channel: t", "channel: can0")
+        .replace('protocol: "2023", ', "")
+        .replace("abh3_id: 1,", 'abh3_id: 1, protocol: "2023",')
+    )
+    _, err = decoded([str(log), "--config", str(swapped)], capsys)
+    assert err == [
+        f"decode: address {a} on can0 looks like a {traffic} drive in both.log, but "
+        f"{swapped} says {filed}: decoded as the file says — was the recording made with "
+        "this file? (without --config each address is decoded as its traffic shows)"
+        for a, traffic, filed in ((1, 2021, 2023), (3, 2023, 2021))
+    ]
     assert len(guessed) == len(known) == len(rig.timeline.frames)
     for g, k in zip(guessed, known, strict=True):  # the same reading, less the unit names
         assert {**g, "unit": None} == {**k, "unit": None}

@@ -12,6 +12,7 @@ from typing import Any
 
 import can
 
+from abh3_supervisor.clients.scan import Findings
 from abh3_supervisor.config.model import Config, VelocityModel
 from abh3_supervisor.core import readouts
 from abh3_supervisor.errors import Abh3Error
@@ -304,27 +305,11 @@ def inferred_books(path: Path, say: Callable[[str], None]) -> tuple[dict[str, Ad
     """Without a configuration: each drive address's generation as ``abh3 scan`` reads it
     from the traffic (its DP0 replies' shape, its error word), one book per channel, and
     its velocity model where its control word says it. Says on ``say`` what it guessed, one
-    line per address. A first pass over the file: what it cannot read is reported by the
-    pass that decodes (or here, when nothing can be read)."""
-    from abh3_supervisor.clients.scan import Findings
-
-    found: dict[str, Findings] = {}
-    held: list[str] = []
-    try:
-        for msg in read_messages(path, held.append):
-            if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
-                continue
-            channel = str(msg.channel or "")
-            findings = found.setdefault(channel, Findings(HOST))
-            findings.observe(msg.arbitration_id, bytes(msg.data))
-    except Abh3Error:
-        for text in held:
-            say(text)
-        raise
+    line per address."""
+    found = _traffic(path, say)
     books = {"": AddressBook()}
     models: Models = {}
     for channel, findings in sorted(found.items()):
-        findings.finish()
         where = f" on {channel}" if len(found) > 1 and channel else ""
         generations = {}
         for d in sorted(findings.drives.values(), key=lambda d: d.address):
@@ -347,6 +332,49 @@ def inferred_books(path: Path, say: Callable[[str], None]) -> tuple[dict[str, Ad
     return books, models
 
 
+def _traffic(path: Path, say: Callable[[str], None]) -> dict[str, Findings]:
+    """A first pass over the file: what ``abh3 scan`` reads of each drive address from its
+    traffic, per channel. What it cannot read is reported by the pass that decodes (or
+    here, when nothing can be read)."""
+    found: dict[str, Findings] = {}
+    held: list[str] = []
+    try:
+        for msg in read_messages(path, held.append):
+            if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
+                continue
+            channel = str(msg.channel or "")
+            findings = found.setdefault(channel, Findings(HOST))
+            findings.observe(msg.arbitration_id, bytes(msg.data))
+    except Abh3Error:
+        for text in held:
+            say(text)
+        raise
+    for findings in found.values():
+        findings.finish()
+    return found
+
+
+def _against_file(
+    path: Path, config: Config, books: dict[str, AddressBook], say: Callable[[str], None]
+) -> None:
+    """Say where the recording's traffic shows a drive surely of the other generation
+    than the file gives its address: its frames, decoded as the file says, would show
+    made-up flags (a recording read with another robot's file)."""
+    for channel, findings in sorted(_traffic(path, say).items()):
+        book = books.get(channel, books[""])
+        for d in sorted(findings.drives.values(), key=lambda d: d.address):
+            filed = book.generations.get(d.address)
+            if d.generation is None or not d.generation_certain or filed in (None, d.generation):
+                continue
+            where = f" on {channel}" if channel else ""
+            say(
+                f"decode: address {d.address}{where} looks like a {d.generation} drive in "
+                f"{path.name}, but {config.file} says {filed}: decoded as the file says — "
+                "was the recording made with this file? (without --config each address is "
+                "decoded as its traffic shows)"
+            )
+
+
 def decode_file(
     path: Path,
     config: Config | None,
@@ -360,6 +388,7 @@ def decode_file(
     say = report or _to_stderr
     if config is not None:
         books, models = address_books(config), velocity_models(config)
+        _against_file(path, config, books, say)
     else:
         books, models = inferred_books(path, say)
     names = unit_names(config)
