@@ -130,6 +130,17 @@ def test_an_overloaded_plan_fails_check_and_run_refuses_it_with_the_same_message
     assert as_json["ok"] is False and as_json["errors"] == [message[7:-1]]
 
 
+def test_check_json_of_a_file_it_refuses_says_so_in_json_too(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("buses:\n  can0: {interface: virtual}\nunits:\n  - {name: u, abh3_id: 900}\n")
+    out = abh3("check", str(cfg), "--json")
+    assert out.returncode == 2
+    told = json.loads(out.stdout)
+    assert (told["file"], told["ok"]) == (str(cfg), False)
+    assert len(told["errors"]) == 1 and "abh3_id" in told["errors"][0]
+    assert told["errors"][0] in out.stderr and "Traceback" not in out.stderr
+
+
 def test_a_plan_with_little_headroom_runs_with_a_warning(tmp_path: Path) -> None:
     cfg = tmp_path / "busy.yaml"
     cfg.write_text(

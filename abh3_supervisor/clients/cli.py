@@ -361,12 +361,21 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
             return client.estop(path, clear=True)
         return client.send(path, args.text, args.unit, every=args.all, hold=args.hold)
     if args.cmd == "check":
-        config = load_config(args.config)
+        try:
+            config = load_config(args.config)
+            if not args.drives:
+                _plugins(config)  # plugin sections are validated exactly as `run` does
+        except ConfigError as exc:
+            if args.json:  # a reader of the JSON is told too; stderr and exit 2 as ever
+                import json
+
+                refused = {"file": str(args.config), "ok": False, "errors": exc.problems}
+                print(json.dumps(refused, indent=2))
+            raise
         if args.drives:
             from abh3_supervisor.clients.drives import check_drives
 
             return check_drives(config, args.json)
-        _plugins(config)  # plugin sections are validated exactly as `run` does
         return _check(config, args.json)
     if args.cmd == "simulate":
         return _simulate(args, release)
