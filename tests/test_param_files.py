@@ -400,3 +400,15 @@ def test_reading_a_bad_file_is_quick(tmp_path: Path) -> None:
         with pytest.raises(ParamFileError):
             files.read(write(tmp_path, name, text))
     assert time.process_time() - start < 5.0
+
+
+def test_a_name_neither_table_has_is_refused_with_an_example_of_its_own_kind() -> None:
+    """The monitor table's example is a monitor (a drive NAKs 0x5000 as one)."""
+    with pytest.raises(CodecError, match=r"is no parameter name or address \(e.g. 0x5000\)"):
+        table.parse_address("SPEED_AY_9")
+    with pytest.raises(CodecError) as told:
+        table.parse_address("SPEED_AY_0", monitor=True)
+    assert str(told.value) == (
+        "'SPEED_AY_0' is no monitor name or address (e.g. MAIN_VOLTAGE or 0x1004)"
+    )
+    assert table.parse_address("MAIN_VOLTAGE", monitor=True) == 0x1004

@@ -124,8 +124,10 @@ def parse_address(text: str, monitor: bool = False) -> int:
         else:
             value = int(key, 10)
     except ValueError:
-        what = "monitor" if monitor else "parameter"
-        raise CodecError(f"'{text}' is no {what} name or address (e.g. 0x5000)") from None
+        what, example = (
+            ("monitor", "MAIN_VOLTAGE or 0x1004") if monitor else ("parameter", "0x5000")
+        )
+        raise CodecError(f"'{text}' is no {what} name or address (e.g. {example})") from None
     if not 0 <= value <= 0xFFFF:
         raise CodecError(f"address {text} is not 0x0000-0xFFFF")
     return value
