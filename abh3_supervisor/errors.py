@@ -1,4 +1,5 @@
-"""One exception root; each subclass is a phase a user can act on."""
+"""One exception root; each subclass is a phase a user can act on. And how to install a
+missing optional extra, which several of those errors say."""
 
 from __future__ import annotations
 
@@ -59,3 +60,8 @@ class Interrupted(BaseException):
         # after the runtime's own handlers had done their work and given the CLI's back:
         # the program was on its way out, not starting
         self.ending = ending
+
+
+def install_hint(extra: str) -> str:
+    """How to add an optional extra: from the package index, or in a clone of the source."""
+    return f"pip install 'abh3-supervisor[{extra}]' (in a clone: pip install -e '.[{extra}]')"

@@ -266,5 +266,6 @@ def test_without_paho_it_says_how_to_install_it(
         monkeypatch.setitem(sys.modules, name, None)  # an import of it fails
     assert cli.main(["fleet", "--broker", "mqtt://127.0.0.1:1883"]) == 1
     assert capsys.readouterr().err == (
-        "error: paho-mqtt is not installed: pip install 'abh3-supervisor[mqtt]'\n"
+        "error: paho-mqtt is not installed: pip install 'abh3-supervisor[mqtt]' (in a clone: "
+        "pip install -e '.[mqtt]')\n"
     )

@@ -446,8 +446,15 @@ def test_help_lists_every_binding_by_its_readable_key_and_palette_quit_asks() ->
         assert "  ?" in help_text and "  +, =" in help_text and "Esc" in help_text
         assert "  ctrl+e, e" in help_text and help_text.count("EMERGENCY STOP") == 1
         assert "Plugin keyboard" in help_text and "  Q " in help_text
+        assert "  q, ctrl+q " in help_text
         await pilot.press("escape")
         await app.action_quit()  # what the palette's Quit and ctrl+q run
+        await pilot.pause()
+        assert isinstance(app.screen, ConfirmScreen) and "Quit?" in app.screen.question
+        await pilot.press("n")
+        await pilot.pause()
+        assert app.is_running and not isinstance(app.screen, ConfirmScreen)
+        await pilot.press("ctrl+q")  # the key itself, as the help lists it: asks once
         await pilot.pause()
         assert isinstance(app.screen, ConfirmScreen) and "Quit?" in app.screen.question
         await pilot.press("n")

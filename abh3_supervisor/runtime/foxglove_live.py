@@ -38,7 +38,7 @@ import can
 from abh3_supervisor.config.endpoint import Endpoint
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.supervisor import Supervisor
-from abh3_supervisor.errors import Abh3Error
+from abh3_supervisor.errors import Abh3Error, install_hint
 from abh3_supervisor.runtime import priority
 from abh3_supervisor.runtime.recorder import GuardedRecorder
 from abh3_supervisor.runtime.ros_topics import SCHEMAS, RosTopics, TopicSink
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
-INSTALL_HINT = "pip install 'abh3-supervisor[foxglove]'"
+INSTALL_HINT = install_hint("foxglove")
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk's server speaks (the app does)
 BACKLOG = 1024  # messages the SDK queues per viewer (its default); the oldest go beyond
 QUEUE = 8192  # messages waiting for the drain: ~8 s of 4 units at 100 Hz

@@ -28,14 +28,14 @@ import can
 
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.supervisor import Supervisor
-from abh3_supervisor.errors import BusOpenError
+from abh3_supervisor.errors import BusOpenError, install_hint
 from abh3_supervisor.runtime.mcap_index import spill_chunk_indexes
 from abh3_supervisor.runtime.ros_topics import SCHEMAS, VENDOR, RosTopics
 
 __all__ = ["CHUNK_BYTES", "VENDOR", "McapRecording", "open_mcap", "read_frames"]
 
 CHUNK_BYTES = 256 << 10  # an upper bound: the flush closes a chunk sooner
-INSTALL_HINT = "pip install 'abh3-supervisor[mcap]'"
+INSTALL_HINT = install_hint("mcap")
 LIBRARY = "abh3-supervisor"
 
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 from urllib.parse import urlsplit
 
 from abh3_supervisor.clients.fleet.reading import MAX_PAYLOAD
-from abh3_supervisor.errors import Abh3Error, RunError
+from abh3_supervisor.errors import Abh3Error, RunError, install_hint
 from abh3_supervisor.fleet import safe
 
 if TYPE_CHECKING:
@@ -33,7 +33,7 @@ KEEPALIVE_S = 10
 CONNECT_TIMEOUT_S = 10.0  # the TCP/TLS connect and the broker's CONNACK
 QUEUED = 20_000  # messages waiting for the UI thread; beyond, the oldest are dropped, counted
 QUEUED_BYTES = 32 * 1024 * 1024  # and their bytes: a flood of big ones cannot grow memory
-INSTALL = "paho-mqtt is not installed: pip install 'abh3-supervisor[mqtt]'"
+INSTALL = f"paho-mqtt is not installed: {install_hint('mqtt')}"
 
 
 class Received(NamedTuple):

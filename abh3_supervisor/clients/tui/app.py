@@ -172,6 +172,8 @@ class SupervisorApp(App[None]):
         _b("pagedown", "scroll(1)", "page down", "scroll the tab down"),
         _b("question_mark", "help", "help", "this help", True),
         _b("q", "quit_safely", "quit", "quit (asks; stops the drives, or detaches)", True),
+        # Textual's own ctrl+q (its quit asks too: action_quit), named here for the help
+        _b("ctrl+q", "quit_safely", "quit", show=False),
     ]
     QUIT = "Quit? Every unit gets zero, START and SERVO off."
     DETACH = (

@@ -147,8 +147,8 @@ class MqttPlugin:
         if importlib.util.find_spec("paho") is None:
             section.error(
                 "broker",
-                "the mqtt plugin needs paho-mqtt: pip install 'abh3-supervisor[mqtt]' "
-                "(or pip install paho-mqtt)",
+                "the mqtt plugin needs paho-mqtt: pip install 'abh3-supervisor[mqtt]' (in a "
+                "clone: pip install -e '.[mqtt]'; or pip install paho-mqtt)",
             )
 
     # ------------------------------------------------------------ start
