@@ -98,6 +98,24 @@ def test_the_service_gone_is_shown_at_once_and_keys_say_so() -> None:
     served(check)
 
 
+@pytest.mark.wallclock
+def test_an_orderly_stop_is_shown_as_one_not_as_a_supervisor_that_died() -> None:
+    """A "bye" (the supervisor stopping: it stops its drives itself, after telling its
+    clients) is not the crash's warning that nothing stops the drives."""
+
+    async def check(rt: Runtime, server: ControlServer, path: Path) -> None:
+        app, link = await attached(path, owner=False)
+        async with app.run_test(size=(160, 45)) as pilot:
+            await server.close()
+            await until(pilot, lambda: app.gone is not None, "the bye seen")
+            banner = str(app.query_one("#gone").render())
+            assert banner.startswith("NOT CONNECTED: the supervisor is stopping: it sends zero")
+            assert "stops nothing by itself" not in banner
+        await link.close()
+
+    served(check)
+
+
 def _status(sock: Path) -> dict[str, Any]:
     out = subprocess.run(
         [sys.executable, "-m", "abh3_supervisor", "status", "--json", "--connect", str(sock)],

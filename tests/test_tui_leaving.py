@@ -129,6 +129,7 @@ def test_abh3_tui_exits_4_when_the_supervisor_went_away() -> None:
                 client.writer.close()
             await term.shows(b"NOT CONNECTED")
             os.write(term.master, b"q")  # nothing to stop from here: leaves without asking
+            await term.shows(b"the supervisor went away while attached")  # said, not only 4
             assert await asyncio.wait_for(proc.wait(), 10) == EXIT_SUPERVISOR_GONE
         finally:
             if proc.returncode is None:

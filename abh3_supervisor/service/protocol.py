@@ -30,6 +30,8 @@ INVALID_PARAMS = -32602
 INTERNAL_ERROR = -32603  # a fault of ours while answering: logged, the connection goes on
 READ_ONLY = -32001  # a command on a read-only connection
 REFUSED = -32002  # the supervisor refused it (unknown unit, e-stop latched, stopping, …)
+# "bye"'s reason of an orderly stop: told before the supervisor stops its drives itself
+STOPPING = "the supervisor is stopping"
 
 
 class RpcError(Exception):

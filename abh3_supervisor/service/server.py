@@ -319,7 +319,7 @@ class ControlServer:
         kind = "read-only " if self.read_only else ""
         log.info("serving the %scontrol socket %s", kind, self.path)
 
-    async def close(self, reason: str = "the supervisor is stopping") -> None:
+    async def close(self, reason: str = rpc.STOPPING) -> None:
         """Also for a server never started: its bound socket is let go all the same."""
         logging.getLogger().removeHandler(self._log_handler)
         watchers = self.rt.supervisor.arbiter.watchers

@@ -59,6 +59,7 @@ from abh3_supervisor.core.commands import RESPONSE_OK
 from abh3_supervisor.core.planner import plan
 from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.params import table
+from abh3_supervisor.service import protocol as rpc
 from abh3_supervisor.service.view_pace import MIN_HZ
 
 REFRESH_S = 0.1
@@ -294,10 +295,18 @@ class SupervisorApp(App[None]):
         if self.gone is not None or not self.is_running:
             return
         self.gone = closed.result() if not closed.cancelled() else "closed"
-        text = (
-            f"NOT CONNECTED: {self.gone}. Nothing can be sent from here, the e-stop "
-            f"neither: {HARDWARE}. What is shown is stale. q quits"
-        )
+        if self.gone == rpc.STOPPING:  # an orderly stop: the supervisor stops its drives
+            text = (
+                f"NOT CONNECTED: {self.gone}: it sends zero and switches START, SERVO and "
+                "the brake off on every unit itself, and its log says when each drive "
+                "confirmed it. Nothing can be sent from here; if a drive still moves, use "
+                "the hardware emergency stop. What is shown is stale. q quits"
+            )
+        else:
+            text = (
+                f"NOT CONNECTED: {self.gone}. Nothing can be sent from here, the e-stop "
+                f"neither: {HARDWARE}. What is shown is stale. q quits"
+            )
         with contextlib.suppress(NoMatches):
             self.query_one("#gone", Static).update(text)
             self.query_one("#gone").add_class("shown")

@@ -193,7 +193,15 @@ async def attach(
             await link.close()
     if leaving.why:  # detached on purpose (its own detach ends the link, not the service)
         return 0
-    return EXIT_SUPERVISOR_GONE if app.gone is not None else app.return_code or 0
+    if app.gone is None:
+        return app.return_code or 0
+    if not owner:  # `abh3 run` says it itself, with how its child ended
+        print(
+            f"abh3 tui: the supervisor went away while attached ({app.gone}; exit code "
+            f"{EXIT_SUPERVISOR_GONE})",
+            file=sys.stderr,
+        )
+    return EXIT_SUPERVISOR_GONE
 
 
 def not_ours(link: Link, pid: int) -> None:
