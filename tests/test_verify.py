@@ -315,6 +315,22 @@ def test_check_drives_prints_the_table(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 @pytest.mark.wallclock
+def test_check_drives_asks_for_abh3_simulate_when_its_drives_run_elsewhere_and_none_answers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "ext.yaml"
+    cfg.write_text(
+        "buses:\n  b: {interface: virtual, channel: v-ext, simulate: {external: true}}\n"
+        "units:\n  - {name: left, abh3_id: 1}\n"
+    )
+    assert main(["check", str(cfg), "--drives"]) == 1
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "left: no drive answered, and the file's drives there are simulated in another "
+        f"process: is `abh3 simulate {cfg}` running?"
+    )
+
+
+@pytest.mark.wallclock
 def test_check_drives_names_a_drive_that_reads_no_form(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -27,7 +28,26 @@ def check_drives(config: Config, as_json: bool) -> int:
 
     results = {n: v.to_json() for n, v in asyncio.run(_read(monitor_only(config))).items()}
     where = {n: f"{n} (bus {u.bus}, drive {u.abh3_id})" for n, u in config.units.items()}
-    return _report(results, where, as_json)
+    code = _report(results, where, as_json)
+    if elsewhere := _simulated_elsewhere_unheard(config, results):
+        print(
+            f"{', '.join(elsewhere)}: no drive answered, and the file's drives there are "
+            f"simulated in another process: is `abh3 simulate {config.file}` running?",
+            file=sys.stderr,
+        )
+    return code
+
+
+def _simulated_elsewhere_unheard(config: Config, results: dict[str, dict[str, Any]]) -> list[str]:
+    """The units none of whose values was read, on a bus whose drives `abh3 simulate`
+    runs (docs/simulator.md)."""
+    return [
+        name
+        for name, v in results.items()
+        if not any(r["drive"] for r in v["rows"])
+        and (sim := config.buses[config.units[name].bus].simulate) is not None
+        and sim.external
+    ]
 
 
 def verify_running(path: Endpoint, units: list[str], as_json: bool) -> int:
