@@ -154,6 +154,7 @@ def test_the_template_refuses_a_bad_name_or_an_existing_folder(
     assert main(["plugin", "new", "speed_log", "--dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "'Speed-Log' cannot name a plugin" in err and "exists already" in err
+    assert "did you mean 'speed_log'?" in err
     assert "Traceback" not in err
 
 

@@ -41,8 +41,8 @@ def test_naming_a_plugin_that_is_not_installed_lists_the_installed_ones() -> Non
     with pytest.raises(ConfigError) as info:
         PluginHost(cfg)
     assert re.search(
-        r"p\.yaml:\d+: plugins\.cvs: no plugin named 'cvs' is installed "
-        r"\(installed: .*csv.*joystick.*keyboard",
+        r"p\.yaml:\d+: plugins\.cvs: no plugin named 'cvs' is installed; did you mean "
+        r"'csv'\? \(installed: .*csv.*joystick.*keyboard",
         info.value.problems[0],
     )
 

@@ -226,3 +226,13 @@ def test_scan_through_the_makers_adapter(
     rows = {line.split()[0]: line.split()[1:4] for line in out.splitlines()[1:3]}
     assert rows == {"7": ["2023", "0", "motor"], "253": ["2021", "5", "travel"]}
     assert emu.bad == [] and all(ids.CanId.from_int(i).pf == ids.PF_REQUEST for i in node.heard)
+
+
+@pytest.mark.wallclock
+def test_an_empty_virtual_bus_says_it_reaches_only_this_process(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["scan", "--interface", "virtual", "--channel", "scan-nobody"]) == 1
+    out = capsys.readouterr().out
+    assert "python-can's virtual bus reaches only this process" in out
+    assert "`abh3 simulate` puts them on udp_multicast" in out

@@ -20,9 +20,11 @@ DEFAULT_API = "1.0"  # the plugin API a template targets when it cannot ask (not
 def new_plugin(name: str, directory: Path) -> Path:
     """Write the package for plugin ``name`` into ``directory``; its folder."""
     if not NAME.fullmatch(name):
+        fixed = re.sub(r"[^a-z0-9_]", "_", name.lower())
+        did = f"; did you mean '{fixed}'?" if NAME.fullmatch(fixed) else ""
         raise Abh3Error(
             f"'{name}' cannot name a plugin: lowercase letters, digits and _, starting with a "
-            "letter, at most 40 (it is the key under plugins: in the YAML)"
+            f"letter, at most 40 (it is the key under plugins: in the YAML){did}"
         )
     module = name if name.startswith("abh3_") else f"abh3_{name}"
     package = directory / module.replace("_", "-")

@@ -340,6 +340,12 @@ def scan_command(
         bus.shutdown()
     took = time.monotonic() - started
     lines = report(findings, listen_only=listen_only)
+    if not findings.drives and interface == "virtual":
+        lines.append(
+            "python-can's virtual bus reaches only this process: drives simulated elsewhere "
+            "cannot answer on it (`abh3 simulate` puts them on udp_multicast: "
+            "docs/simulator.md)"
+        )
     lines.append(
         f"scan of {interface} {channel}: {len(findings.drives)} drive(s) in {took:.1f} s, "
         f"{scanner.sent} request(s) sent, no command"

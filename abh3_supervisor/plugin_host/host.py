@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import _thread
 import asyncio
+import difflib
 import functools
 import logging
 import math
@@ -320,8 +321,11 @@ class PluginHost:
             ep = available.get(name)
             if ep is None:
                 names = ", ".join(sorted(available)) or "none"
+                hint = difflib.get_close_matches(name, sorted(available), n=1)
+                did = f"; did you mean '{hint[0]}'?" if hint else ""
                 src.error(
-                    ("plugins", name), f"no plugin named '{name}' is installed (installed: {names})"
+                    ("plugins", name),
+                    f"no plugin named '{name}' is installed{did} (installed: {names})",
                 )
                 continue
             try:
