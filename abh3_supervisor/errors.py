@@ -1,7 +1,10 @@
-"""One exception root; each subclass is a phase a user can act on. And how to install a
-missing optional extra, which several of those errors say."""
+"""One exception root; each subclass is a phase a user can act on. And the two hints
+many messages end with: the name the user probably meant, how to install an extra."""
 
 from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
 
 
 class Abh3Error(Exception):
@@ -60,6 +63,12 @@ class Interrupted(BaseException):
         # after the runtime's own handlers had done their work and given the CLI's back:
         # the program was on its way out, not starting
         self.ending = ending
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest of ``choices``, or ``""``."""
+    close = difflib.get_close_matches(word, list(choices), n=1)
+    return f"; did you mean '{close[0]}'?" if close else ""
 
 
 def install_hint(extra: str) -> str:

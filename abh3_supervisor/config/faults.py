@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import difflib
 import math
 from collections.abc import Mapping
 
@@ -18,6 +17,7 @@ from abh3_supervisor.config.model import (
 )
 from abh3_supervisor.config.source import Section
 from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.errors import did_you_mean
 
 FAULT_KEYS = {"kind", "at_s", "for_s", "unit", "bits", "delay_ms", "axis", "factor", "other"}
 KIND_KEYS = {  # what each kind reads besides kind, at_s, for_s and unit
@@ -57,8 +57,7 @@ def parse_faults(sim: Section) -> tuple[Fault, ...]:
             continue
         named = f.data["kind"]
         if str(named) not in {k.value for k in FaultKind}:
-            hint = difflib.get_close_matches(str(named), [k.value for k in FaultKind], n=1)
-            did = f"; did you mean '{hint[0]}'?" if hint else ""
+            did = did_you_mean(str(named), [k.value for k in FaultKind])
             f.error("kind", f"{named!r} is not one of: {_kinds()}{did}")
             continue  # what else it says depends on the kind: nothing more to judge
         kind = FaultKind(str(named))

@@ -9,12 +9,13 @@ meant for the robot too.
 
 from __future__ import annotations
 
-import difflib
 import re
 from collections.abc import Mapping
 from typing import Any
 
 import can.util
+
+from abh3_supervisor.errors import did_you_mean
 
 
 def known_interfaces() -> frozenset[str]:
@@ -29,8 +30,7 @@ def unknown_interface(name: str) -> str | None:
     if name in known:
         return None
     # python-can's names are lower case, and it compares them exactly ("SocketCAN" fails)
-    hint = difflib.get_close_matches(name.lower(), sorted(known), n=1)
-    did = f"; did you mean '{hint[0]}'?" if hint else ""
+    did = did_you_mean(name.lower(), sorted(known))
     return f"python-can has no interface '{name}'{did} (its interfaces: {', '.join(sorted(known))})"
 
 

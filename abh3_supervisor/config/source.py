@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import codecs
 import datetime
-import difflib
 import math
 import os
 import re
@@ -22,7 +21,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from abh3_supervisor.errors import ConfigError
+from abh3_supervisor.errors import ConfigError, did_you_mean
 
 Path = tuple[str | int, ...]
 T = TypeVar("T")
@@ -248,8 +247,7 @@ class Section:
         keys in ``said`` were reported already, with a message of their own."""
         for key in self.data:
             if key not in allowed and key not in said:
-                hint = difflib.get_close_matches(str(key), sorted(allowed), n=1)
-                did = f"; did you mean '{hint[0]}'?" if hint else ""
+                did = did_you_mean(str(key), sorted(allowed))
                 self.src.error(
                     (*self.path, str(key)),
                     f"unknown key{did} (allowed: {', '.join(sorted(allowed))})",

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import _thread
 import asyncio
-import difflib
 import functools
 import logging
 import math
@@ -46,7 +45,7 @@ from abh3_supervisor.core.supervisor import (
     Supervisor,
     SupervisorEvent,
 )
-from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError
+from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError, did_you_mean
 from abh3_supervisor.plugin_host import hookspecs, inventory, tick, validate
 from abh3_supervisor.plugin_host.view import SupervisorView
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
@@ -321,8 +320,7 @@ class PluginHost:
             ep = available.get(name)
             if ep is None:
                 names = ", ".join(sorted(available)) or "none"
-                hint = difflib.get_close_matches(name, sorted(available), n=1)
-                did = f"; did you mean '{hint[0]}'?" if hint else ""
+                did = did_you_mean(name, sorted(available))
                 src.error(
                     ("plugins", name),
                     f"no plugin named '{name}' is installed{did} (installed: {names})",

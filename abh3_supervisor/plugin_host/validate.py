@@ -9,13 +9,13 @@ naming where in the plugin's code the method is.
 
 from __future__ import annotations
 
-import difflib
 import inspect
 from typing import Any
 
 import pluggy
 
 from abh3_supervisor.config.source import Source
+from abh3_supervisor.errors import did_you_mean
 
 PREFIX = "abh3_"
 HOST_KEYS = ("on_error", "critical", "start_timeout_s")
@@ -60,8 +60,7 @@ def method_problems(name: str, plugin: object, pm: pluggy.PluginManager) -> list
             continue
         if opts is None and not attr.startswith(PREFIX):
             continue  # an ordinary method of the plugin's own
-        close = difflib.get_close_matches(hook, hooks, n=1, cutoff=0.6)
-        hint = f"; did you mean '{close[0]}'?" if close else ""
+        hint = did_you_mean(hook, hooks)
         problems.append(f"plugin '{name}': {attr}{_at(func)} matches no hook{hint}")
     return problems
 
