@@ -55,7 +55,7 @@ class _ArbiterMachine:
 
 class FakeBench(Rig, Bench):
     def __init__(self, config: Config, timeout: float = 0.3) -> None:
-        super().__init__(config)
+        super().__init__(config, whole_robots=False)  # as `abh3 commission` runs
         self.arbiter = self.sup.arbiter
         for unit in config.units:
             self.arbiter.add(_Source(f"commission:{unit}", (unit,), priority=10, timeout=timeout))

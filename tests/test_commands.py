@@ -144,7 +144,7 @@ def test_the_seeds_answers_do_not_depend_on_case() -> None:
     """The same answers and the same state from the Supervisor (where the TUI's command
     line, `abh3 send` and the ROS 2 service end) for the capitals and the typed forms."""
     cfg = parse_config(TWO_UNITS, "two.yaml")
-    typed = ["Servo on on", "start ON off", "vel 50 0", "select 7 7", "servo maybe on", "vel"]
+    typed = ["Servo on on", "start ON on", "vel 50 0", "select 7 7", "servo maybe on", "vel"]
     capitals = [t.upper() for t in typed]
     results = []
     for texts in (capitals, typed):

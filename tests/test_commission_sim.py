@@ -38,8 +38,15 @@ def rig(sim: str, gen: str = "2021", model: str = "motor") -> Rig:
 
 
 def moving(r: Rig, unit: str, a: float, b: float, seconds: float) -> None:
+    """Switched on, then — once the drive reports it ready (core/readiness.py), so the
+    response is timed from the first frame that moves — ``a``, ``b`` for ``seconds``."""
     r.sup.apply_text(unit, "SERVO ON ON")
     r.sup.apply_text(unit, "START ON ON")
+    for _ in range(100):
+        if r.sup.robot_unready(unit) is None:
+            break
+        r.run(0.001)
+    assert r.sup.robot_unready(unit) is None
     r.sup.set_velocity_ab(unit, a, b, source=present(r.sup, unit))
     r.run(seconds)
 

@@ -48,11 +48,14 @@ def test_a_send_outage_longer_than_the_drive_timeout_never_restarts_the_drives(r
     assert [(e.unit, e.started) for e in gaps if e.started] == [("left", True), ("right", True)]
     assert all(outage + 0.45 <= e.t <= outage + 0.55 for e in gaps if e.started)
     assert any(
-        isinstance(e, Notice) and "nothing moves until a new command" in e.message
+        isinstance(e, Notice) and "SERVO, START and brake release off" in e.message
         for e in rig.events
     )
-    # a command given after the gap moves the drive again
-    assert rig.sup.apply_text("left", "VEL 100 0") == ""
+    # no automatic restart: the drive may have lost its power, so its switches are gone
+    # too; motion is refused until they are given again, and then it moves
+    assert rig.sup.apply_text("left", "VEL 100 0") == "Invalid Command."
+    for text in ("SERVO ON ON", "START ON ON", "VEL 100 0"):
+        assert rig.sup.apply_text("left", text) == ""
     rig.run(0.5)
     assert abs(rig.drive("left").vel[0]) > 50
 
@@ -280,7 +283,7 @@ def test_headless_shows_each_fault_and_recovers_with_exit_0(
     text = caplog.text
     assert "send failed (simulated fault" in text
     assert "unit left: no exchange completed for 500 ms" in text
-    assert "nothing moves until a new command" in text
+    assert "SERVO, START and brake release off: switch them on again" in text
     assert "unit left: exchanges again after the gap" in text
     assert "unit right: malformed dp0 reply ignored" in text
     assert text.count("stop frame confirmed by the drive") == 2

@@ -175,6 +175,7 @@ def test_a_setpoint_whose_owner_lost_the_unit_is_zero_on_the_wire() -> None:
     gate = MotionGate()
     from abh3_supervisor.core.state import Setpoint
 
+    unit_state.identified = unit_state.cfg.protocol  # its replies showed its generation
     unit_state.setpoint = Setpoint(300, 20, owner="someone")
     assert (gate.word(unit_state, owned=True).ay, gate.word(unit_state, owned=False).ay) == (300, 0)
 

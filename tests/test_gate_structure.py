@@ -46,7 +46,7 @@ def test_only_the_supervisors_push_hands_a_word_to_a_scheduler() -> None:
     assert len(found["abh3_supervisor/core/supervisor.py"]) == 1
     source = (PACKAGE / "core" / "supervisor.py").read_text()
     push = source[source.index("    def _push(") : source.index("    def request_status(")]
-    assert "self.gate.word(unit, owned).payload()" in push
+    assert "self.gate.word(unit, owned, ready)" in push and "word.payload()" in push
 
 
 def test_no_plugin_or_client_sets_a_units_switches_or_setpoint_directly() -> None:

@@ -55,6 +55,8 @@ class ArbiterNode(Deaf):
 
 
 def owned_rig(rig: Rig) -> tuple[InputArbiter, ArbiterNode]:
+    for text in ("SERVO ON ON", "START ON ON"):  # a robot moves only while switched on
+        assert rig.sup.apply_text("left", text) == ""
     arb = rig.sup.arbiter
     for name in ("tui1", "client2"):
         arb.add(Source(name, ("left",), priority=50, timeout=0.5))
@@ -267,6 +269,8 @@ def test_a_stream_beyond_the_limit_says_so_once_a_second(rig: Rig) -> None:
     the next one counts what it held back."""
     notes: list[str] = []
     rig.sup.subscribe(lambda e: notes.append(e.message) if isinstance(e, Notice) else None)
+    for text in ("SERVO ON ON", "START ON ON"):
+        assert rig.sup.apply_text("left", text) == ""
     for i in range(50):  # 50 Hz for a second, every value beyond the wire's range
         rig.sup.set_velocity("left", 7000 + i, 0, source=present(rig.sup, "left"))
         rig.run(0.02)

@@ -171,3 +171,27 @@ def test_a_twist_names_robots_it_knows(tmp_path: Path) -> None:
                 client.call("twist", robots=[], linear_x=0.1, angular_z=0.0)
         finally:
             client.close()
+
+
+def test_a_velocity_in_torque_mode_or_to_a_robot_not_switched_on_is_refused_in_its_answer(
+    tmp_path: Path,
+) -> None:
+    """The socket's answer says what the decision says (docs/safety.md, "The robot
+    decision"): it once answered ``ok`` to a velocity that could never move (torque mode),
+    and to a twist while a drive of the robot was not switched on."""
+    with Served(tmp_path, TWO_DRIVES) as served:
+        assert served.rt is not None
+        units = served.rt.supervisor.units
+        wait_for(lambda: all(u.online for u in units.values()), "both drives heard")
+        client = ControlClient(served.path)
+        try:
+            with pytest.raises(
+                RunError, match=r"may not move: l: SERVO A, START A not switched on"
+            ):
+                client.call("twist", robot="rover", linear_x=0.1, angular_z=0.0)
+            running(served, ["l", "r"])
+            assert client.call("command", unit="l", text="TORQUE ON ON")["response"] == ""
+            with pytest.raises(RunError, match=r"in current mode; a velocity command needs"):
+                client.call("velocity", unit="l", ay=100.0, bx=0.0)
+        finally:
+            client.close()

@@ -157,7 +157,8 @@ def test_the_supervisor_keeps_a_drive_that_lost_its_power_stopped_when_it_return
     servo = L21.servo.both | L21.start.both
     assert not drive.control_word() & servo  # … and it was not switched on again
     assert moving(rig, "right")  # the other drive was never touched
-    assert rig.sup.apply_text("left", "VEL 200 0") == ""  # a velocity alone moves nothing
+    # a velocity alone is refused, in its answer: the robot is not switched on
+    assert rig.sup.apply_text("left", "VEL 200 0") == "Invalid Command."
     rig.run(0.5)
     assert not moving(rig, "left")
     for text in ("SERVO ON ON", "START ON ON", "VEL 200 0"):  # switched on anew: it moves

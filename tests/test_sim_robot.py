@@ -42,7 +42,8 @@ MOTOR = 300.0  # min⁻¹: 0.2 m × π / 10 × 300 / 60 = 0.314 m/s at the wheel
 
 
 def rig(faults: str = "") -> Rig:
-    return Rig(parse_config(SKID.format(faults=faults), "skid.yaml"))
+    # one drive at a time, as commissioning moves them: each drive decided alone
+    return Rig(parse_config(SKID.format(faults=faults), "skid.yaml"), whole_robots=False)
 
 
 def turn(r: Rig, unit: str, a: float, b: float, seconds: float = 1.0) -> SimRobot:
@@ -119,18 +120,24 @@ def test_the_pose_integrates_a_straight_run_and_a_turn_on_the_spot() -> None:
     assert robot.heading - heading == pytest.approx(file_angle / 1.25, rel=0.05)
 
 
-def test_a_wrong_protocol_drive_talks_the_other_generation() -> None:
-    """The file says 2021 for front: the drive is a 2023 one, so the 2021 word's B/X data
-    select lands on the torque bits of both axes, and its reply is 2023's layout."""
+def test_a_wrong_protocol_drive_talks_the_other_generation_and_gets_only_the_probe() -> None:
+    """The file says 2021 for front: the drive is a 2023 one. The 2021 idle word's B/X data
+    select would land on its torque bits; identity before energy: it gets only the probe
+    (safe in both layouts), answers in 2023's layout, and is held as the other generation."""
     r = rig("{kind: wrong_protocol, unit: front}")
     drive = r.drive("front")
     assert drive.generation is Generation.G2023
+    assert r.sup.apply_text("front", "SERVO ON ON") == ""  # taken before it is recognised
     r.run(0.3)
-    assert drive.inputs & flags.LAYOUT_2023.torque.both == flags.LAYOUT_2023.torque.both
+    assert drive.inputs == flags.ID_PROBE  # nothing else ever reached it
+    assert r.sup.units["front"].identified is Generation.G2023
+    assert r.sup.units["front"].inputs & flags.LAYOUT_2021.servo.both == 0  # consumed
     reply = frames.decode_dp0_reply(drive._dp0_reply(), Generation.G2021)
     assert isinstance(reply, frames.Dp0Reply2021)
     assert (reply.vel_a, reply.vel_b) == (0.0, 0.0) and (reply.vel_y, reply.vel_x) != (0.0, 0.0)
+    assert r.sup.apply_text("front", "SERVO ON ON") == "Invalid Command."  # refused, said
     assert r.drive("rear").generation is Generation.G2023  # the other unit as the file says
+    assert r.sup.units["rear"].identified is Generation.G2023
 
 
 def test_a_file_without_robots_has_a_one_drive_robot_per_unit() -> None:

@@ -125,7 +125,11 @@ def test_emergency_stop_latches_until_cleared(rig: Rig, wire: WireMonitor) -> No
     rig.run(0.1)
     wire.clear()
     rig.sup.clear_emergency_stop()
-    assert rig.sup.apply_text("left", "START ON ON") == ""
+    # the e-stop switched SERVO off too: both are given anew before motion is taken
+    with pytest.raises(CommandError, match="SERVO A, SERVO B, START A, START B not switched"):
+        rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
+    for text in ("SERVO ON ON", "START ON ON"):
+        assert rig.sup.apply_text("left", text) == ""
     rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
 
 

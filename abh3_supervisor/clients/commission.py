@@ -449,7 +449,8 @@ async def _commissioning(
     await refuse_if_commanded(used, units, "abh3 commission")
     if args.record is not None:
         print(recording(args.record), flush=True)
-    rt = Runtime(used, record=args.record, plugins=plugins)
+    # commissioning moves one wheel at a time: each drive is decided alone
+    rt = Runtime(used, record=args.record, plugins=plugins, whole_robots=False)
     results: dict[str, UnitResult] = {}
     robots: dict[str, RobotResult] = {}
     ended: str | None = None

@@ -51,6 +51,12 @@ def moving_switches(layout: flags.Layout) -> int:
     return layout.servo.both | layout.start.both | layout.brake_release
 
 
+def idle_axes(unit: UnitState) -> int:
+    """SERVO and START of the unit's axes that drive no wheel of its robot: never on."""
+    layout = unit.layout
+    return sum(layout.servo.of(a) | layout.start.of(a) for a in (0, 1) if a not in unit.wheels)
+
+
 @dataclass(frozen=True, slots=True)
 class Word:
     """What one unit's next command frame says."""
@@ -140,6 +146,11 @@ class MotionGate:
             )
         if held := unit.verify.holds():
             return f"unit '{unit.name}' is held at its idle word: {held}"
+        if unit.identified not in (None, unit.cfg.protocol):
+            return (
+                f"unit '{unit.name}' answers as a {unit.identified} drive but the file says "
+                f'protocol: "{unit.cfg.protocol}": held at a word safe in both generations'
+            )
         return None
 
     def refuse_inputs(self, unit: UnitState, new: int) -> None:
@@ -177,10 +188,16 @@ class MotionGate:
             or (self.estop is not None and unit.name in self.estop.powered_off)
         )
 
-    def word(self, unit: UnitState, owned: bool) -> Word:
+    def word(self, unit: UnitState, owned: bool, ready: bool = True) -> Word:
         """The unit's command frame now. ``owned``: the source that set the unit's
-        setpoint still owns the unit in the arbitration (core/inputs.py)."""
-        layout, inputs, setpoint = unit.layout, unit.inputs, unit.setpoint
+        setpoint still owns the unit in the arbitration (core/inputs.py); ``ready``: every
+        drive of its robot reports ready (core/readiness.py)."""
+        if unit.identified is not unit.cfg.protocol:
+            # identity before energy: until its replies show the declared generation the
+            # drive gets only the probe, which means the same harmless thing in both
+            return Word(flags.ID_PROBE, 0.0, 0.0, ControlMode.VELOCITY)
+        layout, setpoint = unit.layout, unit.setpoint
+        inputs = unit.inputs & ~idle_axes(unit)  # an axis that drives no wheel stays off
         if self.stopping:
             return Word(layout.safe(inputs), 0.0, 0.0, ControlMode.VELOCITY)
         if self.restricted(unit):  # an error reset still goes: admitted, so it is sent
@@ -188,9 +205,17 @@ class MotionGate:
             return Word(kept, 0.0, 0.0, ControlMode.VELOCITY)
         if self.estop is not None:  # stop category 1, first step: the drive's ramp to zero
             return Word(inputs & ~layout.start.both, 0.0, 0.0, setpoint.kind)
-        if not owned:
+        if not (owned and ready):  # no present owner, or a robot not whole: zero
             return Word(inputs, 0.0, 0.0, setpoint.kind)
         return Word(inputs, setpoint.ay, setpoint.bx, setpoint.kind)
 
 
-__all__ = ["ESTOP_POWER_OFF_S", "STOPPED_BELOW", "EStop", "MotionGate", "Word", "moving_switches"]
+__all__ = [
+    "ESTOP_POWER_OFF_S",
+    "STOPPED_BELOW",
+    "EStop",
+    "MotionGate",
+    "Word",
+    "idle_axes",
+    "moving_switches",
+]

@@ -8,6 +8,7 @@ from abh3_supervisor.config.model import ControlMode, UnitConfig, VelocityModel
 from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
 from abh3_supervisor.core.verify import Verification
 from abh3_supervisor.protocol import flags, frames
+from abh3_supervisor.protocol.generation import Generation
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +60,18 @@ class UnitState:
     axis_limits: tuple[float, float] | None = None
 
     layout: flags.Layout = field(init=False)  # the unit's generation's flag words
+    # what the robot decision (core/readiness.py) reads of the drive: the axes that drive a
+    # wheel; the generation its replies show (None: not yet); when this supervisor last
+    # changed those axes' SERVO/START; the control word the drive reported in the latest
+    # answer to a frame sent since then (None: none yet), and when; a gap in the exchanges
+    wheels: tuple[int, ...] = (0, 1)
+    identified: Generation | None = None
+    changed_at: float = -float("inf")
+    reported: int | None = None
+    reported_at: float = -float("inf")
+    reported_error: bool = False
+    gap: bool = False
+    probe_since: float = -float("inf")  # frames sent since carry the identity probe
 
     def __post_init__(self) -> None:
         self.layout = flags.layout(self.cfg.protocol)

@@ -37,13 +37,21 @@ from abh3_supervisor.core.inputs import (
     VelocityYX,
 )
 from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.readiness import (
+    SETTLE_S,
+    DriveView,
+    Unready,
+    reply_generation,
+    robot_unready,
+)
 from abh3_supervisor.core.robot import RobotConfig, axis_limits
 from abh3_supervisor.core.robot_motion import RobotMotion
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.core.throttle import Throttle, held_note
 from abh3_supervisor.errors import CommandError
-from abh3_supervisor.protocol import frames
+from abh3_supervisor.protocol import flags, frames
+from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY, Scale
 from abh3_supervisor.scheduler.bus_health import BusHealth, BusState
 from abh3_supervisor.scheduler.core import (
@@ -58,6 +66,8 @@ from abh3_supervisor.scheduler.core import (
 )
 
 log = logging.getLogger(__name__)
+# a 2021 drive commanded on is asked for its report (broadcast 1) at least this often
+REPORT_EVERY_S = 0.1
 API_SOURCE = "api"  # the source of a programmatic command: api:<unit>
 STARTUP_SOURCE = "startup"  # the source of a unit's startup: motion: startup:<unit>
 # a command _submit checked, and the values it checked for each target unit
@@ -140,7 +150,12 @@ class SetResult:
 
 
 class Supervisor:
-    def __init__(self, config: Config, clock: Callable[[], float]) -> None:
+    def __init__(
+        self, config: Config, clock: Callable[[], float], *, whole_robots: bool = True
+    ) -> None:
+        """``whole_robots``: a robot moves whole or not at all and an axis that drives no
+        wheel of it is never switched on (core/readiness.py); off, each drive is decided
+        alone on both axes — commissioning, which moves one motor at a time."""
         self.config = config
         self.clock = clock
         now = clock()
@@ -173,6 +188,22 @@ class Supervisor:
         for robot in config.robots.values():
             for name in robot.units:
                 self.units[name].axis_limits = axis_limits(robot, name)
+                # SERVO/START name motors only in the motor model (in the travel model they
+                # are Y and X, each moving both motors); commissioning tries both axes
+                unit_cfg = config.units[name]
+                if whole_robots and unit_cfg.velocity_model is VelocityModel.MOTOR:
+                    axes = {w.axis for w in robot.wheels if w.unit == name}
+                    self.units[name].wheels = tuple(sorted(axes))
+        # a robot moves whole or not at all (core/readiness.py): each commanded unit's
+        # robot (a unit of none is a robot of its own), and whether it is ready now
+        self._group: dict[str, tuple[str, tuple[str, ...]]] = {}
+        for unit in self.units.values():
+            if unit.cfg.role is Role.COMMAND:
+                own = config.robot(unit.name) if whole_robots else None
+                self._group[unit.name] = (
+                    (own.name, own.units) if own is not None else (unit.name, (unit.name,))
+                )
+        self._ready: dict[str, bool] = {key: False for key, _ in self._group.values()}
         self.arbiter.domains = {
             u: r.units for r in config.robots.values() if len(r.units) > 1 for u in r.units
         }
@@ -249,10 +280,21 @@ class Supervisor:
             if isinstance(event.reply, frames.Unknown):
                 return
             unit.feedback = Feedback.from_reply(event.t, event.reply, unit.cfg.velocity_model)
+            commanded = unit.cfg.role is Role.COMMAND
+            changed = commanded and self._identify(unit, event)
             if self.gate.estop is not None:
                 self._estop_progress(unit, event)
-            if unit.feedback.control is not None:
-                self._word(unit, event.t, "control", unit.feedback.control)
+            control = unit.feedback.control
+            if control is not None:
+                self._word(unit, event.t, "control", control)
+                if commanded:
+                    at = event.sent_at if event.sent_at is not None else event.t
+                    error = bool(control & unit.layout.control.mask("ERROR"))
+                    changed |= self._report(unit, control, error, at, event.t)
+            elif commanded and unit.layout.brd1_inputs is None:
+                self._ask_report(unit, event.t)
+            if changed:
+                self._readiness(unit.name)
             if event.sent_at is not None:
                 self._wake(unit.name, event.sent_at)
         elif isinstance(event, StatusEvent):
@@ -267,6 +309,11 @@ class Supervisor:
                 self._word(unit, event.t, "io", record.io)
                 if record.control is not None:
                     self._word(unit, event.t, "control", record.control)
+                    if unit.cfg.role is Role.COMMAND:  # 2021: the drive's report is here
+                        at = event.sent_at if event.sent_at is not None else event.t
+                        error = bool(record.io & unit.layout.io.mask("ERROR"))
+                        if self._report(unit, record.control, error, at, event.t):
+                            self._readiness(unit.name)
                 if record.inputs is not None:  # 2023: the inputs as the drive sees them
                     self._word(unit, event.t, "drive_inputs", record.inputs)
             if event.sent_at is not None:
@@ -277,8 +324,13 @@ class Supervisor:
                 # a lost drive stops itself (command-zero timeout); on return it must not be
                 # moved by a stale setpoint, nor switched on by a stale SERVO (it may have
                 # lost its power: no automatic restart): zero, SERVO/START/brake forgotten,
-                # and only a command heard after this may switch it on and move it again
+                # and only a command heard after this may switch it on and move it again;
+                # the drive that answers again is recognised anew before anything else
+                unit.identified, unit.probe_since = None, event.t
                 self.restrict(unit.name)
+                self._push(unit)
+            if unit.cfg.role is Role.COMMAND:
+                self._readiness(unit.name)
         elif isinstance(event, GapEvent):
             self._gap(unit, event)
         elif isinstance(event, ForeignEvent):
@@ -364,21 +416,25 @@ class Supervisor:
         return standing
 
     def _gap(self, unit: UnitState, event: GapEvent) -> None:
-        """The drive stopped itself for want of commands: it must not restart on its own."""
+        """The drive stopped itself for want of commands: it must not restart on its own —
+        it may have lost its power meanwhile, so its switches are forgotten too."""
         ms = unit.cfg.drive_timeout_ms
+        if unit.cfg.role is Role.COMMAND:
+            unit.gap = event.started
         if event.started:
-            moving = bool(unit.setpoint.ay or unit.setpoint.bx)
-            self.arbiter.hold(unit.name)
-            self._zero(unit)
+            switched = bool(unit.inputs & moving_switches(unit.layout))
+            self.restrict(unit.name)
+            forgot = ", SERVO, START and brake release off: switch them on again"
             self.notice(
                 unit.name,
                 logging.WARNING,
                 f"no exchange completed for {ms} ms (drive_timeout_ms): the drive has stopped "
-                f"on its command-zero timeout; command "
-                + ("set to zero: nothing moves until a new command" if moving else "stays zero"),
+                f"on its command-zero timeout; command zero{forgot if switched else ''}",
             )
         else:
             self.notice(unit.name, logging.INFO, "exchanges again after the gap; command zero")
+        if unit.cfg.role is Role.COMMAND:
+            self._readiness(unit.name)
 
     def _word(self, unit: UnitState, t: float, word: str, value: int) -> None:
         old = unit.words.get(word)
@@ -397,6 +453,136 @@ class Supervisor:
                     f"configuration says velocity_model: {unit.cfg.velocity_model}",
                 )
         self._emit(FlagChange(unit.name, t, word, old, value))
+
+    # ------------------------------------------------------------ the robot decision
+
+    def _need(self, unit: UnitState) -> int:
+        """SERVO and START of the unit's wheel axes."""
+        lay = unit.layout
+        return sum(lay.servo.of(a) | lay.start.of(a) for a in unit.wheels)
+
+    def _switch(self, unit: UnitState, new: int) -> None:
+        """Set the input word this supervisor commands; a change of its wheel axes'
+        SERVO/START waits for the drive to report it anew (core/readiness.py)."""
+        if (new ^ unit.inputs) & self._need(unit):
+            unit.changed_at = self.clock()
+            unit.reported = None
+        unit.inputs = new
+
+    def _view(self, unit: UnitState) -> DriveView:
+        return DriveView(
+            unit.name,
+            unit.layout,
+            unit.cfg.protocol,
+            unit.wheels,
+            unit.online,
+            unit.gap,
+            unit.identified,
+            unit.inputs,
+            unit.reported,
+            unit.reported_error,
+        )
+
+    def robot_unready(self, name: str) -> Unready | None:
+        """Why the robot of the commanded unit ``name`` may not move now, or None."""
+        _, members = self._group[name]
+        return robot_unready(self._view(self.units[u]) for u in members)
+
+    def _readiness(self, name: str) -> None:
+        """Decide ``name``'s robot again. Ready: every drive of it gets its setpoints. No
+        longer ready: every drive of it gets zero in its next frame and what it was asked
+        is consumed — only a command given after the recovery moves it."""
+        key, members = self._group[name]
+        why = self.robot_unready(name)
+        ready = why is None
+        if ready == self._ready[key]:
+            return
+        self._ready[key] = ready
+        if ready:
+            for member in members:
+                self._push(self.units[member])
+            return
+        assert why is not None
+        moving = any(self.units[m].setpoint.ay or self.units[m].setpoint.bx for m in members)
+        for member in members:
+            self.arbiter.hold(member)
+            self._zero(self.units[member])
+        if moving or not why.pending:
+            self.notice(
+                name,
+                logging.WARNING,
+                f"robot {key} stops: {why.why}; every drive of it gets zero and nothing moves "
+                "until a command given after it is ready again",
+            )
+
+    def _identify(self, unit: UnitState, event: FeedbackEvent) -> bool:
+        """What one reply shows of the drive's generation; True if that changed. A drive
+        that answers in the other layout is held (core/gate.py) until it goes offline."""
+        declared, known = unit.cfg.protocol, unit.identified
+        if known is Generation.G2023 or (known is not None and known is not declared):
+            # a 2023 control word may read as a consistent 2021 reply by chance: no evidence
+            return False
+        probed = known is None and event.sent_at is not None and event.sent_at >= unit.probe_since
+        shown = reply_generation(event.data, probed)
+        if shown is None or shown is known:
+            return False
+        unit.identified = shown
+        if shown is not declared:
+            self.restrict(unit.name)
+            self.notice(
+                unit.name,
+                logging.ERROR,
+                f"unit {unit.name} answers as a {shown} drive but the file says protocol: "
+                f'"{declared}": held at a word safe in both generations (0x{flags.ID_PROBE:X}); '
+                "correct the file's protocol and start again",
+            )
+        self._push(unit)
+        return True
+
+    def _ask_report(self, unit: UnitState, t: float) -> None:
+        """A 2021 drive reports its switches in broadcast 1 only: asked for it while a
+        change is not reported yet, and at least every 0.1 s while it is commanded on (a
+        reboot or an error trip must be seen, whatever the polled packets)."""
+        wanted = unit.inputs & self._need(unit)
+        reported = unit.reported
+        if wanted and (
+            reported is None or wanted & ~reported or t - unit.reported_at >= REPORT_EVERY_S
+        ):
+            self.schedulers[unit.cfg.bus].request_status(unit.name, 1)
+
+    def _report(self, unit: UnitState, control: int, error: bool, at: float, t: float) -> bool:
+        """The drive's control word in an answer to a frame sent at ``at``, read in its
+        identified layout; True if what the robot decision reads of it changed. A switch
+        this supervisor commands on that the drive reports off — after it had reported it
+        on, or after :data:`SETTLE_S` — is forgotten: no automatic restart."""
+        if unit.identified is not unit.cfg.protocol or at < unit.changed_at:
+            return False
+        need = self._need(unit)
+        wanted = unit.inputs & need
+        had, had_error = unit.reported, unit.reported_error
+        unit.reported, unit.reported_at, unit.reported_error = control, t, error
+        missing = wanted & ~control
+        if missing and ((had is not None and not wanted & ~had) or t >= unit.changed_at + SETTLE_S):
+            self._dropped(unit, missing)
+            return True
+        return had is None or (had ^ control) & need != 0 or had_error != error
+
+    def _dropped(self, unit: UnitState, missing: int) -> None:
+        lay = unit.layout
+        off = ", ".join(
+            f"{switch} {'AB'[a]}"
+            for switch, pair in (("SERVO", lay.servo), ("START", lay.start))
+            for a in (0, 1)
+            if missing & pair.of(a)
+        )
+        self.restrict(unit.name)
+        self.notice(
+            unit.name,
+            logging.ERROR,
+            f"drive of unit {unit.name} reports {off} off while this supervisor commands it "
+            "on (it rebooted, lost power, tripped or did not follow): SERVO, START and brake "
+            "release forgotten; switch them on again — nothing restarts by itself",
+        )
 
     # ------------------------------------------------------------ commanding
 
@@ -626,12 +812,20 @@ class Supervisor:
             kind = ControlMode.CURRENT if torque else ControlMode.VELOCITY
             self.arbiter.hold(name)
             unit.setpoint = Setpoint(kind=kind)
-        unit.inputs = new
+        self._switch(unit, new)
         self._push(unit)
+        self._readiness(name)
 
     def _check(self, unit: UnitState, ay: float, bx: float, kind: ControlMode) -> None:
-        """Refuse what the unit cannot take now: what the gate forbids, the wrong mode."""
+        """Refuse what the unit cannot take now: what the gate forbids, a robot that is
+        not whole (a reason that resolves by itself is taken: held at zero until then),
+        the wrong mode."""
         self.gate.refuse_motion(unit, ay, bx)
+        if ay or bx:
+            key, _ = self._group[unit.name]
+            why = self.robot_unready(unit.name)
+            if why is not None and not why.pending:
+                raise CommandError(f"robot '{key}' may not move: {why.why}")
         both = unit.layout.torque.both
         torque = unit.inputs & both
         want = both if kind is ControlMode.CURRENT else 0
@@ -642,11 +836,13 @@ class Supervisor:
                 f"TORQUE {'ON ON' if want else 'OFF OFF'} first"
             )
 
-    def refuse_motion(self, name: str) -> None:
-        """Raise :class:`CommandError` if ``name`` may not move now (e-stop, held, a
-        parameter write, stopping, a monitor), whatever the value."""
+    def refuse_motion(self, name: str, kind: ControlMode = ControlMode.VELOCITY) -> None:
+        """Raise :class:`CommandError` if ``name`` may not move now, whatever the value:
+        as a setpoint of ``kind`` is checked when applied (e-stop, held, a parameter write,
+        stopping, a monitor, its robot not whole, the wrong mode) — so an entry that hands
+        its command to the arbitration says the refusal in its own answer."""
         unit = self._commandable(name)
-        self.gate.refuse_motion(unit, 1.0, 1.0)
+        self._check(unit, 1.0, 1.0, kind)
 
     def admit(self, name: str, command: VelocityCommand | CurrentCommand) -> str | None:
         """Check a ``VEL``/``CUR`` as it would be applied now, without applying it: raise
@@ -687,7 +883,9 @@ class Supervisor:
             return
         owner = unit.setpoint.owner
         owned = owner is not None and self.arbiter.owner(unit.name) == owner
-        self.schedulers[unit.cfg.bus].set_payload(unit.name, self.gate.word(unit, owned).payload())
+        ready = self._ready[self._group[unit.name][0]]
+        word = self.gate.word(unit, owned, ready)
+        self.schedulers[unit.cfg.bus].set_payload(unit.name, word.payload())
 
     def request_status(self, name: str, packet: int) -> None:
         """Ask the drive for broadcast ``packet`` (0-6) once, soon (seed ``brd_num``).
@@ -840,7 +1038,7 @@ class Supervisor:
             self.call_at(now + ESTOP_POWER_OFF_S, self._estop_deadline)
         for unit in self._commanded():
             self.arbiter.hold(unit.name)
-            unit.inputs &= ~unit.layout.start.both
+            self._switch(unit, unit.inputs & ~unit.layout.start.both)
             self._zero(unit)
             self._send_at_once(unit)
         self.notice(
@@ -874,7 +1072,7 @@ class Supervisor:
         """The e-stop's second step: SERVO and brake release off (forgotten, not masked),
         the frame sent at once (an offline unit's next one may be a timeout away)."""
         if self.gate.power_off(unit.name):
-            unit.inputs &= ~moving_switches(unit.layout)
+            self._switch(unit, unit.inputs & ~moving_switches(unit.layout))
             self._push(unit)
             self._send_at_once(unit)
 
@@ -908,7 +1106,7 @@ class Supervisor:
         if unit.cfg.role is not Role.COMMAND:
             return
         self.arbiter.hold(name)
-        unit.inputs &= ~moving_switches(unit.layout)
+        self._switch(unit, unit.inputs & ~moving_switches(unit.layout))
         self._zero(unit)
 
     @contextmanager
@@ -935,7 +1133,7 @@ class Supervisor:
         self.gate.stopping = True
         self.arbiter.closed = True  # nothing queued from a source may act any more
         for unit in self._commanded():
-            unit.inputs = unit.layout.safe(unit.inputs)
+            self._switch(unit, unit.layout.safe(unit.inputs))
             self._store(unit, Setpoint())  # torque is off: the fields are velocities
 
 

@@ -357,3 +357,12 @@ LAYOUTS: Mapping[Generation, Layout] = {
 
 def layout(generation: Generation) -> Layout:
     return LAYOUTS[generation]
+
+
+# The word a drive gets until its replies show its generation (core/readiness.py): A/Y data
+# select 7 (set #0), the only bits that mean the same harmless thing in both layouts — the
+# 2023 B/X data select bits are the 2021 B/X SERVO and START, and the 2021 ones the 2023
+# torque and master/slave bits. A 2023 drive reports it in its control word; a 2021 drive's
+# reply to it at rest is all zeros, so it identifies either.
+ID_PROBE = LAYOUT_2021.select(7, 0) & LAYOUT_2023.select(7, 0)
+assert ID_PROBE == LAYOUT_2021.select(7, 0) == LAYOUT_2023.select(7, 0)

@@ -170,8 +170,10 @@ class Runtime:
         record: Path | None = None,
         plugins: PluginHost | None = None,
         foxglove: Endpoint | None = None,
+        whole_robots: bool = True,
     ) -> None:
         self.config = config
+        self.whole_robots = whole_robots  # off for commissioning: one wheel at a time
         self.record = record
         self.live = foxglove  # where to serve the live view: `abh3 run`'s, not every tool's
         self.plugins = plugins
@@ -212,7 +214,7 @@ class Runtime:
         if self.record is not None:
             self._recorder = self.recording = open_recorder(self.record, self.config)
             self._recorder.start_flushing(loop)  # a kill -9 loses at most FLUSH_S
-        self.supervisor = Supervisor(self.config, clock=loop.time)
+        self.supervisor = Supervisor(self.config, clock=loop.time, whole_robots=self.whole_robots)
         self.supervisor.call_at = loop.call_at
         self._arbitrate(loop)
         attach = getattr(self._recorder.writer if self._recorder else None, "attach", None)

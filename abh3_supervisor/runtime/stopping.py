@@ -58,7 +58,10 @@ async def stop_drives(sup: Supervisor, pumps: dict[str, BusPump]) -> dict[str, s
         unit = getattr(event, "unit", None)
         if control is None or unit not in confirmed or confirmed[unit].done():
             return
-        layout = sup.units[unit].layout
+        state = sup.units[unit]
+        if state.identified is not state.cfg.protocol:
+            return  # bytes read in a layout the drive's replies ruled out confirm nothing
+        layout = state.layout
         if not control & (layout.servo.both | layout.start.both):
             confirmed[unit].set_result(True)
 

@@ -39,6 +39,7 @@ class FeedbackEvent:
     t: float
     reply: frames.Dp0Reply | frames.Unknown
     sent_at: float | None  # when the answered request went out; None if unsolicited
+    data: bytes = b""  # the reply's bytes: what they show of the drive's generation
 
 
 @dataclass(frozen=True, slots=True)
@@ -324,7 +325,7 @@ class BusScheduler:
                     if unasked is not None:
                         self.events.append(ForeignEvent(cfg.name, now, unasked))
             reply = frames.decode_dp0_reply(data, cfg.protocol)
-            self.events.append(FeedbackEvent(cfg.name, now, reply, sent_at))
+            self.events.append(FeedbackEvent(cfg.name, now, reply, sent_at, data))
         else:
             asked_at = None
             if slot.poll_sent_at is not None and slot.poll_packet == packet:

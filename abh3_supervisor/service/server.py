@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from abh3_supervisor import __version__
-from abh3_supervisor.config.model import Role
+from abh3_supervisor.config.model import ControlMode, Role
 from abh3_supervisor.core import verifying
 from abh3_supervisor.core.commands import (
     RESPONSE_OK,
@@ -666,9 +666,10 @@ class ControlServer:
         else:
             units = self._commanded(params)
         if any(values):  # refused in the answer, not only in a notice: e-stop, held, …
+            kind = ControlMode.CURRENT if method == "current" else ControlMode.VELOCITY
             for unit in units:
                 try:
-                    self.rt.supervisor.refuse_motion(unit)
+                    self.rt.supervisor.refuse_motion(unit, kind)
                 except CommandError as exc:
                     raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
         self._submit(self._per_robot(client, units), _COMMANDS[method](*values), standing=False)

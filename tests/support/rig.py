@@ -24,10 +24,12 @@ units:
 class Rig:
     """A supervisor and simulated drives on one fake-clock bus."""
 
-    def __init__(self, config: Config, bitrate: int | None = None) -> None:
+    def __init__(
+        self, config: Config, bitrate: int | None = None, *, whole_robots: bool = True
+    ) -> None:
         self.timeline = Timeline(bitrate)
         self.config = config
-        self.sup = Supervisor(config, clock=self.timeline.clock)
+        self.sup = Supervisor(config, clock=self.timeline.clock, whole_robots=whole_robots)
         bus = next(iter(config.buses))
         sim_cfg = config.buses[bus].simulate
         assert sim_cfg is not None
