@@ -3,11 +3,13 @@ import them (and every record they name) from :mod:`abh3_supervisor.plugin_api`.
 
 Call conventions: hooks are called with keyword arguments, and an implementation may
 accept fewer arguments than its spec (pluggy's rule), so specs can grow without breaking
-plugins. Configuration runs while the file loads; start, input-source and stop hooks run
-on a thread of their own with a deadline (a plugin failing to start fails the run before
-any frame is sent); the observation hooks (``abh3_feedback`` … ``abh3_tick``) run in the
-plugin's own worker thread, so a slow plugin never delays the bus. ``supervisor`` is a
-read-only :class:`SupervisorView`, never the Supervisor itself.
+plugins. No hook runs on the main thread (where stop signals are handled): the schema,
+configuration (while the file loads), threads, start, input-source and stop hooks run on a
+thread of their own with a deadline (a plugin failing to start fails the run before any
+frame is sent); the observation hooks (``abh3_feedback`` … ``abh3_tick``) run in the
+plugin's own worker thread, so a slow plugin never delays the bus. ``sys.exit()`` or
+``KeyboardInterrupt`` from a hook is the plugin's failure like any exception.
+``supervisor`` is a read-only :class:`SupervisorView`, never the Supervisor itself.
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ def abh3_threads() -> str | None:
     and every thread it starts from them). Only for plugins whose threads do short,
     bounded work and sleep between: a normal-priority thread preempted while it holds
     the interpreter lock holds the loop up by milliseconds on a busy machine. Asked once,
-    before ``abh3_start``."""
+    before ``abh3_start``, within the start deadline; a raise or a block is the plugin's
+    failure (its threads then normal)."""
 
 
 @hookspec

@@ -8,17 +8,21 @@ failures in one run — the first, under ``on_error: stop`` — the plugin is di
 plugin disabled under ``on_error: stop`` or marked ``critical: true`` ends the run.
 Observation hooks are queued to a worker thread per plugin, so a slow plugin never delays
 the bus; when its queue is full, events for it are dropped and counted, never waited for,
-and a hook that runs longer than ``STUCK_S`` is logged while it sticks. Lifecycle calls
-(start, input sources and their ``start()``, stop) run on a thread of their own at normal
-priority with a deadline: a plugin that fails or blocks while starting fails the run
-before any drive is commanded; one that blocks while stopping (or in a hook, with its
-queue full) is abandoned, so the way out always ends.
+and a hook that runs longer than ``STUCK_S`` is logged while it sticks. Every other call
+(configure, schema, threads, start, input sources and their ``start()``, stop) runs on a
+thread of its own at normal priority with a deadline, never on the main thread: a hook
+that blocks cannot keep a stop signal from ending the program. A plugin that fails or
+blocks while starting fails the run before any drive is commanded; one that blocks while
+stopping (or in a hook, with its queue full) is abandoned, so the way out always ends.
+``sys.exit()`` or ``KeyboardInterrupt`` raised by plugin code is that plugin's failure,
+like any exception: off the main thread neither can be a real exit or Ctrl-C.
 """
 
 from __future__ import annotations
 
 import _thread
 import asyncio
+import dataclasses
 import functools
 import logging
 import math
@@ -68,6 +72,14 @@ SPACING_S = 0.010
 LAG_S = 0.001
 PACED_S = SPACING_S + LAG_S
 _STOP = object()
+# what plugin code may raise that is its failure, not ours: every hook runs off the main
+# thread, so sys.exit() and KeyboardInterrupt there end nothing but are the plugin's bug
+RAISED = (Exception, SystemExit, KeyboardInterrupt)
+
+
+class DeadlinePassed(Exception):
+    """A plugin's hook did not return within its deadline: its failure. Not
+    ``TimeoutError``, an ``OSError``: that would read as its output failing."""
 
 
 def installed() -> dict[str, EntryPoint]:
@@ -92,12 +104,32 @@ def section_schemas(
         pm.add_hookspecs(hookspecs)
         try:
             pm.register(_plugin_object(ep), name=name)
-            answers = pm.hook.abh3_config_schema()
         except Exception as exc:  # a broken plugin must not hide the others' schemas
             problems[name] = repr(exc)
             continue
+        answers: list[dict[str, Any] | None] = []
+        # like every hook: off the main thread with a deadline (a stop signal lands)
+        ask = functools.partial(_ask_schema, pm, answers)
+        problem = bounded(f"plugin {name} abh3_config_schema", START_DEADLINE_S, ask)
+        if problem is not None:
+            problems[name] = problem
+            continue
         schemas[name] = answers[0] if answers else None
     return schemas, problems
+
+
+def _ask_schema(pm: pluggy.PluginManager, answers: list[dict[str, Any] | None]) -> None:
+    answers.extend(pm.hook.abh3_config_schema())
+
+
+@dataclasses.dataclass
+class _Call:
+    """One bounded call of a plugin's hook: what it returned or raised, and what went
+    wrong as said (None: it returned in time)."""
+
+    answer: object = None
+    error: BaseException | None = None
+    problem: str | None = None
 
 
 def _ignoring_result(caller: Any) -> Callable[..., object]:
@@ -309,6 +341,7 @@ class PluginHost:
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._releasing = False  # a release of the workers' held events is queued
+        self._ending = False  # stop() has begun: the run's loop waits for it
         self.outputs: list[tuple[str, str]] = []  # (file, where it is set) plugins write
         self._load(config, installed() if available is None else available)
 
@@ -354,9 +387,11 @@ class PluginHost:
     def _configure(self, name: str, config: Config, src: Source) -> None:
         """The plugin checks its own section (keys with section.only(...)); whatever it
         raises is a problem with that section, reported like the core's (`check` too).
-        ``on_error``, ``critical`` and ``start_timeout_s`` are the host's keys, valid in
-        every section: the plugin never sees them."""
+        ``on_error``, ``critical``, ``start_timeout_s`` and ``tick_hz`` are the host's
+        keys, valid in every section: the plugin never sees them. Its check runs like its
+        start, off the main thread within its start deadline."""
         raw = config.plugins[name]
+        self.tick_hz[name], raw = tick.take_rate(Section(src, ("plugins", name), raw, None))
         if isinstance(raw, dict) and any(key in raw for key in validate.HOST_KEYS):
             host = Section(src, ("plugins", name), raw, None)
             self.on_error[name] = host.choice("on_error", "continue", list(ON_ERROR_VALUES))
@@ -367,14 +402,23 @@ class PluginHost:
                     "start_timeout_s", START_DEADLINE_S, 0.0, MAX_START_S, lo_open=True
                 )
             raw = {k: v for k, v in raw.items() if k not in validate.HOST_KEYS}
-        self.tick_hz[name], raw = tick.take_rate(Section(src, ("plugins", name), raw, None))
+        if not self._has(name, "abh3_configure"):
+            return
         section = Section(src, ("plugins", name), raw, None)
-        try:
-            self._caller(name, "abh3_configure")(section=section, config=config)
-        except ConfigError as exc:  # its own problems, unless already collected
-            src.problems.extend(p for p in exc.problems if p not in src.problems)
-        except Exception as exc:
-            src.error(("plugins", name), f"plugin '{name}' cannot use these settings: {exc!r}")
+        deadline = self._start_deadline(name)
+        call = self._bounded(name, "abh3_configure", deadline, section=section, config=config)
+        if isinstance(call.error, ConfigError):  # its own problems, unless already collected
+            src.problems.extend(p for p in call.error.problems if p not in src.problems)
+        elif call.error is not None:
+            src.error(
+                ("plugins", name), f"plugin '{name}' cannot use these settings: {call.error!r}"
+            )
+        elif call.problem is not None:  # blocked: left behind (a daemon thread)
+            src.error(
+                ("plugins", name),
+                f"plugin '{name}' did not finish checking its settings (abh3_configure): "
+                f"{call.problem}",
+            )
 
     def add_source(self, source: InputSource) -> None:
         """An input source of the host program itself (the TUI), arbitrated like the rest."""
@@ -413,7 +457,7 @@ class PluginHost:
             call(**kwargs)
         except ConfigError:
             raise
-        except (Exception, SystemExit) as exc:  # sys.exit() in a hook ends no thread of ours
+        except RAISED as exc:  # sys.exit() in a hook ends no thread of ours
             self._failed(name, hook, exc)
 
     def _failed(self, name: str, hook: str, exc: BaseException) -> None:
@@ -432,7 +476,8 @@ class PluginHost:
             count,
             limit,
             exc,
-            exc_info=exc if count == 1 else None,
+            # a deadline passed has no traceback to show
+            exc_info=exc if count == 1 and exc.__traceback__ is not None else None,
         )
         self._notice(f"plugin {name} failed in {hook}: {exc!r}")
         if count >= limit:
@@ -440,8 +485,9 @@ class PluginHost:
 
     def _notice(self, message: str, level: int = logging.ERROR) -> bool:
         """An operator's notice from any thread (the supervisor is only touched on its
-        loop); False when there is no running supervisor to take it."""
-        if self._sup is None or self._loop is None:
+        loop); False when there is no running supervisor to take it (on the way out the
+        loop waits for :meth:`stop`: a notice would come after the last lines, if ever)."""
+        if self._sup is None or self._loop is None or self._ending:
             return False
         try:
             self._loop.call_soon_threadsafe(self._sup.notice, None, level, message)
@@ -479,11 +525,20 @@ class PluginHost:
             return "on_error: stop"
         return "critical: true" if name in self.critical else None
 
-    def _bounded(self, name: str, hook: str, deadline: float, **kwargs: Any) -> str | None:
-        """Run one plugin's lifecycle hook with a deadline (see :func:`bounded`)."""
-        return self._starting(
-            name, f"plugin {name} {hook}", deadline, lambda: self._caller(name, hook)(**kwargs)
-        )
+    def _bounded(self, name: str, hook: str, deadline: float, **kwargs: Any) -> _Call:
+        """Run one plugin's hook with a deadline (see :func:`bounded`), keeping what it
+        answered or raised."""
+        call = _Call()
+
+        def run() -> None:
+            try:
+                call.answer = self._caller(name, hook)(**kwargs)
+            except RAISED as exc:
+                call.error = exc
+                raise  # said by bounded()
+
+        call.problem = self._starting(name, f"plugin {name} {hook}", deadline, run)
+        return call
 
     def _starting(
         self, name: str, label: str, deadline: float, fn: Callable[[], object]
@@ -501,23 +556,29 @@ class PluginHost:
                 self._threads[thread] = name
         return problem
 
-    def _output_failed(self, name: str, exc: OSError) -> None:
-        """Its output failed (disk full): one clear line, no traceback; the plugin writes
-        no more; the run goes on, or ends with the drives stopped under on_error: stop
-        (or critical: true)."""
+    def _output_failed(self, name: str, exc: OSError, hook: str | None = None) -> None:
+        """Its output failed (disk full): one clear line, no traceback, once; the plugin
+        writes no more; the run goes on, or ends with the drives stopped under on_error:
+        stop (or critical: true). In ``abh3_stop`` (``hook``) the run is ending already:
+        it decides the exit code only (5, docs/plugins.md)."""
+        late = self._ending
         with self._lock:
-            if name in self.disabled:
+            if name in self.output_failures:
                 return
-            self.disabled.add(name)
-            self.why_disabled[name] = f"output failed: {exc}"
             self.output_failures[name] = str(exc)
-        policy = self._policy(name)
-        outcome = (
-            f"stopping the run ({policy})"
-            if policy is not None
-            else "it is switched off; the run goes on (on_error: continue)"
-        )
-        message = f"plugin {name}: output failed: {exc}; {outcome}"
+            switched_off = name not in self.disabled and not late
+            if switched_off:
+                self.disabled.add(name)
+                self.why_disabled[name] = f"output failed: {exc}"
+        policy = self._policy(name) if switched_off else None
+        if late:
+            outcome = "the run was ending already"
+        elif policy is not None:
+            outcome = f"stopping the run ({policy})"
+        else:
+            outcome = "it is switched off; the run goes on (on_error: continue)"
+        where = f" in {hook}" if hook is not None else ""
+        message = f"plugin {name}: output failed{where}: {exc}; {outcome}"
         if not self._notice(message):  # the operator's log (headless, TUI) shows notices
             log.error("%s", message)
         if policy is not None:
@@ -533,14 +594,21 @@ class PluginHost:
             self.end_run(why)
 
     def _threads_below_loop(self, name: str) -> bool:
-        """The plugin's ``abh3_threads`` answer; anything but ``"below_loop"`` (a failure
-        included: said) leaves its threads at normal priority."""
-        try:
-            answers = self._caller(name, "abh3_threads")()
-        except Exception as exc:
-            log.warning("plugin %s: abh3_threads failed (%r): normal priority", name, exc)
+        """The plugin's ``abh3_threads`` answer, asked like its start: off the loop (the
+        main thread, where a stop signal must land) within its start deadline. Anything but
+        ``"below_loop"`` leaves its threads at normal priority; a raise (``sys.exit()``
+        too) or a block is the plugin's failure, counted under its ``on_error``; one that
+        ends the run (``on_error: stop``, ``critical``) fails it before any frame."""
+        if not self._has(name, "abh3_threads"):
             return False
-        return hookspecs.THREADS_BELOW_LOOP in answers
+        call = self._bounded(name, "abh3_threads", self._start_deadline(name))
+        if call.problem is None:
+            return hookspecs.THREADS_BELOW_LOOP in cast(list[object], call.answer)
+        error = call.error if call.error is not None else DeadlinePassed(call.problem)
+        self._failed(name, "abh3_threads", error)  # else its threads: normal priority
+        if name in self.disabled and self._policy(name) is not None:
+            raise PluginError(f"plugin {name} could not start (abh3_threads): {call.problem}")
+        return False
 
     def _has(self, name: str, hook: str) -> bool:
         caller = getattr(self.pm.hook, hook)
@@ -582,7 +650,8 @@ class PluginHost:
                 ("abh3_start", {"supervisor": view}),
                 ("abh3_input_sources", {"register": register, "supervisor": view}),
             ):
-                problem = self._bounded(name, hook, self._start_deadline(name), **kwargs)
+                deadline = self._start_deadline(name)
+                problem = self._bounded(name, hook, deadline, **kwargs).problem
                 if problem is not None:  # the user asked for it: run without it, never
                     raise PluginError(f"plugin {name} could not start ({hook}): {problem}")
             if any(self._has(name, hook) for hook in observing):
@@ -755,6 +824,7 @@ class PluginHost:
         devices, queues drain (``timeout`` for all), then abh3_stop — each with a
         deadline, so a plugin stuck anywhere delays the others' stop, never prevents it."""
         self.stop_inputs()
+        self._ending = True
         for source in self.sources:  # after the stop frames: a source stuck here delays
             problem = bounded(
                 f"input {source.name} stop", STOP_DEADLINE_S, self._normal(source.stop)
@@ -773,9 +843,11 @@ class PluginHost:
         self.workers.clear()
         for name in self.started:
             view = self.views[name]  # made before its abh3_start
-            problem = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=view)
-            if problem is not None:
-                log.error("plugin %s failed in abh3_stop: %s", name, problem)
+            call = self._bounded(name, "abh3_stop", STOP_DEADLINE_S, supervisor=view)
+            if isinstance(call.error, OSError):  # its last rows lost: exit 5, as in the run
+                self._output_failed(name, call.error, "abh3_stop")
+            elif call.problem is not None:
+                log.error("plugin %s failed in abh3_stop: %s", name, call.problem)
         if self._excepthook is not None and threading.excepthook == self._thread_failed:
             threading.excepthook = self._excepthook  # what plugins left behind: as before
 
@@ -814,7 +886,7 @@ def bounded(label: str, deadline: float, fn: Callable[[], object]) -> str | None
     def run() -> None:
         try:
             fn()
-        except (Exception, SystemExit) as exc:  # sys.exit() is no success either
+        except RAISED as exc:  # sys.exit() is no success either
             # ours (a plugin's PluginError: a user's mistake) as said; anything else, its repr
             failure.append(str(exc) if isinstance(exc, Abh3Error) else repr(exc))
             log.debug("%s failed", label, exc_info=True)

@@ -16,10 +16,12 @@ import pluggy
 
 from abh3_supervisor.config.source import Source
 from abh3_supervisor.errors import did_you_mean
+from abh3_supervisor.plugin_host import tick
 
 PREFIX = "abh3_"
-HOST_KEYS = ("on_error", "critical", "start_timeout_s")
-DEFS = ("def ", "async def ")  # the host's keys, valid in every plugin section
+# the host's keys, valid in every plugin section, with or without abh3_configure
+HOST_KEYS = ("on_error", "critical", "start_timeout_s", tick.KEY)
+DEFS = ("def ", "async def ")
 
 
 def hook_names(pm: pluggy.PluginManager) -> list[str]:
