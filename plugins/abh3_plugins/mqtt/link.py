@@ -10,10 +10,13 @@ Up to four paho clients per robot, each with one job:
   flood queues in TCP and at the broker, and whatever came on that connection after it
   (the broker's acknowledgements too) comes as late — so nothing else is on it;
 * the stop one (``abh3-{fleet_id}.stop``): the e-stop and clear topics only, never read
-  behind a flood of other commands;
+  behind a flood of other commands, and with no cap on messages: each is judged as it
+  arrives, so a flood of junk there costs what judging it costs (a refusal is cheap) and
+  never holds a valid e-stop behind it — its thread only rests when it used more than
+  ``SHARE`` of a core (a flood faster than that is read at that pace);
 * with ``vda5050`` on, the VDA 5050 one (``abh3-{fleet_id}.vda``: ``connection``, its
   will ``CONNECTIONBROKEN`` — one MQTT connection carries one last will — and
-  ``instantActions``).
+  ``instantActions``), not capped either: a ``startPause`` is an e-stop.
 
 paho's own thread reads, writes, pings and reconnects each; a sender thread of ours moves
 the outbox into the main client only while it is connected, with at most
@@ -50,13 +53,22 @@ payloads = fleet.payloads
 log = logging.getLogger("abh3_plugins.mqtt")
 MAX_INFLIGHT = 100  # messages handed to paho and not yet written or acknowledged
 MAX_PACKET = 64 * 1024  # MQTT 5: the broker sends us nothing larger (commands are tiny)
-# incoming messages a connection takes per second (a burst of as many): beyond, paho's
-# thread waits before reading the next, so a flooding fleet is held back by TCP and the
-# broker, not by our Python (which shares its interpreter lock with the bus loop)
+# twists the commands connection takes per second (a burst of as many): beyond, paho's
+# thread waits before reading the next, so a flood of twists is held back by TCP and the
+# broker, not by our Python (which shares its interpreter lock with the bus loop). Only
+# there: a wait on a connection that carries e-stops would hold every e-stop behind what
+# came before it (a second of junk once held one 29 s, and it was refused as stale)
 INCOMING_PER_S = 100.0
 STOPS = ("estop", "estop_clear")  # on the stop connection, for this robot and for `all`
 # the connections that only read: what they hear, as said and as health names it
 LISTENERS = {"stop": ("e-stops", "estop"), "commands": ("twists", "twist")}
+CAPPED = "commands"  # the one connection read at most INCOMING_PER_S (no e-stop on it)
+# the others (e-stops, VDA 5050) read what comes as it comes, a flood too: their thread
+# then runs flat out at real-time priority, and past the kernel's real-time share (95 %
+# of a core) the bus loop would be throttled with it. So such a thread rests once it used
+# more than SHARE of a core over WINDOW_S: a flood is read at half a core's pace, and a
+# message after a quiet moment never waits
+SHARE, WINDOW_S = 0.5, 0.01
 # health's name for the VDA 5050 instantActions, where a stopPause comes from (an e-stop)
 VDA_NOT_HEARD = "instant_actions"
 RECONNECT_S = (1, 5)  # paho's back-off between attempts [s]: first, at most
@@ -108,7 +120,11 @@ class Link:
         self._on_message, self._on_lost = on_message, on_lost
         self._closing = threading.Event()
         self._inflight: deque[mqtt.MQTTMessageInfo] = deque()
-        self._tokens: dict[int, tuple[float, float]] = {}  # per client: tokens, when
+        self._tokens = (INCOMING_PER_S, time.monotonic())  # the capped one's: tokens, when
+        self._windows: dict[int, tuple[float, float]] = {}  # per client: since, its CPU
+        # taking a topic's seq and queueing its message are one step (any thread): each
+        # topic's messages leave in the order of their seq
+        self._numbering = threading.Lock()
         self._sender = threading.Thread(target=self._send, name=f"mqtt {fleet_id}", daemon=True)
         self.host, self.pid, self.version = socket.gethostname(), os.getpid(), version()
         self.client = self._client(fleet.client_id(fleet_id))
@@ -214,12 +230,13 @@ class Link:
         if not (self._main_up and all(self._heard.values())) or self.connected.is_set():
             return
         # the birth first: the retained status says online before anything else
-        self.client.publish(
-            self.topics.status,
-            payloads.encode(self.status("online")),
-            self.settings.qos["status"],
-            retain=True,
-        )
+        with self._numbering:
+            self.client.publish(
+                self.topics.status,
+                payloads.encode(self.status("online")),
+                self.settings.qos["status"],
+                retain=True,
+            )
         if self._ever:
             self.reconnects += 1
             log.info("mqtt %s: connected again to %s", self.fleet_id, self.settings.url)
@@ -236,7 +253,7 @@ class Link:
         client.on_connect = functools.partial(self._listener_connected, name)
         client.on_subscribe = functools.partial(self._listener_subscribed, name)
         client.on_disconnect = functools.partial(self._listener_disconnected, name)
-        client.on_message = self._message
+        client.on_message = self._capped if name == CAPPED else self._message
         return client
 
     def _listener_topics(self, name: str) -> list[str]:
@@ -362,7 +379,18 @@ class Link:
             self._on_lost(self)
 
     def _message(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
-        self._take_token(id(client))
+        """paho's thread of an uncapped connection: judged as soon as it is read, whatever
+        came before it (e-stops are read here); a rest, if any, only after it."""
+        self._judge(message)
+        self._share(id(client))
+
+    def _capped(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
+        """paho's thread of the commands connection: a twist, after its token (the cap is
+        all it is held to)."""
+        self._take_token()
+        self._judge(message)
+
+    def _judge(self, message: mqtt.MQTTMessage) -> None:
         try:
             self._on_message(self, message)
         except Exception:  # a bug of ours must not end paho's thread (and its reconnects)
@@ -370,23 +398,50 @@ class Link:
                 "mqtt %s: a message on %s could not be handled", self.fleet_id, message.topic
             )
 
-    def _take_token(self, key: int) -> None:
-        """Wait (in paho's thread) until this connection may handle another message."""
+    def _share(self, key: int) -> None:
+        """Rest (in paho's thread, between two messages) when it used more than SHARE of
+        a core over the last window: only under a flood, and for no longer than brings it
+        back to SHARE."""
+        now, cpu = time.monotonic(), time.thread_time()
+        since, used = self._windows.get(key, (now, cpu))
+        if now - since < WINDOW_S:
+            self._windows.setdefault(key, (since, used))
+            return
+        busy = cpu - used
+        if busy > SHARE * (now - since):  # a window's rest at most: a long read (a 10 MB
+            # message under 3.1.1) costs the next message 10 ms, a flood half the time
+            self._closing.wait(min(WINDOW_S, busy / SHARE - (now - since)))
+        self._windows[key] = (time.monotonic(), time.thread_time())
+
+    def _take_token(self) -> None:
+        """Wait (in the commands connection's thread, the only one that takes tokens) until
+        it may handle another message."""
         now = time.monotonic()
-        tokens, then = self._tokens.get(key, (INCOMING_PER_S, now))
+        tokens, then = self._tokens
         tokens = min(INCOMING_PER_S, tokens + (now - then) * INCOMING_PER_S)
         if tokens < 1.0:
             self._closing.wait((1.0 - tokens) / INCOMING_PER_S)
             tokens, now = 1.0, time.monotonic()
-        self._tokens[key] = (tokens - 1.0, now)
+        self._tokens = (tokens - 1.0, now)
 
     # ------------------------------------------------------------ our sender thread
 
     def put(
-        self, topic: str, payload: dict[str, Any], qos: int, *, retain: bool, lossy: bool
+        self,
+        topic: str,
+        build: Callable[[int, float], dict[str, Any]],
+        qos: int,
+        *,
+        retain: bool,
+        lossy: bool,
     ) -> None:
-        """Queue a message for the broker; returns at once (any thread)."""
-        self.outbox.put(Message(topic, payloads.encode(payload), qos, retain), lossy=lossy)
+        """Queue ``build(seq, time)`` for the broker; returns at once (any thread). The seq
+        is taken and the message queued under one lock: taken apart, three threads (the
+        hooks', the state timer, paho's refusals) once queued an event's 238 before its
+        237. Building a payload is all the lock is held for besides the deque."""
+        with self._numbering:
+            payload = payloads.encode(build(self.seq(topic), time.time()))
+            self.outbox.put(Message(topic, payload, qos, retain), lossy=lossy)
 
     def _send(self) -> None:
         while not (self._closing.is_set() and not len(self.outbox)):
@@ -419,8 +474,10 @@ class Link:
 
     def say_offline(self) -> None:
         """The orderly death: ``offline`` after everything queued, the last states too."""
-        status = payloads.encode(self.status("offline"))
-        self.outbox.put_last(Message(self.topics.status, status, self.settings.qos["status"], True))
+        with self._numbering:
+            status = payloads.encode(self.status("offline"))
+            qos = self.settings.qos["status"]
+            self.outbox.put_last(Message(self.topics.status, status, qos, True))
 
     def close(self) -> None:
         """Disconnect in order (no last will), once the sender is done or given up; paho's

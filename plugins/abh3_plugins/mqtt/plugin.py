@@ -12,6 +12,7 @@ plugin's input source, under the owner rule of every input.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import logging
 import math
@@ -215,16 +216,21 @@ class MqttPlugin:
             return
         link = self.links[name]
         r = report(view, view.units[unit])
-        with self._lock:
+        qos = self.settings.qos["state"]
+        with self._lock:  # queued under it too: the state remembered is the last one queued
             before = self._published.get(unit)
             if changed_only and before == r.safety():
                 return
             self._published[unit] = r.safety()
-            topic = link.topics.state(unit)
-            payload = payloads.unit_state(
-                link.seq(topic), time.time(), fleet_id=link.fleet_id, robot=name, report=r
+            link.put(
+                link.topics.state(unit),
+                functools.partial(
+                    payloads.unit_state, fleet_id=link.fleet_id, robot=name, report=r
+                ),
+                qos,
+                retain=True,
+                lossy=True,
             )
-        link.put(topic, payload, self.settings.qos["state"], retain=True, lossy=True)
         if before is not None and before[-2] != r.verify != "pending":  # an outcome
             self.event(link, unit, "verify", f"unit {unit}: verify {before[-2]} → {r.verify}")
         if before is not None and before[-1] != r.safety()[-1]:
@@ -233,18 +239,21 @@ class MqttPlugin:
     def event(
         self, link: Link, unit: str | None, kind: str, text: str, data: dict[str, Any] | None = None
     ) -> None:
-        topic = link.topics.events
-        payload = payloads.event(
-            link.seq(topic),
-            time.time(),
-            fleet_id=link.fleet_id,
-            robot=link.robot,
-            unit=unit,
-            kind=kind,
-            text=text,
-            data=data,
+        link.put(
+            link.topics.events,
+            functools.partial(
+                payloads.event,
+                fleet_id=link.fleet_id,
+                robot=link.robot,
+                unit=unit,
+                kind=kind,
+                text=text,
+                data=data,
+            ),
+            self.settings.qos["events"],
+            retain=False,
+            lossy=False,
         )
-        link.put(topic, payload, self.settings.qos["events"], retain=False, lossy=False)
 
     def publish_health(self) -> None:
         view = self.view
@@ -260,19 +269,23 @@ class MqttPlugin:
             for name, c in view.bus_counters().items()
         }
         for link in self.links.values():
-            topic = link.topics.health
-            payload = payloads.health(
-                link.seq(topic),
-                time.time(),
-                fleet_id=link.fleet_id,
-                robot=link.robot,
-                buses={b: buses[b] for b in sorted({view.units[u].cfg.bus for u in link.units})},
-                queued=len(link.outbox),
-                dropped=link.outbox.dropped,
-                reconnects=link.reconnects,
-                not_heard=list(link.not_heard),
+            ours = {b: buses[b] for b in sorted({view.units[u].cfg.bus for u in link.units})}
+            link.put(
+                link.topics.health,
+                functools.partial(
+                    payloads.health,
+                    fleet_id=link.fleet_id,
+                    robot=link.robot,
+                    buses=ours,
+                    queued=len(link.outbox),
+                    dropped=link.outbox.dropped,
+                    reconnects=link.reconnects,
+                    not_heard=list(link.not_heard),
+                ),
+                self.settings.qos["health"],
+                retain=True,
+                lossy=True,
             )
-            link.put(topic, payload, self.settings.qos["health"], retain=True, lossy=True)
 
     def _periodic(self) -> None:
         period = 1.0 / self.settings.state_rate_hz
