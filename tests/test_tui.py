@@ -13,6 +13,7 @@ import logging
 import os
 import pty
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -140,8 +141,14 @@ def test_a_silenced_unit_turns_offline_on_screen() -> None:
         assert await asyncio.wait_for(gone, 3) == "right"
         await until(pilot, lambda: app.sup.units["right"].online is False, "offline on screen")
         app.refresh_view()
-        assert overview_row(app.sup, "right")["state"] == "OFFLINE"
-        assert "OFFLINE" in str(app.query_one("#table", Static).render())
+        row = overview_row(app.sup, "right")
+        assert row["state"] == "OFFLINE"
+        shown = str(app.query_one("#table", Static).render())
+        (line,) = [x for x in shown.splitlines() if x.startswith("▶ right")]
+        # what it said before is not shown as if it held: switches unknown, no feedback
+        assert re.match(r"▶ right +OFFLINE \?/\? +\?/\? ", line), line
+        assert row["fbk"].split() == ["A", "–", "B", "–"] and row["fbk"] in line
+        assert re.search(r"no answer for [\d.]+ s; its last feedback: A [-\d.]+ B", shown)
         await pilot.press("v")  # a key that cannot act says so at once and asks nothing
         await pilot.pause()
         assert not isinstance(app.screen, ConfirmScreen)
@@ -221,6 +228,25 @@ def test_the_tui_in_a_terminal_stops_the_drives_on_a_signal(tmp_path: Path, sig:
     record = tmp_path / "tui.log"
     pid, fd = in_a_terminal(["run", "configs/demo.yaml", "--record", str(record)])
     os.kill(pid, sig)
+    assert ended(pid, fd).code == 0
+    assert_demo_stopped(record)
+
+
+def test_ctrl_c_in_a_terminal_asks_and_yes_stops_the_drives(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The byte a terminal sends for Ctrl-C (the TUI's raw mode makes it no SIGINT): the
+    quit question, and yes stops both drives as `q` does."""
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # its own socket
+    record = tmp_path / "tui.log"
+    pid, fd = in_a_terminal(["run", "configs/demo.yaml", "--record", str(record)])
+    os.write(fd, b"\x03")
+    screen = b""
+    while b"Quit?" not in screen:
+        ready, _, _ = select.select([fd], [], [], 30)
+        assert ready, f"no question: {screen[-500:]!r}"
+        screen += os.read(fd, 65536)
+    os.write(fd, b"y")
     assert ended(pid, fd).code == 0
     assert_demo_stopped(record)
 
@@ -446,7 +472,7 @@ def test_help_lists_every_binding_by_its_readable_key_and_palette_quit_asks() ->
         assert "  ?" in help_text and "  +, =" in help_text and "Esc" in help_text
         assert "  ctrl+e, e" in help_text and help_text.count("EMERGENCY STOP") == 1
         assert "Plugin keyboard" in help_text and "  Q " in help_text
-        assert "  q, ctrl+q " in help_text
+        assert "  q, ctrl+q, ctrl+c " in help_text
         await pilot.press("escape")
         await app.action_quit()  # what the palette's Quit and ctrl+q run
         await pilot.pause()

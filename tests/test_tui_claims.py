@@ -172,6 +172,100 @@ def test_ctrl_e_latches_the_estop_everywhere_and_e_everywhere_but_in_an_input() 
     run_app(check, size=(140, 45))
 
 
+def test_ctrl_c_asks_to_quit_from_everywhere_and_sends_nothing_else() -> None:
+    """The key a new user presses first: on every tab, page, question and input line it
+    closes what is open (a question as no) and asks the quit question — one, however
+    often it is pressed; no says so and leaves everything running."""
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        asked: list[str] = []
+        real_push = app.push_screen
+
+        def push(screen: Any, *args: Any, **kwargs: Any) -> Any:
+            if isinstance(screen, ConfirmScreen):
+                asked.append(screen.question)
+            return real_push(screen, *args, **kwargs)
+
+        app.push_screen = push  # type: ignore[method-assign]
+        app.query_one("#cmdline", Input).value = "SER"
+        for place, steps in PLACES.items():
+            for what in steps:
+                await step(app, pilot, what)
+            asked.clear()
+            made = recording(app)
+            latched = sup.estop  # the place "question: clear the e-stop" latches it first
+            await press_until(app, pilot, "ctrl+c", app.quitting, place)
+            # the place closed under the question; nothing typed, nothing sent but the audit
+            assert app.screen_stack[1:] == [app.screen] and app.focused is not None, place
+            assert not isinstance(app.focused, Input), place
+            await press_until(app, pilot, "ctrl+c", app.quitting, place)  # again: nothing new
+            await press_until(app, pilot, "n", lambda: len(app.screen_stack) == 1, place)
+            # one question, the one open already at "question: quit"
+            assert asked == ([] if place == "question: quit" else [app.QUIT]), (place, asked)
+            assert app.is_running and sup.estop == latched, place
+            reads = {"param_read", "param_identity"}  # a page's, in flight as it closes
+            assert {method for _, method, _ in made} <= {"audit", *reads}, (place, made)
+            if latched:
+                sup.clear_emergency_stop()
+                await until(pilot, lambda: not app.sup.estop, "cleared")
+            app.request = SupervisorApp.request.__get__(app)  # type: ignore[method-assign]
+        assert app.query_one("#cmdline", Input).value == "SER"  # nothing else was typed
+
+    run_app(check, size=(140, 45))
+
+
+def test_ctrl_c_stops_the_arrows_drive_at_once_and_yes_quits() -> None:
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        for text in ("SERVO ON ON", "START ON ON"):
+            assert await sup.command("left", text) == ""
+        unit = app.sup.units["left"]
+        both = unit.layout.servo.both | unit.layout.start.both
+        await until(pilot, lambda: unit.words.get("control", 0) & both == both, "reported on")
+        made = recording(app)
+        await press_until(app, pilot, "up", lambda: sup.units["left"].setpoint.ay > 0, "up")
+        assert app.hold.drive is not None
+        await press_until(app, pilot, "ctrl+c", app.quitting, "ctrl+c")
+        # zero sent with the question, not after the key's release timeout
+        assert app.hold.drive is None
+        assert made[-1][1:] == ("twist", {"robots": ["left"], "linear_x": 0.0, "angular_z": 0.0})
+        assert "stop sent" in response(app)
+        await until(pilot, lambda: sup.units["left"].setpoint.ay == 0, "stopped")
+        await press_until(app, pilot, "y", lambda: not app.is_running, "yes: quits")
+
+    run_app(check)
+
+
+def test_keys_typed_right_after_colon_are_text() -> None:
+    """A fast typist (or a paste): `:` then `ser` at once is the text `ser`, not START,
+    the e-stop and an error reset; `w` then a value on the parameter page likewise."""
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+        cmdline = app.query_one("#cmdline", Input)
+        made = recording(app)
+        for key in ("colon", "s", "e", "r"):
+            app.post_message(events.Key(key, ":" if key == "colon" else key))
+        await until(pilot, lambda: cmdline.value == "ser" or sup.estop, "typed")
+        assert cmdline.value == "ser" and not sup.estop and made == []
+        assert not isinstance(app.screen, ModalScreen)
+        await press_until(app, pilot, "escape", lambda: app.focused is None, "Esc")
+        for what in PLACES["parameter page"]:
+            await step(app, pilot, what)
+        await first_parameter_read(app, pilot)
+        for key in ("w", "1", "e", "3"):
+            app.post_message(events.Key(key, key))
+        typed = typing(Input, "1e3")
+        await until(pilot, lambda: typed(app) or sup.estop, "the value typed")
+        assert typed(app) and not sup.estop
+        for _ in range(2):  # the input line, then the page
+            app.post_message(events.Key("escape", None))
+        await until(pilot, lambda: not isinstance(app.screen, ParamScreen), "page closed")
+
+    run_app(check)
+
+
 async def type_text(app: SupervisorApp, pilot: Any, text: str) -> None:
     """Each character as the terminal delivers it, into the focused input line."""
     line = app.focused

@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 
 from rich.text import Text
 from textual import events, work
+from textual.actions import SkipAction
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Grid, VerticalScroll
@@ -156,12 +157,15 @@ class SupervisorApp(App[None]):
         _b("r", "reset", "error reset", "error reset, servo off after it (asks)"),
         _b("d", "data_select", "data select", "next data-select preset table (asks)"),
         _b("f", "fault", "sim: silence", "simulated units: stop answering / answer again"),
-        _b(
+        # priority: taken as it comes, so the keys typed right after it are text (a
+        # binding that waits its turn lets the next keys act: s, v, e); in an input line
+        # it is text, and on a question or page it is left to them (SkipAction)
+        Binding(
             "colon",
             "command",
             "command",
-            "command line, any case (VEL/CUR held while attached)",
-            True,
+            priority=True,
+            tooltip="command line, any case (VEL/CUR held while attached)",
         ),
         _b("P", "params", "parameters", "the unit's parameters: r read, w write one, f diff"),
         _b("1", "tab('overview')", "overview", "tab 1: every unit"),
@@ -175,6 +179,9 @@ class SupervisorApp(App[None]):
         _b("q", "quit_safely", "quit", "quit (asks; stops the drives, or detaches)", True),
         # Textual's own ctrl+q (its quit asks too: action_quit), named here for the help
         _b("ctrl+q", "quit_safely", "quit", show=False),
+        # the key a new user presses first: a priority binding, so no input line (where it
+        # would copy) and no question or page takes it; it stops the arrows' drive at once
+        Binding("ctrl+c", "quit_safely", "quit", show=False, priority=True, tooltip="quit"),
     ]
     QUIT = "Quit? Every unit gets zero, START and SERVO off."
     DETACH = (
@@ -413,17 +420,21 @@ class SupervisorApp(App[None]):
             "control": "control (reported)",
             "io": "I/O (reported)",
         }
+        silent = unit.online is False  # what it reported is its last word, greyed
+        last = "\nas last reported: no answer now" if silent else ""
         for word in FLAG_BOXES:
             value = words.get(word)
             shown = "–" if value is None else f"0x{value:08X}"
-            text = Text(f"{titles[word]} {shown}\n", style="bold")
+            old = last if word != "inputs" else ""
+            text = Text(f"{titles[word]} {shown}{old}\n", style="bold")
             for on, label in flag_lines(unit.layout, word, value):
-                text.append(label + "\n", style=SET_STYLE[word] if on else "dim")
+                style = SET_STYLE[word] if on and not old else "dim"
+                text.append(label + "\n", style=style)
             self.query_one(f"#flags-{word}", Static).update(text)
-        text = Text("errors ✖ / alarms ▲\n", style="bold")
+        text = Text(f"errors ✖ / alarms ▲{last}\n", style="bold")
         for kind, label in fault_lines(words.get("error"), words.get("alarm"), unit.cfg.role):
             style = {"error": "bold red", "alarm": "yellow"}.get(kind, "dim")
-            text.append(label + "\n", style=style)
+            text.append(label + "\n", style="dim" if silent else style)
         self.query_one("#flags-faults", Static).update(text)
 
     # ------------------------------------------------------------ the service's side
@@ -706,11 +717,13 @@ class SupervisorApp(App[None]):
         self.say(what)
 
     def action_command(self) -> None:
+        if isinstance(self.screen, ModalScreen):
+            raise SkipAction()
         if not self.connected():
             return
         cmdline = self.query_one("#cmdline", Input)
         cmdline.add_class("open")
-        cmdline.focus()
+        self.screen.set_focus(cmdline)  # at once: Widget.focus waits for the queued keys
 
     def on_input_submitted(self, event: Input.Submitted) -> None:
         text = event.value
@@ -784,9 +797,24 @@ class SupervisorApp(App[None]):
         bindings = [b for b in self.BINDINGS if isinstance(b, Binding)]
         self.push_screen(HelpScreen(help_lines(bindings, self.plugin_keys)))
 
+    def quitting(self) -> bool:
+        """The quit (or detach) question is open."""
+        screen = self.screen
+        return isinstance(screen, ConfirmScreen) and screen.question in (self.QUIT, self.DETACH)
+
     def action_quit_safely(self) -> None:
-        if isinstance(self.screen, ConfirmScreen):
+        """q, ctrl+q and ctrl+c: the arrows' drive stops now; any other question (= no),
+        page or input line closes, and the quit question is asked (once)."""
+        drive = self.hold.drive
+        self.hold.stop()
+        if drive is not None and self._not_connected() is None:
+            self.send("twist", robots=list(drive.robots), linear_x=0.0, angular_z=0.0)
+            self.say(f"drive {', '.join(drive.robots)}: stop sent")
+        if self.quitting():
             return
+        while isinstance(self.screen, ModalScreen):
+            self.screen.dismiss(None)
+        self.key_escape()
 
         def answer(yes: bool | None) -> None:
             self.audit(f"{'quit' if self.owner else 'detach'}? {'yes' if yes else 'no'}")

@@ -35,7 +35,8 @@ def help_lines(
         "case-insensitive: vel 50 0). The e-stop closes every question",
         "and page, so its outcome is in sight. A held arrow drives while",
         f"the terminal repeats it (a tap: {TAP_S:.2g} s); with SERVO or START",
-        "off it says why nothing moves.",
+        "off it says why nothing moves. ctrl+c stops the arrows' drive and",
+        "asks to quit, from every question, page and input line too.",
         "",
     ]
     for keys, text in by_action.values():

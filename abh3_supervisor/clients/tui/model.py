@@ -1,7 +1,9 @@
 """What the screens show, computed from a :class:`Mirror` without any Textual: testable alone.
 
 State is shown as the drive reports it (its control word) wherever the drive reports
-it; a ``!`` marks a switch the drive reports other than it is commanded.
+it; a ``!`` marks a switch the drive reports other than it is commanded. What a drive
+reported is shown only while it answers: an offline drive's feedback, currents and
+supplies are blanked (its last feedback is said with its age) and its switches are ``?``.
 
 One axis vocabulary: the drive's A/Y and B/X channels (command, current) are named by
 the unit's velocity model — Y/X for ``travel``, A/B for ``motor`` — and every value
@@ -10,6 +12,7 @@ carries its letter, so no column or series changes meaning from one unit to the 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,6 +26,12 @@ from abh3_supervisor.protocol import flags, frames
 WINDOW_S = 30.0  # what the plots show
 SET, CLEAR = "●", "○"  # a set bit has a symbol as well as a colour
 ERROR_MARK, ALARM_MARK = "✖", "▲"
+# the overview's fault column beside the counts: what keeps a unit from moving that is
+# no error bit of its drive (each explained on a line under the unit)
+HOST_STOP = "HOST"  # stopped: another host commands its drive (core/foreign.py)
+HELD = "HELD"  # held at its idle word by the settings check (core/verify.py)
+DIFFERS = "≠YAML"  # its drive's CAN settings differ from the file, not held (verify: warn)
+UNKNOWN = "?/?"  # a switch of a drive that no longer answers
 
 
 def onoff(value: bool) -> str:
@@ -80,9 +89,23 @@ def reported(unit: UnitView) -> int | None:
     return unit.words.get("control")
 
 
+def answering(unit: UnitView) -> bool:
+    """The drive answers now, so what it reports is live (offline or not heard yet: not)."""
+    return unit.online is True
+
+
+def silent_for(sup: Mirror, unit: UnitView) -> float | None:
+    """How old the drive's last feedback is (None: it never sent any)."""
+    fb = unit.feedback
+    return None if fb is None else max(0.0, sup.t - fb.t)
+
+
 def switch(unit: UnitView, mask: flags.Pair) -> str:
     """``ON/off`` per axis as the drive reports it; ``!`` where the command differs,
-    ``?`` when the drive has not reported it (the command is shown then)."""
+    ``?`` when the drive has not reported it (the command is shown then), ``?/?`` when it
+    no longer answers (its last report may no longer hold)."""
+    if unit.online is False:
+        return UNKNOWN
     control = reported(unit)
     word = unit.inputs if control is None else control
     text = f"{onoff(bool(word & mask.ay))}/{onoff(bool(word & mask.bx))}"
@@ -105,23 +128,77 @@ def model_feedback(unit: UnitView) -> tuple[float | None, float | None]:
     return (fb.vel_y, fb.vel_x) if travel else (fb.vel_a, fb.vel_b)
 
 
-def overview_row(sup: Mirror, name: str) -> dict[str, str]:
+def holds(unit: UnitView) -> list[str]:
+    """The fault column's words for what keeps the unit from moving or needs a look that
+    is no error bit: stopped for another host, held by the settings check, settings that
+    differ from the file."""
+    shown = [HOST_STOP] if (unit.foreign or {}).get("stopped") else []
+    verify = unit.verify or {}
+    if verify.get("held"):
+        shown.append(HELD)
+    elif verify.get("state") == "mismatch":
+        shown.append(DIFFERS)
+    return shown
+
+
+def hold_lines(unit: UnitView) -> list[tuple[str, str]]:
+    """(style key, text) per :func:`holds` word: what it is and how it ends."""
+    lines = []
+    stopped = (unit.foreign or {}).get("stopped")
+    if stopped:  # E clears it, and the service does so only once that host is quiet
+        lines.append(("error", f"STOPPED: {stopped} (E clears it once that host is quiet)"))
+    verify = unit.verify or {}
+    if verify.get("held"):
+        lines.append(("error", f"HELD: {verify['held']}"))
+    elif verify.get("state") == "mismatch":
+        lines += [
+            ("alarm", f"{DIFFERS} (verify: warn, so it runs): {row['text']}")
+            for row in verify.get("mismatches", ())
+        ]
+    return lines
+
+
+def silence_line(sup: Mirror, name: str) -> str | None:
+    """Under an offline unit: how long it has not answered and its last feedback, which
+    the row no longer shows."""
     unit = sup.units[name]
-    fb = unit.feedback
-    brd3, brd5 = status_record(unit, 3), status_record(unit, 5)
+    if unit.online is not False:
+        return None
+    quiet = silent_for(sup, unit)
+    if quiet is None:
+        return "no answer: what it reports is unknown"
+    last = spoken(axes(unit), *model_feedback(unit))
+    return f"no answer for {age(quiet)}; its last feedback: {last} min⁻¹"
+
+
+def unit_state(unit: UnitView) -> str:
+    return {True: "online", False: "OFFLINE", None: "waiting"}[unit.online]
+
+
+def overview_row(sup: Mirror, name: str) -> dict[str, str]:
+    """The overview's cells. What the drive reports (feedback, currents, load,
+    supplies) only while it answers: blank ``–`` otherwise, never a value it sent before."""
+    unit = sup.units[name]
+    live = answering(unit)
+    fb = unit.feedback if live else None
+    brd3 = status_record(unit, 3) if live else None
+    brd5 = status_record(unit, 5) if live else None
     error, alarm = unit.words.get("error", 0), unit.words.get("alarm", 0)
     letters = axes(unit)
     role = unit.cfg.role  # a monitor's "no commands" bit is a note, not a fault
     faults = " ".join(
-        f"{mark}{count}"
-        for mark, word in ((ERROR_MARK, error), (ALARM_MARK, alarm))
-        if (count := len(readouts.read_faults(role, word).names))
+        holds(unit)
+        + [
+            f"{mark}{count}"
+            for mark, word in ((ERROR_MARK, error), (ALARM_MARK, alarm))
+            if (count := len(readouts.read_faults(role, word).names))
+        ]
     )
     sp = unit.setpoint
     current_mode = sp.kind is ControlMode.CURRENT
     return {
         "unit": name,
-        "state": {True: "online", False: "OFFLINE", None: "waiting"}[unit.online],
+        "state": unit_state(unit),
         "proto": unit.cfg.protocol.value,
         "mode": f"{unit.setpoint.kind.value[:3]} {unit.cfg.velocity_model.value}",
         "servo": switch(unit, unit.layout.servo),
@@ -131,7 +208,7 @@ def overview_row(sup: Mirror, name: str) -> dict[str, str]:
             if current_mode
             else labelled(letters, sp.ay, sp.bx)
         ),
-        "fbk": labelled(letters, *model_feedback(unit)),
+        "fbk": labelled(letters, *(model_feedback(unit) if live else (None, None))),
         "fbk A/B": labelled(("A", "B"), fb.vel_a if fb else None, fb.vel_b if fb else None),
         "fbk Y/X": labelled(("Y", "X"), fb.vel_y if fb else None, fb.vel_x if fb else None),
         "current": (
@@ -231,14 +308,18 @@ def detail_fields(
     st = unit.stats
     sp, fb = unit.setpoint, unit.feedback
     letters = axes(unit)
+    quiet = silent_for(sup, unit)
+    # a drive that does not answer: its last values, each with its age
+    old = "" if answering(unit) or quiet is None else f" ({age(quiet)} old)"
     fields = [f"STALE {age(stale)}"] if stale is not None else []
     fields += [
         f"unit {name}",
+        *([f"{unit_state(unit)}: {line}"] if (line := silence_line(sup, name)) else []),
         f"velocity model {model_name(unit)}",
         f"cmd {spoken(letters, sp.ay, sp.bx, 2 if sp.kind is ControlMode.CURRENT else 1)} "
         + unit_of(unit),
-        f"fbk {spoken(('Y', 'X'), fb.vel_y, fb.vel_x) if fb else '–'} min⁻¹",
-        f"fbk {spoken(('A', 'B'), fb.vel_a, fb.vel_b) if fb else '–'} min⁻¹",
+        f"fbk {spoken(('Y', 'X'), fb.vel_y, fb.vel_x) if fb else '–'} min⁻¹{old}",
+        f"fbk {spoken(('A', 'B'), fb.vel_a, fb.vel_b) if fb else '–'} min⁻¹{old}",
         f"firmware {firmware or '–'}",
         f"abh3_id {unit.cfg.abh3_id}",
         f"host {unit.cfg.host_id}",
@@ -260,6 +341,8 @@ def detail_fields(
     ]
     b3, b4, b5 = status_record(unit, 3), status_record(unit, 4), status_record(unit, 5)
     b6 = status_record(unit, 6)
+    if unit.online is False and (b3 or b4 or b5 or b6):
+        fields.append("status as last reported, before it went silent")
     if isinstance(b3, frames.Brd3):
         fields += [
             f"current {spoken(letters, b3.cur_cmd_ay, b3.cur_cmd_bx, 2)} %",
@@ -310,6 +393,10 @@ SERIES = (
 )
 
 
+REPORTED = ("fbk AY", "fbk BX", "current AY", "current BX", "load A", "load B")  # by the drive
+GAP = math.nan  # a sample while the drive does not answer: nothing is known
+
+
 @dataclass
 class Trace:
     """One unit's recent values, (time, value) per series, the last WINDOW_S seconds."""
@@ -353,6 +440,10 @@ class Sampler:
             travel = unit.cfg.velocity_model is VelocityModel.TRAVEL
             trace.add(now, "cmd AY", sp.ay)
             trace.add(now, "cmd BX", sp.bx)
+            if not answering(unit):  # a gap in its plots, not its last values held
+                for key in REPORTED:
+                    trace.add(now, key, GAP)
+                continue
             if fb is not None:
                 trace.add(now, "fbk AY", fb.vel_y if travel else fb.vel_a)
                 trace.add(now, "fbk BX", fb.vel_x if travel else fb.vel_b)

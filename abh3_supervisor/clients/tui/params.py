@@ -63,7 +63,9 @@ class ParamScreen(ModalScreen[None]):
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("escape", "close", "close"),
         Binding("r", "read_all", "read all"),
-        Binding("w", "edit", "write the selected parameter"),
+        # priority: the value typed right after it goes into its input line (in there
+        # `w` is text: Input consumes it)
+        Binding("w", "edit", "write the selected parameter", priority=True),
         Binding("f", "diff", "diff against a file"),
     ]
 
@@ -138,7 +140,7 @@ class ParamScreen(ModalScreen[None]):
         line = self.query_one("#params-input", Input)
         line.placeholder, line.value = placeholder, ""
         line.add_class("open")
-        line.focus()
+        self.set_focus(line)  # at once: the keys typed right after `w` are the value
 
     def _close_input(self) -> None:
         self.query_one("#params-input", Input).remove_class("open")

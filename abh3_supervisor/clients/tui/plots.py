@@ -1,9 +1,10 @@
 """Bar plots of the last WINDOW_S seconds, as text: each with its name, unit, current
 value and scale (min … max), bars drawn from zero so a steady value is a full bar and a
-negative one hangs from the zero line."""
+negative one hangs from the zero line; while the drive does not answer, a gap."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from rich.text import Text
@@ -36,7 +37,10 @@ def columns(samples: Sequence[tuple[float, float]], now: float, width: int) -> l
         out[i] = value
     held: float | None = None
     for i, slot in enumerate(out):
-        held = out[i] = slot if slot is not None else held
+        if slot is not None and math.isnan(slot):  # the drive did not answer: a gap
+            held = out[i] = None
+        else:
+            held = out[i] = slot if slot is not None else held
     return out
 
 
@@ -72,7 +76,7 @@ def render(unit: UnitView, trace: Trace, now: float, width: int, height: int) ->
         values = columns(samples, now, plot_width)
         seen = [v for v in values if v is not None]
         lo, hi = min([0.0, *seen]), max([0.0, *seen])
-        current = samples[-1][1] if samples else None
+        current = samples[-1][1] if samples and not math.isnan(samples[-1][1]) else None
         label = [
             f"{series_label(unit, key)} [{series_unit(unit, key)}]",
             f"now {fmt(current)}",

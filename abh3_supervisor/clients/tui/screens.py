@@ -11,6 +11,7 @@ from textual.screen import ModalScreen
 from textual.widgets import Button, Input, Static
 
 ESTOP_KEY = "ctrl+e"  # the e-stop in every input line (and everywhere); `e` is text here
+QUIT_KEY = "ctrl+c"  # asks to quit from every input line too (Input's own: copy)
 NOT_TEXT = ("up", "down")  # the arrows drive the robot everywhere else: never while typing
 
 
@@ -19,10 +20,10 @@ class OperatorInput(Input):
     priority ``e`` binding leaves the chain while it has the focus — Textual drops the
     bindings of keys the focused widget consumes), the up/down arrows do nothing rather
     than drive, and ``ctrl+e`` is never consumed (Input's own "end" key): the app's
-    priority e-stop always sees it."""
+    priority e-stop always sees it; nor ``ctrl+c`` (Input's copy): it asks to quit."""
 
     def check_consume_key(self, key: str, character: str | None) -> bool:
-        if key == ESTOP_KEY:
+        if key in (ESTOP_KEY, QUIT_KEY):
             return False
         return key in NOT_TEXT or super().check_consume_key(key, character)
 
