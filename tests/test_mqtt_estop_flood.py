@@ -87,13 +87,22 @@ class Fleet:
         sent = time.monotonic()
         self.w.publish(topic, body)
         latched = self.w.wait_for(event("estop_latched"), within, since=mark)
-        obeyed = self.w.wait_for(event("fleet_command"), 5, since=mark).body["data"]
-        assert (obeyed["kind"], obeyed["seq"]) == ("estop", self.seq), obeyed  # this one
+        self.w.wait_for(self.obeyed("estop"), 5, since=mark)  # this one latched it
         topic, body = self._body(path, stop=False)
         mark = self.w.mark()
         self.w.publish(topic, body)
         self.w.wait_for(event("estop_cleared"), 10, since=mark)
+        self.w.wait_for(self.obeyed("estop_clear"), 5, since=mark)  # all said: none later
         return latched.at - sent
+
+    def obeyed(self, kind: str) -> Callable[[Received], bool]:
+        """The robot's word that it obeyed the last command sent, ``kind``."""
+        seq = self.seq
+        return lambda m: (
+            event("fleet_command")(m)
+            and m.body["data"]["kind"] == kind
+            and m.body["data"]["seq"] == seq
+        )
 
 
 def flood(flooder: Watcher, topic: str, payload: bytes, count: int) -> None:
