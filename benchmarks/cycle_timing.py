@@ -69,6 +69,11 @@ def run(n: int, rate: float, seconds: float, channel: str, tuis: int = 0) -> dic
     async def measure(rt: Runtime) -> None:
         rt.pumps["b"].recorder = probe
         sup = rt.supervisor
+        for name in sup.units:  # switched on, and reported so: every setpoint goes out
+            for text in ("SERVO ON ON", "START ON ON"):
+                assert await sup.command(name, text) == ""
+        while any(sup.robot_unready(name) is not None for name in sup.units):
+            await asyncio.sleep(0.01)
         end = time.perf_counter() + seconds
         rng = random.Random(1)
         value = 0

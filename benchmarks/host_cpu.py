@@ -38,12 +38,17 @@ import can
 
 from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, UnitConfig
 from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
-from abh3_supervisor.protocol import frames, ids
+from abh3_supervisor.protocol import flags, frames, ids
+from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.scheduler.core import FeedbackEvent
 from abh3_supervisor.scheduler.pump import BusPump
 from abh3_supervisor.scheduler.sources import source_for
 
 CMD_ID, REPLY_ID = ids.dp0_command_id(1, 2), ids.dp0_reply_id(1, 2)
+_L23 = flags.LAYOUT_2023
+# a 2023 drive's reply reporting SERVO and START on both axes (and the data select it was
+# given): the robot decision finds it ready, so every exchange runs the setpoint path
+READY_REPLY = frames.encode_dp0_reply_2023(0, 0, _L23.servo.both | _L23.start.both | 0x70)
 
 
 class EchoDrive:
@@ -51,7 +56,7 @@ class EchoDrive:
         self.bus = can.Bus(interface="virtual", channel=channel)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
-        self.reply = can.Message(arbitration_id=REPLY_ID, data=bytes(8), is_extended_id=True)
+        self.reply = can.Message(arbitration_id=REPLY_ID, data=READY_REPLY, is_extended_id=True)
 
     def __enter__(self) -> EchoDrive:
         self._thread.start()
@@ -88,13 +93,21 @@ def bare(exchanges: int) -> float:
 def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
     """CPU seconds per exchange through scheduler, pump, supervisor and one observer,
     which sets a new setpoint at every reply (``new_setpoint``), else at the first only."""
-    unit = UnitConfig(name="u", bus="b", command_rate_hz=1e6, broadcast=BroadcastConfig(mask=0))
+    unit = UnitConfig(
+        name="u",
+        bus="b",
+        protocol=Generation.G2023,
+        command_rate_hz=1e6,
+        broadcast=BroadcastConfig(mask=0),
+    )
     config = Config(file="bench", buses={"b": BusConfig(name="b")}, units={"u": unit})
 
     async def run() -> float:
         loop = asyncio.get_running_loop()
         done = loop.create_future()
         sup = Supervisor(config, clock=loop.time)
+        for text in ("SERVO ON ON", "START ON ON"):  # switched on: the robot may move
+            sup.apply_text("u", text)
         count = 0
 
         def observer(event: SupervisorEvent) -> None:

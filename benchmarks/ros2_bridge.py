@@ -83,6 +83,12 @@ def vel_cmd_latency(rate: float, seconds: float) -> dict[str, float]:
     async def scenario() -> list[tuple[float, int]]:
         async with Runtime(cfg, plugins=host) as rt:
             rt.pumps["b"].recorder = probe
+            sup = rt.supervisor
+            for name in sup.units:  # switched on and reported so: the vel_cmd moves it
+                for text in ("SERVO ON ON", "START ON ON"):
+                    assert await sup.command(name, text) == ""
+            while any(sup.robot_unready(name) is not None for name in sup.units):
+                await asyncio.sleep(0.01)
             peer = await asyncio.create_subprocess_exec(
                 sys.executable, "-c", PEER, str(DOMAIN), str(seconds), stdout=subprocess.PIPE
             )

@@ -161,7 +161,8 @@ def test_an_estop_ends_held_motion_for_good_and_says_so(served: Served) -> None:
         setup.call("clear_estop")
         reply = holder.call("alive")  # cleared: still nothing held until commanded again
         assert reply["holds"] == [] and reply["lost"] == {"left": "the emergency stop is latched"}
-        setup.call("command", unit="left", text="START ON ON")
+        for text in ("SERVO ON ON", "START ON ON"):  # the e-stop switched both off
+            setup.call("command", unit="left", text=text)
         holder.call("command", unit="left", text="VEL 120 0")  # a command after the clear
         assert holder.call("alive") == {"ok": True, "holds": ["left"], "lost": {}}
     finally:

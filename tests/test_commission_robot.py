@@ -36,6 +36,9 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.simulator.robot import SimRobot
 from tests.commission_bench import FakeBench, Headless
 
+# commissioning moves one motor at a time: each drive decided alone (whole_robots=False)
+pytestmark = pytest.mark.wire_allow("robot", reason="one wheel at a time, by design")
+
 FAST = Settings(jog_s=0.4, step_s=0.4)
 DEMO = Path(__file__).resolve().parent.parent / "configs" / "skid-steer-demo.yaml"
 BUS = """

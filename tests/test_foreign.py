@@ -258,6 +258,7 @@ def test_a_second_host_stops_the_unit_at_once_and_keeps_it_stopped() -> None:
     assert rig.drive("left").cmd_raw == (500, 500)
 
 
+@pytest.mark.wire_allow("robot", reason="the other host drives one drive of the robot")
 def test_a_second_host_on_one_drive_stops_its_whole_robot() -> None:
     rig = Rig(parse_config(TWO_DRIVES, "robot.yaml"))
     rig.timeline.add(TimelineHost(3, start=1.0, end=1.2))

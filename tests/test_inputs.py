@@ -165,6 +165,8 @@ def test_a_vel_through_a_plugins_feed_is_that_sources_motion_and_lapses_with_it(
         async with Runtime(cfg, plugins=host) as rt:
             sup, feed = rt.supervisor, source.feed
             assert feed is not None
+            for text in ("SERVO ON ON", "START ON ON"):  # a robot moves only switched on
+                assert await sup.command("right", text) == ""
             assert await asyncio.to_thread(feed.command("VEL 100 -50").result, 5) == ""
             assert sup.units["right"].setpoint.ay == 100.0  # held by the source now
             loop = asyncio.get_running_loop()

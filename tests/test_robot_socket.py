@@ -195,3 +195,28 @@ def test_a_velocity_in_torque_mode_or_to_a_robot_not_switched_on_is_refused_in_i
                 client.call("velocity", unit="l", ay=100.0, bx=0.0)
         finally:
             client.close()
+
+
+def test_enable_switches_the_robot_on_as_one_act_and_names_the_drive_that_did_not_follow(
+    tmp_path: Path,
+) -> None:
+    from abh3_supervisor.clients import control
+    from abh3_supervisor.protocol import flags
+
+    with Served(tmp_path, TWO_DRIVES) as served:
+        assert served.rt is not None
+        rt = served.rt
+        units = rt.supervisor.units
+        wait_for(lambda: all(u.online for u in units.values()), "both drives heard")
+        assert control.enable(served.path, ["rover"], on=True) == 0
+        for name, lay in (("l", flags.LAYOUT_2021), ("r", flags.LAYOUT_2023)):
+            word = served.on_loop(lambda n=name: units[n].inputs)
+            assert word & (lay.servo.ay | lay.start.ay) == lay.servo.ay | lay.start.ay
+            assert not word & (lay.servo.bx | lay.start.bx)  # B drives no wheel
+        assert control.enable(served.path, ["rover"], on=False) == 0
+        assert served.on_loop(lambda: rt.supervisor.robot_unready("l")) is not None
+        # a drive that does not follow (its servo held off by an error): named, exit 1
+        drive = rt.sims["b"].drives[3]
+        served.on_loop(lambda: setattr(drive, "errors", 1 << 2))  # driver overheat
+        with pytest.raises(RunError, match=r"not every drive followed: robot rover: r: "):
+            control.enable(served.path, ["rover"], on=True)

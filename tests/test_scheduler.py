@@ -375,3 +375,20 @@ def test_a_turns_replies_are_to_be_read_by_the_next_turn_on_the_grid() -> None:
     silent.poll(0.005)
     assert silent.poll(0.010) == []  # never heard: the command waits for its timeout
     assert silent.read_by(0.0101) == pytest.approx(0.105)  # not urgent: the next poll
+
+
+def test_a_robots_frames_sent_at_once_one_after_the_other_keep_one_turn() -> None:
+    """The robot's drives sent out of schedule a few microseconds apart (its readiness, an
+    e-stop): the later one joins the earlier one's next grid point, so the robot's frames
+    leave in one turn again rather than parted by those microseconds for good."""
+    cfg = parse_config(TWO_UNITS, "t.yaml")
+    units = list(cfg.units.values())
+    scheduler = BusScheduler(units, 0.0, together={"left": "r", "right": "r"})
+    scheduler.send_now("left", 1.000)
+    scheduler.send_now("right", 1.00004)
+    left, right = scheduler.slots["left"], scheduler.slots["right"]
+    assert right.next_command == left.next_command == pytest.approx(1.02)
+    alone = BusScheduler(units, 0.0)  # not one robot: each keeps its own
+    alone.send_now("left", 1.000)
+    alone.send_now("right", 1.00004)
+    assert alone.slots["right"].next_command == pytest.approx(1.02004)

@@ -50,6 +50,12 @@ def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None
         assert client.call("command", units=["left"], text="FOO")["responses"] == {
             "left": "Invalid Command."
         }
+        # a VEL to a robot not switched on is refused in its answer (the robot decision)
+        assert client.call("command", unit="right", text="VEL 10 0")["response"] == (
+            "Invalid Command."
+        )
+        for text in ("SERVO ON ON", "START ON ON"):
+            assert client.call("command", units=["left", "right"], text=text)["response"] == ""
         # motion is this client's, held while it is here; beyond the limit it says so
         held = client.call("command", units=["left", "right"], text="VEL 7000 -10")
         assert held["response"] == "" and held["held"] is True

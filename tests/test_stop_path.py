@@ -11,6 +11,8 @@ import can
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.protocol import frames, ids
+from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED, SENT
 from abh3_supervisor.simulator.drive import SimDrive
@@ -154,3 +156,46 @@ def test_a_late_reply_to_an_earlier_command_does_not_confirm_the_stop() -> None:
     assert rt.stop_report == {"left": SENT, "right": SENT}
     for drive in drives(rt):
         assert_drive_stopped(drive)  # though the drives did take the stop
+
+
+def test_the_normal_way_out_is_a_controlled_stop_judged_on_the_recorded_frames(
+    tmp_path: Path,
+) -> None:
+    """Stop category 1 (docs/safety.md): zero and START off in the first stop frame with
+    SERVO kept while the drive ramps down; SERVO and brake release off only after the drive
+    reported standing; the last frame the safe word."""
+    path = tmp_path / "way-out.log"
+    rt = Runtime(CONFIG, record=path)
+
+    async def scenario() -> None:
+        async with rt:
+            await moving(rt)
+            await asyncio.sleep(0.3)  # at speed
+
+    asyncio.run(scenario())
+    assert rt.stops_confirmed
+    cfg = CONFIG.units["left"]  # 2021, travel model
+    lay = rt.supervisor.units["left"].layout
+    command = ids.dp0_command_id(cfg.abh3_id, cfg.host_id) & ids.MATCH_MASK
+    reply = ids.dp0_reply_id(cfg.abh3_id, cfg.host_id) & ids.MATCH_MASK
+    commands: list[tuple[int, int, int, int]] = []  # (position, AY, BX, word)
+    replies: list[tuple[int, float]] = []  # (position, the faster axis's speed)
+    for i, msg in enumerate(can.LogReader(str(path))):
+        key = msg.arbitration_id & ids.MATCH_MASK
+        if key == command:
+            commands.append((i, *frames.unpack_dp0_command(bytes(msg.data))))
+        elif key == reply:
+            r = frames.decode_dp0_reply(bytes(msg.data), Generation.G2021)
+            assert isinstance(r, frames.Dp0Reply2021)
+            replies.append((i, max(abs(r.vel_a), abs(r.vel_b))))
+    last_moving = max(i for i, ay, bx, _ in commands if ay or bx)
+    stop = [c for c in commands if c[0] > last_moving]
+    first, ay, bx, word = stop[0]
+    assert (ay, bx) == (0, 0) and not word & lay.start.both
+    assert word & lay.servo.both == lay.servo.both  # SERVO kept: the drive ramps down
+    off = next(i for i, _, _, w in stop if not w & lay.servo.both)
+    between = [speed for i, speed in replies if first < i < off]
+    assert between and between[-1] < 2.0  # it reported standing before SERVO went off
+    assert between[0] > 2.0  # and was still moving when the stop began
+    last = stop[-1][3]
+    assert last == lay.safe(last) and not last & lay.brake_release

@@ -340,10 +340,12 @@ def test_commands_are_case_insensitive_from_the_command_line() -> None:
 def test_arrows_with_servo_or_start_off_say_why_nothing_moves() -> None:
     async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
         sup = rt.supervisor
-        said = {
-            "": "left: SERVO off, START off — nothing moves "
-            "(v to switch SERVO on, s to switch START on)",
-            "SERVO ON ON": "left: START off — nothing moves (s to switch START on)",
+        keys = "(v to switch SERVO on, s to switch START on)"
+        said = {  # the service's answer: the robot decision's refusal, with the keys
+            "": "refused: robot 'left' may not move: left: SERVO A, SERVO B, START A, "
+            f"START B not switched on {keys}",
+            "SERVO ON ON": f"refused: robot 'left' may not move: left: START A, START B not "
+            f"switched on {keys}",
             "START ON ON": "drive left: +0.20 m/s +0.00 rad/s (hold the key; release = stop)",
         }
         app.clock = lambda: now[0]
@@ -356,8 +358,7 @@ def test_arrows_with_servo_or_start_off_say_why_nothing_moves() -> None:
                 on = lambda p=pair: mirror.words["control"] & p.both == p.both  # noqa: E731
                 await until(pilot, on, f"{command} reported")
             app.say("")
-            await press_until(app, pilot, "up", lambda: bool(response(app)), command)
-            assert response(app) == text
+            await press_until(app, pilot, "up", lambda t=text: response(app) == t, command)
             now[0] += 1.0  # no repeat: the key is up
             app.drive_tick()
             assert app.hold.drive is None
@@ -369,13 +370,13 @@ def test_arrows_with_servo_or_start_off_say_why_nothing_moves() -> None:
 
 
 def test_why_nothing_moves_is_judged_from_what_the_drive_reports() -> None:
-    """left runs (SERVO, START on as reported); right is commanded SERVO on but held off
-    by an error, START off; a unit not heard from yet is judged by its command, and says so."""
+    """left runs (SERVO, START on as reported); right tripped (an error: its SERVO off,
+    forgotten by the supervisor), START off; a unit not heard from yet is judged by its
+    command, and says so."""
     mirror = mirror_of(snapshot_rig())
     assert operator.stillness(mirror, ("left",)) is None
     assert operator.stillness(mirror, ("left", "right")) == (
-        "right: SERVO off (commanded on), START off — nothing moves "
-        "(v to switch SERVO on, s to switch START on)"
+        "right: SERVO off, START off — nothing moves (v to switch SERVO on, s to switch START on)"
     )
     del mirror.units["left"].words["control"]
     mirror.units["left"].inputs &= ~mirror.units["left"].layout.start.both
@@ -524,6 +525,8 @@ def test_the_command_line_shows_the_services_clamp_note(monkeypatch: pytest.Monk
         await press_until(app, pilot, "enter", lambda: repr(text) in response(app), text)
 
     async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        for text in ("SERVO ON ON", "START ON ON"):  # a robot moves only while switched on
+            await command_line(app, pilot, text)
         await command_line(app, pilot, "VEL 5000 0")
         assert response(app) == f"left ← 'VEL 5000 0' → '' · {note}"
         await command_line(app, pilot, "VEL 500 0")

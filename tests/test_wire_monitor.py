@@ -43,6 +43,12 @@ class Bus:
         self.monitor.bus("b", "b", lambda: self.t)
         self.monitor.declare("b", DRIVE21, "2021")
         self.monitor.declare("b", DRIVE23, "2023")
+        self.monitor.buses["b"].drive_senders.add(DRIVE_SIDE)
+        for drive in (DRIVE21, DRIVE23):  # each has answered: its generation can be known
+            self.reply(drive, bytes(8), dt=0.0)
+
+    def reply(self, drive: int, data: bytes, dt: float = 0.02) -> None:
+        self.send((0xEF << 16 | HOST << 8 | drive, data), dt, sender=DRIVE_SIDE)
 
     def send(self, frame: tuple[int, bytes], dt: float = 0.02, sender: str = HOST_SIDE) -> None:
         self.t += dt
@@ -231,7 +237,8 @@ def test_the_tap_judges_a_virtual_bus_when_it_closes(wire: WireMonitor) -> None:
     host.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True))
     host.shutdown()
     found, wire.violations = wire.violations, []
-    assert [v.invariant for v in found] == ["safe_exit"]
+    # the drive never answered: SERVO and START before its generation could be known
+    assert [v.invariant for v in found] == ["identity", "safe_exit"]
 
 
 def test_a_resend_the_drive_asks_for_is_well_formed_and_still_a_write() -> None:
@@ -244,3 +251,74 @@ def test_a_resend_the_drive_asks_for_is_well_formed_and_still_a_write() -> None:
     for frame in frames[2:]:  # the CTS asked again from DT 2
         bus.send(frame)
     assert bus.invariants() == ["servo_write"]
+
+
+def test_energy_before_a_drive_ever_answered_is_caught_and_the_probe_is_not() -> None:
+    monitor = WireMonitor()
+    monitor.bus("b", "b", lambda: 0.0)
+    monitor.declare("b", DRIVE23, "2023")
+    monitor.frame("b", HOST_SIDE, *dp0(DRIVE23, 0, 0, 0x70), 0.01)  # the identity probe
+    assert not monitor.violations
+    monitor.frame("b", HOST_SIDE, *dp0(DRIVE23, 0, 0, SEL23), 0.02)  # 2021's B SERVO+START
+    assert [v.invariant for v in monitor.violations] == ["identity"]
+
+
+def test_a_drive_that_dropped_its_servo_and_comes_back_on_unasked_is_a_restart() -> None:
+    bus = Bus()
+    on = SEL23 | SERVO23 | START23
+    bus.send(dp0(DRIVE23, 0, 0, on))
+    bus.reply(DRIVE23, struct.pack("<hhI", 0, 0, on))  # it reports SERVO on
+    bus.reply(DRIVE23, struct.pack("<hhI", 0, 0, SEL23))  # rebooted: off, still commanded
+    bus.send(dp0(DRIVE23, 0, 0, on))
+    assert not bus.invariants()
+    bus.reply(DRIVE23, struct.pack("<hhI", 0, 0, on))  # on again: nobody switched it off
+    assert bus.invariants() == ["no_restart"]
+
+
+def test_servo_given_off_then_on_again_after_a_drop_is_the_operators_act() -> None:
+    bus = Bus()
+    on = SEL23 | SERVO23 | START23
+    bus.send(dp0(DRIVE23, 0, 0, on))
+    bus.reply(DRIVE23, struct.pack("<hhI", 0, 0, on))
+    bus.reply(DRIVE23, struct.pack("<hhI", 0, 0, SEL23))
+    bus.send(dp0(DRIVE23, 0, 0, SEL23))  # the host forgot it
+    bus.send(dp0(DRIVE23, 0, 0, on))  # the operator switched it on again
+    bus.reply(DRIVE23, struct.pack("<hhI", 0, 0, on))
+    bus.monitor.check()
+
+
+def test_motion_to_one_drive_while_its_robot_partner_is_silent_or_off_is_caught() -> None:
+    """The robot invariant on the rig: a two-drive robot whose wheels the simulator knows;
+    the host (here the test, writing frames itself) commands one drive while the other
+    has not answered for longer than its command-zero timeout."""
+    rig = Rig(parse_config(TWO_UNITS.replace("units:", ROBOT_UNITS), "two.yaml"))
+    monitor = WireMonitor()
+    watch = monitor.bus("b", "b", lambda: rig.timeline.now)
+    monitor.drives("b", rig.sim, DRIVE_SIDE)
+    watch.drive_senders.add(DRIVE_SIDE)
+    for drive in (DRIVE21, DRIVE23):
+        monitor.frame("b", DRIVE_SIDE, 0xEF << 16 | HOST << 8 | drive, bytes(8), 0.0)
+    monitor.frame("b", HOST_SIDE, *dp0(DRIVE21, 500, 0, SEL21 | SERVO21 | START21), 0.05)
+    assert not monitor.violations  # within the slack of its report
+    monitor.frame("b", HOST_SIDE, *dp0(DRIVE21, 500, 0, SEL21 | SERVO21 | START21), 0.2)
+    assert [v.invariant for v in monitor.violations] == ["robot"]  # 3 reported all SERVO off
+    assert "drive 3 of its robot has reported every SERVO off" in monitor.violations[0].why
+    monitor.violations.clear()
+    monitor.frame(
+        "b", DRIVE_SIDE, 0xEF << 16 | HOST << 8 | DRIVE23, struct.pack("<hhI", 0, 0, SERVO23), 0.02
+    )
+    monitor.frame("b", HOST_SIDE, *dp0(DRIVE21, 500, 0, SEL21 | SERVO21 | START21), 0.03)
+    assert not monitor.violations  # both answer, both on
+    monitor.frame("b", HOST_SIDE, *dp0(DRIVE21, 500, 0, SEL21 | SERVO21 | START21), 0.9)
+    assert [v.invariant for v in monitor.violations] == ["robot"]  # 3 silent past 0.5 s
+    assert "has not answered for" in monitor.violations[0].why
+
+
+ROBOT_UNITS = """robots:
+  - name: rover
+    track_m: 0.5
+    diameter_m: 0.2
+    wheels:
+      - {unit: left, axis: A, side: left}
+      - {unit: right, axis: A, side: right}
+units:"""

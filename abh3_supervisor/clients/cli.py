@@ -139,6 +139,24 @@ def _parser() -> argparse.ArgumentParser:
     )
     _connecting(estop)
 
+    for verb, what in (("enable", "on"), ("disable", "off")):
+        robot_switch = sub.add_parser(
+            verb,
+            help=f"switch a running supervisor's robot {what}: SERVO and START of every wheel "
+            "axis of its drives, as one act",
+            description="Switch SERVO and START of every wheel axis of every drive of each "
+            f"ROBOT (or of the robot of a unit named) {what}, as one act: refused whole, naming "
+            "the drive, when one cannot take it."
+            + (
+                " Exit 0 once every drive reports it on; 1 naming the drive that did not "
+                "follow within 0.5 s."
+                if verb == "enable"
+                else " Axes that drive no wheel are never switched on."
+            ),
+        )
+        robot_switch.add_argument("robots", nargs="+", metavar="ROBOT")
+        _connecting(robot_switch)
+
     send = sub.add_parser(
         "send",
         help="send a command to a running supervisor",
@@ -349,6 +367,11 @@ def _command(args: argparse.Namespace, release: Callable[[], None]) -> int:
         from abh3_supervisor.clients.drives import verify_running
 
         return verify_running(control.find_socket(args.connect), args.units, args.json)
+    if args.cmd in ("enable", "disable"):
+        from abh3_supervisor.clients import control
+
+        path = control.find_socket(args.connect)
+        return control.enable(path, args.robots, on=args.cmd == "enable")
     if args.cmd in ("status", "send", "estop"):
         from abh3_supervisor.clients import control as client
 

@@ -155,6 +155,30 @@ def estop(path: Endpoint, *, clear: bool) -> int:
     return 0
 
 
+def enable(path: Endpoint, robots: list[str], *, on: bool) -> int:
+    """``abh3 enable`` / ``abh3 disable``: SERVO and START of every wheel axis of each
+    robot's drives on (off) as one act; 0 once every drive reports it (on), 1 naming the
+    drive that did not follow, or why it was refused."""
+    client = ControlClient(path)
+    try:
+        result = client.call("enable" if on else "disable", robots=robots)
+    finally:
+        client.close()
+    if not isinstance(result, dict) or result.get("ok") is not True:
+        raise RunError(f"{path}: the supervisor did not confirm it: {result!r}")
+    names = ", ".join(result.get("robots", robots))
+    if not on:
+        print(f"{path}: {names}: SERVO and START off on every wheel axis")
+        return 0
+    if not_ready := result.get("not_ready"):
+        raise RunError(
+            f"{path}: switched on, but not every drive followed: "
+            + "; ".join(f"robot {r}: {why}" for r, why in not_ready.items())
+        )
+    print(f"{path}: {names}: every drive reports SERVO and START on (ready)")
+    return 0
+
+
 def _num(value: float, digits: int = 1) -> str:
     return f"{value + 0.0:.{digits}f}"  # + 0.0: never "-0.0"
 

@@ -88,6 +88,8 @@ AXIS_KINDS = frozenset(
     {FaultKind.REVERSED_AXIS, FaultKind.SCALE, FaultKind.NO_ENCODER, FaultKind.MIRRORED_WHEEL}
 )
 
+STOP_RAMP_S = 1.0  # s: the default of `stop_ramp_s`
+
 
 @dataclass(frozen=True)
 class Fault:
@@ -232,6 +234,9 @@ class Config:
     declared_robots: dict[str, RobotConfig] = field(default_factory=dict)
     # `foxglove: [HOST:]PORT`: the recording's topics served live (runtime/foxglove_live.py)
     foxglove: Endpoint | None = None
+    # `stop_ramp_s`: the normal way out waits at most this long for the drives to report
+    # standing before SERVO and brake release go off (stop category 1)
+    stop_ramp_s: float = STOP_RAMP_S
     # the declared robots whose units are all here, then the one-drive robots
     robots: dict[str, RobotConfig] = field(default_factory=dict, init=False, compare=False)
     _by_unit: dict[str, RobotConfig] = field(

@@ -12,6 +12,7 @@ from abh3_supervisor.config.faults import check_fault_units, check_fault_wheels,
 from abh3_supervisor.config.interfaces import SHARED_BY_PROCESSES, unknown_interface
 from abh3_supervisor.config.model import (
     MAX_UNITS_PER_TURN,
+    STOP_RAMP_S,
     UNITS_PER_TURN,
     BroadcastConfig,
     BusConfig,
@@ -45,7 +46,7 @@ from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 BITRATES = (250_000, 500_000, 1_000_000)  # what the ABH3 supports (§1)
 
-TOP_KEYS = {"buses", "units", "robots", "plugins", "foxglove"}
+TOP_KEYS = {"buses", "units", "robots", "plugins", "foxglove", "stop_ramp_s"}
 BUS_KEYS = {"interface", "channel", "bitrate", "simulate", "options", "units_per_turn"}
 BUS_ARGUMENTS = {"interface", "channel", "bitrate"}  # can.Bus(...) takes them from the bus
 SIM_KEYS = {
@@ -116,6 +117,9 @@ def parse_config(text: str, file: str = "<config>") -> Config:
     src.unit_names = tuple(units)
     plugins = top.sub("plugins", None)  # each plugin checks its own section's keys
     foxglove = _foxglove(top)
+    # the way out's controlled stop: SERVO and brake release kept at most this long while
+    # the drives ramp down (docs/safety.md, "Stop categories")
+    stop_ramp_s = top.number("stop_ramp_s", STOP_RAMP_S, 0, 10)
     src.raise_if_problems()
     config = Config(
         file=file,
@@ -127,6 +131,7 @@ def parse_config(text: str, file: str = "<config>") -> Config:
         text=text,
         declared_robots=robots,
         foxglove=foxglove,
+        stop_ramp_s=stop_ramp_s,
     )
     _dry_run_startup(src, config)
     src.raise_if_problems()

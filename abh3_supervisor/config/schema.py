@@ -434,6 +434,15 @@ def document(plugins: dict[str, Schema]) -> Schema:
                 "additionalProperties": False,
                 "description": "only the plugins named here run",
             },
+            "stop_ramp_s": {
+                "type": "number",
+                "minimum": 0,
+                "maximum": 10,
+                "default": 1.0,
+                "description": "the way out: START off and zero at once, SERVO and brake "
+                "release off once each drive reports standing, at the latest after this long "
+                "(0: at once; docs/safety.md)",
+            },
             "foxglove": {
                 "anyOf": [
                     {"type": "integer", "minimum": 0, "maximum": MAX_PORT},

@@ -92,6 +92,9 @@ class MotionGate:
     def __init__(self) -> None:
         self.estop: EStop | None = None
         self.stopping = False
+        # the way out's controlled stop (stop category 1): the units still ramping down,
+        # START off and zero with SERVO and brake release kept until each reports standing
+        self.ramping: set[str] = set()
         self._writes: dict[str, int] = {}  # unit → parameter writes in flight
         # unit → why another host stops it (core/foreign.py); cleared by the operator only
         self.foreign: dict[str, str] = {}
@@ -180,9 +183,11 @@ class MotionGate:
     def restricted(self, unit: UnitState) -> bool:
         """The unit sends the safe word whatever it was asked (stopping, another host, a
         write, held)."""
+        return self.stopping or self._held(unit)
+
+    def _held(self, unit: UnitState) -> bool:
         return (
-            self.stopping
-            or unit.name in self.foreign
+            unit.name in self.foreign
             or unit.name in self._writes
             or unit.verify.holds() is not None
             or (self.estop is not None and unit.name in self.estop.powered_off)
@@ -199,6 +204,8 @@ class MotionGate:
         layout, setpoint = unit.layout, unit.setpoint
         inputs = unit.inputs & ~idle_axes(unit)  # an axis that drives no wheel stays off
         if self.stopping:
+            if unit.name in self.ramping and not self._held(unit):  # category 1, first step
+                return Word(inputs & ~layout.start.both, 0.0, 0.0, setpoint.kind)
             return Word(layout.safe(inputs), 0.0, 0.0, ControlMode.VELOCITY)
         if self.restricted(unit):  # an error reset still goes: admitted, so it is sent
             kept = layout.safe(inputs) | inputs & layout.error_reset

@@ -114,6 +114,15 @@ class RobotConfig:
         return None if fastest is None else abs(wheel.motor_speed(fastest))
 
 
+def wheel_axes(robot: RobotConfig | None, unit: str, motor_model: bool) -> tuple[int, ...]:
+    """The axes of ``unit`` whose SERVO and START drive a wheel of ``robot``: in the motor
+    model, those its wheels name; in the travel model both (SERVO/START name Y and X, each
+    turning both motors); a unit of no robot, both."""
+    if robot is None or not motor_model:
+        return (0, 1)
+    return tuple(sorted({w.axis for w in robot.wheels if w.unit == unit}))
+
+
 def axis_limits(robot: RobotConfig, unit: str) -> tuple[float, float] | None:
     """``unit``'s motor A, B limits [min⁻¹] from the robot's limits (an axis that is no
     wheel of it: none, ∞); None when the robot sets no speed limit."""

@@ -44,7 +44,7 @@ from abh3_supervisor.core.readiness import (
     reply_generation,
     robot_unready,
 )
-from abh3_supervisor.core.robot import RobotConfig, axis_limits
+from abh3_supervisor.core.robot import RobotConfig, axis_limits, wheel_axes
 from abh3_supervisor.core.robot_motion import RobotMotion
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
 from abh3_supervisor.core.text import clean
@@ -188,12 +188,9 @@ class Supervisor:
         for robot in config.robots.values():
             for name in robot.units:
                 self.units[name].axis_limits = axis_limits(robot, name)
-                # SERVO/START name motors only in the motor model (in the travel model they
-                # are Y and X, each moving both motors); commissioning tries both axes
-                unit_cfg = config.units[name]
-                if whole_robots and unit_cfg.velocity_model is VelocityModel.MOTOR:
-                    axes = {w.axis for w in robot.wheels if w.unit == name}
-                    self.units[name].wheels = tuple(sorted(axes))
+                if whole_robots:  # commissioning tries both axes of each drive
+                    motor = config.units[name].velocity_model is VelocityModel.MOTOR
+                    self.units[name].wheels = wheel_axes(robot, name, motor)
         # a robot moves whole or not at all (core/readiness.py): each commanded unit's
         # robot (a unit of none is a robot of its own), and whether it is ready now
         self._group: dict[str, tuple[str, tuple[str, ...]]] = {}
@@ -221,6 +218,7 @@ class Supervisor:
         # deadline, kept whatever the buses do); a fake-clock rig sets its own
         self.call_at: Callable[[float, Callable[[], None]], object] | None = None
         self._throttle = Throttle(1.0)
+        self._stop_t = math.inf  # when the way out's controlled stop began
         for unit in self.units.values():
             self._push(unit)
 
@@ -284,6 +282,8 @@ class Supervisor:
             changed = commanded and self._identify(unit, event)
             if self.gate.estop is not None:
                 self._estop_progress(unit, event)
+            if self.gate.ramping:
+                self._stop_progress(unit, event)
             control = unit.feedback.control
             if control is not None:
                 self._word(unit, event.t, "control", control)
@@ -483,6 +483,32 @@ class Supervisor:
             unit.reported_error,
         )
 
+    def enable(self, name: str, on: bool = True, source: str = "api") -> tuple[str, ...]:
+        """SERVO and START on (``on``) or off every wheel axis of every drive of the robot
+        ``name`` (or of the unit ``name``'s robot) as one act: refused whole, naming the
+        drive and why, when one of them cannot take it now. The drives it switched; whether
+        they followed, the robot decision says (:meth:`robot_unready`)."""
+        robot = self.robot(name)
+        units = [self._commandable(u) for u in robot.units]
+        for unit in units:
+            need = self._need(unit)
+            self.gate.refuse_inputs(unit, unit.inputs | need if on else unit.inputs & ~need)
+        for unit in units:
+            need = self._need(unit)
+            self.set_inputs(unit.name, need if on else 0, need)
+        self.audit(source, None, f"{'enable' if on else 'disable'} robot {robot.name}")
+        return robot.units
+
+    def readiness(self) -> dict[str, str | None]:
+        """Each robot (a unit of none: its own) and why it may not move now (None: ready,
+        every drive of it reporting SERVO and START on; docs/safety.md)."""
+        out: dict[str, str | None] = {}
+        for name, (key, _) in self._group.items():
+            if key not in out:
+                why = self.robot_unready(name)
+                out[key] = None if why is None else why.why
+        return out
+
     def robot_unready(self, name: str) -> Unready | None:
         """Why the robot of the commanded unit ``name`` may not move now, or None."""
         _, members = self._group[name]
@@ -498,16 +524,19 @@ class Supervisor:
         if ready == self._ready[key]:
             return
         self._ready[key] = ready
-        if ready:
+        if ready:  # its setpoints go now, to every drive in the same instant
             for member in members:
                 self._push(self.units[member])
+                self._send_at_once(self.units[member])
             return
         assert why is not None
         moving = any(self.units[m].setpoint.ay or self.units[m].setpoint.bx for m in members)
         for member in members:
             self.arbiter.hold(member)
             self._zero(self.units[member])
-        if moving or not why.pending:
+        # said when it stopped motion or a drive let it down; not for a switch the operator
+        # gave off, nor on the way out (its own lines say so)
+        if not self.stopping and (moving or not (why.pending or "not switched on" in why.why)):
             self.notice(
                 name,
                 logging.WARNING,
@@ -555,8 +584,8 @@ class Supervisor:
         identified layout; True if what the robot decision reads of it changed. A switch
         this supervisor commands on that the drive reports off — after it had reported it
         on, or after :data:`SETTLE_S` — is forgotten: no automatic restart."""
-        if unit.identified is not unit.cfg.protocol or at < unit.changed_at:
-            return False
+        if self.gate.stopping or unit.identified is not unit.cfg.protocol or at < unit.changed_at:
+            return False  # on the way out the stop path reads the drives itself
         need = self._need(unit)
         wanted = unit.inputs & need
         had, had_error = unit.reported, unit.reported_error
@@ -1126,10 +1155,54 @@ class Supervisor:
             finally:
                 self._push(unit)
 
+    def begin_stop(self) -> None:
+        """The normal way out, stop category 1: every command refused from now on; zero
+        and START off on every commanded unit at once (its frame sent now), SERVO and
+        brake release kept while its drive ramps down — off (the safe word, sent at once)
+        as soon as the drive reports standing in an answer to a frame sent after this
+        (:meth:`_stop_progress`), or at :meth:`hurry` / :meth:`safe_state`."""
+        if self.gate.stopping:
+            return
+        self._stop_t = self.clock()
+        self.gate.stopping = True
+        self.arbiter.closed = True
+        for unit in self._commanded():
+            if unit.inputs & unit.layout.servo.both:
+                self.gate.ramping.add(unit.name)
+            self._switch(unit, unit.inputs & ~unit.layout.start.both)
+            self._store(unit, Setpoint(kind=unit.setpoint.kind))
+            self._send_at_once(unit)
+
+    def hurry(self) -> None:
+        """A second stop signal during the controlled stop: the safe word now, on every
+        unit still ramping."""
+        ramping, self.gate.ramping = self.gate.ramping, set()
+        for name in ramping:
+            unit = self.units[name]
+            self._switch(unit, unit.inputs & ~moving_switches(unit.layout))
+            self._push(unit)
+            self._send_at_once(unit)
+
+    def _stop_progress(self, unit: UnitState, event: FeedbackEvent) -> None:
+        """A drive's answer during the controlled stop: standing, it gets the safe word."""
+        feedback = unit.feedback
+        if (
+            unit.name in self.gate.ramping
+            and event.sent_at is not None
+            and event.sent_at >= self._stop_t
+            and feedback is not None
+            and max(abs(feedback.vel_a), abs(feedback.vel_b)) < STOPPED_BELOW
+        ):
+            self.gate.ramping.discard(unit.name)
+            self._switch(unit, unit.inputs & ~moving_switches(unit.layout))  # forgotten
+            self._push(unit)
+            self._send_at_once(unit)
+
     def safe_state(self) -> None:
         """The way-out state on every unit we drove, final: zero velocity in the safe word
         (SERVO, START, brake release, torque and every other switch off; data select kept).
         """
+        self.gate.ramping.clear()
         self.gate.stopping = True
         self.arbiter.closed = True  # nothing queued from a source may act any more
         for unit in self._commanded():

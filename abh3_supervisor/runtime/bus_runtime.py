@@ -323,7 +323,9 @@ class Runtime:
                     self.plugins.stop_inputs()
                 except Exception:  # never a reason not to stop the drives
                     log.exception("stopping the inputs failed; stopping the drives anyway")
-            await self.stop_drives()
+            # the normal way out is a controlled stop; an error ends with the safe word now
+            failed = et is not None or (self.fatal is not None and self.fatal.done())
+            await self.stop_drives(0.0 if failed else self.config.stop_ramp_s)
         finally:
             try:
                 if self.plugins is not None:
@@ -349,9 +351,9 @@ class Runtime:
     def stops_confirmed(self) -> bool:
         return all(outcome == CONFIRMED for outcome in self.stop_report.values())
 
-    async def stop_drives(self) -> None:
+    async def stop_drives(self, ramp_s: float = 0.0) -> None:
         """The stop path (:mod:`.stopping`); the outcome per unit in :attr:`stop_report`."""
-        self.stop_report = await stop_drives(self.supervisor, self.pumps)
+        self.stop_report = await stop_drives(self.supervisor, self.pumps, ramp_s)
 
     def _close(self) -> None:
         for pump in [*self.pumps.values(), *self._sim_pumps]:

@@ -82,6 +82,10 @@ async def run_headless(
             sup = rt.supervisor
 
             def on_signal(signum: int) -> None:
+                if stop.is_set():  # a second one: the safe word now, not the ramp down
+                    sup.audit("signal", None, f"{signals.name(signum)}: SERVO off now")
+                    sup.hurry()
+                    return
                 sup.audit("signal", None, f"{signals.name(signum)}: stop")
                 stop.set()
 
@@ -130,7 +134,11 @@ async def run_headless(
             else:
                 for line in status_lines(sup):
                     log.info("final %s", line)
-                log.info("stopping: zero, SERVO/START/brake and every switch off on every unit")
+                log.info(
+                    "stopping: zero and START off on every unit; SERVO and brake release off "
+                    "as each drive reports standing (at most stop_ramp_s %g s)",
+                    config.stop_ramp_s,
+                )
     except BaseException:
         handled.close()
         raise

@@ -39,11 +39,29 @@ def reported_control(event: SupervisorEvent) -> int | None:
     return None
 
 
-async def stop_drives(sup: Supervisor, pumps: dict[str, BusPump]) -> dict[str, str]:
+async def stop_drives(
+    sup: Supervisor, pumps: dict[str, BusPump], ramp_s: float = 0.0
+) -> dict[str, str]:
     """Zero in the safe word to every commanded unit, until confirmed or the deadline;
-    the outcome per unit (:data:`CONFIRMED`, :data:`SENT` or ``NOT sent: …``), logged."""
-    sup.safe_state()
+    the outcome per unit (:data:`CONFIRMED`, :data:`SENT` or ``NOT sent: …``), logged.
+
+    ``ramp_s`` > 0: first a controlled stop (stop category 1, ``Supervisor.begin_stop``):
+    zero and START off at once, SERVO and brake release off on each drive as soon as it
+    reports standing, at the latest after ``ramp_s`` (or at once on ``Supervisor.hurry``,
+    a second stop signal)."""
     loop = asyncio.get_running_loop()
+    if ramp_s > 0:
+        sup.begin_stop()
+        ramp_end = loop.time() + ramp_s
+        while sup.gate.ramping and loop.time() < ramp_end:
+            await asyncio.sleep(min(STOP_RETRY_S, ramp_end - loop.time()))
+        if sup.gate.ramping:
+            log.warning(
+                "not every drive reported standing within stop_ramp_s %g s (%s): SERVO off now",
+                ramp_s,
+                ", ".join(sorted(sup.gate.ramping)),
+            )
+    sup.safe_state()
     deadline = loop.time() + STOP_DEADLINE_S
     units = {
         name: bus

@@ -279,6 +279,11 @@ class BusScheduler:
             for ident in channel.ids:
                 self._tp_senders[ident] = channel
         self._slots = list(self.slots.values())  # in order: commands go in this order
+        # each unit's partners in its group (its robot's other units on this bus)
+        self._partners = {
+            name: [self.slots[o] for o, g in group_of.items() if g == group and o != name]
+            for name, group in group_of.items()
+        }
         self.events: list[Event] = []
 
     # ------------------------------------------------------------ inputs
@@ -451,6 +456,13 @@ class BusScheduler:
         slot.dp0_sent_at = slot.last_sent = now
         slot.stats.commands_sent += 1
         slot.next_command = now + slot.command_interval()
+        # the robot keeps one turn: a partner's next frame within this period is the grid
+        # point this one joins (a robot's frames sent at once, one after the other, would
+        # otherwise part its turn by the microseconds between them, for good)
+        for other in self._partners[unit]:
+            if other.period == slot.period and now < other.next_command < slot.next_command:
+                slot.next_command = other.next_command
+                break
         slot.refresh()
         return slot.command_id, slot.payload
 

@@ -52,6 +52,7 @@ from abh3_supervisor.core.inputs import (
     VelocityYX,
     execute,
 )
+from abh3_supervisor.core.readiness import SETTLE_S
 from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.core.text import clean
@@ -277,6 +278,8 @@ class ControlServer:
             "release": self._release,
             "estop": self._estop,
             "clear_estop": self._clear_estop,
+            "enable": functools.partial(self._enable, True),
+            "disable": functools.partial(self._enable, False),
             "audit": self._audit,
             "keys": self._keys,
             "key": self._key,
@@ -695,6 +698,30 @@ class ControlServer:
         standing = self.rt.supervisor.clear_emergency_stop(client.name)
         log.warning("control %s: emergency stop cleared", client.name)
         return {"ok": True, "standing": standing}
+
+    async def _enable(self, on: bool, client: _Client, params: dict[str, Any]) -> Any:
+        """SERVO and START of a robot's wheel axes on (or off) as one act; on: the answer
+        comes once every drive reports it, or says which did not follow within the
+        settle time (docs/safety.md, "The robot decision")."""
+        sup = self.rt.supervisor
+        robots = self._robots(params)
+        try:
+            for robot in robots:
+                sup.enable(robot.name, on, client.name)
+        except CommandError as exc:
+            raise rpc.RpcError(rpc.REFUSED, str(exc)) from None
+        reply: dict[str, Any] = {"ok": True, "robots": [r.name for r in robots]}
+        if not on:
+            return reply
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + SETTLE_S + 0.2
+        pending = list(robots)
+        while pending and loop.time() < deadline:
+            await asyncio.sleep(0.01)
+            pending = [r for r in robots if sup.robot_unready(r.units[0]) is not None]
+        unready = {r.name: sup.robot_unready(r.units[0]) for r in robots}
+        reply["not_ready"] = {name: why.why for name, why in unready.items() if why is not None}
+        return reply
 
     async def _audit(self, client: _Client, params: dict[str, Any]) -> Any:
         """An operator's action at the client, into the audit trail (and every event log)."""

@@ -204,7 +204,13 @@ def _health(sup: Supervisor, bus: str) -> dict[str, Any]:
 def head(sup: Supervisor, slowed: dict[str, Any] | None = None) -> dict[str, Any]:
     """What a state says before its units: when, the supervisor's own switches, and
     whether pushes give way to late buses (``slowed``: service/view_pace.py)."""
-    return {"t": sup.clock(), "estop": sup.estop, "stopping": sup.stopping, "slowed": slowed}
+    return {
+        "t": sup.clock(),
+        "estop": sup.estop,
+        "stopping": sup.stopping,
+        "slowed": slowed,
+        "robots": sup.readiness(),
+    }
 
 
 def supervisor_state(

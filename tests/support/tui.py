@@ -109,8 +109,9 @@ def mirror_of(rig: Rig) -> Mirror:
 
 
 def snapshot_rig() -> Rig:
-    """Two units after 30 s of fake time: left driven (forward, then back), right servo
-    on but held off by an error, with an alarm too; the plots have their whole window."""
+    """Two units after 30 s of fake time: left driven (forward, then back), right switched
+    on, then tripped by an error (its SERVO forgotten: no automatic restart), with an alarm
+    too; the plots have their whole window."""
     rig = Rig(parse_config(TWO_UNITS, "t.yaml"))
     for unit in ("left", "right"):
         rig.sup.apply_text(unit, "SERVO ON ON")

@@ -23,6 +23,16 @@ Invariants (names used by ``@pytest.mark.wire_allow(NAME, reason=…)`` opt-outs
   rises until the clear.
 * ``hold``: while a test declares a unit held (verification, a parameter write), each
   DP0 command to it is the safe word.
+* ``identity``: before a drive's first DP0 reply, the commands to it carry zero setpoints
+  and no bit beyond A/Y data select (bits 4-6: the only ones harmless in both
+  generations) — nothing is energised before the drive's generation can be known.
+* ``no_restart``: a drive that reported a SERVO on and then off while the host kept it
+  commanded on (it rebooted, lost power, tripped) never reports it on again until the
+  host has sent that SERVO bit off (the operator's new act) — read from the drive's own
+  reports: the 2023 DP0 reply's control word, the 2021 broadcast 1's control word.
+* ``robot``: no drive is commanded a non-zero setpoint while another drive of its robot
+  (the simulator's robots: the wheels' drives) has not answered within its command-zero
+  timeout, or has reported every SERVO off, for longer than :data:`ROBOT_SLACK_S`.
 """
 
 from __future__ import annotations
@@ -34,7 +44,21 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
-INVARIANTS = ("well_formed", "servo_write", "safe_exit", "estop", "hold")
+INVARIANTS = (
+    "well_formed",
+    "servo_write",
+    "safe_exit",
+    "estop",
+    "hold",
+    "identity",
+    "no_restart",
+    "robot",
+)
+# the bits that mean the same harmless thing in both generations: A/Y data select
+BOTH_SAFE = 0x70
+# a drive's report reaches the host after a frame to its robot partner may have been built:
+# one command period of the slowest configured rate (10 Hz)
+ROBOT_SLACK_S = 0.1
 # Stop category 1 (the lead's gate): zero and START off at once, SERVO and brake off once
 # the drive reports the stop, at the latest this long after the e-stop ...
 ESTOP_POWER_OFF_S = 1.0
@@ -162,6 +186,10 @@ class BusWatch:
         self.estop_from: float | None = None
         self.powered_late: set[int] = set()
         self.closed = False
+        self.replied: dict[int, float] = {}  # drive → when it last sent a DP0 reply
+        self.servo_reported: dict[int, tuple[int, float]] = {}  # drive → (SERVO bits, since)
+        self.dropped: dict[int, int] = {}  # drive → SERVO bits it dropped under the host
+        self.restarted: set[int] = set()  # said once per drive
 
     # ---------------------------------------------------------------- who is who
 
@@ -189,8 +217,11 @@ class BusWatch:
             self.learned.add(sa)
         elif pf == PF_REQUEST and not from_drive and ps != 0xFF:
             self.learned.add(ps)
-        if from_drive or not self.is_drive(ps):
-            return  # a drive's reply, or a frame to no drive: nothing the gate decides
+        if from_drive:
+            self._drive_frame(sa, pf, ps, data, t)
+            return
+        if not self.is_drive(ps):
+            return  # a frame to no drive: nothing the gate decides
         shown = f"{arbitration_id:08x} [{data.hex(' ')}]"
         if pf == PF_REQUEST and len(data) != 3:
             self._report("well_formed", t, ps, shown, f"request of {len(data)} bytes, not 3")
@@ -215,6 +246,12 @@ class BusWatch:
             self._report("well_formed", t, unit, shown, why)
         shown = f"{shown} = {cmd.describe(bits)}"
         before = self.last.get(unit)
+        if unit not in self.replied and (cmd.ay or cmd.bx or cmd.inputs & ~BOTH_SAFE):
+            self._report("identity", t, unit, shown, "energy before the drive ever answered")
+        if unit in self.dropped:  # SERVO sent off: switching it on again is a new act
+            self.dropped[unit] &= cmd.inputs
+        if cmd.ay or cmd.bx:
+            self._judge_robot(unit, t, shown)
         if self.estop_from is not None:
             self._judge_estop(unit, cmd, before, bits, t, shown)
         held = self.monitor.holds.get(unit)
@@ -224,6 +261,66 @@ class BusWatch:
         self.last[unit] = _Last(cmd, t)
         self.by_sender.setdefault(sender, {})[unit] = _Last(cmd, t)
         self.monitor.counted("dp0")
+
+    def _partners(self, unit: int) -> set[int]:
+        """The other drives of ``unit``'s robots, as the simulator built them."""
+        found: set[int] = set()
+        for sim in self.sims:
+            for robot in getattr(sim, "_robots_of", {}).get(unit, ()):
+                found.update(wheel.address for wheel in robot.wheels)
+        found.discard(unit)
+        return found
+
+    def _command_zero_s(self, address: int) -> float:
+        for sim in self.sims:
+            drive = getattr(sim, "drives", {}).get(address)
+            if drive is not None:
+                return float(getattr(drive, "command_zero_ms", 500)) / 1000
+        return 0.5
+
+    def _judge_robot(self, unit: int, t: float, shown: str) -> None:
+        for other in self._partners(unit):
+            heard = self.replied.get(other)
+            if heard is None or t - heard > self._command_zero_s(other) + ROBOT_SLACK_S:
+                why = f"drive {other} of its robot has not answered" + (
+                    f" for {t - heard:.3f} s" if heard is not None else ""
+                )
+                self._report("robot", t, unit, shown, f"motion while {why}")
+                continue
+            servo, since = self.servo_reported.get(other, (-1, 0.0))
+            if servo == 0 and t - since > ROBOT_SLACK_S:
+                why = f"drive {other} of its robot has reported every SERVO off since t={since:.4f}"
+                self._report("robot", t, unit, shown, f"motion while {why}")
+
+    def _drive_frame(self, drive: int, pf: int, ps: int, data: bytes, t: float) -> None:
+        """A drive's own frame: its replies and its report of its switches."""
+        if len(data) != 8:
+            return
+        generation = self.generation(drive)
+        if pf == PF_DP0:
+            self.replied[drive] = t
+            if generation == "2023":  # the control word: the same SERVO bits as the input
+                self._servo_report(drive, struct.unpack_from("<I", data, 4)[0], t)
+        elif pf == PF_BROADCAST and ps & 7 == 1 and generation == "2021":
+            self._servo_report(drive, struct.unpack_from("<I", data, 0)[0], t)
+
+    def _servo_report(self, drive: int, control: int, t: float) -> None:
+        bits = self.bits(drive)
+        on = control & bits.servo
+        before, since = self.servo_reported.get(drive, (0, t))
+        self.servo_reported[drive] = (on, since if on == before else t)
+        last = self.last.get(drive)
+        commanded = last.cmd.inputs & bits.servo if last is not None else 0
+        self.dropped[drive] = self.dropped.get(drive, 0) | before & ~on & commanded
+        back = on & ~before & self.dropped.get(drive, 0)
+        if back and drive not in self.restarted:
+            self.restarted.add(drive)
+            frame = f"last DP0 {last.cmd.describe(bits)}" if last is not None else "-"
+            why = (
+                f"the drive reports SERVO 0x{back:08x} on again after dropping it, and the "
+                "host never sent it off meanwhile: an automatic restart"
+            )
+            self._report("no_restart", t, drive, frame, why)
 
     def _judge_estop(
         self, unit: int, cmd: Dp0, before: _Last | None, bits: Bits, t: float, shown: str

@@ -104,6 +104,8 @@ def failed(exc: BaseException) -> str:
         return f"NOT SENT — {exc}"
     if isinstance(exc, LinkLost):
         return f"NOT CONFIRMED — {exc}"
+    if "not switched on" in str(exc):  # the robot decision's refusal: the keys that help
+        return f"refused: {exc} (v to switch SERVO on, s to switch START on)"
     return f"refused: {exc}"
 
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 from abh3_supervisor.clients.mirror import Mirror, UnitView
 from abh3_supervisor.clients.tui.model import axes, reported, spoken, unit_of
-from abh3_supervisor.config.model import Role
-from abh3_supervisor.core.robot import RobotConfig
+from abh3_supervisor.config.model import Role, VelocityModel
+from abh3_supervisor.core.robot import RobotConfig, wheel_axes
 from abh3_supervisor.core.twist_limits import fastest_twist
 from abh3_supervisor.protocol import flags
 
@@ -159,12 +159,22 @@ def stillness(sup: Mirror, names: tuple[str, ...]) -> str | None:
         unit = sup.units[name]
         control = reported(unit)
         word = unit.inputs if control is None else control
-        off = [w for w in SWITCH_KEYS if word & mask(unit, w) != mask(unit, w)]
+        # the axes that drive a wheel: one that drives none is never switched on
+        cfg = sup.config.units[name]
+        used = wheel_axes(
+            sup.config.robot_of(name), name, cfg.velocity_model is VelocityModel.MOTOR
+        )
+        lay = unit.layout
+        need = {
+            "SERVO": sum(lay.servo.of(a) for a in used),
+            "START": sum(lay.start.of(a) for a in used),
+        }
+        off = [w for w in SWITCH_KEYS if word & need[w] != need[w]]
         if not off:
             continue
         off_anywhere.update(off)
         held = 0 if control is None else unit.inputs & ~control  # commanded, reported off
-        said = [f"{w} off" + (" (commanded on)" if held & mask(unit, w) else "") for w in off]
+        said = [f"{w} off" + (" (commanded on)" if held & need[w] else "") for w in off]
         unheard = " (as commanded: the drive has not reported yet)" if control is None else ""
         parts.append(f"{name}: {', '.join(said)}{unheard}")
     if not parts:
