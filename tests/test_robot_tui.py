@@ -10,6 +10,7 @@ import pytest
 
 from abh3_supervisor.clients.tui import operator
 from abh3_supervisor.clients.tui.app import SupervisorApp
+from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from tests.support.rig import Rig, present
@@ -111,3 +112,39 @@ def test_the_estop_stops_every_drive_of_the_robot_the_arrows_drive(wire: WireMon
         assert all(sup.units[u].setpoint.ay == 0 for u in ("front", "rear"))
 
     run_app(check, SKID)
+
+
+def test_o_switches_the_robot_on_as_one_act_and_the_overview_says_whether_it_is_ready() -> None:
+    """`o` asks, then enables the selected unit's robot (SERVO and START on every wheel axis
+    of its drives, never on an axis that drives no wheel); the overview names the robot
+    READY once the service says every drive reports it, and says why not, by drive, when a
+    drive falls silent; `o` again switches it off at once."""
+    robot = next(iter(parse_config(TWO_DRIVES, "t.yaml").robots.values()))
+
+    async def check(app: SupervisorApp, pilot: Any, rt: Runtime) -> None:
+        sup = rt.supervisor
+
+        def overview() -> str:
+            return str(app.query_one("#table").render())
+
+        await until(pilot, lambda: f"robot {robot.name} not ready" in overview(), "not ready")
+        await pilot.press("o")
+        await pilot.pause()
+        assert isinstance(app.screen, ConfirmScreen)
+        assert f"Switch robot {robot.name} on?" in app.screen.question
+        await press_until(app, pilot, "y", lambda: "READY" in response(app), "enabled")
+        for name in robot.units:
+            lay = sup.units[name].layout
+            assert sup.units[name].inputs & (lay.servo.ay | lay.start.ay)
+            assert not sup.units[name].inputs & (lay.servo.bx | lay.start.bx)  # B: no wheel
+        await until(pilot, lambda: f"robot {robot.name} READY" in overview(), "READY shown")
+        await pilot.press("n", "f")  # the right drive falls silent
+        await until(
+            pilot,
+            lambda: f"robot {robot.name} not ready: r: " in overview().replace("\n", " "),
+            "why not, by drive",
+        )
+        await pilot.press("f")  # it answers again: still off until switched on
+        await press_until(app, pilot, "o", lambda: "SERVO and START off" in response(app), "off")
+
+    run_app(check, TWO_DRIVES)

@@ -93,6 +93,9 @@ class Mirror:
     stopping: bool = False
     # the pushes give way to late buses: {"by": n, "late_ms": …}, none at the rate asked
     slowed: dict[str, Any] | None = None
+    # each robot and why it may not move (None: every drive of it reports ready); the
+    # service's robot decision, as pushed (docs/safety.md); empty before the first state
+    robots: dict[str, str | None] = field(default_factory=dict)
 
     @classmethod
     def of(cls, config: Config, simulated: list[str] | tuple[str, ...] = ()) -> Mirror:
@@ -117,6 +120,7 @@ class Mirror:
         self.t, self.estop = state["t"], state["estop"]
         self.stopping = state.get("stopping", False)
         self.slowed = state.get("slowed")
+        self.robots = dict(state.get("robots") or {})
         for name, data in state["units"].items():
             if name in self.units:
                 _apply_unit(self.units[name], data)

@@ -154,6 +154,7 @@ class SupervisorApp(App[None]):
         _b("p", "select(-1)", "prev unit", "select the previous unit"),
         _b("v", "flip('SERVO')", "servo", "servo as the drive reports it, flipped (on asks)", True),
         _b("s", "flip('START')", "start", "start as the drive reports it, flipped (on asks)", True),
+        _b("o", "robot_switch", "robot on/off", "the selected unit's robot: on (asks) / off", True),
         _b("b", "flip('BRAKE')", "brake", "brake release, flipped (release asks)"),
         _b("T", "flip('TORQUE')", "torque", "torque (current) mode, flipped (on asks)"),
         _b("r", "reset", "error reset", "error reset, servo off after it (asks)"),
@@ -689,6 +690,53 @@ class SupervisorApp(App[None]):
 
     def action_reset(self) -> None:
         self.act("r", operator.reset(self.sup, self.unit))
+
+    def action_robot_switch(self) -> None:
+        """The selected unit's robot as one act (the service's enable/disable): off at once
+        while it is ready or any of its drives is commanded on; otherwise on, asked first.
+        The answer names the drive that did not follow (docs/safety.md)."""
+        if not self.connected():
+            return
+        robot = self.sup.config.robot_of(self.unit)
+        if robot is None:
+            self.say(f"unit {self.unit} drives no robot")
+            return
+        servo = any(
+            self.sup.units[u].inputs & (self.sup.units[u].layout.servo.both) for u in robot.units
+        )
+        ready = robot.name in self.sup.robots and self.sup.robots[robot.name] is None
+        if ready or servo:
+            self.audit(f"key o: disable robot {robot.name}", self.unit)
+            self.run_worker(self._robot_switch(robot.name, on=False))
+            return
+        drives = ", ".join(robot.units)
+        question = (
+            f"Switch robot {robot.name} on? SERVO and START on every wheel axis of {drives}; "
+            "it moves only when driven."
+        )
+
+        def answer(yes: bool | None) -> None:
+            self.audit(f"key o: {question} → {'yes' if yes else 'no'}", self.unit)
+            if yes:
+                self.run_worker(self._robot_switch(robot.name, on=True))
+            elif yes is False:
+                self.say("nothing sent")
+
+        self.push_screen(ConfirmScreen(question), answer)
+
+    async def _robot_switch(self, robot: str, *, on: bool) -> None:
+        try:
+            reply = await self.request("enable" if on else "disable", robot=robot)
+        except LinkError as exc:
+            self.say(failed(exc))
+            return
+        not_ready = reply.get("not_ready") or {}
+        if not on:
+            self.say(f"robot {robot}: SERVO and START off")
+        elif robot in not_ready:
+            self.say(f"robot {robot} switched on, but not ready: {not_ready[robot]}")
+        else:
+            self.say(f"robot {robot} READY: every drive reports SERVO and START on")
 
     def action_data_select(self) -> None:
         """Step both axes to the next preset table (written 7 = set #0 … 0 = #7 & STOP)."""

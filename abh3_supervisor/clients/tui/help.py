@@ -34,8 +34,10 @@ def help_lines(
         "input line, where every printable key is text (commands are",
         "case-insensitive: vel 50 0). The e-stop closes every question",
         "and page, so its outcome is in sight. A held arrow drives while",
-        f"the terminal repeats it (a tap: {TAP_S:.2g} s); with SERVO or START",
-        "off it says why nothing moves. ctrl+c stops the arrows' drive and",
+        f"the terminal repeats it (a tap: {TAP_S:.2g} s); a robot moves only",
+        "while every drive of it reports SERVO and START on (o switches the",
+        "selected unit's robot on, asked; the overview says why it is not",
+        "ready, naming the drive). ctrl+c stops the arrows' drive and",
         "asks to quit, from every question, page and input line too.",
         "",
     ]

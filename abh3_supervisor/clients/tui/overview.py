@@ -174,6 +174,18 @@ LEGEND = (
 LINE_STYLE = {"error": "bold red", "alarm": "yellow"}
 
 
+def robot_lines(sup: Mirror, names: list[str]) -> list[tuple[str, str | None]]:
+    """Each robot of these units with whether it may move: ``robot agv READY`` or ``robot
+    agv not ready`` and why, naming the drive (o switches the selected unit's robot)."""
+    lines = []
+    for robot, why in sup.robots.items():
+        config = sup.config.robots.get(robot)
+        if config is not None and not any(u in names for u in config.units):
+            continue
+        lines.append((f"robot {robot} READY" if why is None else f"robot {robot} not ready", why))
+    return lines
+
+
 def render(
     sup: Mirror,
     names: list[str],
@@ -228,6 +240,9 @@ def render(
                 text.append(f"{mark}{bit}", style)
                 text.append(" ")
             text.append("\n")
+    for robot, why in robot_lines(sup, names):  # the robot decision, as the service said it
+        text.append(robot, "bold green" if why is None else "bold yellow")
+        text.append("\n" if why is None else f": {why}\n", "dim" if why is None else "yellow")
     chosen = names[selected] if 0 <= selected < len(names) else None
     if chosen is not None and short[chosen] != chosen:  # the selected unit's whole name
         text.append(f"▶ {chosen} (selected; n/p select, 2 its details)\n", "bold")
