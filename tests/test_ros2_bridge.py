@@ -90,6 +90,10 @@ def test_commands_service_and_staleness_across_processes(supervisor: Any) -> Non
     assert peer.call("SERVO ON ON") == ""
     assert peer.call("FOO") == "Invalid Command."
     assert peer.call("START ON ON") == ""
+    # the robot's enable service: off, on (answered once every drive reports it), junk
+    assert peer.call("OFF", service="enable") == ""
+    assert peer.call("ON", service="enable") == ""
+    assert peer.call("maybe", service="enable") == "Invalid Command."
 
     def drive(write: Any, sample: Any, reader: DataReader[Any], want: Any) -> bool:
         """Publish at 20 Hz, as a teleop node does, until the feedback shows ``want``."""

@@ -35,6 +35,7 @@ from abh3_supervisor.core.commands import (
     parse_command,
 )
 from abh3_supervisor.core.kinematics import ab_to_yx
+from abh3_supervisor.core.readiness import SETTLE_S
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import CommandError
 
@@ -219,6 +220,38 @@ class InputFeed:
             if self._arbiter.closed:
                 return RESPONSE_INVALID
             return (await self.execute(text, standing=False)).response
+
+        return asyncio.run_coroutine_threadsafe(run(), self._loop)
+
+    def enable(self, on: bool) -> concurrent.futures.Future[str]:
+        """Switch the robot(s) of the source's units on (``on``) or off as one act
+        (``Supervisor.enable``); the future holds ``''`` once every drive reports it (or
+        off), else why not, naming the drive: ``refused: …`` or ``not ready: …``."""
+        future: concurrent.futures.Future[str] = concurrent.futures.Future()
+        if self._loop.is_closed():
+            future.set_result(RESPONSE_INVALID)
+            return future
+
+        async def run() -> str:
+            if self._arbiter.closed:
+                return "refused: the supervisor is stopping: commands are refused"
+            sup = self._sup
+            units = self._units()
+            try:
+                robots = {sup.robot(u).name: sup.robot(u).units[0] for u in units}
+                for robot in robots:
+                    sup.enable(robot, on, self._name)
+            except CommandError as exc:
+                return f"refused: {exc}"
+            if not on:
+                return ""
+            deadline = self._loop.time() + SETTLE_S + 0.2
+            while self._loop.time() < deadline:
+                if all(sup.robot_unready(first) is None for first in robots.values()):
+                    return ""
+                await asyncio.sleep(0.01)
+            whys = [w.why for first in robots.values() if (w := sup.robot_unready(first))]
+            return "not ready: " + "; ".join(whys) if whys else ""
 
         return asyncio.run_coroutine_threadsafe(run(), self._loop)
 

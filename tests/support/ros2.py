@@ -52,16 +52,23 @@ class Peer:
         self.dp = DomainParticipant(domain)
         self.topics: dict[str, Topic[Any]] = {}
         self.guid, self.sequence = next(_client) << 32, 0
-        self.request = DataWriter(
-            self.dp,
-            Topic(self.dp, "rq/left/inp_serviceRequest", types.Abh3InputRequest),
-            qos=SERVICE_QOS,
-        )
-        self.reply = DataReader(
-            self.dp,
-            Topic(self.dp, "rr/left/inp_serviceReply", types.Abh3InputResponse),
-            qos=SERVICE_QOS,
-        )
+        # service name → its request writer and reply reader (inp_service, enable)
+        self.services: dict[str, tuple[DataWriter[Any], DataReader[Any]]] = {}
+
+    def _service(self, name: str) -> tuple[DataWriter[Any], DataReader[Any]]:
+        if name not in self.services:
+            request = DataWriter(
+                self.dp,
+                Topic(self.dp, f"rq/left/{name}Request", types.Abh3InputRequest),
+                qos=SERVICE_QOS,
+            )
+            reply = DataReader(
+                self.dp,
+                Topic(self.dp, f"rr/left/{name}Reply", types.Abh3InputResponse),
+                qos=SERVICE_QOS,
+            )
+            self.services[name] = (request, reply)
+        return self.services[name]
 
     def _topic(self, name: str, typ: type) -> Topic[Any]:
         if name not in self.topics:
@@ -74,12 +81,14 @@ class Peer:
     def writer(self, name: str, typ: type) -> DataWriter[Any]:
         return DataWriter(self.dp, self._topic(name, typ), qos=ROS_DEFAULT)
 
-    def call(self, command: str, seconds: float = 20) -> str | None:
-        """inp_service as a ROS client does: resend until the service is matched."""
+    def call(self, command: str, seconds: float = 20, service: str = "inp_service") -> str | None:
+        """A service (inp_service, or the robot's enable) as a ROS client calls it: resend
+        until the service is matched."""
+        request, replies = self._service(service)
         self.sequence += 1
         for _ in range(int(seconds / 0.5)):
-            self.request.write(types.Abh3InputRequest(self.guid, self.sequence, command))
-            for reply in self.reply.take_iter(timeout=duration(milliseconds=500)):
+            request.write(types.Abh3InputRequest(self.guid, self.sequence, command))
+            for reply in replies.take_iter(timeout=duration(milliseconds=500)):
                 if (reply.client_guid, reply.sequence) == (self.guid, self.sequence):
                     return str(reply.responce)
         return None

@@ -16,6 +16,7 @@ source (shared with its ``vel_cmd``), the seed's conversion and ``odom_frame`` /
 
 from __future__ import annotations
 
+import concurrent.futures
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -24,6 +25,7 @@ from abh3_plugins.ros2.settings import Settings
 from abh3_plugins.ros2.transport import Transport
 from abh3_plugins.ros2.values import Guard, twist, twist_values, within
 from abh3_supervisor.plugin_api import (
+    RESPONSE_INVALID,
     VELOCITY,
     InputFeed,
     InputSource,
@@ -68,6 +70,7 @@ class RobotTopics:
             self.odom = t.publisher(self.name_of("odom"), t.msg.Odometry)
         if commands:
             t.subscribe(self.name_of("cmd_vel"), t.msg.Twist, self.guard("cmd_vel", self.cmd_vel))
+            t.serve(self.name_of("enable"), self.enable)
 
     def name_of(self, name: str) -> str:
         return self.settings.name(self.robot.name, name)
@@ -86,6 +89,18 @@ class RobotTopics:
         feed = self.feed()  # None once the inputs stopped
         if feed is not None:
             feed.twist(linear_x, angular_z)
+
+    def enable(self, command: str) -> concurrent.futures.Future[str]:
+        """The robot's ``enable`` service: ``ON`` switches SERVO and START of every wheel axis
+        of its drives on as one act, ``OFF`` off; answers ``''`` once every drive reports it
+        (on), else why not, naming the drive (docs/safety.md, "The robot decision")."""
+        feed = self.feed()
+        on = {"ON": True, "1": True, "OFF": False, "0": False}.get(command.strip().upper())
+        if feed is None or on is None:
+            done: concurrent.futures.Future[str] = concurrent.futures.Future()
+            done.set_result(RESPONSE_INVALID)
+            return done
+        return feed.enable(on)
 
     # ------------------------------------------------------------ outgoing
 

@@ -10,9 +10,9 @@ from typing import Any
 from abh3_supervisor.plugin_api import Config, RobotConfig, Role, Section, UnitConfig
 from abh3_supervisor.plugin_api import schema as js
 
-# every name the bridge uses, per unit: the seed's names; plus per robot cmd_vel and odom
-# (a one-drive robot from a unit's geometry is named after its unit)
-COMMANDS = ("vel_cmd", "cur_cmd", "cmd_vel", "inp_data", "inp_service")
+# every name the bridge uses, per unit: the seed's names; plus per robot cmd_vel, odom and
+# the enable service (a one-drive robot from a unit's geometry is named after its unit)
+COMMANDS = ("vel_cmd", "cur_cmd", "cmd_vel", "inp_data", "inp_service", "enable")
 NAMES = (
     *COMMANDS,
     "vel_fbk_ab",
@@ -182,13 +182,13 @@ def outputs(settings: Settings, unit: UnitConfig) -> list[str]:
     if settings.conversion:
         names += CONVERSION_OUT
     if settings.allow_commands and unit.role is Role.COMMAND:
-        names.append("inp_service")
+        names += ["inp_service", "enable"]
     return names
 
 
-def robot_outputs(robot: RobotConfig) -> list[str]:
-    """The names a declared robot publishes (its ``cmd_vel`` is an input)."""
-    return ["odom"] if robot.odometry_ready else []
+def robot_outputs(robot: RobotConfig, settings: Settings) -> list[str]:
+    """The names a declared robot publishes or serves (its ``cmd_vel`` is an input)."""
+    return ["odom"] * robot.odometry_ready + ["enable"] * settings.allow_commands
 
 
 def _check_names(section: Section, settings: Settings, config: Config) -> None:
@@ -213,7 +213,7 @@ def _check_names(section: Section, settings: Settings, config: Config) -> None:
             return
     publishes = [
         *((f"unit {u}", u, outputs(settings, cfg)) for u, cfg in config.units.items()),
-        *((f"robot {r}", r, robot_outputs(robot)) for r, robot in declared.items()),
+        *((f"robot {r}", r, robot_outputs(robot, settings)) for r, robot in declared.items()),
     ]
     owner: dict[str, str] = {}
     for who, space_of, names in publishes:
