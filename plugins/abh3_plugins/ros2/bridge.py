@@ -37,9 +37,7 @@ from abh3_plugins.ros2.values import Guard, twist_values, within
 from abh3_plugins.ros2.values import Refused as Refused  # the bridge's names, as before
 from abh3_plugins.ros2.values import twist as twist
 from abh3_supervisor.plugin_api import (
-    CURRENT,
     RESPONSE_INVALID,
-    VELOCITY,
     Config,
     Feedback,
     FlagChange,
@@ -162,14 +160,17 @@ class UnitBridge(InputSource):
     def _commands(self) -> None:
         t, msg = self.t, self.t.msg
 
+        # one rule at every entry: a number that is not finite is refused; a finite one
+        # beyond the unit's limits or the wire's range is clamped by the supervisor, both
+        # axes alike, and said (docs/safety.md, "The robot decision")
         def vel_cmd(m: Any) -> None:
-            within(VELOCITY, m.vel_ay, m.vel_bx)
+            within(None, m.vel_ay, m.vel_bx)
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.velocity(m.vel_ay, m.vel_bx)
 
         def cur_cmd(m: Any) -> None:
-            within(CURRENT, m.cur_ay, m.cur_bx)
+            within(None, m.cur_ay, m.cur_bx)
             feed = self.feed  # None once the inputs stopped
             if feed is not None:
                 feed.current(m.cur_ay, m.cur_bx)

@@ -23,10 +23,9 @@ from typing import Any
 
 from abh3_plugins.ros2.settings import Settings
 from abh3_plugins.ros2.transport import Transport
-from abh3_plugins.ros2.values import Guard, twist, twist_values, within
+from abh3_plugins.ros2.values import Guard, twist, twist_values
 from abh3_supervisor.plugin_api import (
     RESPONSE_INVALID,
-    VELOCITY,
     InputFeed,
     InputSource,
     Odometer,
@@ -84,8 +83,7 @@ class RobotTopics:
         return [v for ab in motor_speeds(self.robot, linear_x, angular_z).values() for v in ab]
 
     def cmd_vel(self, m: Any) -> None:
-        linear_x, angular_z = twist_values(m)
-        within(VELOCITY, *self.motor_speeds(linear_x, angular_z))
+        linear_x, angular_z = twist_values(m)  # finite, or refused; beyond limits: clamped
         feed = self.feed()  # None once the inputs stopped
         if feed is not None:
             feed.twist(linear_x, angular_z)
