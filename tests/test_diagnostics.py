@@ -83,7 +83,11 @@ def test_all_ok_at_one_hertz_with_every_unit_and_bus() -> None:
         "abh3_supervisor: bus b",
         "abh3_supervisor: unit left",
         "abh3_supervisor: unit right",
+        "abh3_supervisor: robot left",  # the robot decision: one status per robot
+        "abh3_supervisor: robot right",
     ]
+    robot = w.latest("robot left")  # nobody switched it on
+    assert robot.level == Level.WARN and robot.message.startswith("not ready: left: SERVO A")
     assert [w.latest(n).level for n in ("bus b", "unit left", "unit right")] == [Level.OK] * 3
     periodic = [t for t, _ in w.sent if t >= 2.0]  # after the units came online
     assert all(0.99 <= b - a <= 1.01 for a, b in itertools.pairwise(periodic))

@@ -285,3 +285,13 @@ def test_the_event_log_notes_a_monitors_comm_error_at_info() -> None:
         logging.ERROR,
         "unit left: error +CAN_COMM_ERROR (CAN communication error)",
     )
+
+
+def test_status_says_whether_each_robot_may_move_naming_the_drive() -> None:
+    rig = driven()
+    got = lines(rig)
+    assert got["robot left"] == "robot left: READY"
+    rig.drive("right").silent = True
+    rig.run(1.5)
+    got = lines(rig)
+    assert got["robot right"].startswith("robot right: not ready: right: offline")

@@ -244,6 +244,8 @@ def status_lines(snapshot: dict[str, Any]) -> list[str]:
             _foreign(u.get("foreign")),
         ]
         lines.append(" · ".join(p for p in parts if p is not None))
+    for robot, why in (snapshot.get("robots") or {}).items():  # the robot decision's word
+        lines.append(f"robot {robot}: READY" if why is None else f"robot {robot}: not ready: {why}")
     return lines
 
 

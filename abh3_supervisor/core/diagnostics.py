@@ -93,6 +93,12 @@ def unit_status(
         level, message = Level.STALE, "no answer yet"
     elif unit.online is False:
         level, message = Level.STALE, f"offline: silent for {cfg.timeout_ms} ms or more"
+    elif unit.identified not in (None, cfg.protocol):  # identity before energy: held
+        level, message = (
+            Level.ERROR,
+            f"answers as a {unit.identified} drive, the file says protocol: {cfg.protocol}: "
+            "held at a word safe in both generations",
+        )
     elif errors:  # every set bit has a name (``bitN`` where the manual gives none)
         level, message = Level.ERROR, "error: " + ", ".join(errors)
     elif alarms:
@@ -116,6 +122,7 @@ def unit_status(
         ("bus", cfg.bus),
         ("abh3_id", str(cfg.abh3_id)),
         ("protocol", cfg.protocol.value),
+        ("generation its replies show", "" if unit.identified is None else unit.identified),
         ("role", cfg.role.value),
         ("error", _hex(error)),
         ("error bits", ", ".join(error_bits.labelled())),
@@ -145,6 +152,21 @@ def unit_status(
         message,
         f"abh3 {cfg.bus}/{cfg.abh3_id}",
         tuple(values),
+    )
+
+
+def robot_status(sup: Supervisor, name: str, why: str | None) -> Status:
+    """A robot as the robot decision sees it (docs/safety.md): OK while every drive of it
+    reports SERVO and START on; WARN naming the drive and why it may not move."""
+    robot = sup.config.robot(name)
+    units = robot.units if robot is not None else (name,)
+    level, message = (Level.OK, "ready") if why is None else (Level.WARN, f"not ready: {why}")
+    return Status(
+        level,
+        f"{PREFIX}: robot {name}",
+        message,
+        f"abh3 robot {name}",
+        (("drives", ", ".join(units)), ("ready", "yes" if why is None else "no")),
     )
 
 
@@ -228,6 +250,7 @@ class Health:
             out.append(bus_status(bus, units, scheduler, p.load_percent, load, health))
             stops = self.sup.gate.foreign
             out += [unit_status(u, scheduler, now, stops.get(u.name)) for u in units]
+        out += [robot_status(self.sup, name, why) for name, why in self.sup.readiness().items()]
         return out
 
     def _measure(self, bus: str, frames: int, now: float) -> None:
