@@ -46,7 +46,9 @@ def test_a_send_outage_longer_than_the_drive_timeout_never_restarts_the_drives(r
     assert max(speeds(rig)) < 1.0
     gaps = [e for e in rig.events if isinstance(e, GapEvent)]
     assert [(e.unit, e.started) for e in gaps if e.started] == [("left", True), ("right", True)]
-    assert all(outage + 0.45 <= e.t <= outage + 0.55 for e in gaps if e.started)
+    # declared at the outage bound (OUTAGE_S, below the drives' 500 ms): a drive that lost
+    # its power and booted within its own timeout would otherwise take our SERVO again
+    assert all(outage + 0.25 <= e.t <= outage + 0.35 for e in gaps if e.started)
     assert any(
         isinstance(e, Notice) and "SERVO, START and brake release off" in e.message
         for e in rig.events
@@ -282,7 +284,7 @@ def test_headless_shows_each_fault_and_recovers_with_exit_0(
     assert code == 0
     text = caplog.text
     assert "send failed (simulated fault" in text
-    assert "unit left: no exchange completed for 500 ms" in text
+    assert "unit left: no exchange completed for 300 ms" in text
     assert "SERVO, START and brake release off: switch them on again" in text
     assert "unit left: exchanges again after the gap" in text
     assert "unit right: malformed dp0 reply ignored" in text
@@ -358,13 +360,13 @@ units:
         rig.sup.apply_text("u", text)
     rig.run(1.0)
     start = rig.timeline.now
-    rig.timeline.refuse_sends(SCHEDULER, start, start + 0.6)  # within 750 ms: no gap
+    rig.timeline.refuse_sends(SCHEDULER, start, start + 0.6)  # within 750 ms, past 500
+    rig.run(0.59)
+    assert rig.drive("v").command_zero_fired()  # 500 ms: v's drive stopped itself …
+    assert not rig.drive("u").command_zero_fired()  # … u's (750 ms) did not
+    assert rig.drive("u").vel[0] > 250
     rig.run(1.0)
+    # the supervisor took both silences as outages (OUTAGE_S): no automatic restart
     gaps = [e.unit for e in rig.events if isinstance(e, GapEvent) and e.started]
-    assert gaps == ["v"]  # 500 ms: v's drive stopped itself; u's (750 ms) did not
-    assert rig.drive("u").vel[0] > 250  # so u runs on
-    rig.timeline.refuse_sends(SCHEDULER, rig.timeline.now, rig.timeline.now + 0.9)
-    rig.run(2.0)
-    gaps = [e.unit for e in rig.events if isinstance(e, GapEvent) and e.started]
-    assert sorted(gaps) == ["u", "v", "v"]
-    assert max(map(abs, rig.drive("u").vel)) < 1.0  # and after a longer one it stays put
+    assert sorted(gaps) == ["u", "v"]
+    assert max(map(abs, rig.drive("u").vel)) < 1.0  # so u stands too, until switched on

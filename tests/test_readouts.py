@@ -295,3 +295,21 @@ def test_status_says_whether_each_robot_may_move_naming_the_drive() -> None:
     rig.run(1.5)
     got = lines(rig)
     assert got["robot right"].startswith("robot right: not ready: right: offline")
+
+
+def test_a_drive_of_the_other_generation_is_said_held_in_status_and_the_tui() -> None:
+    from abh3_supervisor.clients.mirror import Mirror
+    from abh3_supervisor.clients.tui.model import hold_lines, holds
+
+    faulty = TWO_UNITS.replace(
+        "simulate: true}", "simulate: {faults: [{kind: wrong_protocol, unit: right}]}}"
+    )
+    rig = Rig(parse_config(faulty, "two.yaml"))
+    rig.run(0.5)
+    got = lines(rig)
+    assert "HELD: answers as a 2021 drive, the file says 2023" in got["right"]
+    assert "HELD" not in got["left"]
+    mirror = Mirror.of(rig.config)
+    mirror.apply(supervisor_state(rig.sup, {}))
+    assert "HELD" in " ".join(holds(mirror.units["right"]))
+    assert any("answers as a 2021 drive" in line for _, line in hold_lines(mirror.units["right"]))

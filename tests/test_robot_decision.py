@@ -261,3 +261,21 @@ def test_the_replies_show_the_generation_or_say_they_cannot() -> None:
     idle = bytes(8)  # reads alike in both …
     assert reply_generation(idle, probed=False) is None
     assert reply_generation(idle, probed=True) is Generation.G2021  # … but not to the probe
+
+
+def test_enable_is_refused_whole_while_a_drive_of_the_robot_cannot_follow() -> None:
+    rig = agv()
+    rig.run(0.2)
+    rig.drive("right_drive").silent = True
+    rig.run(1.5)  # offline
+    with pytest.raises(CommandError, match=r"not switched on: right_drive: offline"):
+        rig.sup.enable("agv")
+    start = rig.timeline.now
+    rig.run(0.2)
+    lay = flags.LAYOUT_2021
+    assert not any(word & lay.servo.both for *_, word in sent(rig, "left_drive", start))
+    rig.drive("right_drive").silent = False
+    rig.run(0.5)
+    assert rig.sup.enable("agv") == UNITS  # back: one act switches both on
+    rig.run(0.2)
+    assert rig.sup.robot_unready("agv") is None

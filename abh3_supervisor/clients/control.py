@@ -127,7 +127,9 @@ def status(path: Endpoint, as_json: bool) -> int:
             print(line)
     units = snapshot["units"].values()
     stopped = any((u.get("foreign") or {}).get("stopped") for u in units)
-    return 0 if all(u["online"] for u in units) and not snapshot["estop"] and not stopped else 1
+    held = any(_identity(u) for u in units)
+    ok = all(u["online"] for u in units) and not snapshot["estop"] and not stopped and not held
+    return 0 if ok else 1
 
 
 def estop(path: Endpoint, *, clear: bool) -> int:
@@ -242,11 +244,21 @@ def status_lines(snapshot: dict[str, Any]) -> list[str]:
             _faults(u),
             _verify(u.get("verify")),
             _foreign(u.get("foreign")),
+            _identity(u),
         ]
         lines.append(" · ".join(p for p in parts if p is not None))
     for robot, why in (snapshot.get("robots") or {}).items():  # the robot decision's word
         lines.append(f"robot {robot}: READY" if why is None else f"robot {robot}: not ready: {why}")
     return lines
+
+
+def _identity(u: dict[str, Any]) -> str | None:
+    """A drive that answers in the other layout than the file says: held (docs/safety.md,
+    "Identity before energy")."""
+    seen, filed = u.get("identified"), u.get("protocol")
+    if seen is None or seen == filed:
+        return None
+    return f"HELD: answers as a {seen} drive, the file says {filed} (only the probe 0x70 is sent)"
 
 
 def _foreign(f: dict[str, Any] | None) -> str | None:

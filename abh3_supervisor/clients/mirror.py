@@ -58,6 +58,17 @@ class UnitView:
     stats: Stats = field(default_factory=Stats)
     verify: dict[str, Any] | None = None  # the drive's settings against the YAML, as sent
     foreign: dict[str, Any] | None = None  # other hosts on its drive (core/foreign.py)
+    identified: str | None = None  # the generation its replies show; None: not yet
+
+    @property
+    def other_generation(self) -> str | None:
+        """Why it is held for answering in the other layout than the file's, or None."""
+        if self.identified in (None, str(self.cfg.protocol)):
+            return None
+        return (
+            f"it answers as a {self.identified} drive, the file says protocol: "
+            f'"{self.cfg.protocol}": held at a word safe in both generations'
+        )
 
     @property
     def name(self) -> str:
@@ -147,6 +158,7 @@ def _apply_unit(unit: UnitView, data: dict[str, Any]) -> None:
     _take(unit.stats, data["stats"])
     unit.verify = data.get("verify")  # absent from an older service
     unit.foreign = data.get("foreign")
+    unit.identified = data.get("identified")
 
 
 def _take(record: Stats | BusView, data: dict[str, Any]) -> None:

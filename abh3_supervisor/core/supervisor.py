@@ -12,7 +12,7 @@ import logging
 import math
 from collections.abc import Callable, Hashable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from abh3_supervisor.config.model import Config, ControlMode, Role, VelocityModel
 from abh3_supervisor.core import commands
@@ -25,7 +25,13 @@ from abh3_supervisor.core.commands import (
     VelocityCommand,
 )
 from abh3_supervisor.core.foreign import QUIET_S, Foreign
-from abh3_supervisor.core.gate import ESTOP_POWER_OFF_S, STOPPED_BELOW, MotionGate, moving_switches
+from abh3_supervisor.core.gate import (
+    ESTOP_POWER_OFF_S,
+    STOPPED_BELOW,
+    MotionGate,
+    idle_axes,
+    moving_switches,
+)
 from abh3_supervisor.core.inputs import (
     DEFAULT_TIMEOUT,
     InputArbiter,
@@ -41,6 +47,7 @@ from abh3_supervisor.core.readiness import (
     SETTLE_S,
     DriveView,
     Unready,
+    drive_unready,
     reply_generation,
     robot_unready,
 )
@@ -416,9 +423,10 @@ class Supervisor:
         return standing
 
     def _gap(self, unit: UnitState, event: GapEvent) -> None:
-        """The drive stopped itself for want of commands: it must not restart on its own —
-        it may have lost its power meanwhile, so its switches are forgotten too."""
-        ms = unit.cfg.drive_timeout_ms
+        """No exchange for the outage bound (at most the drive's own timeout): it may have
+        stopped itself, or lost its power and booted again; it must not restart on its
+        own, so its switches are forgotten too."""
+        bound = self.schedulers[unit.cfg.bus].slots[unit.name].outage
         if unit.cfg.role is Role.COMMAND:
             unit.gap = event.started
         if event.started:
@@ -428,8 +436,9 @@ class Supervisor:
             self.notice(
                 unit.name,
                 logging.WARNING,
-                f"no exchange completed for {ms} ms (drive_timeout_ms): the drive has stopped "
-                f"on its command-zero timeout; command zero{forgot if switched else ''}",
+                f"no exchange completed for {bound * 1000:.0f} ms: the drive may have stopped on "
+                f"its command-zero timeout (drive_timeout_ms {unit.cfg.drive_timeout_ms}) or "
+                f"lost its power; command zero{forgot if switched else ''}",
             )
         else:
             self.notice(unit.name, logging.INFO, "exchanges again after the gap; command zero")
@@ -493,6 +502,14 @@ class Supervisor:
         for unit in units:
             need = self._need(unit)
             self.gate.refuse_inputs(unit, unit.inputs | need if on else unit.inputs & ~need)
+            if not on:
+                continue
+            # a drive that could not follow now (offline, in a gap, of the other generation)
+            # refuses the whole robot: none of it is left switched on alone
+            view = replace(self._view(unit), commanded=unit.inputs | need, reported=need)
+            why = drive_unready(replace(view, error=False))
+            if why is not None and not why.pending:
+                raise CommandError(f"robot '{robot.name}' not switched on: {unit.name}: {why.why}")
         for unit in units:
             need = self._need(unit)
             self.set_inputs(unit.name, need if on else 0, need)
@@ -510,7 +527,10 @@ class Supervisor:
         return out
 
     def robot_unready(self, name: str) -> Unready | None:
-        """Why the robot of the commanded unit ``name`` may not move now, or None."""
+        """Why the robot ``name`` (or the robot of the commanded unit ``name``) may not move
+        now, or None."""
+        if name not in self._group:
+            name = self.robot(name).units[0]
         _, members = self._group[name]
         return robot_unready(self._view(self.units[u]) for u in members)
 
@@ -833,7 +853,8 @@ class Supervisor:
                 f"bits 0x{undefined:08X} are not defined in the {layout.generation} input "
                 f"word of unit '{name}': refused, nothing sent"
             )
-        new = (unit.inputs & ~mask | data & mask) & 0xFFFFFFFF
+        # an axis that drives no wheel is never switched on: SERVO ON ON takes the wheel's
+        new = (unit.inputs & ~mask | data & mask) & 0xFFFFFFFF & ~idle_axes(unit)
         self.gate.refuse_inputs(unit, new)
         torque = new & layout.torque.both
         if torque != unit.inputs & layout.torque.both:
@@ -885,7 +906,10 @@ class Supervisor:
     def _set(
         self, unit: UnitState, ay: float, bx: float, kind: ControlMode, owner: str | None
     ) -> None:
-        """Store a setpoint the caller checked (:meth:`_check`), within the limits."""
+        """Store a setpoint the caller checked (:meth:`_check`), within the limits; an axis
+        that drives no wheel (the motor model's, :attr:`UnitState.wheels`) keeps zero."""
+        if len(unit.wheels) < 2:
+            ay, bx = (ay if 0 in unit.wheels else 0.0), (bx if 1 in unit.wheels else 0.0)
         ay, bx, note = _limited(unit, ay, bx, kind)
         if note is not None:  # a stream beyond the limit (a joystick) says it once a second
             held = self._throttle.allow((unit.name, "clamped"), self.clock())

@@ -97,6 +97,16 @@ async def stop_drives(
             await asyncio.wait(waiting, timeout=min(STOP_RETRY_S, deadline - loop.time()))
     finally:
         sup.unsubscribe(watch)
+    for name in units:  # a drive held for its generation: its stop cannot be read
+        state = sup.units[name]
+        if not confirmed[name].done() and state.identified not in (None, state.cfg.protocol):
+            log.error(
+                "unit %s: its replies are of a %s drive, the file says %s: its stop (the probe "
+                "0x70, safe in both) cannot be confirmed from them",
+                name,
+                state.identified,
+                state.cfg.protocol,
+            )
     return _report(confirmed, sent, refused)
 
 

@@ -96,6 +96,12 @@ VALID_LENGTH = 8  # every DP0 reply and broadcast 0-6 carries 8 bytes (doc §3)
 # a gap is declared this much before the drive's own timeout would fire, so a frame on its
 # way when the timeout passes cannot reach a drive that has already stopped itself
 GAP_MARGIN = 0.005
+# no automatic restart, whatever the outage: a drive that lost its power and booted again
+# within its own command-zero timeout would take our SERVO and START as if nothing had
+# happened, so a silence this long (or two exchanges and a reply timeout, at a slow rate)
+# is a gap too, at most the drive's timeout. A drive cannot lose power and boot in less (a
+# real one takes about a second): docs/safety.md, "The robot decision"
+OUTAGE_S = 0.3
 
 
 class UnitSlot:
@@ -136,6 +142,9 @@ class UnitSlot:
         # the drive's command-zero timeout, counted from the send time of the last answered
         # command (the latest instant the drive surely had it): never later than the drive's
         self.drive_timeout = cfg.drive_timeout_ms / 1000 if cfg.drive_timeout_ms else math.inf
+        self.outage = min(
+            self.drive_timeout, max(OUTAGE_S, 2 * self.period + self.exchange_timeout)
+        )
         self.heard_at: float | None = None
         self.gap = False
         self.since = start
@@ -182,7 +191,7 @@ class UnitSlot:
     def gap_due(self) -> float:
         if not self.commanding or self.gap or self.heard_at is None:
             return math.inf
-        return self.heard_at + self.drive_timeout - GAP_MARGIN
+        return self.heard_at + self.outage - GAP_MARGIN
 
     def offline_due(self) -> float:
         """When the unit is declared offline if nothing is heard from it by then."""

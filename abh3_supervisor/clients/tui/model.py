@@ -134,7 +134,7 @@ def holds(unit: UnitView) -> list[str]:
     differ from the file."""
     shown = [HOST_STOP] if (unit.foreign or {}).get("stopped") else []
     verify = unit.verify or {}
-    if verify.get("held"):
+    if verify.get("held") or unit.other_generation:
         shown.append(HELD)
     elif verify.get("state") == "mismatch":
         shown.append(DIFFERS)
@@ -147,6 +147,8 @@ def hold_lines(unit: UnitView) -> list[tuple[str, str]]:
     stopped = (unit.foreign or {}).get("stopped")
     if stopped:  # E clears it, and the service does so only once that host is quiet
         lines.append(("error", f"STOPPED: {stopped} (E clears it once that host is quiet)"))
+    if unit.other_generation:  # identity before energy: only the probe goes to it
+        lines.append(("error", f"HELD: {unit.other_generation}"))
     verify = unit.verify or {}
     if verify.get("held"):
         lines.append(("error", f"HELD: {verify['held']}"))

@@ -38,6 +38,8 @@ def refusal(sup: Mirror, name: str) -> str | None:
         return "the supervisor is stopping: commands are refused"
     if unit.online is False:
         return f"{name} is OFFLINE: no command can reach it (f answers again if simulated)"
+    if unit.other_generation:
+        return f"{name} is HELD: {unit.other_generation}"
     return None
 
 
