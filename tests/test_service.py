@@ -46,6 +46,7 @@ def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None
             "responses": {"left": ""},
             "clamped": {},
             "held": False,
+            "why": {},
         }
         assert client.call("command", units=["left"], text="FOO")["responses"] == {
             "left": "Invalid Command."
@@ -68,7 +69,7 @@ def test_hello_state_and_commands_with_the_seeds_answers(served: Served) -> None
         left = state["units"]["left"]
         assert "AY_SERVO_ON" in left["inputs"]["names"] and left["protocol"] == "2021"
         assert state["units"]["right"]["protocol"] == "2023"
-        assert all(line.startswith(("left:", "right:")) for line in status_lines(state))
+        assert all(line.startswith(("left:", "right:", "robot ")) for line in status_lines(state))
         with pytest.raises(RunError, match="no unit named 'middle'"):
             client.call("command", unit="middle", text="SERVO ON ON")
     finally:
@@ -427,4 +428,17 @@ def test_pushes_give_way_while_the_buses_run_late(served: Served) -> None:
     for path in (served.path, served.ro_path):
         client = ControlClient(path)
         assert client.call("state")["slowed"] == slowed
+        client.close()
+
+
+def test_a_refused_command_says_why_beside_the_seeds_answer(served: Served) -> None:
+    client = ControlClient(served.path)
+    try:
+        result = client.call("command", unit="left", text="VEL 10 0")
+        assert result["response"] == "Invalid Command."
+        assert result["why"]["left"].startswith("robot 'left' may not move: left: SERVO A")
+        result = client.call("command", unit="left", text="RESET ON")  # RESET takes two
+        assert result["response"] == "Invalid Command."
+        assert result["why"]["left"].startswith("not understood: ")
+    finally:
         client.close()

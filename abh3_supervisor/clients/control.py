@@ -312,6 +312,8 @@ def send(path: Endpoint, text: str, units: list[str], *, every: bool, hold: bool
         answers = result.get("responses") or dict.fromkeys(names, result["response"])
         for unit, note in result.get("clamped", {}).items():
             print(f"{unit}: {note}", file=sys.stderr)
+        for unit, why in (result.get("why") or {}).items():  # why it was refused
+            print(f"{unit}: refused: {why}", file=sys.stderr)
         # the seed's exact answer: '' , 'Invalid Command.', 'Packet Error: N' — per unit
         for unit in names:
             print(repr(answers[unit]) if len(names) == 1 else f"{unit}: {answers[unit]!r}")

@@ -323,6 +323,7 @@ class CommandOutcome:
     responses: dict[str, str]
     clamped: dict[str, str] = field(default_factory=dict)
     motion: bool = False  # a VEL/CUR: owned by its source, not a static setpoint
+    why: dict[str, str] = field(default_factory=dict)  # per unit refused: the reason
 
     @property
     def response(self) -> str:
@@ -342,17 +343,27 @@ async def execute(
     """
     try:
         command = parse_command(text)
-    except CommandError:
-        return CommandOutcome({unit: RESPONSE_INVALID for unit in units})
-    if not isinstance(command, VelocityCommand | CurrentCommand):
-        return CommandOutcome({unit: await sup.command(unit, text) for unit in units})
+    except CommandError as exc:
+        why = f"not understood: {exc}"
+        return CommandOutcome({u: RESPONSE_INVALID for u in units}, why=dict.fromkeys(units, why))
     responses: dict[str, str] = {}
+    reasons: dict[str, str] = {}  # the refusal said in the answer, not only in a notice
+    if not isinstance(command, VelocityCommand | CurrentCommand):
+        for unit in units:
+            since = sup.clock()
+            try:
+                sup.apply(unit, command)
+            except CommandError as exc:
+                responses[unit], reasons[unit] = sup.refusal(unit, text, exc), str(exc)
+                continue
+            responses[unit] = await sup.confirm(unit, since)
+        return CommandOutcome(responses, why=reasons)
     clamped: dict[str, str] = {}
     for unit in units:
         try:
             note = sup.admit(unit, command)
         except CommandError as exc:
-            responses[unit] = sup.refusal(unit, text, exc)
+            responses[unit], reasons[unit] = sup.refusal(unit, text, exc), str(exc)
             continue
         if note is not None:
             clamped[unit] = note
@@ -362,7 +373,8 @@ async def execute(
             if unit not in responses:
                 sup.notice(unit, logging.WARNING, f"{clean(text)!r} not applied: {refused} refused")
                 responses[unit] = RESPONSE_INVALID
-        return CommandOutcome({unit: responses[unit] for unit in units}, clamped, True)
+                reasons[unit] = f"not applied: {refused} refused (all or none moves)"
+        return CommandOutcome({u: responses[u] for u in units}, clamped, True, reasons)
     since = sup.clock()
     try:
         submit(command)

@@ -576,6 +576,7 @@ class ControlServer:
             outcome = CommandOutcome(
                 {u: r for part in parts for u, r in part.responses.items()},
                 {u: n for part in parts for u, n in part.clamped.items()},
+                why={u: w for part in parts for u, w in part.why.items()},
             )
         response = outcome.response
         log.info(
@@ -591,6 +592,7 @@ class ControlServer:
             "responses": outcome.responses,
             "clamped": outcome.clamped,
             "held": outcome.motion and response == RESPONSE_OK,
+            "why": outcome.why,  # each refused unit's reason, where the seed's answer has none
         }
 
     def _source(self, client: _Client, robot: RobotConfig) -> ClientSource:
