@@ -19,6 +19,7 @@ from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
 from tests.support.headless import headless_demo
 from tests.support.rig import Deaf, Rig, present
+from tests.support.wire_monitor import WireMonitor
 
 PERIOD = 0.02  # 50 Hz: TWO_UNITS' command rate
 
@@ -80,7 +81,7 @@ def zero_on_the_wire_at(rig: Rig, start: float, limit: float) -> float:
 
 
 def test_a_standing_vel_holds_while_its_owner_is_alive_and_stops_within_a_period_when_it_leaves(
-    rig: Rig,
+    rig: Rig, wire: WireMonitor
 ) -> None:
     arb, node = owned_rig(rig)
     rig.run(0.2)
@@ -90,10 +91,14 @@ def test_a_standing_vel_holds_while_its_owner_is_alive_and_stops_within_a_period
     assert commanded(rig) == 777.0
     left = rig.timeline.now
     arb.remove("tui1", left)  # the client disconnects
-    assert zero_on_the_wire_at(rig, left, 1.0) - left <= PERIOD + 0.002
+    with wire.unowned(1, left):  # judged on the wire too: no setpoint a period after
+        assert zero_on_the_wire_at(rig, left, 1.0) - left <= PERIOD + 0.002
+        rig.run(1.0)
 
 
-def test_an_owner_that_stops_proving_it_is_alive_loses_its_motion_within_0_6_s(rig: Rig) -> None:
+def test_an_owner_that_stops_proving_it_is_alive_loses_its_motion_within_0_6_s(
+    rig: Rig, wire: WireMonitor
+) -> None:
     arb, node = owned_rig(rig)
     lapsed: list[str] = []
     arb.on_lapse = lapsed.append
@@ -101,7 +106,9 @@ def test_an_owner_that_stops_proving_it_is_alive_loses_its_motion_within_0_6_s(r
     arb.submit("tui1", VelocityCommand(300, 0), 0.1, standing=True)
     rig.run(2.0)
     assert commanded(rig) == 300.0
-    stopped = zero_on_the_wire_at(rig, 2.0, 1.0)
+    with wire.unowned(1, 2.0 + 0.5):  # quiet for its 0.5 s timeout: gone from then
+        stopped = zero_on_the_wire_at(rig, 2.0, 1.0)
+        rig.run(1.0)
     assert stopped - 2.0 <= 0.6
     assert lapsed == ["tui1"]
 

@@ -322,3 +322,17 @@ ROBOT_UNITS = """robots:
       - {unit: left, axis: A, side: left}
       - {unit: right, axis: A, side: right}
 units:"""
+
+
+def test_a_setpoint_after_its_owner_left_is_caught_after_one_period() -> None:
+    bus = Bus()
+    moving = dp0(DRIVE23, 300, 0, SEL23 | SERVO23 | START23)
+    bus.send(moving)
+    with bus.monitor.unowned(DRIVE23, bus.t):
+        bus.send(moving, dt=0.05)  # the frame already on its way: within the slack
+        assert not bus.invariants()
+        bus.send(moving, dt=0.1)
+        assert bus.invariants() == ["ownership"]
+        bus.monitor.violations.clear()
+        bus.send(dp0(DRIVE23, 0, 0, SEL23 | SERVO23 | START23))  # zero: as it must be
+    bus.monitor.check()

@@ -30,6 +30,9 @@ Invariants (names used by ``@pytest.mark.wire_allow(NAME, reason=…)`` opt-outs
   commanded on (it rebooted, lost power, tripped) never reports it on again until the
   host has sent that SERVO bit off (the operator's new act) — read from the drive's own
   reports: the 2023 DP0 reply's control word, the 2021 broadcast 1's control word.
+* ``ownership``: while a test declares a drive's owner gone (:meth:`WireMonitor.unowned`:
+  the source that drove it left or went quiet), no command to it carries a non-zero
+  setpoint later than :data:`OWNER_SLACK_S` after that.
 * ``robot``: no drive is commanded a non-zero setpoint while another drive of its robot
   (the simulator's robots: the wheels' drives) has not answered within its command-zero
   timeout, or has reported every SERVO off, for longer than :data:`ROBOT_SLACK_S`.
@@ -53,7 +56,10 @@ INVARIANTS = (
     "identity",
     "no_restart",
     "robot",
+    "ownership",
 )
+# an owner gone: its setpoint is zero from the next frame, one period of the slowest rate
+OWNER_SLACK_S = 0.1
 # the bits that mean the same harmless thing in both generations: A/Y data select
 BOTH_SAFE = 0x70
 # a drive's report reaches the host after a frame to its robot partner may have been built:
@@ -252,6 +258,10 @@ class BusWatch:
             self.dropped[unit] &= cmd.inputs
         if cmd.ay or cmd.bx:
             self._judge_robot(unit, t, shown)
+            gone = self.monitor.unowned_since.get(unit)
+            if gone is not None and t - gone > OWNER_SLACK_S:
+                why = f"a setpoint {t - gone:.3f} s after its owner left"
+                self._report("ownership", t, unit, shown, why)
         if self.estop_from is not None:
             self._judge_estop(unit, cmd, before, bits, t, shown)
         held = self.monitor.holds.get(unit)
@@ -403,6 +413,7 @@ class WireMonitor:
         self.allowed: set[str] = set()
         self.holds: dict[int, str] = {}
         self.held_moving: set[int] = set()
+        self.unowned_since: dict[int, float] = {}  # drive → when its owner left
         self.estopped = False
         self.seen = {"dp0": 0, "rts": 0}  # DP0 commands, transport RTSs to drives so far
         self._lock = threading.Lock()  # the loop's thread reports, the test's checks
@@ -486,6 +497,17 @@ class WireMonitor:
         finally:
             self.holds.pop(address, None)
             self.held_moving.discard(address)
+
+    @contextlib.contextmanager
+    def unowned(self, address: int, since: float) -> Iterator[None]:
+        """The owner of drive ``address``'s motion left (or went quiet) at ``since`` (the
+        bus's clock): in the block, no command to it may carry a setpoint later than
+        :data:`OWNER_SLACK_S` after that. Leave it before a new owner commands."""
+        self.unowned_since[address] = since
+        try:
+            yield
+        finally:
+            self.unowned_since.pop(address, None)
 
     # ---------------------------------------------------------------- verdicts
 
