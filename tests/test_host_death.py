@@ -98,7 +98,7 @@ def test_frozen_the_drives_stop_and_stay_stopped_when_it_wakes(bus: SharedBus) -
     sup.proc.send_signal(signal.SIGCONT)
     for unit in DRIVES:
         sim.wait_event(unit, "commanded", after=woke)  # it sends again …
-    sup.wait_log("the drive has stopped on its command-zero timeout")
+    sup.wait_log("the drive may have stopped on its command-zero timeout")
     shared.window(1.0)  # a second of commands after it
     for unit in DRIVES:  # … and nothing turns again: its setpoint was dropped
         assert not [e for e in sim.events(unit, "moving") if e["t"] > frozen]

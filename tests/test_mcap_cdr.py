@@ -306,7 +306,8 @@ def test_a_recording_reads_back_with_the_values_put_in(tmp_path: Path) -> None:
             assert msg.is_rtr == original.is_remote_frame and msg.is_extended
         elif topic == "/diagnostics":  # the first event's: the rig's health as it stands
             assert {s.name for s in msg.status} == {
-                "abh3_supervisor: bus b", "abh3_supervisor: unit l", "abh3_supervisor: unit r"
+                "abh3_supervisor: bus b", "abh3_supervisor: unit l", "abh3_supervisor: unit r",
+                "abh3_supervisor: robot rover",  # the robot decision's status
             }  # fmt: skip
             assert all(kv.key for one in msg.status for kv in one.values)
         else:

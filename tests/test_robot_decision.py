@@ -279,3 +279,33 @@ def test_enable_is_refused_whole_while_a_drive_of_the_robot_cannot_follow() -> N
     assert rig.sup.enable("agv") == UNITS  # back: one act switches both on
     rig.run(0.2)
     assert rig.sup.robot_unready("agv") is None
+
+
+def test_a_drive_that_reboots_within_its_own_long_timeouts_is_not_switched_on_again() -> None:
+    """The wire campaign's case: drive_timeout_ms 2000 and timeout_ms 3000, a 0.1 s power
+    cut — the drive is back (after its boot) before either timeout. A silence of OUTAGE_S
+    is an outage all the same: no SERVO goes to it once it answers, and the robot stands."""
+    text = (
+        AGV.format(faults="", right="2023")
+        .replace(
+            "command_rate_hz: 50}", "command_rate_hz: 50, drive_timeout_ms: 2000, timeout_ms: 3000}"
+        )
+        .replace(
+            "\n     command_rate_hz: 50}",
+            "\n     command_rate_hz: 50, drive_timeout_ms: 2000, timeout_ms: 3000}",
+        )
+    )
+    rig = Rig(parse_config(text, "agv.yaml"))
+    assert rig.config.units["right_drive"].drive_timeout_ms == 2000
+    owner = switch_on(rig)
+    stream(rig, owner, 1.0)
+    drive = rig.drive("right_drive")
+    drive.power_off(rig.timeline.now)
+    rig.run(0.1)
+    drive.power_on(rig.timeline.now)
+    back = rig.timeline.now + BOOT_S
+    stream(rig, owner, BOOT_S + 1.0)
+    lay = flags.LAYOUT_2023
+    assert not any(word & lay.servo.both for *_, word in sent(rig, "right_drive", back))
+    assert not drive.control_word() & lay.servo.both
+    assert moving_frames(rig, "left_drive", back) == []  # and its robot stands

@@ -227,9 +227,9 @@ def test_a_robot_has_one_owner_another_sources_unit_command_zeroes_the_rest() ->
     rig.sup.set_twist("rover", 0.3, 0.0, source=present(rig.sup, "l"))
     other = present(rig.sup, "r")
     rig.sup.arbiter.sources[other].priority = 5
-    rig.sup.arbiter.submit(other, VelocityCommand(0, 50), 1.0)  # r's B only
+    rig.sup.arbiter.submit(other, VelocityCommand(50, 0), 1.0)  # r's A (its wheel) only
     assert rig.sup.units["l"].setpoint.ay == 0  # not half a robot on the old twist
-    assert (rig.sup.units["r"].setpoint.ay, rig.sup.units["r"].setpoint.bx) == (0, 50)
+    assert (rig.sup.units["r"].setpoint.ay, rig.sup.units["r"].setpoint.bx) == (50, 0)
 
 
 def test_a_file_without_robots_twists_each_unit_as_the_seed_does() -> None:

@@ -78,10 +78,11 @@ def test_the_node_and_its_entities_are_in_ros_discovery_info_with_their_dds_guid
     assert (node.node_namespace, node.node_name) == ("/", "abh3_supervisor")
     announced_writers = {_guid(g.data) for g in node.writer_gid_seq}
     announced_readers = {_guid(g.data) for g in node.reader_gid_seq}
-    # feedback 2, brd0/1/4 (mask 0x13), odom, conversions 6, the service's reply, diagnostics
-    assert len(announced_writers) == 14
-    # brd_num, xa/yx/ab, vel_cmd, cur_cmd, cmd_vel, inp_data, the service's requests
-    assert len(announced_readers) == 9
+    # feedback 2, brd0/1/4 (mask 0x13), odom, conversions 6, the two services' replies
+    # (inp_service, the robot's enable), diagnostics
+    assert len(announced_writers) == 15
+    # brd_num, xa/yx/ab, vel_cmd, cur_cmd, cmd_vel, inp_data, the two services' requests
+    assert len(announced_readers) == 10
 
     # what DDS discovery says the supervisor's participant has, keyed by endpoint GUID
     wire: dict[str, dict[uuid.UUID, str]] = {"pub": {}, "sub": {}}

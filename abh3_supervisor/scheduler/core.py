@@ -101,7 +101,7 @@ GAP_MARGIN = 0.005
 # happened, so a silence this long (or two exchanges and a reply timeout, at a slow rate)
 # is a gap too, at most the drive's timeout. A drive cannot lose power and boot in less (a
 # real one takes about a second): docs/safety.md, "The robot decision"
-OUTAGE_S = 0.3
+OUTAGE_S = 0.5
 
 
 class UnitSlot:

@@ -127,8 +127,6 @@ def unit_state(sup: Supervisor, unit: UnitState) -> dict[str, Any]:
         },
         # the drive's CAN settings against the file (core/verify.py: Verification.to_json)
         "verify": _verify_json(unit.verify),
-        # the generation its replies show (None: not yet): another than the file's holds it
-        "identified": None if unit.identified is None else str(unit.identified),
         "status": {str(packet): _record(record) for packet, record in _status(unit)},
     }
 
@@ -156,6 +154,8 @@ def _unit_changing(sup: Supervisor, unit: UnitState, words: dict[str, int]) -> d
         "role": unit.cfg.role.value,
         "velocity_model": unit.cfg.velocity_model.value,
         "online": unit.online,
+        # the generation its replies show (None: not yet): another than the file's holds it
+        "identified": None if unit.identified is None else str(unit.identified),
         "setpoint": {
             "kind": unit.setpoint.kind.value,
             "ay": unit.setpoint.ay,
