@@ -477,3 +477,29 @@ def test_losing_the_broker_moves_nothing_or_stops_when_asked_and_reconnects(
         log = run.log()
         assert ("EMERGENCY STOP (plugin mqtt: on_broker_loss: stop" in log) is (loss == "stop")
         assert not w.invalid
+
+
+def test_a_twist_to_a_robot_that_is_not_ready_is_refused_in_its_event_naming_the_drive(
+    broker: Broker, tmp_path: Path
+) -> None:
+    """The robot decision said in MQTT's own answer (docs/safety.md): after an e-stop and
+    its clear the drives are switched off, so a fleet twist is refused, naming the drive,
+    in a fleet_command_refused event rather than only in the robot's own log."""
+    fleet = watch(broker)
+    fid, t = "sup8-rover", Topics("sup8-rover")
+    cfg = config(
+        tmp_path, "sup8", broker, allow_commands=True, allow_estop=True, allow_estop_clear=True
+    )
+    with supervisor(cfg):
+        mark = fleet.mark()
+        fleet.wait_for(status("online", fid), 30, since=mark)
+        fleet.publish(t.command("estop"), command(1))
+        fleet.wait_for(estop_state(fid, True), since=mark)
+        fleet.publish(t.command("estop_clear"), command(2))
+        fleet.wait_for(estop_state(fid, False), since=fleet.mark())
+        mark = fleet.mark()
+        body = payloads.twist_command(3, time.time(), sender="test-fleet", linear=0.2, angular=0)
+        fleet.publish(t.command("twist"), body)
+        refused = fleet.wait_for(event("fleet_command_refused", fid, "may not move"), since=mark)
+        assert "front: SERVO A" in refused.body["text"] or "rear: SERVO A" in refused.body["text"]
+    assert not fleet.invalid

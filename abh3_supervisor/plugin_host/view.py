@@ -185,6 +185,19 @@ class SupervisorView:
         """The way out has begun."""
         return self._sup.stopping
 
+    def why_not_move(self, robot: str) -> str | None:
+        """Why motion to ``robot`` (or the robot of the unit ``robot``) would be refused
+        now — the e-stop, a hold, the robot decision naming the drive (docs/safety.md) —
+        or None: an entry says it in its own answer, as the control socket does. A reason
+        that resolves by itself (a drive not reporting yet) is None: that motion is taken
+        and held at zero until the robot is ready."""
+        try:
+            for unit in self._sup.robot(robot).units:
+                self._sup.refuse_motion(unit)
+        except CommandError as exc:
+            return str(exc)
+        return None
+
     def owner(self, unit: str) -> str | None:
         """The input source whose command ``unit`` has now; None: nobody (zero)."""
         self._unit(unit)

@@ -448,6 +448,10 @@ class MqttPlugin:
             motor_speeds(source.robot, command.linear, command.angular)  # every entry
         except (CommandError, ValueError, ArithmeticError) as exc:
             raise fleet.Refused(f"not a twist this robot can drive: {exc}") from None
+        if command.linear or command.angular:  # refused in its own answer: the event
+            why = self.view.why_not_move(source.robot.name) if self.view is not None else None
+            if why is not None:
+                raise fleet.Refused(why)
         feed.twist(command.linear, command.angular)
 
     def _refuse(self, link: Link, topic: str, why: str, sender: str | None) -> None:
