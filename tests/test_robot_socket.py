@@ -220,3 +220,17 @@ def test_enable_switches_the_robot_on_as_one_act_and_names_the_drive_that_did_no
         served.on_loop(lambda: setattr(drive, "errors", 1 << 2))  # driver overheat
         with pytest.raises(RunError, match=r"not every drive followed: robot rover: r: "):
             control.enable(served.path, ["rover"], on=True)
+
+
+def test_enable_of_a_robot_that_does_not_exist_is_a_command_line_mistake(
+    tmp_path: Path,
+) -> None:
+    from abh3_supervisor.clients import control
+    from abh3_supervisor.errors import Abh3Error
+
+    with Served(tmp_path, TWO_DRIVES) as served:
+        with pytest.raises(
+            Abh3Error, match=r"no robot or unit named 'nosuchbot' \(robots: rover\)"
+        ) as err:
+            control.enable(served.path, ["nosuchbot"], on=True)
+        assert not isinstance(err.value, RunError)  # exit 2, not 1

@@ -163,6 +163,12 @@ def enable(path: Endpoint, robots: list[str], *, on: bool) -> int:
     drive that did not follow, or why it was refused."""
     client = ControlClient(path)
     try:
+        known = client.call("state")
+        known_names = [*known.get("robots", {}), *known["units"]]
+        for robot in robots:  # a mistake on the command line: exit 2, as for a unit
+            if robot not in known_names:
+                listed = ", ".join(known.get("robots", {})) or "none"
+                raise Abh3Error(f"no robot or unit named '{robot}' (robots: {listed})")
         result = client.call("enable" if on else "disable", robots=robots)
     finally:
         client.close()
