@@ -23,9 +23,9 @@ import numbers
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from abh3_supervisor.core.commands import (
     RESPONSE_INVALID,
@@ -211,26 +211,29 @@ class InputFeed:
         drive answered or the unit's timeout passed. The first unit that fails answers.
         A ``VEL``/``CUR`` is this source's motion like any other it submits: fresh for its
         timeout, so it must be repeated to hold (an owner who is present)."""
-        future: concurrent.futures.Future[str] = concurrent.futures.Future()
-        if self._loop.is_closed():
-            future.set_result(RESPONSE_INVALID)
-            return future
 
         async def run() -> str:
             if self._arbiter.closed:
                 return RESPONSE_INVALID
             return (await self.execute(text, standing=False)).response
 
+        return self._answered(run)
+
+    def _answered(
+        self, run: Callable[[], Coroutine[Any, Any, str]]
+    ) -> concurrent.futures.Future[str]:
+        """``run()`` on the loop, its answer in a future for the source's thread; the
+        seed's ``Invalid Command.`` at once once the loop is gone."""
+        if self._loop.is_closed():
+            future: concurrent.futures.Future[str] = concurrent.futures.Future()
+            future.set_result(RESPONSE_INVALID)
+            return future
         return asyncio.run_coroutine_threadsafe(run(), self._loop)
 
     def enable(self, on: bool) -> concurrent.futures.Future[str]:
         """Switch the robot(s) of the source's units on (``on``) or off as one act
         (``Supervisor.enable``); the future holds ``''`` once every drive reports it (or
         off), else why not, naming the drive: ``refused: …`` or ``not ready: …``."""
-        future: concurrent.futures.Future[str] = concurrent.futures.Future()
-        if self._loop.is_closed():
-            future.set_result(RESPONSE_INVALID)
-            return future
 
         async def run() -> str:
             if self._arbiter.closed:
@@ -253,7 +256,7 @@ class InputFeed:
             whys = [w.why for first in robots.values() if (w := sup.robot_unready(first))]
             return "not ready: " + "; ".join(whys) if whys else ""
 
-        return asyncio.run_coroutine_threadsafe(run(), self._loop)
+        return self._answered(run)
 
     def hold(self, command: Motion) -> None:
         """On the loop: ``command`` is this source's until it submits another, releases,
