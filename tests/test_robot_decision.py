@@ -309,3 +309,46 @@ def test_a_drive_that_reboots_within_its_own_long_timeouts_is_not_switched_on_ag
     assert not any(word & lay.servo.both for *_, word in sent(rig, "right_drive", back))
     assert not drive.control_word() & lay.servo.both
     assert moving_frames(rig, "left_drive", back) == []  # and its robot stands
+
+
+G21, G23 = Generation.G2021, Generation.G2023
+
+
+@pytest.mark.parametrize(
+    ("a", "b", "y", "x", "shown"),
+    [
+        (-100, -50, -75, -25, G21),  # backwards: the fields are signed
+        (100, -50, 25, 75, G21),  # turning
+        (-30, 30, 0, -30, G21),
+        (100, 52, 77, 23, G21),  # 2·Y − (A + B) = 2: the drive's rounding
+        (100, 51, 77, 23, G23),  # … = 3: no 2021 reply
+        (100, 50, 75, 27, G21),  # X − (A − Y) = 2
+        (100, 50, 75, 28, G23),  # … = 3
+        (0, 0, 1, 0, G21),  # a creep within the rounding: any non-zero field shows 2021
+        (2, 0, 0, 0, G21),
+    ],
+)
+def test_a_reply_is_2021_only_within_the_drives_rounding(
+    a: int, b: int, y: int, x: int, shown: Generation
+) -> None:
+    data = frames.encode_dp0_reply_2021(a, b, y, x)
+    assert reply_generation(data, probed=False) is shown
+
+
+def test_each_reason_reads_as_the_operator_is_told_it() -> None:
+    lay = flags.LAYOUT_2023
+    said = {
+        "not heard yet": view(online=None),
+        "offline (no answer within its timeout_ms)": view(online=False),
+        "no exchange for its drive_timeout_ms (it stopped itself)": view(gap=True),
+        "not yet recognised as a 2023 drive": view(identified=None),
+        'answers as a 2021 drive, the file says protocol: "2023" (held at a word safe in both '
+        "generations)": view(identified=Generation.G2021),
+        "SERVO A, START A not switched on": view(commanded=0),
+        "has not yet reported the switches it was given": view(reported=None),
+        "reports an error: reset it (RESET), then SERVO and START again": view(error=True),
+        "reports START A off": view(reported=lay.servo.ay),
+    }
+    assert {k: getattr(drive_unready(v), "why", None) for k, v in said.items()} == {
+        k: k for k in said
+    }
