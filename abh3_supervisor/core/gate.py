@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from abh3_supervisor.config.model import ControlMode, Role
+from abh3_supervisor.core.readiness import switches
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.scaling import CURRENT, VELOCITY
@@ -53,8 +54,7 @@ def moving_switches(layout: flags.Layout) -> int:
 
 def idle_axes(unit: UnitState) -> int:
     """SERVO and START of the unit's axes that drive no wheel of its robot: never on."""
-    layout = unit.layout
-    return sum(layout.servo.of(a) | layout.start.of(a) for a in (0, 1) if a not in unit.wheels)
+    return switches(unit.layout, (a for a in (0, 1) if a not in unit.wheels))
 
 
 @dataclass(frozen=True, slots=True)

@@ -66,11 +66,15 @@ class DriveView:
     @property
     def need(self) -> int:
         """SERVO and START of every wheel axis: the bits a ready drive reports on."""
-        lay = self.layout
-        return sum(lay.servo.of(a) | lay.start.of(a) for a in self.wheels)
+        return switches(self.layout, self.wheels)
 
 
-def _axes(layout: flags.Layout, bits: int) -> str:
+def switches(layout: flags.Layout, axes: Iterable[int]) -> int:
+    """SERVO and START of ``axes`` (0 = A/Y, 1 = B/X) in ``layout``."""
+    return sum(layout.servo.of(a) | layout.start.of(a) for a in axes)
+
+
+def switch_names(layout: flags.Layout, bits: int) -> str:
     """The switches of ``bits`` by name, e.g. ``SERVO A, START B``."""
     names = []
     for switch, pair in (("SERVO", layout.servo), ("START", layout.start)):
@@ -95,14 +99,14 @@ def drive_unready(view: DriveView) -> Unready | None:
         )
     missing = view.need & ~view.commanded
     if missing:
-        return Unready(f"{_axes(view.layout, missing)} not switched on")
+        return Unready(f"{switch_names(view.layout, missing)} not switched on")
     if view.reported is None:
         return Unready("has not yet reported the switches it was given", pending=True)
     if view.error:
         return Unready("reports an error: reset it (RESET), then SERVO and START again")
     absent = view.need & ~view.reported
     if absent:
-        return Unready(f"reports {_axes(view.layout, absent)} off", pending=True)
+        return Unready(f"reports {switch_names(view.layout, absent)} off", pending=True)
     return None
 
 
@@ -149,4 +153,6 @@ __all__ = [
     "drive_unready",
     "reply_generation",
     "robot_unready",
+    "switch_names",
+    "switches",
 ]

@@ -50,6 +50,8 @@ from abh3_supervisor.core.readiness import (
     drive_unready,
     reply_generation,
     robot_unready,
+    switch_names,
+    switches,
 )
 from abh3_supervisor.core.robot import RobotConfig, axis_limits, wheel_axes
 from abh3_supervisor.core.robot_motion import RobotMotion
@@ -334,8 +336,7 @@ class Supervisor:
                 # and only a command heard after this may switch it on and move it again;
                 # the drive that answers again is recognised anew before anything else
                 unit.identified, unit.probe_since = None, event.t
-                self.restrict(unit.name)
-                self._push(unit)
+                self.restrict(unit.name)  # its frame pushed: the probe again
             if unit.cfg.role is Role.COMMAND:
                 self._readiness(unit.name)
         elif isinstance(event, GapEvent):
@@ -467,8 +468,7 @@ class Supervisor:
 
     def _need(self, unit: UnitState) -> int:
         """SERVO and START of the unit's wheel axes."""
-        lay = unit.layout
-        return sum(lay.servo.of(a) | lay.start.of(a) for a in unit.wheels)
+        return switches(unit.layout, unit.wheels)
 
     def _switch(self, unit: UnitState, new: int) -> None:
         """Set the input word this supervisor commands; a change of its wheel axes'
@@ -506,8 +506,10 @@ class Supervisor:
                 continue
             # a drive that could not follow now (offline, in a gap, of the other generation)
             # refuses the whole robot: none of it is left switched on alone
-            view = replace(self._view(unit), commanded=unit.inputs | need, reported=need)
-            why = drive_unready(replace(view, error=False))
+            view = replace(
+                self._view(unit), commanded=unit.inputs | need, reported=need, error=False
+            )
+            why = drive_unready(view)
             if why is not None and not why.pending:
                 raise CommandError(f"robot '{robot.name}' not switched on: {unit.name}: {why.why}")
         for unit in units:
@@ -617,13 +619,7 @@ class Supervisor:
         return had is None or (had ^ control) & need != 0 or had_error != error
 
     def _dropped(self, unit: UnitState, missing: int) -> None:
-        lay = unit.layout
-        off = ", ".join(
-            f"{switch} {'AB'[a]}"
-            for switch, pair in (("SERVO", lay.servo), ("START", lay.start))
-            for a in (0, 1)
-            if missing & pair.of(a)
-        )
+        off = switch_names(unit.layout, missing)
         self.restrict(unit.name)
         self.notice(
             unit.name,
@@ -1125,9 +1121,24 @@ class Supervisor:
         """The e-stop's second step: SERVO and brake release off (forgotten, not masked),
         the frame sent at once (an offline unit's next one may be a timeout away)."""
         if self.gate.power_off(unit.name):
-            self._switch(unit, unit.inputs & ~moving_switches(unit.layout))
-            self._push(unit)
-            self._send_at_once(unit)
+            self._servo_off_now(unit)
+
+    def _servo_off_now(self, unit: UnitState) -> None:
+        """SERVO and brake release off (forgotten, not masked), the frame sent at once."""
+        self._switch(unit, unit.inputs & ~moving_switches(unit.layout))
+        self._push(unit)
+        self._send_at_once(unit)
+
+    @staticmethod
+    def _standing(unit: UnitState, event: FeedbackEvent, since: float) -> bool:
+        """The drive's answer to a frame sent at or after ``since`` says both axes stand."""
+        feedback = unit.feedback
+        return (
+            event.sent_at is not None
+            and event.sent_at >= since
+            and feedback is not None
+            and max(abs(feedback.vel_a), abs(feedback.vel_b)) < STOPPED_BELOW
+        )
 
     def _send_at_once(self, unit: UnitState) -> None:
         """``unit``'s frame as just pushed, on the wire now, outside its schedule."""
@@ -1145,10 +1156,7 @@ class Supervisor:
     def _estop_progress(self, unit: UnitState, event: FeedbackEvent) -> None:
         """A drive's answer to a frame sent after the e-stop that says it has stopped."""
         estop = self.gate.estop
-        if estop is None or event.sent_at is None or event.sent_at < estop.t:
-            return
-        feedback = unit.feedback
-        if feedback is not None and max(abs(feedback.vel_a), abs(feedback.vel_b)) < STOPPED_BELOW:
+        if estop is not None and self._standing(unit, event, estop.t):
             self._power_off(unit)
 
     def restrict(self, name: str) -> None:
@@ -1202,25 +1210,13 @@ class Supervisor:
         unit still ramping."""
         ramping, self.gate.ramping = self.gate.ramping, set()
         for name in ramping:
-            unit = self.units[name]
-            self._switch(unit, unit.inputs & ~moving_switches(unit.layout))
-            self._push(unit)
-            self._send_at_once(unit)
+            self._servo_off_now(self.units[name])
 
     def _stop_progress(self, unit: UnitState, event: FeedbackEvent) -> None:
         """A drive's answer during the controlled stop: standing, it gets the safe word."""
-        feedback = unit.feedback
-        if (
-            unit.name in self.gate.ramping
-            and event.sent_at is not None
-            and event.sent_at >= self._stop_t
-            and feedback is not None
-            and max(abs(feedback.vel_a), abs(feedback.vel_b)) < STOPPED_BELOW
-        ):
+        if unit.name in self.gate.ramping and self._standing(unit, event, self._stop_t):
             self.gate.ramping.discard(unit.name)
-            self._switch(unit, unit.inputs & ~moving_switches(unit.layout))  # forgotten
-            self._push(unit)
-            self._send_at_once(unit)
+            self._servo_off_now(unit)
 
     def safe_state(self) -> None:
         """The way-out state on every unit we drove, final: zero velocity in the safe word
