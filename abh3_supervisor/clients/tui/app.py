@@ -521,7 +521,9 @@ class SupervisorApp(App[None]):
         return f"the arrows drive {operator.arrows_drive(robots)}"
 
     def say(self, text: str) -> None:
-        self.query_one("#response", Static).update(text)
+        # a line due after the app began closing (a timer's, an answer's) has nowhere to go
+        with contextlib.suppress(NoMatches):
+            self.query_one("#response", Static).update(text)
 
     # ------------------------------------------------------------ actions
 
