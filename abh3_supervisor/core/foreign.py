@@ -21,6 +21,14 @@ Evidence, by how it is acted on:
 
 A host's record starts an *episode* when first heard, or again after :data:`QUIET_S`
 without a frame of it: the caller reports (and stops) once per episode, not per frame.
+
+Read from other threads too (a plugin's ``/diagnostics``, ``SupervisorView.foreign_hosts``)
+while the loop feeds it: the containers a reader iterates — :attr:`ForeignWatch.hosts` and
+each record's :attr:`Foreign.heard` — are never changed once made, but replaced whole (one
+atomic attribute assignment) when a host, an episode or a kind of frame is new, or a stop
+is forgiven; a frame of a kind already heard only counts in place. So a reader iterates the
+dict it took and never sees one change size under it, and the loop copies nothing per
+frame. The numbers of a record (its count, its last time) may be one frame apart.
 """
 
 from __future__ import annotations
@@ -104,6 +112,7 @@ class Foreign:
     source: int
     drive: int
     unit: str
+    # replaced, never changed, once the record is in ForeignWatch.hosts (see the module)
     heard: dict[Evidence, Heard] = field(default_factory=dict)
     episode: float = 0.0  # when the present episode began
     last: float = -math.inf
@@ -146,7 +155,9 @@ class ForeignWatch:
     def __init__(self, drives: Mapping[int, str], quiet_s: float = QUIET_S) -> None:
         self.drives = dict(drives)  # address → unit name
         self.quiet_s = quiet_s
-        self.hosts: dict[tuple[int, int], Foreign] = {}  # (source, drive) → record
+        # (source, drive) → record; replaced, never changed (see the module): iterate the
+        # one taken, from any thread
+        self.hosts: Mapping[tuple[int, int], Foreign] = {}
 
     def frame(self, arbitration_id: int, data: bytes, now: float) -> list[Foreign]:
         """A received frame that no exchange of ours routes: the records whose episode it
@@ -171,15 +182,19 @@ class ForeignWatch:
     def _heard(
         self, kind: Evidence, drive: int, source: int, arbitration_id: int, data: bytes, now: float
     ) -> Foreign | None:
-        record = self.hosts.get((source, drive))
-        new_episode = record is None or now - record.last > self.quiet_s
-        if record is None or new_episode:
-            record = self.hosts[source, drive] = Foreign(source, drive, self.drives[drive])
-            record.episode = now
+        key = source, drive
+        record = self.hosts.get(key)
+        if record is None or now - record.last > self.quiet_s:  # a new episode
+            record = Foreign(source, drive, self.drives[drive], episode=now, last=now)
+            record.heard = {kind: Heard(kind, arbitration_id, data, 1, now, now)}
+            if kind in COMMANDING:
+                record.last_commanding = now
+            self.hosts = {**self.hosts, key: record}  # published whole, once made
+            return record
         was_commanding = record.commanding
         heard = record.heard.get(kind)
-        if heard is None:
-            record.heard[kind] = Heard(kind, arbitration_id, data, 1, now, now)
+        if heard is None:  # a kind not heard this episode: a new dict, never the old one
+            record.heard = {**record.heard, kind: Heard(kind, arbitration_id, data, 1, now, now)}
         else:
             heard.arbitration_id, heard.data, heard.last = arbitration_id, data, now
             heard.count += 1
@@ -187,7 +202,7 @@ class ForeignWatch:
         if kind in COMMANDING:
             record.last_commanding = now
         # a reader that starts commanding is news too: it now stops the drive
-        if new_episode or (record.commanding and not was_commanding):
+        if record.commanding and not was_commanding:
             return record
         return None
 
@@ -202,8 +217,9 @@ class ForeignWatch:
         drive meanwhile, or a frame the bus had not yet been read for when it was cleared
         (the pump reads in batches: scheduler/pump.py). What it read stays on record."""
         for record in self.of(unit):
-            for kind in COMMANDING:
-                record.heard.pop(kind, None)
+            kept = {kind: h for kind, h in record.heard.items() if kind not in COMMANDING}
+            if len(kept) != len(record.heard):
+                record.heard = kept  # a new dict: a reader goes on over the one it took
 
     def commanding(self, unit: str, now: float) -> list[Foreign]:
         """The hosts that commanded ``unit``'s drive within :attr:`quiet_s` of ``now``."""

@@ -66,5 +66,10 @@ class UnitStats:
         return self.rtts_ms(q)[0]
 
     def rtts_ms(self, *qs: float) -> tuple[float | None, ...]:
-        ordered = self._rtts_sorted
+        """The ``qs`` percentiles [ms] of one window, from any thread: a copy of the sorted
+        window (one C-level copy, whole under the GIL and in a free-threaded build alike) is
+        indexed, never the list the loop changes between a read of its length and an index
+        into it. Taken between the loop's drop of the oldest sample and its sort of the new
+        one, the window is one sample short; every percentile of one call is of one window."""
+        ordered = list(self._rtts_sorted)
         return tuple(None if not ordered else ordered[_rank(len(ordered), q)] * 1000 for q in qs)
