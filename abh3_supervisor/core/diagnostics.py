@@ -17,6 +17,10 @@ it. Rules, first that applies:
 Bits normal for the unit's role (a monitor's CAN_COMM_ERROR: its drive is never
 commanded, :func:`abh3_supervisor.core.readouts.normal_faults`) count as neither error nor
 alarm: they are a note in the message ("online, no commands (monitor)").
+
+:class:`Health` reads the live supervisor (the loop's recordings use it on the loop);
+:class:`HealthSnapshot` is what a plugin gets (``SupervisorView.health()``): the statuses
+at one time, frozen, plain values only — nothing of the supervisor reachable from it.
 """
 
 from __future__ import annotations
@@ -122,7 +126,7 @@ def unit_status(
         ("bus", cfg.bus),
         ("abh3_id", str(cfg.abh3_id)),
         ("protocol", cfg.protocol.value),
-        ("generation its replies show", "" if unit.identified is None else unit.identified),
+        ("generation its replies show", "" if unit.identified is None else str(unit.identified)),
         ("role", cfg.role.value),
         ("error", _hex(error)),
         ("error bits", ", ".join(error_bits.labelled())),
@@ -228,10 +232,26 @@ def bus_status(
 LOAD_SPAN_S = 0.5  # shortest span a measured load is taken over
 
 
+@dataclass(frozen=True, slots=True)
+class HealthSnapshot:
+    """Every bus's, unit's and robot's status at ``t`` (the supervisor's clock), as
+    ``/diagnostics`` reports them: frozen records of strings and numbers, a copy — keep it,
+    read it from any thread; it never changes (ask the view for a new one)."""
+
+    t: float
+    report: tuple[Status, ...]
+
+    def statuses(self, now: float | None = None) -> list[Status]:
+        """The statuses, as of :attr:`t` (a new list each call). ``now`` is ignored: it is
+        taken so that code written for :meth:`Health.statuses` reads a snapshot too."""
+        return list(self.report)
+
+
 class Health:
     """The statuses of a supervisor's buses and units: every bus, then its units, in the
     file's order. Each bus's load is measured between reports at least LOAD_SPAN_S apart,
-    in bits as the planner counts them for this bus's mix of frames."""
+    in bits as the planner counts them for this bus's mix of frames. It reads the live
+    supervisor: a plugin gets :class:`HealthSnapshot` instead (its view's ``health()``)."""
 
     def __init__(self, sup: Supervisor) -> None:
         self.sup = sup
@@ -252,6 +272,10 @@ class Health:
             out += [unit_status(u, scheduler, now, stops.get(u.name)) for u in units]
         out += [robot_status(self.sup, name, why) for name, why in self.sup.readiness().items()]
         return out
+
+    def snapshot(self, now: float) -> HealthSnapshot:
+        """:meth:`statuses` at ``now``, frozen: nothing live in it."""
+        return HealthSnapshot(now, tuple(self.statuses(now)))
 
     def _measure(self, bus: str, frames: int, now: float) -> None:
         since, before = self._mark.setdefault(bus, (now, frames))

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
 from abh3_supervisor.config.model import Config, UnitConfig
-from abh3_supervisor.core.diagnostics import Health
+from abh3_supervisor.core.diagnostics import Health, HealthSnapshot
 from abh3_supervisor.core.foreign import QUIET_S
 from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.core.state import Feedback, Setpoint, UnitState
@@ -155,6 +156,9 @@ class SupervisorView:
     ) -> None:
         self._sup, self._loop, self._plugin, self._end_run = sup, loop, plugin, end_run
         self._units = MappingProxyType({n: UnitView(u) for n, u in sup.units.items()})
+        # health(): what this plugin's bus loads are measured from, one caller at a time
+        self._health: Health | None = None
+        self._health_lock = threading.Lock()
 
     @property
     def plugin(self) -> str:
@@ -214,10 +218,21 @@ class SupervisorView:
             change.word, change.cleared_bits
         )
 
-    def health(self) -> Health:
-        """Every bus's and unit's health as ``/diagnostics`` reports it
-        (``health().statuses(now)``); keep the object: bus loads are measured between calls."""
-        return Health(self._sup)
+    def health(self) -> HealthSnapshot:
+        """Every bus's, unit's and robot's health now, as ``/diagnostics`` reports it
+        (``health().statuses()``): a frozen copy of strings and numbers, no live object in
+        it, safe to keep and to read from any thread. It never changes: call again for the
+        next (each bus's load is measured between this view's calls, at least 0.5 s apart).
+
+        Built on the calling thread, not the loop's (which may be waiting for this plugin's
+        worker on the way out): from whole values and copies, the containers the loop
+        replaces rather than changes (other hosts heard) and a copy of each round-trip
+        window, so a read never fails on a change under it; two values may be one update
+        of the loop apart, as two reads of a :class:`UnitView` may."""
+        with self._health_lock:
+            if self._health is None:
+                self._health = Health(self._sup)
+            return self._health.snapshot(self._sup.clock())
 
     def bus_counters(self) -> Mapping[str, BusCounters]:
         """Every bus's counters now, by name (API 1.1); each a whole record, read from any
@@ -239,9 +254,10 @@ class SupervisorView:
         cfg = self._unit(unit).cfg
         watch = self._sup.schedulers[cfg.bus].foreign
         now = self._sup.clock()
-        # the loop adds to these as frames come: iterate copies (a C-level copy is whole)
+        # the loop replaces these dicts whole, never changes them (core/foreign.py): the
+        # ones taken here are iterated safely while frames come
         records = sorted(
-            (r for r in list(watch.hosts.values()) if r.unit == unit),
+            (r for r in watch.hosts.values() if r.unit == unit),
             key=lambda r: (not r.commanding, r.source),
         )
         out = []

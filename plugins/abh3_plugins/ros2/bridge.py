@@ -29,7 +29,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from abh3_plugins.ros2.diagnostics import TOPIC, DiagnosticsPublisher, DiagnosticsThread
+from abh3_plugins.ros2.diagnostics import (
+    TOPIC,
+    DiagnosticsPublisher,
+    DiagnosticsThread,
+    ViewHealth,
+)
 from abh3_plugins.ros2.robot import RobotBridge, RobotTopics
 from abh3_plugins.ros2.settings import Settings, parse, schema
 from abh3_plugins.ros2.transport import Transport, decide, open_transport
@@ -301,7 +306,7 @@ class Ros2Plugin:
                 self._robots_of.setdefault(unit_name, []).append(bridge)
         publish = t.publisher(TOPIC, t.msg.DiagnosticArray)
         self.diagnostics = DiagnosticsPublisher(
-            supervisor.health(), publish, t.msg, self.settings.diagnostics_hz
+            ViewHealth(supervisor), publish, t.msg, self.settings.diagnostics_hz
         )
         if self.settings.diagnostics_hz > 0:  # 0: on changes only, from the hooks below
             self._diagnostics_thread = DiagnosticsThread(self.diagnostics)

@@ -4,6 +4,10 @@ Published at ``diagnostics_hz`` (1 Hz, what ROS drivers' diagnostic updaters use
 once when any level changes, so a drive's error reaches ``rqt_robot_monitor`` as soon as
 the supervisor has read it, not up to a period later. What each level means is in
 :mod:`abh3_supervisor.core.diagnostics`. Sans-I/O: the caller passes the time in.
+
+Each report is a fresh snapshot from the plugin's view (:class:`ViewHealth`:
+``SupervisorView.health()``, frozen, read safely from this plugin's threads while the bus
+loop runs); the publisher keeps no live object of the supervisor.
 """
 
 from __future__ import annotations
@@ -12,17 +16,17 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
 
 from abh3_plugins.ros2.transport import Publish
-from abh3_supervisor.plugin_api import Health, Level, Status
+from abh3_supervisor.plugin_api import Level, Status, SupervisorView
 
 log = logging.getLogger(__name__)
 TOPIC = "/diagnostics"  # global, as every ROS driver publishes it
 
 
-def diagnostic_array(msg: Any, statuses: list[Status], stamp_ns: int) -> Any:
+def diagnostic_array(msg: Any, statuses: Sequence[Status], stamp_ns: int) -> Any:
     return msg.DiagnosticArray(
         header=msg.Header(
             stamp=msg.Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
@@ -40,10 +44,28 @@ def diagnostic_array(msg: Any, statuses: list[Status], stamp_ns: int) -> Any:
     )
 
 
+class Statuses(Protocol):
+    """Where the statuses come from: :class:`ViewHealth` in a run; a test may give the
+    supervisor's own ``Health`` on its single thread."""
+
+    def statuses(self, now: float) -> Sequence[Status]: ...
+
+
+class ViewHealth:
+    """Every report a new snapshot from the view (``SupervisorView.health()``), never the
+    one before: the snapshot is a copy taken when asked, ``now`` only schedules."""
+
+    def __init__(self, view: SupervisorView) -> None:
+        self.view = view
+
+    def statuses(self, now: float) -> Sequence[Status]:
+        return self.view.health().report
+
+
 class DiagnosticsPublisher:
     def __init__(
         self,
-        health: Health,
+        health: Statuses,
         publish: Publish,
         msg: Any,
         hz: float,
@@ -70,7 +92,7 @@ class DiagnosticsPublisher:
             if {s.name: s.level for s in statuses} != self.levels:
                 self._publish(statuses, now)
 
-    def _publish(self, statuses: list[Status], now: float) -> None:
+    def _publish(self, statuses: Sequence[Status], now: float) -> None:
         self.levels = {s.name: s.level for s in statuses}
         self.next_at = now + self.period
         self.publish(diagnostic_array(self.msg, statuses, self.wall_ns()))
