@@ -20,7 +20,7 @@ import pytest
 
 from abh3_supervisor.scheduler import sources
 from abh3_supervisor.scheduler.pump import MAX_READ, READ_BATCH_S, BusPump
-from abh3_supervisor.scheduler.sources import ThreadSource
+from abh3_supervisor.scheduler.sources import ThreadReader
 from tests.support.rig import Deaf
 
 BATCH = READ_BATCH_S  # one period at 100 Hz
@@ -155,7 +155,7 @@ def pump_for(
 
 def thread_pump_for(
     period: float, monkeypatch: pytest.MonkeyPatch
-) -> tuple[BusPump, ThreadSource, Machine, Clocks]:
+) -> tuple[BusPump, ThreadReader, Machine, Clocks]:
     """The pump on a bus without a file descriptor; the test plays its reader thread,
     putting frames in the queue itself."""
 
@@ -163,9 +163,9 @@ def thread_pump_for(
         raise NotImplementedError
 
     monkeypatch.setattr(QueueBus, "fileno", no_fd)
-    monkeypatch.setattr(ThreadSource, "start", lambda self: None)
+    monkeypatch.setattr(ThreadReader, "start", lambda self: None)
     pump, _, machine, _, _, clocks = pump_for(period, monkeypatch)
-    assert isinstance(pump._source, ThreadSource)
+    assert isinstance(pump._source, ThreadReader)
     return pump, pump._source, machine, clocks
 
 
@@ -394,7 +394,7 @@ def test_without_a_file_descriptor_the_step_reads_the_reader_threads_queue_first
 
     pump, source, machine, clocks = thread_pump_for(0.0025, monkeypatch)
     clocks.advance(0.001)
-    source._frames.extend([(frame(i, clocks.wall), clocks.wall) for i in (0x201, 0x203)])
+    source.frames.extend([(frame(i, clocks.wall), clocks.wall) for i in (0x201, 0x203)])
     clocks.advance(0.0015)
     polled = len(machine.polled)
     pump._step()
@@ -411,7 +411,7 @@ def test_a_frame_an_interface_stamped_with_its_own_clock_is_timed_when_the_reade
 
     pump, source, machine, clocks = thread_pump_for(0.0025, monkeypatch)
     clocks.advance(0.0005)
-    source._frames.append((frame(0x201, 8123.25), clocks.wall))  # since boot; taken now
+    source.frames.append((frame(0x201, 8123.25), clocks.wall))  # since boot; taken now
     clocks.advance(0.002)
     pump._step()
     assert rounded(machine.fed) == [(0x201, 100.0005)]

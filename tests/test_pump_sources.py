@@ -1,6 +1,8 @@
-"""A bus without a file descriptor, read by a thread into a queue (scheduler/sources.py):
-a burst of frames wakes the loop once, frames that came while nobody watched wake it when
-it watches again, and a receive that fails is told and tried again, never the thread's end.
+"""How a pump reads its bus (scheduler/sources.py), python-can's way. A bus without a file
+descriptor is read by a thread into a queue: a burst of frames wakes the loop once, frames
+that came while nobody watched wake it when it watches again, and a receive that fails is
+told and tried again, never the thread's end. A bus with one is read with its own
+``recv(0)``, and watched through an epoll set the loop watches for good.
 
 The reader's body runs in the test's own thread over a scripted bus, and the loop is a
 fake that collects what the thread hands it: nothing here waits on time.
@@ -19,7 +21,7 @@ import can
 import pytest
 
 from abh3_supervisor.scheduler import sources
-from abh3_supervisor.scheduler.sources import ThreadSource
+from abh3_supervisor.scheduler.sources import ThreadReader
 
 
 class HandOver:
@@ -46,13 +48,13 @@ class Scripted(can.BusABC):
     def __init__(self, script: list[can.Message | Exception | None]) -> None:
         super().__init__(channel="scripted")
         self.script = script
-        self.source: ThreadSource | None = None
+        self.source: ThreadReader | None = None
         self.waits: list[float] = []
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self.script:
             assert self.source is not None
-            self.source._stopped.set()
+            self.source.stopped.set()
             return None, False
         item = self.script.pop(0)
         if isinstance(item, Exception):
@@ -65,10 +67,10 @@ class Scripted(can.BusABC):
 
 def reader(
     script: list[can.Message | Exception | None], watching: bool
-) -> tuple[ThreadSource, HandOver, list[str], list[Exception], Scripted]:
+) -> tuple[ThreadReader, HandOver, list[str], list[Exception], Scripted]:
     loop, woken, errors = HandOver(), [], cast(list[Exception], [])
     bus = Scripted(script)
-    source = ThreadSource(
+    source = ThreadReader(
         bus, cast(asyncio.AbstractEventLoop, loop), lambda: woken.append("step"), errors.append, "t"
     )
     bus.source = source
@@ -76,18 +78,18 @@ def reader(
     return source, loop, woken, errors, bus
 
 
-def read_script(source: ThreadSource) -> None:
+def read_script(source: ThreadReader) -> None:
     """The reader thread's body until the script ends (which stops it); then the source
     is live again, as though the thread went on waiting."""
-    source._run()
-    source._stopped.clear()
+    source.run()
+    source.stopped.clear()
 
 
 def frame(ident: int) -> can.Message:
     return can.Message(arbitration_id=ident, is_extended_id=True, data=bytes(8))
 
 
-def drained(source: ThreadSource) -> list[int]:
+def drained(source: ThreadReader) -> list[int]:
     out = []
     while (got := source.recv()) is not None:
         out.append(got[0].arbitration_id)
@@ -121,7 +123,7 @@ def test_a_receive_that_fails_is_told_then_tried_again_after_a_rest(
     down = can.CanOperationError("Network is down")
     source, loop, woken, errors, bus = reader([down, frame(7)], watching=True)
     rests: list[float | None] = []
-    monkeypatch.setattr(source._stopped, "wait", rests.append)
+    monkeypatch.setattr(source.stopped, "wait", rests.append)
     read_script(source)
     loop.run()
     assert errors == [down] and rests == [sources.RETRY_S]
@@ -132,15 +134,15 @@ def test_a_receive_that_fails_is_told_then_tried_again_after_a_rest(
 def test_stop_ends_the_thread_and_no_wake_follows() -> None:
     bus = can.Bus(interface="virtual", channel="sources-stop")
     loop, woken = HandOver(), []
-    source = ThreadSource(
+    source = ThreadReader(
         bus, cast(asyncio.AbstractEventLoop, loop), lambda: woken.append("step"), print, "v"
     )
     source.start()
     source.watch(True)
     source.stop()
-    assert not source._thread.is_alive()
-    source._frames.append((frame(1), 0.0))
-    source._waking = False
+    assert not source.thread.is_alive()
+    source.frames.append((frame(1), 0.0))
+    source.waking = False
     source.watch(True)  # a wake already queued when the pump stopped
     loop.run()
     assert woken == []
@@ -149,7 +151,7 @@ def test_stop_ends_the_thread_and_no_wake_follows() -> None:
 
 def test_a_failed_receive_is_not_told_to_a_pump_stopped_meanwhile() -> None:
     source, loop, _, errors, bus = reader([can.CanOperationError("down")], watching=True)
-    source._stopped.wait = lambda timeout=None: True  # type: ignore[method-assign]
+    source.stopped.wait = lambda timeout=None: True  # type: ignore[method-assign]
     read_script(source)
     source.stop()  # the pump stopped before the loop ran the hand-over
     loop.run()
@@ -168,10 +170,10 @@ def test_the_reader_ends_when_the_loop_is_gone() -> None:
         call_soon = call_soon_threadsafe
 
     bus = Scripted([can.CanOperationError("bus shut down")] * 3)
-    source = ThreadSource(bus, cast(asyncio.AbstractEventLoop, Closed()), print, print, "c")
+    source = ThreadReader(bus, cast(asyncio.AbstractEventLoop, Closed()), print, print, "c")
     bus.source = source
-    source._run()
-    assert source._stopped.is_set() and len(bus.script) == 2  # one try, then the end
+    source.run()
+    assert source.stopped.is_set() and len(bus.script) == 2  # one try, then the end
     bus.shutdown()
 
 
@@ -210,9 +212,9 @@ def test_the_fd_watch_is_an_epoll_set_the_loop_watches_for_good() -> None:
     loop = asyncio.new_event_loop()
     woken: list[int] = []
     try:
-        source = sources.FdSource(bus, bus.fileno(), loop, lambda: woken.append(1))
-        assert source._set is not None
-        watched = source._set.fileno()
+        source = sources.FdReader(bus, bus.fileno(), loop, lambda: woken.append(1))
+        assert source.set is not None
+        watched = source.set.fileno()
         selector = loop._selector  # type: ignore[attr-defined]
         assert set(selector.get_map()) >= {watched} and bus.fileno() not in selector.get_map()
         bus.theirs.send(b"x")  # a frame waits, unwatched
@@ -244,8 +246,8 @@ def test_a_descriptor_epoll_refuses_is_watched_the_loop_s_way(tmp_path: Path) ->
     bus = Socket()
     try:
         with (tmp_path / "f").open("wb") as f:
-            source = sources.FdSource(bus, f.fileno(), cast(Any, Loop()), print)
-            assert source._set is None
+            source = sources.FdReader(bus, f.fileno(), cast(Any, Loop()), print)
+            assert source.set is None
             source.watch(True)
             assert list(readers) == [f.fileno()]
             source.stop()
@@ -265,17 +267,17 @@ class Filtered(Socket):
         return (self.frames.pop(0) if self.frames else None), False
 
 
-def test_a_frame_the_bus_s_filters_refuse_never_ends_a_read() -> None:
-    """python-can's ``recv(0)`` answers None at a refused frame; the source reads on."""
-    bus = Filtered([0x1, 0x2, 0x3])
+def test_a_descriptor_is_read_with_the_bus_s_own_receive() -> None:
+    """python-can's ``recv(0)``, filters and all: a frame they refuse ends that read (the
+    descriptor stays readable: the rest is read at the next wake or step)."""
+    bus = Filtered([0x1, 0x2, 0x3, 0x2])
     bus.set_filters([{"can_id": 0x2, "can_mask": 0x1FFFFFFF, "extended": True}])
     loop = asyncio.new_event_loop()
     try:
-        source = sources.FdSource(bus, bus.fileno(), loop, print)
-        assert source._direct
-        got = source.recv()
-        assert got is not None and got[0].arbitration_id == 0x2
-        assert source.recv() is None and not bus.frames
+        source = sources.FdReader(bus, bus.fileno(), loop, print)
+        taken = [source.take(0) for _ in range(4)]
+        assert [m.arbitration_id if m else None for m in taken] == [None, 0x2, None, 0x2]
+        assert source.recv() is None and source.arrived is None  # the kernel's time says
         source.stop()
     finally:
         loop.close()
@@ -296,7 +298,7 @@ def test_an_unwatched_hung_up_descriptor_never_wakes_the_loop() -> None:
     loop = asyncio.new_event_loop()
     woken: list[int] = []
     try:
-        source = sources.FdSource(bus, bus.fileno(), loop, lambda: woken.append(1))
+        source = sources.FdReader(bus, bus.fileno(), loop, lambda: woken.append(1))
         source.watch(True)
         source.watch(False)
         bus.theirs.shutdown(socket.SHUT_RDWR)  # a hang-up on ours
@@ -315,28 +317,13 @@ def test_unwatching_a_descriptor_closed_under_the_source_is_silent() -> None:
     bus = Socket()
     loop = asyncio.new_event_loop()
     try:
-        source = sources.FdSource(bus, bus.fileno(), loop, print)
-        assert source._set is not None
-        watched = source._set.fileno()
+        source = sources.FdReader(bus, bus.fileno(), loop, print)
+        assert source.set is not None
+        watched = source.set.fileno()
         source.watch(True)
         bus.ours.close()
         source.stop()
         assert watched not in loop._selector.get_map()  # type: ignore[attr-defined]
-    finally:
-        loop.close()
-        bus.shutdown()
-
-
-def test_a_flood_of_frames_the_bus_s_filters_refuse_is_read_in_bounded_slices() -> None:
-    bus = Filtered([0x1] * (2 * sources.REFUSED_PER_RECV + 10) + [0x2])
-    bus.set_filters([{"can_id": 0x2, "can_mask": 0x1FFFFFFF, "extended": True}])
-    loop = asyncio.new_event_loop()
-    try:
-        source = sources.FdSource(bus, bus.fileno(), loop, print)
-        assert source.recv() is None and source.recv() is None  # each a bounded slice
-        got = source.recv()
-        assert got is not None and got[0].arbitration_id == 0x2
-        source.stop()
     finally:
         loop.close()
         bus.shutdown()

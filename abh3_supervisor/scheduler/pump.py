@@ -1,16 +1,16 @@
 """The thin asyncio layer: runs one sans-I/O machine (scheduler or simulator) on a bus.
 
-Frames wait in a source until a step reads them (scheduler/sources.py): the bus's own file
-descriptor where it has one (SocketCAN, ``udp_multicast``), python-can's virtual bus's
-queue, filled on the sender's thread, else a queue a reader thread of the pump's fills
-(most USB adapters). Each step reads all that wait (up to :data:`MAX_READ`), hands what
-they said to the owner (``after_step``), and only then decides and sends its own frames.
-A single deadline timer (scheduler/timer.py: a timerfd, which the kernel repeats while the
-deadlines keep one period) wakes the machine at its next deadline; a frame wakes it only
-while the source is watched. Everything the machine does therefore happens on the loop
-thread, one step at a time, on frames all read: a loop that was late acts on every reply
-that came meanwhile at once (a robot's drives, each waiting for its own reply, still send
-in one step).
+Frames wait where python-can keeps them until a step reads them (scheduler/sources.py):
+in the kernel behind the bus's file descriptor (SocketCAN, ``udp_multicast``, the
+in-process simulator's drives' bus), else in a queue a reader thread fills (python-can's
+``virtual`` bus, most USB adapters). Each step reads all that wait (up to
+:data:`MAX_READ`), hands what they said to the owner (``after_step``), and only then
+decides and sends its own frames. A single deadline timer (scheduler/timer.py: a timerfd,
+which the kernel repeats while the deadlines keep one period) wakes the machine at its
+next deadline; a frame wakes it only while the source is watched. Everything the machine
+does therefore happens on the loop thread, one step at a time, on frames all read: a loop
+that was late acts on every reply that came meanwhile at once (a robot's drives, each
+waiting for its own reply, still send in one step).
 
 ``batch_s`` (the supervisor's pumps: :data:`READ_BATCH_S`): while the next deadline is at
 most ``batch_s`` away the source is not watched — that step reads what came meanwhile.
@@ -151,26 +151,26 @@ class BusPump:
         of the interface's own, or a stepped wall clock, is not trusted), else the time
         the source took it off the bus where it knows it, else now. Whether the machine
         took any."""
-        now = self.loop.time()
-        if now < self._resume_at or self._source is None:
+        now, source = self.loop.time(), self._source
+        if now < self._resume_at or source is None:
             return False
         wall, since = time.time(), now - self._read_at
         self._read_at = now
         took = False
+        take = source.take
         for _ in range(MAX_READ):
             try:
-                got = self._source.recv()
+                msg = take(0)
             except Exception as exc:  # whatever the interface raises: rest, then again
                 self._resume_at = now + RETRY_S
                 self._watch(False)
                 self.loop.call_at(self._resume_at, self._step)
                 self.on_error(exc)
                 return took
-            if got is None:
+            if msg is None:
                 return took
-            msg, arrived = got
             age = wall - msg.timestamp
-            if not 0.0 <= age <= since and arrived is not None:
+            if not 0.0 <= age <= since and (arrived := source.arrived) is not None:
                 age = wall - arrived
             t = now - age if 0.0 <= age <= since else now
             self._last_t = t = max(t, self._last_t)
