@@ -40,26 +40,42 @@ from abh3_supervisor.scheduler.core import BusScheduler
 from abh3_supervisor.scheduler.pump import READ_BATCH_S, BusPump
 from abh3_supervisor.scheduler.timer import DeadlineTimer
 from abh3_supervisor.simulator.bus import SimBus
+from abh3_supervisor.simulator.local_bus import LocalBus
 
 log = logging.getLogger(__name__)
 
 
-def open_bus(cfg: BusConfig, *, from_file: bool = True) -> can.BusABC:
+def open_bus(cfg: BusConfig, *, from_file: bool = True, doorbell: bool | None = None) -> can.BusABC:
     """The bus, or a :class:`BusOpenError` naming the real cause and what to do.
 
     ``from_file``: the bus comes from a YAML file (a hint may name its keys); ``abh3 scan``
-    gives it on the command line, where the file's keys mean nothing."""
+    gives it on the command line, where the file's keys mean nothing. ``doorbell``: the
+    in-process simulator's bus (simulator/local_bus.py) — True its drives' side, False
+    the supervisor's."""
     if (problem := unknown_interface(cfg.interface)) is not None:  # typed by hand
         raise BusOpenError(_cannot_open(cfg, problem))
     kwargs: dict[str, Any] = {"bitrate": cfg.bitrate, **cfg.options}
     try:
-        bus = can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
+        if doorbell is not None:
+            bus: can.BusABC = LocalBus(cfg.channel, doorbell=doorbell, **kwargs)
+        else:
+            bus = can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
+        # no code of ours may see its own frames: on udp_multicast it would take its own
+        # commands for another host's (runtime/echo.py)
+        if echoes_own_frames(cfg.interface, cfg.options):
+            bus = _without_own_frames(bus, cfg)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
         hint = _socketcan_hint(cfg, exc, from_file) if cfg.interface == "socketcan" else ""
         raise BusOpenError(_cannot_open(cfg, f"{exc}{hint}")) from exc
-    # no code of ours may see its own frames: on udp_multicast it would take its own
-    # commands for another host's (runtime/echo.py)
-    return without_own_frames(bus) if echoes_own_frames(cfg.interface, cfg.options) else bus
+    return bus
+
+
+def _without_own_frames(bus: can.BusABC, cfg: BusConfig) -> can.BusABC:
+    try:
+        return without_own_frames(bus, cfg.interface, cfg.channel)
+    except BaseException:
+        bus.shutdown()
+        raise
 
 
 def _cannot_open(cfg: BusConfig, why: str) -> str:
@@ -237,12 +253,13 @@ class Runtime:
                 )
             elif sim_cfg is not None:
                 cfg = simulated(cfg)
-                sim_bus = open_bus(cfg)
+                # the drives' bus rings when ours sends: their pump steps right after ours
+                sim_bus = open_bus(cfg, doorbell=True)
                 self._buses.append(sim_bus)
                 self.sims[name], pump = simulator(self.config, name, sim_bus, loop.time())
                 self._sim_pumps.append(pump)
                 pump.start()
-            bus = open_bus(cfg)
+            bus = open_bus(cfg, doorbell=False if in_process(cfg) else None)
             self._buses.append(bus)
             _refuse_in_fault_windows(bus, cfg.simulate, loop)
             scheduler = self.supervisor.schedulers[name]
