@@ -7,8 +7,12 @@ bus never leaves the machine: runtime/netns.py), and each process is timed on it
 
 * **the supervisor** — ``abh3 run --headless --no-socket`` (no recording), N units;
 * **a bare python-can host** — this module's ``bare`` role: every period, for each drive,
-  build a DP0 message, ``send``, ``recv`` until its reply (its own frames come back on
-  this interface and are skipped, as any host here must) — the least a Python host does;
+  build a DP0 message, send it, ``recv`` until its reply — the least a Python host does.
+  Its own frames are dropped in the kernel as the supervisor's are (the same
+  ``own_sender`` of simulator/multicast.py: the frames go out on a socket of their own
+  whose copies a socket filter on the bus keeps away), so that neither host pays for
+  reading its own echo and the two figures compare like with like; python-can packs
+  each frame and reads the replies (``recv``) as for any python-can program;
 * **the simulator process**, during the supervisor's window (no target: its share is what
   the in-process figures used to include);
 * with ``sizing`` (not ``--quick``), the supervisor's CPU for 16 units — section 4's
@@ -49,10 +53,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import can
+from can.interfaces.udp_multicast.utils import pack_message
 
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime import netns
 from abh3_supervisor.scheduler.stats import percentile
+from abh3_supervisor.simulator.multicast import own_sender
 from benchmarks.report import Row, machine, print_rows
 
 ROOT = Path(__file__).resolve().parent.parent  # where `benchmarks` imports
@@ -430,6 +436,11 @@ def bare(units: int, rate: float) -> None:
     """Every period, for each drive: build a DP0 command, send it, recv until its reply."""
     stopping = _Stopping()
     bus = can.Bus(interface="udp_multicast", channel=CHANNEL)
+    # our copies dropped in the kernel, as the supervisor's (simulator/multicast.py)
+    sender, in_kernel = own_sender(bus, CHANNEL)
+    if not in_kernel:
+        print("our own frames cannot be dropped in the kernel here", flush=True)
+        return
     started = False
     period = 1.0 / rate
     due = time.monotonic()
@@ -439,10 +450,10 @@ def bare(units: int, rate: float) -> None:
             cmd = can.Message(
                 arbitration_id=ids.dp0_command_id(abh3, HOST), data=data, is_extended_id=True
             )
-            bus.send(cmd)
+            sender.send(pack_message(cmd))  # python-can's packing, as its own send
             reply = ids.dp0_reply_id(abh3, HOST)
             while (msg := bus.recv(0.1)) is not None and msg.arbitration_id != reply:
-                pass  # our own command back, another drive's late reply
+                pass  # another drive's late reply
             if msg is not None and not started:
                 started = True
                 print("started", flush=True)
@@ -451,6 +462,7 @@ def bare(units: int, rate: float) -> None:
             time.sleep(delay)
         else:  # behind: from now on, no burst to catch up
             due = time.monotonic()
+    sender.close()
     bus.shutdown()
 
 
