@@ -185,8 +185,10 @@ class LiveFeed(can.Listener):
 
     def _note(self) -> None:
         # read after the recorder had the frame or event: the one it failed on reached
-        # the view through it; the next ones come this way
-        if self.recorder is not None and self.recorder.failed is not None:
+        # the view through it; the next ones come this way — unless the topics are the
+        # recording's, which its recorder goes on producing for the view after its file
+        # failed (recorder.GuardedRecorder._taking)
+        if self.recorder is not None and self.recorder.failed is not None and not self.shared:
             self._direct = True
 
     def _unwatched(self, key: object) -> bool:

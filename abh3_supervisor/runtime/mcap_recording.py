@@ -30,7 +30,7 @@ from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import BusOpenError, install_hint
 from abh3_supervisor.runtime.mcap_index import spill_chunk_indexes
-from abh3_supervisor.runtime.ros_topics import SCHEMAS, VENDOR, RosTopics
+from abh3_supervisor.runtime.ros_topics import SCHEMAS, VENDOR, Captured, RosTopics
 
 __all__ = ["CHUNK_BYTES", "VENDOR", "McapRecording", "open_mcap", "read_frames"]
 
@@ -124,8 +124,17 @@ class McapRecording(can.Listener):
         self.topics.attach(sup, clock)
 
     def observe(self, event: object) -> None:
-        """A supervisor event (on the loop thread)."""
+        """A supervisor event (on the loop thread), written at once."""
         self.topics.observe(event)
+        self._raise_failure()
+
+    def capture(self, event: object) -> list[Captured]:
+        """On the loop: what of ``event`` is recorded (:meth:`.RosTopics.capture`)."""
+        return self.topics.capture(event)
+
+    def replay(self, item: Captured) -> None:
+        """Write what :meth:`capture` took (the recorder's thread)."""
+        self.topics.replay(item)
         self._raise_failure()
 
     # ------------------------------------------------------------ the end

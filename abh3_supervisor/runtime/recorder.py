@@ -15,7 +15,9 @@ import asyncio
 import contextlib
 import logging
 import os
+import threading
 import time
+from collections import deque
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -27,6 +29,9 @@ from abh3_supervisor.errors import Abh3Error, BusOpenError
 
 log = logging.getLogger(__name__)
 FLUSH_S = 0.5  # what a kill -9 may lose at most (docs/recording.md promises ≤ 1 s)
+DRAIN_S = 0.1  # the writer's thread writes what waits this often
+QUEUE_SIZE = 50_000  # frames and events waiting for the writer: about a minute of 4
+# units at 100 Hz with their status polls (a stalled disk), then counted and dropped
 
 
 class ASCWriter(can.ASCWriter):
@@ -163,56 +168,124 @@ def _flush(writer: Any) -> None:
 class GuardedRecorder(can.Listener):
     """``--record``'s writer, which may fail (disk full) without touching the bus path:
     the first failure is reported once, recording stops, the drives go on being driven.
-    :meth:`start_flushing` flushes it every ``FLUSH_S`` on the loop. Frames (the pumps),
-    events (the supervisor) and flushes all come on the loop thread, one at a time."""
+
+    The loop only hands over: each frame (the pumps) and what each supervisor event
+    leaves for the file (the writer's ``capture``, MCAP's decoded values) is appended to
+    a queue, bounded by ``QUEUE_SIZE`` (what a starved writer cannot take is counted
+    and said, in the log and at the end). Once :meth:`start_flushing` is called a thread
+    of its own writes the queue every ``DRAIN_S`` and hands the file to the OS every
+    ``FLUSH_S``; before it (a test, a tool) :meth:`flush` and :meth:`stop` write what
+    waits themselves. Writes happen under one lock, in the order they were handed over."""
 
     def __init__(self, path: Path, writer: can.Listener) -> None:
         self.path, self.writer = path, writer
         self.failed: str | None = None
         self.failed_at: float | None = None  # wall clock of the failure
-        self._timer: asyncio.TimerHandle | None = None
+        self.dropped = 0  # frames and events the full queue turned away
+        self._queue: deque[Any] = deque()
+        # what the loop runs per event: the topics' own capture where the writer has one
+        topics = getattr(writer, "topics", None)
+        self._capture = getattr(topics, "capture", None) or getattr(writer, "capture", None)
+        self._replay = getattr(writer, "replay", None)
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._ending = threading.Event()
         self._stopped = False
 
+    def _taking(self) -> bool:
+        """Whether frames and events are still queued: until a failure, or after it for
+        a writer whose topics other sinks share (MCAP's, with a live view: its file
+        takes nothing more, the view goes on through it)."""
+        if self._stopped:
+            return False
+        if self.failed is None:
+            return True
+        topics = getattr(self.writer, "topics", None)
+        return len(getattr(topics, "sinks", ())) > 1
+
     def on_message_received(self, msg: can.Message) -> None:
-        if self.failed is not None or self._stopped:
-            return
-        try:
-            self.writer.on_message_received(msg)
-        except Exception as exc:
-            self._fail("writing", exc)
+        """On the loop: queued, never written here."""
+        if (self.failed is None and not self._stopped) or self._taking():
+            if len(self._queue) < QUEUE_SIZE:
+                self._queue.append(msg)
+            else:
+                self._drop()
 
     def observe(self, event: object) -> None:
-        """A supervisor event, for writers that record decoded values too (MCAP)."""
-        if self.failed is not None or self._stopped:
+        """A supervisor event, for writers that record decoded values too (MCAP): on the
+        loop, what the writer needs of it is taken now and queued."""
+        capture = self._capture
+        if capture is None or ((self.failed is not None or self._stopped) and not self._taking()):
             return
         try:
-            self.writer.observe(event)  # type: ignore[attr-defined]
+            items = capture(event)
         except Exception as exc:
             self._fail("writing", exc)
+            return
+        for item in items:
+            if len(self._queue) < QUEUE_SIZE:
+                self._queue.append(item)
+            else:
+                self._drop()
+
+    def _drop(self) -> None:
+        self.dropped += 1
+        if self.dropped in (1, 1000, 1_000_000):
+            log.warning(
+                "--record %s: the writer falls behind: %d frame(s) or event(s) not recorded",
+                self.path,
+                self.dropped,
+            )
+
+    def _write_waiting(self) -> None:
+        """What the queue holds, to the writer (under the lock)."""
+        queue, write, replay = self._queue, self.writer.on_message_received, self._replay
+        while self.failed is None or self._taking():
+            try:
+                item = queue.popleft()
+            except IndexError:
+                return
+            try:
+                if isinstance(item, can.Message):
+                    write(item)
+                elif replay is not None:
+                    replay(item)
+            except Exception as exc:
+                if self.failed is None:
+                    self._fail("writing", exc)
+        queue.clear()  # failed: what waits is not recorded
 
     def flush(self) -> None:
-        if self.failed is not None or self._stopped:
-            return
-        try:
-            _flush(self.writer)
-        except Exception as exc:
-            self._fail("writing", exc)
+        """Write what waits and hand the file to the OS."""
+        with self._lock:
+            self._write_waiting()
+            if self.failed is not None or self._stopped:
+                return
+            try:
+                _flush(self.writer)
+            except Exception as exc:
+                self._fail("writing", exc)
 
-    def start_flushing(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Flush now (the file's header reaches the disk) and every ``FLUSH_S`` on
-        ``loop``, on a fixed grid, until :meth:`stop`."""
+    def start_flushing(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """Flush now (the file's header reaches the disk), then write on a thread of its
+        own every ``DRAIN_S`` and flush every ``FLUSH_S``, until :meth:`stop`. (``loop``:
+        unused, kept for callers.)"""
         self.flush()
-        self._tick(loop, loop.time())
+        if self._thread is None and not self._stopped:
+            self._thread = threading.Thread(
+                target=self._run, name=f"record {self.path.name}", daemon=True
+            )
+            self._thread.start()
 
-    def _tick(self, loop: asyncio.AbstractEventLoop, at: float) -> None:
-        if self._stopped:
-            return
-        at = max(at + FLUSH_S, loop.time())  # a late tick does not bunch the next ones
-        self._timer = loop.call_at(at, self._flush_and_repeat, loop, at)
-
-    def _flush_and_repeat(self, loop: asyncio.AbstractEventLoop, at: float) -> None:
-        self.flush()
-        self._tick(loop, at)
+    def _run(self) -> None:
+        flush_at = time.monotonic() + FLUSH_S
+        while not self._ending.wait(DRAIN_S):
+            if time.monotonic() >= flush_at:
+                flush_at += FLUSH_S
+                self.flush()
+            else:
+                with self._lock:
+                    self._write_waiting()
 
     def _fail(self, doing: str, exc: Exception) -> None:
         self.failed = str(exc)
@@ -225,16 +298,27 @@ class GuardedRecorder(can.Listener):
         )
 
     def stop(self) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-        if self._stopped:
-            return
-        self._stopped = True
-        try:
-            self.writer.stop()  # flushes and closes the file
-        except Exception as exc:
-            if self.failed is None:  # a writer that failed already says why once
-                self._fail("closing", exc)
+        """Write what waits and close the file (the thread first ends)."""
+        self._ending.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
+        with self._lock:
+            if self._stopped:
+                return
+            self._write_waiting()
+            self._stopped = True
+            if self.dropped:
+                log.warning(
+                    "--record %s: %d frame(s) or event(s) were not recorded: the writer "
+                    "fell behind",
+                    self.path,
+                    self.dropped,
+                )
+            try:
+                self.writer.stop()  # flushes and closes the file
+            except Exception as exc:
+                if self.failed is None:  # a writer that failed already says why once
+                    self._fail("closing", exc)
 
 
 def open_recorder(path: Path, config: Config | None = None) -> GuardedRecorder:

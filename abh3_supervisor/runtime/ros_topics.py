@@ -13,8 +13,10 @@ Topics:
   (``/<unit>/odom`` when its ``geometry.pulses_per_rev`` is known);
 - ``/diagnostics`` once a second and when a level changes (:mod:`..core.diagnostics`).
 
-Each message is encoded once (:mod:`.cdr`), on the loop thread as frames and events
-arrive, and the same bytes go to every sink. This module never imports ``mcap``.
+Each message is encoded once (:mod:`.cdr`) and the same bytes go to every sink. What an
+event needs of the live supervisor is taken on the loop (:meth:`RosTopics.capture`);
+the encoding may happen later on another thread (:meth:`RosTopics.replay`: the
+recorder's). This module never imports ``mcap``.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import can
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.diagnostics import Health, Level, Status
 from abh3_supervisor.core.odometry import Odometer, Pose, odometers, yaw_quaternion
+from abh3_supervisor.core.state import Feedback
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.runtime.cdr import (
@@ -46,6 +49,9 @@ from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEve
 
 log = logging.getLogger(__name__)
 DIAGNOSTICS_PERIOD_S = 1.0
+# what capture() takes of an event: (t, unit, its feedback), (t, status event, the
+# robot's feedback or None), (t, "/diagnostics", the statuses)
+Captured = tuple[float, Any, Any]
 SEP = "=" * 80
 
 _TIME = "int32 sec\nuint32 nanosec\n"
@@ -177,6 +183,7 @@ class RosTopics(can.Listener):
         self.bus_of = {cfg.channel: name for name, cfg in config.buses.items()}
         self.config = config
         self.health: Health | None = None
+        self._sup: Supervisor | None = None  # read on the loop only (capture)
         self.odometry: dict[str, list[Odometer]] = {}  # unit → the robots it is a drive of
         for odometer in odometers(config):
             for unit in odometer.units:
@@ -189,6 +196,11 @@ class RosTopics(can.Listener):
         self._feedback_topics: dict[str, tuple[str, str]] = {}
         self._status_topics: dict[tuple[str, int], str] = {}
         self._odom: dict[str, tuple[str, OdomEncoder]] = {}
+        # unit → every wheel's drive of the robots it is a drive of (odometry's twist)
+        self._wheels = {
+            unit: tuple(dict.fromkeys(u for o in odos for u in o.robot.units))
+            for unit, odos in self.odometry.items()
+        }
 
     def _emit(self, topic: str, schema: str, data: bytes, ns: int) -> None:
         for sink in self.sinks:
@@ -229,38 +241,71 @@ class RosTopics(can.Listener):
     def attach(self, sup: Supervisor, clock: Callable[[], float]) -> None:
         """Produce ``sup``'s decoded values; ``clock`` is its clock (the loop's)."""
         self.health = Health(sup)
+        self._sup = sup
         self.offset_ns = time.time_ns() - int(clock() * 1e9)
 
     def observe(self, event: object) -> None:
-        """A supervisor event (on the loop thread)."""
+        """A supervisor event, on the loop thread: captured and written at once."""
+        for item in self.capture(event):
+            self.replay(item)
+
+    def capture(self, event: object) -> list[Captured]:
+        """On the loop thread: what of ``event`` the topics need, as values that do not
+        change — the drive's feedback it brought, the robot's feedback beside a pulse
+        count, the diagnostics when due — for :meth:`replay` to encode and write on any
+        thread later (the recorder's). The live supervisor is read here only."""
         t = getattr(event, "t", None)
         if t is None:
-            return
-        ns = self.offset_ns + int(t * 1e9)
-        if isinstance(event, FeedbackEvent) and not isinstance(event.reply, frames.Unknown):
-            self._feedback(event, ns)
+            return []
+        units = self._sup.units if self._sup is not None else {}
+        out: list[Captured] = []
+        if isinstance(event, FeedbackEvent):
+            state = units.get(event.unit)
+            fbk = state.feedback if state is not None else None
+            if fbk is not None and not isinstance(event.reply, frames.Unknown):
+                out.append((t, event.unit, fbk))
         elif isinstance(event, StatusEvent):
-            self._status(event, ns)
+            robots = None
+            if isinstance(event.record, frames.Brd4) and event.unit in self.odometry and units:
+                robots = {u: units[u].feedback for u in self._wheels[event.unit]}
+            out.append((t, event, robots))
         # a level follows only online, error and alarm (the rate is caught by the period):
         # a 2023 drive's busy bits change its control word on every reply
         levelled = isinstance(event, HealthEvent) or (
             isinstance(event, FlagChange) and event.word in ("error", "alarm")
         )
-        self._diagnostics(t, ns, levelled)
+        if self.health is not None and (t >= self._next_diagnostics or levelled):
+            statuses = self.health.statuses(t)
+            levels = {s.name: s.level for s in statuses}
+            if t >= self._next_diagnostics or levels != self._levels:
+                self._levels, self._next_diagnostics = levels, t + DIAGNOSTICS_PERIOD_S
+                out.append((t, "/diagnostics", tuple(statuses)))
+        return out
 
-    def _feedback(self, event: FeedbackEvent, ns: int) -> None:
-        assert self.health is not None
-        u = event.unit
-        fbk = self.health.sup.units[u].feedback
-        if fbk is None:
-            return
+    def replay(self, item: Captured) -> None:
+        """Encode and write what :meth:`capture` took (any thread, in capture's order)."""
+        t, what, values = item
+        ns = self.offset_ns + int(t * 1e9)
+        if isinstance(what, str):
+            if what == "/diagnostics":
+                sec, nanosec = divmod(ns, 1_000_000_000)
+                data = diagnostic_array(sec, nanosec, "", [_diag(s) for s in values])
+                self._emit("/diagnostics", DIAGNOSTICS, data, ns)
+            else:
+                self._feedback(what, values, ns)
+        else:
+            self._status(what, ns, values)
+
+    def _feedback(self, u: str, fbk: Feedback, ns: int) -> None:
         topics = self._feedback_topics.get(u)
         if topics is None:
             topics = self._feedback_topics[u] = (f"/{u}/vel_fbk_ab", f"/{u}/vel_fbk_yx")
         self._emit(topics[0], VELOCITY, _velocity(fbk.vel_a, fbk.vel_b), ns)
         self._emit(topics[1], VELOCITY, _velocity(fbk.vel_y, fbk.vel_x), ns)
 
-    def _status(self, event: StatusEvent, ns: int) -> None:
+    def _status(
+        self, event: StatusEvent, ns: int, feedback: dict[str, Feedback | None] | None
+    ) -> None:
         record = event.record
         named = BROADCASTS.get(type(record))
         if named is not None:
@@ -274,35 +319,23 @@ class RosTopics(can.Listener):
         if isinstance(record, frames.Brd4):
             for odometer in self.odometry.get(event.unit, ()):
                 pose = odometer.pulses(event.unit, record.pulse_a, record.pulse_b, event.t)
-                if pose is not None:  # every unit of the robot reported anew
-                    self._odometry(odometer, pose, ns)
+                if pose is not None and feedback is not None:  # every wheel reported anew
+                    self._odometry(odometer, pose, ns, feedback)
 
-    def _odometry(self, odometer: Odometer, pose: Pose, ns: int) -> None:
-        assert self.health is not None
-        units = self.health.sup.units
+    def _odometry(
+        self, odometer: Odometer, pose: Pose, ns: int, feedback: dict[str, Feedback | None]
+    ) -> None:
         robot = odometer.robot
         route = self._odom.get(robot.name)
         if route is None:
             route = f"/{robot.name}/odom", odometry_encoder(robot.frame_id, robot.child_frame_id)
             self._odom[robot.name] = route
         topic, encode = route
-        linear, angular = odometer.twist({u: units[u].feedback for u in robot.units})
+        linear, angular = odometer.twist({u: feedback[u] for u in robot.units})
         qx, qy, qz, qw = yaw_quaternion(pose.yaw)
         sec, nanosec = divmod(ns, 1_000_000_000)
         data = encode(sec, nanosec, pose.x, pose.y, qx, qy, qz, qw, linear, angular)
         self._emit(topic, ODOMETRY, data, ns)
-
-    def _diagnostics(self, now: float, ns: int, changed: bool) -> None:
-        if self.health is None or (now < self._next_diagnostics and not changed):
-            return
-        statuses = self.health.statuses(now)
-        levels = {s.name: s.level for s in statuses}
-        if now < self._next_diagnostics and levels == self._levels:
-            return
-        self._levels, self._next_diagnostics = levels, now + DIAGNOSTICS_PERIOD_S
-        sec, nanosec = divmod(ns, 1_000_000_000)
-        data = diagnostic_array(sec, nanosec, "", [_diag(s) for s in statuses])
-        self._emit("/diagnostics", DIAGNOSTICS, data, ns)
 
 
 _velocity = ENCODERS[VELOCITY]
