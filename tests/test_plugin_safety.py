@@ -271,7 +271,7 @@ def test_a_signal_ends_a_run_whose_plugin_is_stuck_with_its_queue_full(
     full = started = False
     for line in proc.stderr:
         seen.append(line)
-        full |= "plugin stuck is too slow: 1 events dropped" in line  # its queue is full
+        full |= "plugin stuck is too slow: " in line  # its queue is full
         started |= "+AY_START" in line  # the drive runs the start-up's VEL
         if full and started:
             break

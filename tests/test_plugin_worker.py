@@ -15,6 +15,7 @@ import pluggy
 import pytest
 
 from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.journal import Journal
 from abh3_supervisor.plugin_host import host as host_module
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
@@ -75,14 +76,21 @@ def test_the_events_of_one_loop_step_reach_the_worker_after_it_in_one_wake_up() 
 
     async def run() -> None:
         host._sup, host._loop = cast(Any, object()), asyncio.get_running_loop()
+        journal = Journal()  # the supervisor's: each event written once
+        host._reader = journal.reader()
         worker = host.workers["plain"] = host_module._Worker(host, "plain")
         sets = counted_wakes(worker)
+
+        def emit(event: HealthEvent) -> None:  # as Supervisor._emit and _tell do
+            journal.write(event)
+            host._news()
+
         for i in range(5):  # one step of the loop: five events
-            host._observe(HealthEvent("u", float(i), i % 2 == 0))
-        assert len(worker.held) == 5 and not worker.items and sets == []  # none yet
+            emit(HealthEvent("u", float(i), i % 2 == 0))
+        assert not worker.held and not worker.items and sets == []  # none yet
         await asyncio.sleep(0)  # the step is over: the loop runs the release queued by it
         assert not worker.held and len(sets) == 1
-        host._observe(HealthEvent("u", 5.0, False))  # the next step's
+        emit(HealthEvent("u", 5.0, False))  # the next step's
         await asyncio.sleep(0)
         worker.close(time.monotonic() + 10)
         assert not worker.thread.is_alive()

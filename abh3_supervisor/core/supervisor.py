@@ -42,6 +42,7 @@ from abh3_supervisor.core.inputs import (
     Twist,
     VelocityYX,
 )
+from abh3_supervisor.core.journal import Journal
 from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
 from abh3_supervisor.core.readiness import (
     SETTLE_S,
@@ -178,6 +179,12 @@ class Supervisor:
         # what each bus's interface reports of itself (bus-off, error-passive, …)
         self.bus_health = {bus: BusHealth(bus) for bus in config.buses}
         self._observers: list[Observer] = []
+        # every event, written once for the watchers (core/journal.py), who are told
+        # there is news once per step (the plugins' workers, the control socket's lines)
+        self.journal = Journal()
+        self.watchers: list[Callable[[], None]] = []
+        self._told = 0  # the journal's number the watchers were last told of
+        self._dispatching = False
         # unit, or (unit, broadcast packet) → (requests sent since, future) awaiting a reply;
         # DP0 replies are keyed by the unit alone: no key is built on the bus path
         self._waiters: dict[Hashable, list[tuple[float, asyncio.Future[bool]]]] = {}
@@ -200,6 +207,7 @@ class Supervisor:
                 if whole_robots:  # commissioning tries both axes of each drive
                     motor = config.units[name].velocity_model is VelocityModel.MOTOR
                     self.units[name].wheels = wheel_axes(robot, name, motor)
+        self._needs: dict[str, int] = {}  # unit → its wheel axes' switches (_need)
         # a robot moves whole or not at all (core/readiness.py): each commanded unit's
         # robot (a unit of none is a robot of its own), and whether it is ready now
         self._group: dict[str, tuple[str, tuple[str, ...]]] = {}
@@ -234,17 +242,39 @@ class Supervisor:
     # ------------------------------------------------------------ observing
 
     def subscribe(self, observer: Observer) -> None:
-        self._observers.append(observer)
+        """``observer`` gets each event on the loop as it comes: for what acts on the bus
+        path (the stop, commissioning); a watcher reads the journal instead."""
+        self._observers = [*self._observers, observer]  # a new list: _emit loops the old
 
     def unsubscribe(self, observer: Observer) -> None:
-        self._observers.remove(observer)
+        self._observers = [o for o in self._observers if o is not observer]
 
-    def _emit(self, event: SupervisorEvent) -> None:
-        for observer in list(self._observers):
+    def _emit(self, event: SupervisorEvent, sample: object = None) -> None:
+        """Written once in the journal, for the watchers to read at their own pace; then
+        to the observers on the loop — the few that act on the bus path (the stop, the
+        commissioning guard) or only take note that something came (the plugins)."""
+        journal = self.journal  # Journal.write, inline: once per reply
+        seq = journal.seq + 1
+        journal.ring[seq & journal.mask] = (seq, event, sample)
+        journal.seq = seq
+        for observer in self._observers:
             try:
                 observer(event)
             except Exception:  # an observer's bug must never stop the bus path
                 log.exception("observer %r failed on %s", observer, type(event).__name__)
+        if not self._dispatching:  # a command's, an e-stop's: told at once
+            self._tell()
+
+    def _tell(self) -> None:
+        """The watchers (:attr:`watchers`) that the journal has news: once per step."""
+        if self._told == self.journal.seq:
+            return
+        self._told = self.journal.seq
+        for watcher in self.watchers:
+            try:
+                watcher()
+            except Exception:  # a watcher's bug must never stop the bus path
+                log.exception("watcher %r failed", watcher)
 
     def _owner_watch(self, unit: str) -> None:
         """The arbiter says an owner may have changed: an event only when it did."""
@@ -264,9 +294,19 @@ class Supervisor:
 
     def dispatch(self, bus: str) -> None:
         """Apply the events one bus's scheduler recorded (called after each pump step)."""
-        for event in self.schedulers[bus].drain_events():
-            self._apply(event)
-            self._emit(event)
+        units = self.units
+        self._dispatching = True  # the watchers are told once, after the step's events
+        try:
+            for event in self.schedulers[bus].drain_events():
+                self._apply(event)
+                if type(event) is FeedbackEvent:  # the journal keeps what the reply left
+                    unit = units[event.unit]
+                    self._emit(event, (unit.feedback, unit.setpoint, unit.inputs))
+                else:
+                    self._emit(event)
+        finally:
+            self._dispatching = False
+        self._tell()
         health = self.bus_health[bus]
         for change in health.drain() if health.changes else ():
             bad = change.new is not BusState.OK
@@ -467,8 +507,11 @@ class Supervisor:
     # ------------------------------------------------------------ the robot decision
 
     def _need(self, unit: UnitState) -> int:
-        """SERVO and START of the unit's wheel axes."""
-        return switches(unit.layout, unit.wheels)
+        """SERVO and START of the unit's wheel axes (fixed by the file: made once)."""
+        need = self._needs.get(unit.name)
+        if need is None:
+            need = self._needs[unit.name] = switches(unit.layout, unit.wheels)
+        return need
 
     def _switch(self, unit: UnitState, new: int) -> None:
         """Set the input word this supervisor commands; a change of its wheel axes'

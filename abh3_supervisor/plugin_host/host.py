@@ -41,13 +41,13 @@ from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.schema import ON_ERROR_VALUES
 from abh3_supervisor.config.source import Section, Source
 from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
+from abh3_supervisor.core.journal import Entry, Reader
 from abh3_supervisor.core.supervisor import (
     EstopChange,
     FlagChange,
     Notice,
     OwnerChange,
     Supervisor,
-    SupervisorEvent,
 )
 from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError, did_you_mean
 from abh3_supervisor.plugin_host import hookspecs, inventory, tick, validate
@@ -210,6 +210,22 @@ class _Worker:
         else:
             self.held.append((hook, kwargs))
 
+    def take(self, entries: list[Entry]) -> None:
+        """On the loop: journal entries, with what was held, to the thread in one
+        wake-up; what the bound has no room for is dropped and counted."""
+        room = QUEUE_SIZE - len(self.items) - len(self.held)
+        if len(entries) > room:
+            self.held.extend(entries[: max(room, 0)])
+            self.missed(len(entries) - max(room, 0))
+        else:
+            self.held.extend(entries)
+        self.release()
+
+    def missed(self, count: int) -> None:
+        """``count`` events this plugin will never see (counted, said)."""
+        if count > 0:
+            self._drop(count)
+
     def release(self) -> None:
         """On the loop: the events held so far to the thread, in one wake-up."""
         if self.held:
@@ -218,9 +234,9 @@ class _Worker:
             self.released_at = time.monotonic()
             self._kick()
 
-    def _drop(self) -> None:
-        self.dropped += 1
-        if self.dropped in (1, 100, 10_000):
+    def _drop(self, count: int = 1) -> None:
+        before, self.dropped = self.dropped, self.dropped + count
+        if any(before < said <= self.dropped for said in (1, 100, 10_000)):
             log.warning("plugin %s is too slow: %d events dropped", self.name, self.dropped)
 
     def _full(self) -> bool:
@@ -249,7 +265,13 @@ class _Worker:
                 item = items.popleft()
                 if item is _STOP:
                     return
-                hook, kwargs = cast(tuple[str, dict[str, Any]], item)
+                if len(item) == 3:  # type: ignore[arg-type]  # a journal entry
+                    call = self.host.translate(cast(Entry, item))
+                    if call is None:
+                        continue
+                    hook, kwargs = call
+                else:
+                    hook, kwargs = cast(tuple[str, dict[str, Any]], item)
                 self.busy = hook, time.monotonic()
                 try:
                     self.host.call_one(self.name, hook, **kwargs)
@@ -340,7 +362,9 @@ class PluginHost:
         self.demote: Callable[[int], None] = lambda native_id: None  # one thread to normal
         self._sup: Supervisor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._releasing = False  # a release of the workers' held events is queued
+        self._releasing = False  # a release of the journal's news to the workers is queued
+        self._reader: Reader | None = None  # the workers' place in the journal
+        self._missed = 0  # of the reader's misses, those told to the workers
         self._ending = False  # stop() has begun: the run's loop waits for it
         self.outputs: list[tuple[str, str]] = []  # (file, where it is set) plugins write
         self._load(config, installed() if available is None else available)
@@ -662,7 +686,8 @@ class PluginHost:
                 setup = functools.partial(self.thread_setup, name in self.below_loop)
                 ticker = tick.Ticker(name, hz, sup.clock, worker.post, setup)
                 self.tickers.append(ticker)
-        sup.subscribe(self._observe)
+        self._reader = sup.journal.reader()
+        sup.watchers.append(self._news)
         self._start_inputs(sup, loop, owners)  # always: service clients may attach later
         if self.workers:
             threading.Thread(target=self._watch, name="plugin watch", daemon=True).start()
@@ -764,52 +789,57 @@ class PluginHost:
         if self.arbiter is not None and self._loop is not None:
             self.arbiter.remove(name, self._loop.time())
 
-    def _observe(self, event: SupervisorEvent) -> None:
-        """On the loop: translate an event into hook calls and queue them, never block."""
-        if not self.workers:
-            return
-        assert self._sup is not None
-        if isinstance(event, FeedbackEvent):
-            unit = self._sup.units[event.unit]
-            if unit.feedback is None or unit.feedback.t != event.t:
-                return
-            hook, kwargs = (
-                "abh3_feedback",
-                {
-                    "unit": event.unit,
-                    "feedback": unit.feedback,
-                    "setpoint": unit.setpoint,
-                    "inputs": unit.inputs,
-                },
-            )
-        elif isinstance(event, StatusEvent):
-            hook, kwargs = (
-                "abh3_status",
-                {"unit": event.unit, "packet": event.packet, "record": event.record, "t": event.t},
-            )
-        elif isinstance(event, HealthEvent):
-            hook, kwargs = "abh3_health", {"unit": event.unit, "online": event.online, "t": event.t}
-        elif isinstance(event, FlagChange):
-            hook, kwargs = "abh3_flags", {"change": event}
-        elif isinstance(event, Notice):
-            hook, kwargs = "abh3_notice", {"notice": event}
-        elif isinstance(event, EstopChange):
-            hook, kwargs = "abh3_estop", {"event": event}
-        elif isinstance(event, OwnerChange):
-            hook, kwargs = "abh3_owner", {"change": event}
-        else:
-            return
-        for worker in self.workers.values():
-            worker.hold(hook, kwargs)
-        if not self._releasing:  # once, after the step (the loop's callback) that held them
+    def _news(self) -> None:
+        """On the loop, once per step that wrote events: the workers get them from the
+        journal after this step (:meth:`_release`)."""
+        if not self._releasing and self.workers:
             assert self._loop is not None
             self._releasing = True
             self._loop.call_soon(self._release)
 
     def _release(self) -> None:
+        """On the loop, once per step that wrote events: what the journal has since the
+        last release, to every worker in one wake-up (each translates it on its thread)."""
         self._releasing = False
+        if self._reader is None:
+            return
+        entries = self._reader.read()
+        missed, self._missed = self._reader.missed - self._missed, self._reader.missed
         for worker in self.workers.values():
-            worker.release()
+            worker.missed(missed)
+            worker.take(entries)
+
+    def translate(self, entry: Entry) -> tuple[str, dict[str, Any]] | None:
+        """A journal entry as the hook call it makes (None: no hook), on a worker."""
+        _, event, sample = entry
+        if isinstance(event, FeedbackEvent):
+            feedback, setpoint, inputs = sample
+            if feedback is None or feedback.t != event.t:  # an answer it could not read
+                return None
+            return "abh3_feedback", {
+                "unit": event.unit,
+                "feedback": feedback,
+                "setpoint": setpoint,
+                "inputs": inputs,
+            }
+        if isinstance(event, StatusEvent):
+            return "abh3_status", {
+                "unit": event.unit,
+                "packet": event.packet,
+                "record": event.record,
+                "t": event.t,
+            }
+        if isinstance(event, HealthEvent):
+            return "abh3_health", {"unit": event.unit, "online": event.online, "t": event.t}
+        if isinstance(event, FlagChange):
+            return "abh3_flags", {"change": event}
+        if isinstance(event, Notice):
+            return "abh3_notice", {"notice": event}
+        if isinstance(event, EstopChange):
+            return "abh3_estop", {"event": event}
+        if isinstance(event, OwnerChange):
+            return "abh3_owner", {"change": event}
+        return None
 
     def stop_inputs(self) -> None:
         """First on the way out: no input may command anything after this. Idempotent."""
@@ -835,6 +865,7 @@ class PluginHost:
         for ticker in self.tickers:
             ticker.close()
         self.tickers.clear()
+        self._release()  # the journal's last events (the stop's) before the end marker
         for worker in self.workers.values():
             worker.ask_to_end()  # all drain together
         end = time.monotonic() + (DRAIN_DEADLINE_S if timeout is None else timeout)

@@ -13,17 +13,19 @@ from pathlib import Path
 
 from abh3_supervisor.config.model import Config, VelocityModel
 from abh3_supervisor.core.eventlog import EventLog
-from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
+from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import PluginError
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import signals
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.recording import recorded, write_failures
 from abh3_supervisor.runtime.stopping import final_report
+from abh3_supervisor.scheduler.core import FeedbackEvent
 from abh3_supervisor.service.server import ControlServer, ServiceOptions, preflight, release
 from abh3_supervisor.service.view_pace import of_runtime
 
 log = logging.getLogger("abh3")
+LOG_S = 0.1  # the event lines are read from the journal this often
 
 
 def status_lines(sup: Supervisor) -> list[str]:
@@ -77,6 +79,7 @@ async def run_headless(
     # the signal handlers outlive the runtime's stop and the last lines: a signal then
     # changes nothing (the CLI's own handlers, once back, would say no drive started)
     handled = contextlib.ExitStack()
+    lines: _EventLines | None = None
     try:
         async with rt:
             sup = rt.supervisor
@@ -95,14 +98,7 @@ async def run_headless(
             handled.enter_context(signals.on_loop(loop, on_signal))
             if exit_with_stdin:
                 _stop_at_end_of_stdin(sup, stop)
-            events = EventLog(sup)
-
-            def on_event(event: SupervisorEvent) -> None:
-                line = events.line(event)
-                if line is not None:
-                    log.log(*line)
-
-            sup.subscribe(on_event)
+            lines = _EventLines(sup)  # the journal's events, read at the log's pace
             servers = await _serve(rt, plugins, service, bound)
             # said once the sockets listen: a client that waits for this line can attach
             log.info(
@@ -116,10 +112,13 @@ async def run_headless(
             # thousand, whose asyncio objects leave cycles to collect)
             gc.freeze()
             reporter = asyncio.ensure_future(_report(sup, status_interval))
+            logger = asyncio.ensure_future(lines.follow())
             try:
                 await rt.run_until(stop, duration)
             finally:
                 reporter.cancel()
+                logger.cancel()
+                lines.say()
                 for server in servers:  # clients hear "bye" before the drives stop
                     await server.close()
             assert rt.fatal is not None
@@ -145,6 +144,8 @@ async def run_headless(
     finally:
         release(bound)  # what was bound and never served (the buses did not open)
     with handled:
+        if lines is not None:  # the stop's own events
+            lines.say()
         if record is not None:
             log.info("%s", recorded(rt, record))
         disabled = dict(plugins.why_disabled) if plugins is not None else {}
@@ -197,6 +198,35 @@ async def _serve(
             await server.close()
         raise
     return servers
+
+
+class _EventLines:
+    """The supervisor's events as log lines: read from its journal every ``LOG_S``, off
+    the bus path (nothing is handed to the log per reply); a gap is said."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        self.lines = EventLog(sup)
+        self.reader = sup.journal.reader()
+        self.missed = 0
+
+    def say(self) -> None:
+        for _, event, _ in self.reader.read():
+            if type(event) is FeedbackEvent:  # the most of them, and never a line
+                continue
+            line = self.lines.line(event)
+            if line is not None:
+                log.log(*line)
+        if self.reader.missed > self.missed:
+            log.warning(
+                "the log fell behind: %d event(s) not logged", self.reader.missed - self.missed
+            )
+            self.missed = self.reader.missed
+
+    async def follow(self) -> None:
+        with contextlib.suppress(asyncio.CancelledError):
+            while True:
+                await asyncio.sleep(LOG_S)
+                self.say()
 
 
 async def _report(sup: Supervisor, interval: float) -> None:

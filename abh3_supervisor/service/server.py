@@ -70,7 +70,6 @@ from abh3_supervisor.service.state_push import SharedState
 from abh3_supervisor.service.view_pace import ViewPace, of_runtime
 
 if TYPE_CHECKING:
-    from abh3_supervisor.core.supervisor import SupervisorEvent
     from abh3_supervisor.plugin_host.host import PluginHost
     from abh3_supervisor.runtime.bus_runtime import Runtime
 
@@ -268,6 +267,9 @@ class ControlServer:
         self._sock = sock
         self._acceptor: Acceptor | None = None
         self._events = EventLog(rt.supervisor)
+        self._reader = rt.supervisor.journal.reader()  # the event lines' (_send_lines)
+        self._listening = False  # a client asked for events
+        self._lines_queued = False
         self._methods: dict[str, Callable[[_Client, dict[str, Any]], Awaitable[Any]]] = {
             "hello": self._hello,
             "state": self._state,
@@ -314,7 +316,8 @@ class ControlServer:
         self._acceptor = Acceptor(self._sock, self._admit, self._full, refusal, refused)
         self._acceptor.start()
         self._loop = asyncio.get_running_loop()
-        self.rt.supervisor.subscribe(self._on_event)
+        self._reader = self.rt.supervisor.journal.reader()  # from now on
+        self.rt.supervisor.watchers.append(self._on_news)
         if not self.read_only:  # who owns each unit's motion: told at once (core/inputs.py)
             self.rt.supervisor.arbiter.watchers.append(self._owner_changed)
         self._log_handler.loop = asyncio.get_running_loop()
@@ -325,6 +328,8 @@ class ControlServer:
     async def close(self, reason: str = rpc.STOPPING) -> None:
         """Also for a server never started: its bound socket is let go all the same."""
         logging.getLogger().removeHandler(self._log_handler)
+        if self._on_news in self.rt.supervisor.watchers:
+            self.rt.supervisor.watchers.remove(self._on_news)
         watchers = self.rt.supervisor.arbiter.watchers
         if self._owner_changed in watchers:
             watchers.remove(self._owner_changed)
@@ -358,6 +363,7 @@ class ControlServer:
             await client.serve()
         finally:
             self.clients.discard(client)
+            self._listeners_changed()
             client.close()
 
     async def call(self, client: _Client, request: rpc.Request) -> Any:
@@ -451,15 +457,25 @@ class ControlServer:
 
     # ------------------------------------------------------------ events
 
-    def _on_event(self, event: SupervisorEvent) -> None:
-        if isinstance(event, Notice):  # an e-stop (from a key, a plugin) is one
-            self._check_soon()
-        listeners = [c for c in self.clients if c.events]
-        if not listeners:
-            return
-        line = self._events.line(event)
-        if line is not None:
-            self.broadcast(listeners, line[0], line[1], getattr(event, "unit", None))
+    def _on_news(self) -> None:
+        """The journal has news (once per step of the loop): read after the step."""
+        if not self._lines_queued and self._loop is not None:
+            self._lines_queued = True
+            self._loop.call_soon(self._read_journal)
+
+    def _read_journal(self) -> None:
+        """A notice is checked at once (an e-stop, from a key or a plugin, is one); the
+        events go as lines to every client that listens."""
+        self._lines_queued = False
+        listeners = [c for c in self.clients if c.events] if self._listening else []
+        for _, event, _ in self._reader.read():
+            if isinstance(event, Notice):
+                self._check_soon()
+            if listeners and (line := self._events.line(event)) is not None:
+                self.broadcast(listeners, line[0], line[1], getattr(event, "unit", None))
+
+    def _listeners_changed(self) -> None:
+        self._listening = any(c.events for c in self.clients)
 
     def broadcast(
         self, listeners: list[_Client], level: int, text: str, unit: str | None = None
@@ -513,6 +529,7 @@ class ControlServer:
         if events and not client.events:  # after the reply: what is already so
             asyncio.get_running_loop().call_soon(self._online_lines, client)
         client.events = events
+        self._listeners_changed()
         if client.state_task is not None:
             client.state_task.cancel()
             client.state_task = None
