@@ -62,6 +62,7 @@ def test_commands_go_before_polls_when_both_are_due() -> None:
     )
     sched = BusScheduler(cfg.units.values(), now=0.0)
     sched.slots["u"].next_poll = 0.0
+    sched.slots["u"].refresh()  # as the scheduler does after every change to a deadline
     out = sched.poll(0.0)
     assert [ids.CanId.from_int(i).pf for i, _ in out] == [0xEF, 0xEA]
 

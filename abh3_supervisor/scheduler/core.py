@@ -152,9 +152,10 @@ class UnitSlot:
         # when each DP0 exchange of ours ended without its reply (timed out, or replaced by
         # a stop frame sent at once): its reply may still come, late; see unasked()
         self.orphans: list[float] = []
-        # the earliest of the deadlines below: kept by the scheduler after every change to
-        # them (refresh()), so a step reads one number per unit instead of four
-        self.due = self.earliest_due()
+        # the deadlines (deadlines()) and the earliest of them: kept by the scheduler
+        # after every change to what they are computed from (refresh())
+        self.command_at = self.poll_at = self.gap_at = self.offline_at = self.due = 0.0
+        self.refresh()
 
     def orphan(self, now: float) -> None:
         """The exchange in flight ends unanswered (its reply may yet come)."""
@@ -173,40 +174,43 @@ class UnitSlot:
             return False
         return True
 
-    def poll_due(self) -> float:
-        """When the next status request may go: one in flight per unit, until it expires."""
+    def deadlines(self) -> tuple[float, float, float, float]:
+        """When each thing of this unit falls due — the one place they are defined:
+
+        * the next DP0 request: on its grid, after the one in flight ends;
+        * the next status request: one in flight per unit, until it expires (an
+          on-demand one as soon as allowed);
+        * a gap: nothing heard for ``outage`` after the last answered command;
+        * offline: nothing heard from the unit for ``timeout``."""
+        command = self.next_command
+        if self.dp0_sent_at is not None and self.dp0_sent_at + self.exchange_timeout > command:
+            command = self.dp0_sent_at + self.exchange_timeout
         if not self.polls and not self.asked:
-            return math.inf
-        due = -math.inf if self.asked else self.next_poll  # asked: as soon as allowed
-        if self.poll_sent_at is None:
-            return due
-        return max(due, self.poll_sent_at + self.timeout)
-
-    def command_due(self) -> float:
-        """When the next DP0 request may go: on its grid, after the one in flight ends."""
-        if self.dp0_sent_at is None:
-            return self.next_command
-        return max(self.next_command, self.dp0_sent_at + self.exchange_timeout)
-
-    def gap_due(self) -> float:
+            poll = math.inf
+        else:
+            poll = -math.inf if self.asked else self.next_poll
+            if self.poll_sent_at is not None and self.poll_sent_at + self.timeout > poll:
+                poll = self.poll_sent_at + self.timeout
         if not self.commanding or self.gap or self.heard_at is None:
-            return math.inf
-        return self.heard_at + self.outage - GAP_MARGIN
-
-    def offline_due(self) -> float:
-        """When the unit is declared offline if nothing is heard from it by then."""
+            gap = math.inf
+        else:
+            gap = self.heard_at + self.outage - GAP_MARGIN
         if self.online is False:
-            return math.inf
-        last = self.stats.last_seen
-        return (last if last is not None else self.since) + self.timeout
+            offline = math.inf
+        else:
+            last = self.stats.last_seen
+            offline = (last if last is not None else self.since) + self.timeout
+        return command, poll, gap, offline
 
     def earliest_due(self) -> float:
         """When anything of this unit falls due: a command, a poll, a gap, going offline."""
-        return min(self.command_due(), self.poll_due(), self.gap_due(), self.offline_due())
+        return min(self.deadlines())
 
     def refresh(self) -> None:
-        """After any change to what the deadlines are computed from."""
-        self.due = self.earliest_due()
+        """After any change to what the deadlines are computed from: the step reads
+        these numbers instead of computing them again."""
+        self.command_at, self.poll_at, self.gap_at, self.offline_at = at = self.deadlines()
+        self.due = min(at)
 
     def zero_command(self) -> None:
         """The drive stopped itself (gap, offline): the very next frame must not carry the
@@ -391,7 +395,7 @@ class BusScheduler:
         slots = [slot for slot in self._slots if now >= slot.due]  # nothing due: untouched
         for slot in slots:
             self._check_health(slot, now)
-            if now >= slot.command_due():
+            if now >= slot.command_at:
                 if slot.dp0_sent_at is not None:
                     slot.stats.timeouts += 1  # the previous exchange got no reply in time
                     slot.orphan(now)
@@ -400,7 +404,7 @@ class BusScheduler:
                 slot.stats.commands_sent += 1
                 slot.next_command = next_on_grid(slot.next_command, slot.command_interval(), now)
         for slot in slots:
-            if now < slot.poll_due():
+            if now < slot.poll_at:
                 continue
             if slot.asked:  # an on-demand request takes the turn, the polls keep their grid
                 slot.poll_packet = slot.asked.pop(0)
@@ -476,12 +480,12 @@ class BusScheduler:
         return slot.command_id, slot.payload
 
     def _check_health(self, slot: UnitSlot, now: float) -> None:
-        if now >= slot.gap_due():  # as in next_deadline (UnitSlot.earliest_due)
+        if now >= slot.gap_at:  # as in next_deadline (UnitSlot.deadlines)
             slot.gap = True
             slot.stats.gaps += 1
             slot.zero_command()
             self.events.append(GapEvent(slot.cfg.name, now, True))
-        if now >= slot.offline_due():  # as in next_deadline
+        if now >= slot.offline_at:  # as in next_deadline
             slot.online = False
             slot.zero_command()
             self.events.append(HealthEvent(slot.cfg.name, now, False))
