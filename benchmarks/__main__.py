@@ -12,11 +12,13 @@ import importlib.util
 import logging
 import statistics
 
+from abh3_supervisor.runtime import netns
 from benchmarks import (
     alone,
     attached,
     bursts,
     bus_model,
+    calls,
     cycle_timing,
     estop,
     host_cpu,
@@ -423,6 +425,13 @@ def main(argv: list[str] | None = None) -> int:
     # 12. a small computer's budget: the supervisor in a CPU cgroup (issue 34 items 1, 5);
     # skipped, with the reason, where no cgroup or namespace can be made
     rows += small.rows(2.0 if a.quick else 10.0, runs, sizing=not a.quick)
+
+    # 13. the bus loop's Python calls per period, counted (issue 50); skipped, with the
+    # reason, where no network namespace can be made
+    if (why := netns.unavailable()) is None:
+        rows += calls.rows(runs)
+    else:
+        print(f"{calls.SECTION}: not measured: {why}")
 
     print_rows(rows)
     missed = [r for r in rows if r.ok is False]
