@@ -20,7 +20,7 @@ from typing import Any
 # the loopback, up, with multicast on and the groups routed to it: python-can's
 # udp_multicast joins its group on "any" interface, which needs a route; its source
 # address gives our frames one the kernel can keep our own copies from us by
-# (runtime/kernel_echo.py)
+# (simulator/multicast.py)
 SETUP = (
     "ip link set lo up && ip link set lo multicast on"
     " && ip route add 239.0.0.0/8 dev lo src 127.0.0.1"

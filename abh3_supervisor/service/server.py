@@ -468,11 +468,17 @@ class ControlServer:
         events go as lines to every client that listens."""
         self._lines_queued = False
         listeners = [c for c in self.clients if c.events] if self._listening else []
+        missed = self._reader.missed
         for _, event, _ in self._reader.read():
             if isinstance(event, Notice):
                 self._check_soon()
             if listeners and (line := self._events.line(event)) is not None:
                 self.broadcast(listeners, line[0], line[1], getattr(event, "unit", None))
+        if self._reader.missed > missed:  # the loop outran this step's reads: said
+            text = f"{self._reader.missed - missed} event(s) were not read in time: not sent"
+            log.warning("control socket %s: %s", self.path, text)
+            if listeners:
+                self.broadcast(listeners, logging.WARNING, text)
 
     def _listeners_changed(self) -> None:
         self._listening = any(c.events for c in self.clients)
