@@ -23,7 +23,7 @@ from abh3_supervisor.config.source import Section
 from abh3_supervisor.core import kinematics
 from abh3_supervisor.core.commands import RESPONSE_INVALID, RESPONSE_OK
 from abh3_supervisor.core.diagnostics import Health, Level, Status
-from abh3_supervisor.core.inputs import DEFAULT_TIMEOUT, Feed, InputFeed, InputSource
+from abh3_supervisor.core.inputs import DEFAULT_TIMEOUT, Feed, InputSource
 from abh3_supervisor.core.odometry import Odometer, Pose, yaw_quaternion
 from abh3_supervisor.core.robot import RobotConfig, from_geometry, motor_speeds
 from abh3_supervisor.core.state import Feedback, Setpoint
@@ -37,6 +37,7 @@ from abh3_supervisor.core.supervisor import (
 from abh3_supervisor.core.twist_limits import fastest_twist
 from abh3_supervisor.errors import CommandError, PluginError
 from abh3_supervisor.plugin_host import terminal
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.hookspecs import PROJECT, THREADS_BELOW_LOOP, hookimpl
 from abh3_supervisor.plugin_host.view import (
     BusCounters,

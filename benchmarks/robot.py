@@ -17,8 +17,9 @@ import math
 import time
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.core.inputs import InputFeed, InputSource, Twist
+from abh3_supervisor.core.inputs import InputSource, Twist
 from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.plugin_host.feed import InputFeed
 from benchmarks.report import Row, machine, median_of, print_rows
 
 UNITS = """

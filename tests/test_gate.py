@@ -12,9 +12,10 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import VerifyMode
 from abh3_supervisor.core.commands import RESPONSE_INVALID, VelocityCommand
 from abh3_supervisor.core.gate import ESTOP_POWER_OFF_S, MotionGate
-from abh3_supervisor.core.inputs import InputFeed, InputSource, Twist
+from abh3_supervisor.core.inputs import InputSource, Twist
 from abh3_supervisor.core.verify import Row, State, Verification
 from abh3_supervisor.errors import CommandError
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from tests.support.rig import TWO_UNITS, Rig

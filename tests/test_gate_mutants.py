@@ -13,10 +13,11 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Fault, FaultKind, VerifyMode
 from abh3_supervisor.core.commands import RESPONSE_INVALID, VelocityCommand
 from abh3_supervisor.core.gate import MotionGate
-from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
+from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputSource
 from abh3_supervisor.core.verify import State, Verification
 from abh3_supervisor.core.verifying import verify_units
 from abh3_supervisor.errors import CommandError
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED

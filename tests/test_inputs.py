@@ -12,11 +12,11 @@ from abh3_supervisor.core.inputs import (
     ZERO,
     InputArbiter,
     InputCommand,
-    InputFeed,
     InputSource,
     Twist,
     VelocityYX,
 )
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import StatusEvent

@@ -13,8 +13,9 @@ from pathlib import Path
 import pytest
 
 from abh3_supervisor.core.commands import VelocityCommand
-from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
+from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputSource
 from abh3_supervisor.core.supervisor import Notice
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
 from tests.support.headless import headless_demo

@@ -16,9 +16,10 @@ from typing import Any
 import pytest
 
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputSource
 from abh3_supervisor.errors import PluginError
 from abh3_supervisor.plugin_host import host as plugin_host
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.bus_runtime import Runtime

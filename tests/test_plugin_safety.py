@@ -22,11 +22,12 @@ import pytest
 
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Config
-from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputSource
 from abh3_supervisor.core.kinematics import ab_to_yx
 from abh3_supervisor.core.supervisor import Notice, SupervisorEvent
 from abh3_supervisor.errors import PluginError, RunError
 from abh3_supervisor.plugin_host import host as plugin_host
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.hookspecs import THREADS_BELOW_LOOP, hookimpl
 from abh3_supervisor.plugin_host.host import GROUP, MAX_FAILURES, PluginHost
 from abh3_supervisor.protocol.generation import Generation

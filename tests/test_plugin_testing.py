@@ -10,7 +10,8 @@ import pytest
 
 from abh3_supervisor import plugin_testing
 from abh3_supervisor.config.source import Section
-from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputSource
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_testing import (
     PluginRun,

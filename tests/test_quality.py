@@ -130,3 +130,51 @@ def test_the_import_rule_sees_every_form_of_import(tmp_path: Path) -> None:
     )
     found = imports_of_ours(path)
     assert found == {"core", "service", "runtime", "clients", "<a relative import>"}
+
+
+def modules_imported(path: Path) -> set[str]:
+    """Every module ``path`` imports, by its full name, wherever in it the import is
+    (``from a.b import c`` names ``a.b`` and ``a.b.c``: ``c`` may be a module)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = "." * node.level + (node.module or "")
+            found.add(base)
+            found.update(f"{base}.{a.name}" if node.module else base + a.name for a in node.names)
+    return found
+
+
+def test_the_core_has_no_clock_and_starts_no_thread() -> None:
+    """The core is sans-I/O (docs/architecture.md): it is given the time and called on the
+    loop; the threads and the clock of the input sources' feed are the plugin host's
+    (plugin_host/feed.py)."""
+    wrong = [
+        f"{path.relative_to(PACKAGE)} imports {name}"
+        for path in sorted((PACKAGE / "core").glob("*.py"))
+        for name in sorted(modules_imported(path))
+        if name.split(".")[0] in ("time", "threading")
+    ]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_arbitration_does_not_import_the_supervisor() -> None:
+    """core/inputs.py knows the supervisor only as the protocol it names (``Commander``):
+    the supervisor imports the arbitration, never the other way round."""
+    names = modules_imported(PACKAGE / "core" / "inputs.py")
+    assert not names & {"abh3_supervisor.core.supervisor", ".supervisor"}, names
+
+
+def test_the_import_checks_see_every_form(tmp_path: Path) -> None:
+    path = tmp_path / "m.py"
+    path.write_text(
+        "import time\n"
+        "from threading import Lock\n"
+        "from abh3_supervisor.core import supervisor\n"
+        "def f() -> None:\n"
+        "    import time as clock\n"
+        "from . import supervisor\n"
+    )
+    found = modules_imported(path)
+    assert {"time", "threading", "abh3_supervisor.core.supervisor", ".supervisor"} <= found

@@ -115,7 +115,7 @@ class Bridged:
     def _register(self, source: InputSource) -> None:
         self.sources[source.name] = source
         self.rig.sup.arbiter.add(source)
-        source.start(SyncFeed(self.rig.sup, source))  # type: ignore[arg-type]
+        source.start(SyncFeed(self.rig.sup, source))
 
     def _observe(self, event: object) -> None:
         """The plugin host's translation of events into hooks (host.py), on this thread."""

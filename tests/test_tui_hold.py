@@ -21,8 +21,9 @@ from abh3_supervisor.clients.tui.hold import (
     Drive,
     HeldKey,
 )
-from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputFeed, InputSource
+from abh3_supervisor.core.inputs import ZERO, InputArbiter, InputCommand, InputSource
 from abh3_supervisor.core.inputs import Twist as Motion
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.service.server import CLIENT_TIMEOUT_S
 
 UP = Drive(("left",), 0.2, 0.0)

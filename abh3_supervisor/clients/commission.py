@@ -40,12 +40,13 @@ from abh3_supervisor.commission.robot import RobotResult
 from abh3_supervisor.commission.sequence import SOURCE_TIMEOUT_S, commission
 from abh3_supervisor.commission.unit import Aborted, RobotView, UnitResult
 from abh3_supervisor.config.model import Config, Role
-from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputSource
 from abh3_supervisor.core.kinematics import ab_to_yx
 from abh3_supervisor.core.verify import Verification
 from abh3_supervisor.errors import Abh3Error, ConfigError, RunError
 from abh3_supervisor.params import table
 from abh3_supervisor.params.telabh3 import Command
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime import signals
 from abh3_supervisor.runtime.bus_runtime import Runtime

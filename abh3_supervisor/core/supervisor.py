@@ -36,7 +36,6 @@ from abh3_supervisor.core.inputs import (
     DEFAULT_TIMEOUT,
     InputArbiter,
     InputCommand,
-    InputFeed,
     InputSource,
     Stop,
     Twist,
@@ -1277,7 +1276,7 @@ class _Api(InputSource):
     """The source behind a programmatic command (``api:<unit>``, ``startup:<unit>``): it
     has no device and no thread; its commands are submitted by the Supervisor itself."""
 
-    def start(self, feed: InputFeed) -> None:
+    def start(self, feed: object) -> None:
         pass
 
     def stop(self) -> None:

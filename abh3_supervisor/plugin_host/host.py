@@ -40,7 +40,7 @@ import pluggy
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.config.schema import ON_ERROR_VALUES
 from abh3_supervisor.config.source import Section, Source
-from abh3_supervisor.core.inputs import InputArbiter, InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputArbiter, InputSource
 from abh3_supervisor.core.journal import Entry, Reader
 from abh3_supervisor.core.supervisor import (
     EstopChange,
@@ -51,6 +51,7 @@ from abh3_supervisor.core.supervisor import (
 )
 from abh3_supervisor.errors import Abh3Error, ConfigError, PluginError, did_you_mean
 from abh3_supervisor.plugin_host import hookspecs, inventory, tick, validate
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.view import SupervisorView
 from abh3_supervisor.scheduler.core import FeedbackEvent, HealthEvent, StatusEvent
 

@@ -45,7 +45,6 @@ from abh3_supervisor.core.eventlog import EventLog
 from abh3_supervisor.core.inputs import (
     CommandOutcome,
     InputCommand,
-    InputFeed,
     InputSource,
     Motion,
     Twist,
@@ -58,6 +57,7 @@ from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.core.text import clean
 from abh3_supervisor.errors import Abh3Error, CommandError
 from abh3_supervisor.params.telabh3 import Command
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.terminal import KeyInput
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service import paths

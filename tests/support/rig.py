@@ -6,7 +6,7 @@ import math
 from collections.abc import Callable
 
 from abh3_supervisor.config import Config
-from abh3_supervisor.core.inputs import InputFeed, InputSource
+from abh3_supervisor.core.inputs import InputSource
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.simulator import SimBus
 from abh3_supervisor.simulator.timeline import Timeline
@@ -66,7 +66,7 @@ def present(sup: Supervisor, unit: str) -> str:
 
 
 class _TestSource(InputSource):
-    def start(self, feed: InputFeed) -> None:
+    def start(self, feed: object) -> None:
         pass
 
     def stop(self) -> None:
