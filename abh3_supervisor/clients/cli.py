@@ -706,7 +706,7 @@ def _plugins(config: Config) -> PluginHost:
 def _check(config: Config, as_json: bool) -> int:
     import json
 
-    from abh3_supervisor.config.advice import warnings
+    from abh3_supervisor.config.advice import odometry, warnings
     from abh3_supervisor.core.planner import overloads, plan
 
     plans = plan(config)
@@ -741,6 +741,8 @@ def _check(config: Config, as_json: bool) -> int:
                 )
             if p.warning:
                 print(f"  warning: {p.warning}")
+        for line in odometry(config):  # per robot: its odom's rate and source
+            print(line)
         for warning in advice:
             print(f"warning: {warning}")
     report(refused)

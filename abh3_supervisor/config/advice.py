@@ -4,6 +4,8 @@ no speed limit, motion at start — is said there, never refused (docs/robots.md
 
 from __future__ import annotations
 
+from typing import Any
+
 from abh3_supervisor.config.model import Config, Role, UnitConfig
 from abh3_supervisor.config.source import Path, dotted
 from abh3_supervisor.core.commands import CurrentCommand, VelocityCommand, parse_command
@@ -65,3 +67,47 @@ def _moves(text: str) -> bool:
 def _where(config: Config, path: Path) -> str:
     line = config.source.line(path) if config.source is not None else 1
     return f"{config.file}:{line}: {dotted(path)}: "
+
+
+def odometry(config: Config) -> list[str]:
+    """One line per robot with a ROS 2 ``odom`` (the ``ros2`` plugin configured): its rate
+    and what its pose rests on (docs/ros2.md, "Odometry")."""
+    section = config.plugins.get("ros2")
+    if "ros2" not in config.plugins:
+        return []
+    raw = section if isinstance(section, dict) else {}
+    robots = raw.get("robots")
+    own: dict[str, Any] = robots if isinstance(robots, dict) else {}
+    out: list[str] = []
+    for robot in config.robots.values():
+        units = [config.units[u] for u in robot.units if u in config.units]
+        if (robot.implicit and not robot.odometry_ready) or not units:
+            continue  # a one-drive robot without pulses_per_rev: no odom, as before
+        command_hz = min(u.command_rate_hz for u in units)
+        found = own.get(robot.name)
+        mine: dict[str, Any] = found if isinstance(found, dict) else {}
+        asked = mine.get("odom_rate_hz", raw.get("odom_rate_hz", 0)) or 0
+        if not isinstance(asked, int | float) or isinstance(asked, bool):
+            asked = 0  # reported by the plugin's own check
+        rate = (
+            f"{command_hz:g} Hz (the command rate)"
+            if not asked or asked >= command_hz
+            else f"{asked:g} Hz (odom_rate_hz; the command rate is {command_hz:g} Hz)"
+        )
+        blind = [w.name for w in robot.wheels if w.pulses_per_rev <= 0]
+        silent = [u.name for u in units if 4 not in u.broadcast.packets]
+        if blind or silent:
+            why = (
+                f"wheel {', '.join(blind)} without pulses_per_rev"
+                if blind
+                else f"unit {', '.join(silent)} without bit 4 in broadcast.mask"
+            )
+            source = f"velocity feedback integrated ({why})"
+        else:
+            hz = min(u.broadcast.rate_hz / len(u.broadcast.packets) for u in units)
+            source = (
+                f"pulse counts (broadcast 4, about {hz:g} Hz), velocity feedback "
+                "integrated between them"
+            )
+        out.append(f"robot {robot.name}: odom at {rate}; pose from {source}")
+    return out

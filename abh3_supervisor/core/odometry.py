@@ -208,24 +208,143 @@ class PulseOdometry:
         return pose
 
 
+# pose covariance (x, y, yaw variances) by what the pose rests on: the pulse counts'
+# latest round (and the feedback of less than one command period since it), the velocity
+# feedback integrated since the last round, or the feedback alone (no pulse counts)
+POSE_VARIANCE: dict[str, tuple[float, float, float]] = {
+    "pulses": (1e-6, 1e-6, 1e-5),
+    "integrated": (1e-4, 1e-4, 1e-3),
+    "feedback": (1e-2, 1e-2, 1e-1),
+}
+PLANAR_VARIANCE = 1e-9  # z, roll, pitch: a ground robot's, known to be zero
+TWIST_VARIANCE = (1e-4, 1e-9, 1e-3)  # linear.x, linear.y (no side slip), angular.z
+
+
+def covariance(x: float, y: float, yaw: float) -> list[float]:
+    """A row-major 6×6 covariance with the (x, y, z, roll, pitch, yaw) variances on its
+    diagonal; z, roll and pitch :data:`PLANAR_VARIANCE`."""
+    out = [0.0] * 36
+    for i, v in enumerate((x, y, PLANAR_VARIANCE, PLANAR_VARIANCE, PLANAR_VARIANCE, yaw)):
+        out[7 * i] = v
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """The robot at one feedback round (every unit's DP0 reply of one command period).
+
+    ``source`` says what the pose rests on: ``pulses`` (a round of pulse counts completed
+    since the last sample: the pose is that round's, carried on to ``t`` by the feedback),
+    ``integrated`` (the feedback integrated since the last round of counts) or
+    ``feedback`` (no pulse counts: the feedback integrated from the start). ``positions``
+    [rad] and ``velocities`` [rad/s] are the wheels' (in the robot's order), each
+    positive when it rolls the robot forward (mounting sign applied).
+    """
+
+    t: float
+    pose: Pose
+    linear_x: float
+    angular_z: float
+    source: str
+    positions: tuple[float, ...]
+    velocities: tuple[float, ...]
+
+    @property
+    def pose_covariance(self) -> list[float]:
+        return covariance(*POSE_VARIANCE[self.source])
+
+    @property
+    def twist_covariance(self) -> list[float]:
+        return covariance(*TWIST_VARIANCE)
+
+
+def _arc(p: Pose, linear_x: float, angular_z: float, dt: float) -> Pose:
+    """``p`` moved on by a constant twist for ``dt`` (midpoint heading, as the rounds)."""
+    distance, turn = linear_x * dt, angular_z * dt
+    heading = p.yaw + turn / 2
+    yaw = math.atan2(math.sin(p.yaw + turn), math.cos(p.yaw + turn))
+    return Pose(p.x + distance * math.cos(heading), p.y + distance * math.sin(heading), yaw)
+
+
+def measured_twist(
+    robot: RobotConfig, geometry: Geometry | None, given: Mapping[str, Feedback]
+) -> tuple[float, float]:
+    """(linear.x, angular.z) of every unit's velocity feedback (``geometry``: the seed's
+    one-drive conversion, to the bit)."""
+    if geometry is not None:
+        fbk = given[robot.units[0]]
+        return yx_to_twist(fbk.vel_y, fbk.vel_x, geometry)
+    speeds = {(u, axis): (f.vel_a, f.vel_b)[axis] for u, f in given.items() for axis in (0, 1)}
+    return twist_of(robot, speeds)
+
+
 class Odometer:
     """A robot's odometry: its pose from every wheel's pulse counts and its measured
     twist from every wheel's velocity feedback. ``geometry``: the robot is the one-drive
-    robot of that unit's geometry (the seed's conversion for both, to the bit)."""
+    robot of that unit's geometry (the seed's conversion for both, to the bit).
 
-    def __init__(self, robot: RobotConfig, geometry: Geometry | None = None) -> None:
+    Live, at the command rate (:meth:`feedback`): every round of DP0 replies (each unit's
+    once) gives a :class:`Sample`: the twist from that feedback, the pose from the last
+    round of pulse counts carried on by the feedback since it, or — ``counts`` False, or
+    a wheel without ``pulses_per_rev`` — from the feedback alone.
+    """
+
+    def __init__(
+        self, robot: RobotConfig, geometry: Geometry | None = None, *, counts: bool = True
+    ) -> None:
         self.robot, self.geometry = robot, geometry
-        self.odometry = (
-            RobotOdometry(robot) if geometry is None else of_geometry(robot.units[0], geometry)
+        ready = robot.odometry_ready if geometry is None else geometry.pulses_per_rev > 0
+        self.odometry: RobotOdometry | None = None
+        if counts and ready:
+            self.odometry = (
+                RobotOdometry(robot) if geometry is None else of_geometry(robot.units[0], geometry)
+            )
+        wheels = robot.wheels
+        # a wheel's joint: rad per motor min⁻¹ [rad/s] and per pulse, mounting sign applied
+        self._rad_per_min = tuple(w.sign * 2 * math.pi / 60 / w.gear_ratio for w in wheels)
+        self._rad_per_pulse = tuple(
+            w.sign * 2 * math.pi / (w.pulses_per_rev * w.gear_ratio) if w.pulses_per_rev else 0.0
+            for w in wheels
         )
+        self._feedback: dict[str, Feedback] = {}
+        self._fresh: set[str] = set()
+        self._counts: dict[str, tuple[float | None, tuple[int, int], tuple[int, int]]] = {}
+        self._anchor: tuple[Pose, float | None] | None = None  # a new round of counts
+        self._anchored = False  # a round of counts has been seen
+        self._last: Sample | None = None
 
     @property
     def units(self) -> tuple[str, ...]:
         return self.robot.units
 
+    @property
+    def counts(self) -> bool:
+        """The pose rests on pulse counts (broadcast 4)."""
+        return self.odometry is not None
+
+    @staticmethod
+    def pose_covariance(source: str) -> list[float]:
+        """The pose covariance that says ``source`` (a :class:`Sample`'s)."""
+        return covariance(*POSE_VARIANCE[source])
+
     def pulses(self, unit: str, pulse_a: int, pulse_b: int, t: float | None = None) -> Pose | None:
         """``unit``'s counts, reported at ``t``; the pose when they complete a round."""
-        return self.odometry.update(unit, pulse_a, pulse_b, t)
+        if self.odometry is None:
+            return None
+        if unit in self.units:
+            old = self._counts.get(unit)
+            if old is None:
+                unwrapped = (pulse_a, pulse_b)
+            else:
+                (ua, ub), (ra, rb) = old[1], old[2]
+                unwrapped = (ua + _step(pulse_a, ra), ub + _step(pulse_b, rb))
+            self._counts[unit] = (t, unwrapped, (pulse_a, pulse_b))
+        pose = self.odometry.update(unit, pulse_a, pulse_b, t)
+        if pose is not None:
+            times = [c[0] for c in self._counts.values()]
+            at = None if any(x is None for x in times) else min(x for x in times if x is not None)
+            self._anchor = (pose, at)
+        return pose
 
     def twist(self, feedback: Mapping[str, Feedback | None]) -> tuple[float, float]:
         """(linear.x, angular.z) the units' latest velocity feedback amounts to, every
@@ -233,17 +352,58 @@ class Odometer:
         given = {u: feedback.get(u) for u in self.robot.units}
         if any(f is None for f in given.values()):
             return 0.0, 0.0
-        if self.geometry is not None:
-            fbk = given[self.robot.units[0]]
-            assert fbk is not None
-            return yx_to_twist(fbk.vel_y, fbk.vel_x, self.geometry)
-        speeds = {
-            (u, axis): (f.vel_a, f.vel_b)[axis]
-            for u, f in given.items()
-            if f is not None
-            for axis in (0, 1)
-        }
-        return twist_of(self.robot, speeds)
+        return measured_twist(self.robot, self.geometry, {u: f for u, f in given.items() if f})
+
+    def feedback(self, unit: str, fbk: Feedback) -> Sample | None:
+        """``unit``'s DP0 feedback; a :class:`Sample` when every unit of the robot has
+        given feedback since the last one, else None."""
+        if unit not in self.units:
+            return None
+        self._feedback[unit] = fbk
+        self._fresh.add(unit)
+        if len(self._fresh) < len(self.units):
+            return None
+        self._fresh = set()
+        t = max(f.t for f in self._feedback.values())
+        linear_x, angular_z = measured_twist(self.robot, self.geometry, self._feedback)
+        velocities = tuple(
+            k * (f.vel_a, f.vel_b)[w.axis]
+            for w, k in zip(self.robot.wheels, self._rad_per_min, strict=True)
+            for f in (self._feedback[w.unit],)
+        )
+        last = self._last
+        if self._anchor is not None:  # a new round of counts: the pose is its
+            pose, at = self._anchor
+            self._anchor, self._anchored, source = None, True, "pulses"
+            pose = _arc(pose, linear_x, angular_z, t - at) if at is not None else pose
+        elif last is None:
+            pose, source = Pose(), "feedback"
+        else:  # between rounds, or without counts: the feedback, trapezoidal
+            source = "integrated" if self._anchored else "feedback"
+            mean = ((last.linear_x + linear_x) / 2, (last.angular_z + angular_z) / 2)
+            pose = _arc(last.pose, *mean, t - last.t)
+        sample = self._last = Sample(
+            t, pose, linear_x, angular_z, source, self._positions(t, velocities), velocities
+        )
+        return sample
+
+    def _positions(self, t: float, velocities: tuple[float, ...]) -> tuple[float, ...]:
+        """Each wheel's angle [rad]: its pulse count, carried on to ``t`` by its
+        feedback; without counts its feedback integrated (trapezoidal)."""
+        last = self._last
+        out = []
+        for i, w in enumerate(self.robot.wheels):
+            counted = self._counts.get(w.unit) if self.odometry is not None else None
+            if counted is not None:
+                at, unwrapped = counted[0], counted[1]
+                since = 0.0 if at is None else t - at
+                out.append(unwrapped[w.axis] * self._rad_per_pulse[i] + velocities[i] * since)
+            elif last is None:
+                out.append(0.0)
+            else:
+                mean = (last.velocities[i] + velocities[i]) / 2
+                out.append(last.positions[i] + mean * (t - last.t))
+        return tuple(out)
 
 
 def odometers(config: Config) -> Iterator[Odometer]:
