@@ -78,11 +78,12 @@ def test_the_node_and_its_entities_are_in_ros_discovery_info_with_their_dds_guid
     assert (node.node_namespace, node.node_name) == ("/", "abh3_supervisor")
     announced_writers = {_guid(g.data) for g in node.writer_gid_seq}
     announced_readers = {_guid(g.data) for g in node.reader_gid_seq}
-    # feedback 2, brd0/1/4 (mask 0x13), odom, conversions 6, the two services' replies
-    # (inp_service, the robot's enable), diagnostics
-    assert len(announced_writers) == 15
-    # brd_num, xa/yx/ab, vel_cmd, cur_cmd, cmd_vel, inp_data, the two services' requests
-    assert len(announced_readers) == 10
+    # feedback 2, brd0/1/4 (mask 0x13), odom, tf, joint_states, conversions 6, the two
+    # services' replies (inp_service, the robot's enable), diagnostics
+    assert len(announced_writers) == 17
+    # brd_num, xa/yx/ab, vel_cmd, cur_cmd, cmd_vel, joint_commands, inp_data, the two
+    # services' requests
+    assert len(announced_readers) == 11
 
     # what DDS discovery says the supervisor's participant has, keyed by endpoint GUID
     wire: dict[str, dict[uuid.UUID, str]] = {"pub": {}, "sub": {}}
@@ -105,6 +106,9 @@ def test_the_node_and_its_entities_are_in_ros_discovery_info_with_their_dds_guid
         "rt/left/vel_fbk_ab",
         "rt/left/brd0_data",
         "rt/left/odom",
+        "rt/tf",
+        "rt/left/joint_states",
+        "rt/left/joint_commands",
         "rt/diagnostics",
         "rt/left/vel_cmd",
         "rt/left/cmd_vel",

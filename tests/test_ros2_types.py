@@ -145,3 +145,56 @@ def _zeros(t: Any, ros: str) -> list[Any]:
         return [0]
     vector = t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0)
     return [vector, vector]
+
+
+def test_tf_joint_state_and_twist_stamped_match_rosbags_stock_messages() -> None:
+    """/tf (tf2_msgs/TFMessage), joint_states and joint_commands (sensor_msgs/JointState)
+    and a stamped cmd_vel (geometry_msgs/TwistStamped), byte for byte (issue 51)."""
+    np = pytest.importorskip("numpy")
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    t = ts.types
+    header = types.Header(types.Time(12, 345), "odom")
+    theirs_header = t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](12, 345), "odom")
+    vector, quaternion = t["geometry_msgs/msg/Vector3"], t["geometry_msgs/msg/Quaternion"]
+    tf = types.TFMessage(
+        [
+            types.TransformStamped(
+                header,
+                "base_link",
+                types.Transform(types.Vector3(1.0, 2.0), types.Quaternion(0.0, 0.0, 0.38, 0.92)),
+            )
+        ]
+    )
+    theirs_tf = t["tf2_msgs/msg/TFMessage"](
+        [
+            t["geometry_msgs/msg/TransformStamped"](
+                theirs_header,
+                "base_link",
+                t["geometry_msgs/msg/Transform"](
+                    vector(1.0, 2.0, 0.0), quaternion(0.0, 0.0, 0.38, 0.92)
+                ),
+            )
+        ]
+    )
+    assert tf.serialize() == bytes(ts.serialize_cdr(theirs_tf, "tf2_msgs/msg/TFMessage"))
+    joints = types.JointState(header, ["l", "r_joint"], [1.5, -2.25], [0.5, 0.25], [])
+    theirs_joints = t["sensor_msgs/msg/JointState"](
+        theirs_header,
+        ["l", "r_joint"],
+        np.array([1.5, -2.25]),
+        np.array([0.5, 0.25]),
+        np.array([], dtype=float),
+    )
+    ros = "sensor_msgs/msg/JointState"
+    assert joints.serialize() == bytes(ts.serialize_cdr(theirs_joints, ros))
+    back = types.JointState.deserialize(bytes(ts.serialize_cdr(theirs_joints, ros)))
+    assert (list(back.name), list(back.velocity)) == (["l", "r_joint"], [0.5, 0.25])
+    stamped = types.TwistStamped(header, types.Twist(types.Vector3(0.5), types.Vector3(z=0.2)))
+    theirs_stamped = t["geometry_msgs/msg/TwistStamped"](
+        theirs_header,
+        t["geometry_msgs/msg/Twist"](vector(0.5, 0.0, 0.0), vector(0.0, 0.0, 0.2)),
+    )
+    ros = "geometry_msgs/msg/TwistStamped"
+    assert stamped.serialize() == bytes(ts.serialize_cdr(theirs_stamped, ros))
+    assert types.TFMessage.__idl_typename__ == "tf2_msgs::msg::dds_::TFMessage_"
+    assert types.JointState.__idl_typename__ == "sensor_msgs::msg::dds_::JointState_"

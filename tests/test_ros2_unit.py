@@ -22,7 +22,7 @@ from abh3_plugins.ros2.bridge import Ros2Plugin, UnitBridge
 from abh3_plugins.ros2.settings import Settings
 from abh3_plugins.ros2.transport import open_transport
 from abh3_supervisor.config import parse_config
-from abh3_supervisor.core.state import UnitState
+from abh3_supervisor.core.state import Feedback, UnitState
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_api import UnitView
 from abh3_supervisor.plugin_host.host import PluginHost
@@ -151,9 +151,12 @@ def test_brd_num_in_the_mask_only_and_status_request_publishes_only_answers() ->
 
 def test_status_poll_publishes_everything_and_odometry_follows_the_pulses() -> None:
     b, t, _ = bridge(Settings(odom_frame="map", base_frame="robot"))
-    b.status(4, frames.Brd4(0, 0))
-    b.status(4, frames.Brd4(1000, 1000))  # one motor revolution forward
+    b.status(4, frames.Brd4(0, 0), 0.0)
+    b.feedback(Feedback(0.001, 0.0, 0.0, 0.0, 0.0))  # odom comes with the DP0 replies
+    b.status(4, frames.Brd4(1000, 1000), 0.02)  # one motor revolution forward
     assert [m.pulse_a for m in t.published["/left/brd4_data"]] == [0, 1000]
+    assert len(t.published["/left/odom"]) == 1
+    b.feedback(Feedback(0.021, 0.0, 0.0, 0.0, 0.0))  # standing: the counts' pose exactly
     odom = t.published["/left/odom"][-1]
     assert odom.pose.pose.position.x == pytest.approx(1 / 10 * 0.1 * math.pi)  # r · wheel · π
     assert (odom.header.frame_id, odom.child_frame_id) == ("map", "robot")

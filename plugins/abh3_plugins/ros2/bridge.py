@@ -247,6 +247,8 @@ class UnitBridge(InputSource):
         msg = self.t.msg
         self.fbk_ab(msg.Abh3Velocity(vel_ay=feedback.vel_a, vel_bx=feedback.vel_b))
         self.fbk_yx(msg.Abh3Velocity(vel_ay=feedback.vel_y, vel_bx=feedback.vel_x))
+        if self.robot is not None:
+            self.robot.feedback(self.unit.name, feedback)
 
     def status(self, packet: int, record: frames.Broadcast, t: float | None = None) -> None:
         asked = packet in self.requested
@@ -327,9 +329,7 @@ class Ros2Plugin:
                 robot.name,
                 ", ".join(robot.units),
                 self.settings.name(robot.name, "cmd_vel"),
-                self.settings.name(robot.name, "odom")
-                if robot.odometry_ready
-                else "no odom (a wheel without pulses_per_rev)",
+                self.settings.name(robot.name, "odom"),
             )
 
     @hookimpl
@@ -345,6 +345,8 @@ class Ros2Plugin:
         bridge = self.units.get(unit)  # none if the transport failed to start (logged)
         if bridge is not None:
             bridge.feedback(feedback)
+        for robot in self._robots_of.get(unit, ()):
+            robot.feedback(unit, feedback)
 
     @hookimpl
     def abh3_status(

@@ -39,10 +39,16 @@ MESSAGES = {
         "Pose",
         "PoseWithCovariance",
         "TwistWithCovariance",
+        "TwistStamped",
+        "Transform",
+        "TransformStamped",
     ),
     "nav_msgs.msg": ("Odometry",),
     "diagnostic_msgs.msg": ("DiagnosticArray", "DiagnosticStatus", "KeyValue"),
 }
+# in every ROS 2 install, but not always in a minimal one: without them the bridge has
+# no /tf (tf2_msgs) or no joint_states and joint_commands (sensor_msgs), and says so
+OPTIONAL = {"tf2_msgs.msg": ("TFMessage",), "sensor_msgs.msg": ("JointState",)}
 
 
 class InterfaceMissing(RuntimeError):
@@ -55,6 +61,12 @@ def messages() -> SimpleNamespace:
     try:
         for module, names in MESSAGES.items():
             imported = importlib.import_module(module)
+            found.update((name, getattr(imported, name)) for name in names)
+        for module, names in OPTIONAL.items():
+            try:
+                imported = importlib.import_module(module)
+            except ImportError:
+                continue
             found.update((name, getattr(imported, name)) for name in names)
         found["srv"] = importlib.import_module("abh3_can_interface.srv").Abh3Input
         found["byte"] = lambda value: bytes([value])  # rclpy's `byte` fields take bytes

@@ -17,20 +17,24 @@ source (shared with its ``vel_cmd``), the seed's conversion and ``odom_frame`` /
 from __future__ import annotations
 
 import concurrent.futures
+import logging
 import time
+import weakref
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from abh3_plugins.ros2.settings import Settings
+from abh3_plugins.ros2.settings import Settings, joint_name
 from abh3_plugins.ros2.transport import Transport
-from abh3_plugins.ros2.values import Guard, twist, twist_values
+from abh3_plugins.ros2.values import Guard, Refused, twist, twist_values, within
 from abh3_supervisor.plugin_api import (
     RESPONSE_INVALID,
+    Feedback,
     InputFeed,
     InputSource,
     Odometer,
     Pose,
     RobotConfig,
+    Role,
     UnitView,
     frames,
     kinematics,
@@ -38,12 +42,57 @@ from abh3_supervisor.plugin_api import (
     yaw_quaternion,
 )
 
+log = logging.getLogger("abh3_plugins.ros2.bridge")
+
+
+_shared: weakref.WeakKeyDictionary[Any, dict[str, Any]] = weakref.WeakKeyDictionary()
+
+
+def shared_publisher(t: Transport, name: str, typ: type) -> Any:
+    """One publisher per name and transport (every robot's transform goes on ``/tf``)."""
+    publishers = _shared.setdefault(t, {})
+    if name not in publishers:
+        publishers[name] = t.publisher(name, typ)
+    return publishers[name]
+
+
+class Pacer:
+    """Which samples of the command rate go out at ``rate_hz``: on a fixed grid, a sample
+    within half a command period of its slot taken (so 20 Hz from 50 Hz is 20 Hz)."""
+
+    def __init__(self, rate_hz: float, command_hz: float) -> None:
+        self.period = 0.0 if rate_hz >= command_hz else 1.0 / rate_hz
+        self.slack = 0.5 / command_hz
+        self.due: float | None = None
+
+    def __call__(self, t: float) -> bool:
+        if self.period == 0.0:
+            return True
+        if self.due is not None and t < self.due - self.slack:
+            return False
+        self.due = (
+            t + self.period
+            if self.due is None or t > self.due + self.period
+            else (self.due + self.period)
+        )
+        return True
+
+
+def stamp(msg: Any, ns: int) -> Any:
+    return msg.Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
 
 class RobotTopics:
-    """A robot's ``cmd_vel`` (``commands``) and ``odom`` (when its odometry is known).
+    """A robot's ``cmd_vel`` and ``joint_commands`` (``commands``), and its ``odom``,
+    ``/tf`` transform and ``joint_states``.
 
-    ``geometry`` given: the one-drive robot of that unit's geometry (the seed's
-    conversion). ``feed`` is read at every message: None once the inputs stopped.
+    Odometry comes at the command rate (at most ``odom_rate_hz``): every round of its
+    drives' DP0 replies gives a sample (core/odometry.py), its pose from the pulse counts
+    (broadcast 4) carried on by the feedback between their rounds, or from the feedback
+    alone where there are none. A robot of monitor units (no DP0 replies) publishes at its
+    rounds of pulse counts, as before. ``geometry`` given: the one-drive robot of that
+    unit's geometry (the seed's conversion). ``feed`` is read at every message: None once
+    the inputs stopped.
     """
 
     def __init__(
@@ -63,13 +112,49 @@ class RobotTopics:
         self.states, self.feed, self.frame_ids = states, feed, frame_ids
         self.geometry = geometry
         self.guard = guard or Guard(f"robot {robot.name}")
-        ready = robot.odometry_ready if geometry is None else geometry.pulses_per_rev > 0
-        self.odometer = Odometer(robot, geometry) if ready else None
+        own = self.own = settings.of(robot.name)
+        msg = t.msg
+        cfgs = [states[u].cfg for u in robot.units]
+        # DP0 replies clock the odometry; a monitor unit has none: its pulse counts do
+        self.live = all(c.role is Role.COMMAND for c in cfgs)
+        counts = all(4 in c.broadcast.packets for c in cfgs)
+        ready = geometry.pulses_per_rev > 0 if geometry is not None else True
+        self.odometer = Odometer(robot, geometry, counts=counts) if ready else None
+        self.command_hz = min(c.command_rate_hz for c in cfgs)
+        self.pace = Pacer(own.odom_rate_hz or self.command_hz, self.command_hz)
+        self.tf = None
         if self.odometer is not None:
-            self.odom = t.publisher(self.name_of("odom"), t.msg.Odometry)
+            self.odom = t.publisher(self.name_of("odom"), msg.Odometry)
+            if own.odom_tf:
+                if hasattr(msg, "TFMessage"):
+                    self.tf = shared_publisher(t, settings.tf_name(robot.name), msg.TFMessage)
+                else:
+                    log.warning("ros2: robot %s: tf2_msgs is not importable: no /tf", robot.name)
+        self.joints = tuple(
+            own.joints.get(w.name, joint_name(w.unit, w.name[-1])) for w in robot.wheels
+        )
+        joints = own.joint_states and self.live and self.odometer is not None
+        if joints and not hasattr(msg, "JointState"):
+            log.warning(
+                "ros2: robot %s: sensor_msgs is not importable: no joint_states", robot.name
+            )
+            joints = False
+        self.joint_states = (
+            t.publisher(self.name_of("joint_states"), msg.JointState) if joints else None
+        )
         if commands:
-            t.subscribe(self.name_of("cmd_vel"), t.msg.Twist, self.guard("cmd_vel", self.cmd_vel))
+            if own.cmd_vel_stamped:
+                handle, typ = self.cmd_vel_stamped, msg.TwistStamped
+            else:
+                handle, typ = self.cmd_vel, msg.Twist
+            t.subscribe(self.name_of("cmd_vel"), typ, self.guard("cmd_vel", handle))
             t.serve(self.name_of("enable"), self.enable)
+            if joints:
+                t.subscribe(
+                    self.name_of("joint_commands"),
+                    msg.JointState,
+                    self.guard("joint_commands", self.joint_commands),
+                )
 
     def name_of(self, name: str) -> str:
         return self.settings.name(self.robot.name, name)
@@ -88,6 +173,36 @@ class RobotTopics:
         if feed is not None:
             feed.twist(linear_x, angular_z)
 
+    def cmd_vel_stamped(self, m: Any) -> None:
+        """A TwistStamped: older than ``command_timeout_ms`` (a zero stamp too) is stale,
+        refused as silence would be."""
+        age = time.time() - (m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)
+        if age > self.settings.command_timeout:
+            raise Refused(
+                f"stamped {age:.3f} s ago, more than command_timeout_ms "
+                f"{self.settings.command_timeout * 1000:g}: stale"
+            )
+        self.cmd_vel(m.twist)
+
+    def joint_commands(self, m: Any) -> None:
+        """A JointState's velocities [rad/s] for the robot's wheel joints (others ignored):
+        each side the mean of its wheels', as one twist through the same decision, limits,
+        owner and timeout as ``cmd_vel``."""
+        if len(m.velocity) != len(m.name):
+            raise Refused(f"{len(m.name)} names but {len(m.velocity)} velocities")
+        given = dict(zip(m.name, m.velocity, strict=True))
+        missing = [j for j in self.joints if j not in given]
+        if missing:
+            raise Refused(f"no velocity for joint(s) {', '.join(missing)}")
+        within(None, *(given[j] for j in self.joints))
+        sides: dict[str, list[float]] = {"left": [], "right": []}
+        for w, j in zip(self.robot.wheels, self.joints, strict=True):
+            sides[w.side.value].append(given[j] * w.diameter_m / 2)
+        left, right = (sum(v) / len(v) for v in (sides["left"], sides["right"]))
+        feed = self.feed()
+        if feed is not None:
+            feed.twist((left + right) / 2, (right - left) / self.robot.track_m)
+
     def enable(self, command: str) -> concurrent.futures.Future[str]:
         """The robot's ``enable`` service: ``ON`` switches SERVO and START of every wheel axis
         of its drives on as one act, ``OFF`` off; answers ``''`` once every drive reports it
@@ -104,37 +219,84 @@ class RobotTopics:
 
     def status(self, unit: str, record: frames.Broadcast, t: float | None = None) -> None:
         """A unit's status packet (received at ``t`` on the supervisor's clock): its pulse
-        counts move the robot's odometry on."""
+        counts move the robot's odometry on (a monitor robot's publish it)."""
         if self.odometer is None or not isinstance(record, frames.Brd4):
             return
         pose = self.odometer.pulses(unit, record.pulse_a, record.pulse_b, t)
-        if pose is not None:
-            self.odom(self._odometry(pose))
+        if pose is not None and not self.live:
+            linear_x, angular_z = self.odometer.twist(
+                {u: self.states[u].feedback for u in self.robot.units}
+            )
+            covariance = self.odometer.pose_covariance("pulses")
+            self._publish(pose, linear_x, angular_z, covariance, None)
 
-    def _odometry(self, pose: Pose) -> Any:
-        assert self.odometer is not None
+    def feedback(self, unit: str, feedback: Feedback) -> None:
+        """A unit's DP0 feedback: a round of the robot's is a sample of its odometry."""
+        if self.odometer is None or not self.live:
+            return
+        sample = self.odometer.feedback(unit, feedback)
+        if sample is not None and self.pace(sample.t):
+            self._publish(
+                sample.pose,
+                sample.linear_x,
+                sample.angular_z,
+                sample.pose_covariance,
+                sample,
+                sample.twist_covariance,
+            )
+
+    def _publish(
+        self,
+        pose: Pose,
+        linear_x: float,
+        angular_z: float,
+        pose_covariance: list[float],
+        sample: Any,  # core.odometry.Sample, or None
+        twist_covariance: list[float] | None = None,
+    ) -> None:
         msg = self.t.msg
-        # read across threads: each a whole, immutable record
-        linear_x, angular_z = self.odometer.twist(
-            {u: self.states[u].feedback for u in self.robot.units}
-        )
-        now = time.time_ns()
+        now = stamp(msg, time.time_ns())
         qx, qy, qz, qw = yaw_quaternion(pose.yaw)
         frame_id, child_frame_id = self.frame_ids
-        return msg.Odometry(
-            header=msg.Header(
-                stamp=msg.Time(sec=now // 1_000_000_000, nanosec=now % 1_000_000_000),
-                frame_id=frame_id,
-            ),
-            child_frame_id=child_frame_id,
-            pose=msg.PoseWithCovariance(
-                pose=msg.Pose(
-                    position=msg.Point(x=pose.x, y=pose.y),
-                    orientation=msg.Quaternion(x=qx, y=qy, z=qz, w=qw),
-                )
-            ),
-            twist=msg.TwistWithCovariance(twist=twist(msg, linear_x, angular_z)),
+        orientation = msg.Quaternion(x=qx, y=qy, z=qz, w=qw)
+        self.odom(
+            msg.Odometry(
+                header=msg.Header(stamp=now, frame_id=frame_id),
+                child_frame_id=child_frame_id,
+                pose=msg.PoseWithCovariance(
+                    pose=msg.Pose(position=msg.Point(x=pose.x, y=pose.y), orientation=orientation),
+                    covariance=pose_covariance,
+                ),
+                twist=msg.TwistWithCovariance(
+                    twist=twist(msg, linear_x, angular_z),
+                    covariance=twist_covariance or [0.0] * 36,
+                ),
+            )
         )
+        if self.tf is not None:
+            self.tf(
+                msg.TFMessage(
+                    transforms=[
+                        msg.TransformStamped(
+                            header=msg.Header(stamp=now, frame_id=frame_id),
+                            child_frame_id=child_frame_id,
+                            transform=msg.Transform(
+                                translation=msg.Vector3(x=pose.x, y=pose.y), rotation=orientation
+                            ),
+                        )
+                    ]
+                )
+            )
+        if self.joint_states is not None and sample is not None:
+            self.joint_states(
+                msg.JointState(
+                    header=msg.Header(stamp=now, frame_id=""),
+                    name=list(self.joints),
+                    position=list(sample.positions),
+                    velocity=list(sample.velocities),
+                    effort=[],
+                )
+            )
 
 
 class RobotBridge(InputSource):
@@ -167,6 +329,9 @@ class RobotBridge(InputSource):
 
     def status(self, unit: str, record: frames.Broadcast, t: float | None = None) -> None:
         self.topics.status(unit, record, t)
+
+    def feedback(self, unit: str, feedback: Feedback) -> None:
+        self.topics.feedback(unit, feedback)
 
 
 def source_name(robot: str) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import re
 from dataclasses import dataclass, field
@@ -29,7 +30,15 @@ NAMES = (
     "ab_yx",
     "ab_xa",
     "odom",
+    "joint_states",
+    "joint_commands",
+    "tf",
 )
+# the ROS 2 releases whose Nav2 the bridge knows: from Kilted on it publishes TwistStamped
+DISTROS = ("humble", "jazzy", "kilted", "rolling")
+STAMPED_FROM = "kilted"
+ROBOT_KEYS = {"odom_rate_hz", "odom_tf", "cmd_vel_stamped", "joint_states", "joints"}
+_JOINT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _NAME = re.compile(r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
@@ -41,6 +50,23 @@ class QosSettings:
 
 
 CONVERSION_OUT = ("xa_yx", "xa_ab", "yx_xa", "yx_ab", "ab_yx", "ab_xa")
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """One robot's odometry, tf, joint and cmd_vel settings (docs/ros2.md): the section's,
+    with the robot's own under ``robots: {<robot>: …}`` taking precedence."""
+
+    odom_rate_hz: float = 0.0  # 0: the robot's command rate; else at most that
+    odom_tf: bool = True  # odom → base_link on /tf, as diff_drive_controller's enable_odom_tf
+    cmd_vel_stamped: bool = False  # geometry_msgs/TwistStamped, else Twist
+    joint_states: bool = True  # sensor_msgs/JointState out, and (allow_commands) in
+    joints: dict[str, str] = field(default_factory=dict)  # "<unit>.<A|B>" → joint name
+
+
+def joint_name(unit: str, axis: str) -> str:
+    """A wheel's default joint name: ``<unit>_<axis>_wheel_joint`` (``left_a_wheel_joint``)."""
+    return f"{unit}_{axis.lower()}_wheel_joint"
 
 
 @dataclass(frozen=True)
@@ -61,6 +87,18 @@ class Settings:
     discovery: str = "jazzy"
     qos: QosSettings = field(default_factory=QosSettings)
     remap: dict[str, str] = field(default_factory=dict)
+    distro: str = "jazzy"  # the ROS 2 release of the other nodes (Nav2's cmd_vel type)
+    robot: RobotSettings = field(default_factory=RobotSettings)  # every robot's
+    robots: dict[str, RobotSettings] = field(default_factory=dict)  # a robot's own
+
+    def of(self, robot: str) -> RobotSettings:
+        """``robot``'s settings: its own, else the section's."""
+        return self.robots.get(robot, self.robot)
+
+    def tf_name(self, robot: str) -> str:
+        """Where ``robot``'s transform goes: ``/tf``, unless remapped."""
+        target = self.remap.get(f"{robot}/tf", self.remap.get("tf", "/tf"))
+        return target if target.startswith("/") else self.name(robot, target)
 
     def name(self, unit: str, name: str) -> str:
         """The fully qualified ROS name of ``name`` for ``unit`` (or a robot: its
@@ -92,6 +130,9 @@ def parse(section: Section, config: Config) -> Settings:
             "discovery",
             "qos",
             "remap",
+            "distro",
+            "robots",
+            *ROBOT_KEYS - {"joints"},
         }
     )
     d = Settings()
@@ -115,9 +156,49 @@ def parse(section: Section, config: Config) -> Settings:
             depth=q.integer("depth", 10, 1, 10_000),
         ),
         remap=_remap(section.sub("remap", None)),
+        distro=section.choice("distro", d.distro, list(DISTROS)),
     )
+    stamped = DISTROS.index(settings.distro) >= DISTROS.index(STAMPED_FROM)
+    every = _robot_settings(section, RobotSettings(cmd_vel_stamped=stamped), config, None)
+    robots = {}
+    own = section.sub("robots", None)
+    for name, _ in own.items():
+        if name not in config.robots:
+            known = ", ".join(config.robots) or "none"
+            own.error(name, f"no robot named {name!r} (robots: {known})")
+            continue
+        robots[name] = _robot_settings(own.sub(name, ROBOT_KEYS), every, config, name)
+    settings = dataclasses.replace(settings, robot=every, robots=robots)
     _check_names(section, settings, config)
     return settings
+
+
+def _robot_settings(
+    s: Section, d: RobotSettings, config: Config, robot: str | None
+) -> RobotSettings:
+    joints: dict[str, str] = {}
+    if robot is not None:
+        wheels = {w.name: w for w in config.robots[robot].wheels}
+        js = s.sub("joints", None)
+        for key, value in js.items():
+            if key not in wheels:
+                js.error(key, f"not a wheel of robot {robot} (wheels: {', '.join(wheels)})")
+            elif not isinstance(value, str) or not _JOINT.match(value):
+                js.error(key, f"{value!r} is not a joint name (letters, digits, _)")
+            else:
+                joints[key] = value
+        taken: dict[str, str] = {}
+        for w in config.robots[robot].wheels:
+            name = joints.get(w.name, joint_name(w.unit, w.name[-1]))
+            if taken.setdefault(name, w.name) != w.name:
+                js.error(w.name, f"joint {name!r} is also wheel {taken[name]}'s")
+    return RobotSettings(
+        odom_rate_hz=s.number("odom_rate_hz", d.odom_rate_hz, 0.0, 1000.0),
+        odom_tf=s.boolean("odom_tf", d.odom_tf),
+        cmd_vel_stamped=s.boolean("cmd_vel_stamped", d.cmd_vel_stamped),
+        joint_states=s.boolean("joint_states", d.joint_states),
+        joints=joints,
+    )
 
 
 def schema() -> dict[str, Any]:
@@ -149,6 +230,26 @@ def schema() -> dict[str, Any]:
                     "depth": js.integer(1, 10_000, "keep-last depth", 10),
                 }
             ),
+            "distro": js.choice(
+                list(DISTROS),
+                "the ROS 2 release of the other nodes: cmd_vel_stamped's default",
+                d.distro,
+            ),
+            **_robot_schema(),
+            "robots": {
+                "type": ["object", "null"],
+                "description": "a robot's own odometry, tf, joint and cmd_vel settings",
+                "additionalProperties": js.mapping(
+                    {
+                        **_robot_schema(),
+                        "joints": {
+                            "type": ["object", "null"],
+                            "description": "<unit>.<A|B>: the wheel's joint name",
+                            "additionalProperties": {"type": "string", "pattern": _JOINT.pattern},
+                        },
+                    }
+                ),
+            },
             "remap": {
                 "type": ["object", "null"],
                 "description": "name: target, for every unit, or <unit>/name: target",
@@ -157,6 +258,20 @@ def schema() -> dict[str, Any]:
             },
         }
     )
+
+
+def _robot_schema() -> dict[str, Any]:
+    d = RobotSettings()
+    return {
+        "odom_rate_hz": js.number(0.0, 1000.0, "odom and tf per second; 0: the command rate", 0.0),
+        "odom_tf": js.boolean("publish odom → base_link on /tf", d.odom_tf),
+        "cmd_vel_stamped": js.boolean(
+            "cmd_vel is geometry_msgs/TwistStamped (default: false up to Jazzy, true from "
+            "Kilted on, as Nav2 publishes it)",
+            False,
+        ),
+        "joint_states": js.boolean("joint_states out and joint_commands in", d.joint_states),
+    }
 
 
 def _remap(section: Section) -> dict[str, str]:
@@ -179,6 +294,8 @@ def outputs(settings: Settings, unit: UnitConfig) -> list[str]:
     names = ["vel_fbk_ab", "vel_fbk_yx", *(f"brd{n}_data" for n in unit.broadcast.packets)]
     if unit.geometry.pulses_per_rev > 0:
         names.append("odom")
+        if unit.role is Role.COMMAND and settings.of(unit.name).joint_states:
+            names.append("joint_states")
     if settings.conversion:
         names += CONVERSION_OUT
     if settings.allow_commands and unit.role is Role.COMMAND:
@@ -188,7 +305,8 @@ def outputs(settings: Settings, unit: UnitConfig) -> list[str]:
 
 def robot_outputs(robot: RobotConfig, settings: Settings) -> list[str]:
     """The names a declared robot publishes or serves (its ``cmd_vel`` is an input)."""
-    return ["odom"] * robot.odometry_ready + ["enable"] * settings.allow_commands
+    own = settings.of(robot.name)
+    return ["odom", *["joint_states"] * own.joint_states, *["enable"] * settings.allow_commands]
 
 
 def _check_names(section: Section, settings: Settings, config: Config) -> None:

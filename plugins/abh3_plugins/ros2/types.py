@@ -167,6 +167,44 @@ class Odometry(IdlStruct, typename=_name("msg", "Odometry", "nav_msgs")):
     twist: TwistWithCovariance = field(default_factory=TwistWithCovariance)
 
 
+@dataclass
+class TwistStamped(IdlStruct, typename=_name("msg", "TwistStamped", "geometry_msgs")):
+    header: Header = field(default_factory=Header)
+    twist: Twist = field(default_factory=Twist)
+
+
+@dataclass
+class Transform(IdlStruct, typename=_name("msg", "Transform", "geometry_msgs")):
+    translation: Vector3 = field(default_factory=Vector3)
+    rotation: Quaternion = field(default_factory=Quaternion)
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename=_name("msg", "TransformStamped", "geometry_msgs")):
+    header: Header = field(default_factory=Header)
+    child_frame_id: str = ""
+    transform: Transform = field(default_factory=Transform)
+
+
+@dataclass
+class TFMessage(IdlStruct, typename=_name("msg", "TFMessage", "tf2_msgs")):
+    transforms: Annotated[Sequence[TransformStamped], sequence(TransformStamped)] = field(
+        default_factory=list
+    )
+
+
+Floats = Annotated[Sequence[float64], sequence(float64)]
+
+
+@dataclass
+class JointState(IdlStruct, typename=_name("msg", "JointState", "sensor_msgs")):
+    header: Header = field(default_factory=Header)
+    name: Annotated[Sequence[str], sequence(str)] = field(default_factory=list)
+    position: Floats = field(default_factory=list)
+    velocity: Floats = field(default_factory=list)
+    effort: Floats = field(default_factory=list)
+
+
 def byte(value: int) -> int:
     """A ROS ``byte`` field's value: an octet, a plain int here (rclpy wants ``bytes``)."""
     return value
