@@ -29,7 +29,7 @@ from abh3_supervisor.errors import Abh3Error, BusOpenError
 
 log = logging.getLogger(__name__)
 FLUSH_S = 0.5  # what a kill -9 may lose at most (docs/recording.md promises ≤ 1 s)
-DRAIN_S = 0.1  # the writer's thread writes what waits this often
+WRITE_S = 0.1  # the writer's thread writes what waits this often
 QUEUE_SIZE = 50_000  # frames and events waiting for the writer: about a minute of 4
 # units at 100 Hz with their status polls (a stalled disk), then counted and dropped
 
@@ -173,7 +173,7 @@ class GuardedRecorder(can.Listener):
     leaves for the file (the writer's ``capture``, MCAP's decoded values) is appended to
     a queue, bounded by ``QUEUE_SIZE`` (what a starved writer cannot take is counted
     and said, in the log and at the end). Once :meth:`start_flushing` is called a thread
-    of its own writes the queue every ``DRAIN_S`` and hands the file to the OS every
+    of its own writes the queue every ``WRITE_S`` and hands the file to the OS every
     ``FLUSH_S``; before it (a test, a tool) :meth:`flush` and :meth:`stop` write what
     waits themselves. Writes happen under one lock, in the order they were handed over."""
 
@@ -268,7 +268,7 @@ class GuardedRecorder(can.Listener):
 
     def start_flushing(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
         """Flush now (the file's header reaches the disk), then write on a thread of its
-        own every ``DRAIN_S`` and flush every ``FLUSH_S``, until :meth:`stop`. (``loop``:
+        own every ``WRITE_S`` and flush every ``FLUSH_S``, until :meth:`stop`. (``loop``:
         unused, kept for callers.)"""
         self.flush()
         if self._thread is None and not self._stopped:
@@ -279,7 +279,7 @@ class GuardedRecorder(can.Listener):
 
     def _run(self) -> None:
         flush_at = time.monotonic() + FLUSH_S
-        while not self._ending.wait(DRAIN_S):
+        while not self._ending.wait(WRITE_S):
             if time.monotonic() >= flush_at:
                 flush_at += FLUSH_S
                 self.flush()
