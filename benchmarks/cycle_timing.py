@@ -24,6 +24,8 @@ from pathlib import Path
 import can
 
 from abh3_supervisor.config import Config, parse_config
+from abh3_supervisor.core.inputs import InputSource
+from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
@@ -59,6 +61,21 @@ def config(n: int, rate: float, channel: str) -> Config:
     return parse_config(text, "bench.yaml")
 
 
+class _Input(InputSource):
+    """A unit's input (a plugin's would be one): its commands reach the loop through its
+    feed, as every input's do."""
+
+    def __init__(self, unit: str) -> None:
+        super().__init__(f"bench:{unit}", (unit,))
+        self.feed: InputFeed | None = None
+
+    def start(self, feed: InputFeed) -> None:
+        self.feed = feed
+
+    def stop(self) -> None:
+        self.feed = None
+
+
 def run(n: int, rate: float, seconds: float, channel: str, tuis: int = 0) -> dict[str, float]:
     """Measure; with ``tuis`` that many TUIs are attached from other processes."""
     cfg = config(n, rate, channel)
@@ -74,6 +91,11 @@ def run(n: int, rate: float, seconds: float, channel: str, tuis: int = 0) -> dic
                 assert await sup.command(name, text) == ""
         while any(sup.robot_unready(name) is not None for name in sup.units):
             await asyncio.sleep(0.01)
+        feeds: dict[str, InputFeed] = {}
+        for name in sup.units:  # each unit's input, as a plugin's joins the arbitration
+            feed = host.attach(_Input(name))
+            assert feed is not None
+            feeds[name] = feed
         end = time.perf_counter() + seconds
         rng = random.Random(1)
         value = 0
@@ -86,7 +108,7 @@ def run(n: int, rate: float, seconds: float, channel: str, tuis: int = 0) -> dic
             pending.append(
                 (time.perf_counter(), unit + 1, frames.encode_dp0_command(value, 0, inputs))
             )
-            sup.set_velocity(f"u{unit}", value * 0.2, 0.0)
+            feeds[f"u{unit}"].velocity(value * 0.2, 0.0)  # on the loop at its next turn
         await asyncio.sleep(0.05)
         for t, abh3, payload in pending:
             sent = probe.sent[ids.dp0_command_id(abh3, HOST)]

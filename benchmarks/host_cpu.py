@@ -37,6 +37,8 @@ from collections.abc import Callable, Iterator
 import can
 
 from abh3_supervisor.config.model import BroadcastConfig, BusConfig, Config, UnitConfig
+from abh3_supervisor.core.commands import VelocityCommand
+from abh3_supervisor.core.inputs import InputSource
 from abh3_supervisor.core.supervisor import Supervisor, SupervisorEvent
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.generation import Generation
@@ -90,9 +92,21 @@ def bare(exchanges: int) -> float:
             bus.shutdown()
 
 
+class _Input(InputSource):
+    """The observer's input source: it submits on the loop (as the control socket's
+    clients' do), so it needs no feed."""
+
+    def start(self, feed: object) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+
 def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
     """CPU seconds per exchange through scheduler, pump, supervisor and one observer,
-    which sets a new setpoint at every reply (``new_setpoint``), else at the first only."""
+    which sets a new setpoint at every reply (``new_setpoint``), else at the first only:
+    an input source's command in the arbitration, the one way a setpoint enters."""
     unit = UnitConfig(
         name="u",
         bus="b",
@@ -108,6 +122,7 @@ def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
         sup = Supervisor(config, clock=loop.time)
         for text in ("SERVO ON ON", "START ON ON"):  # switched on: the robot may move
             sup.apply_text("u", text)
+        sup.arbiter.add(_Input("bench", ("u",)))
         count = 0
 
         def observer(event: SupervisorEvent) -> None:
@@ -116,7 +131,7 @@ def ours(exchanges: int, *, new_setpoint: bool = True) -> float:
                 return
             count += 1
             if new_setpoint or count == 1:
-                sup.set_velocity("u", float(count % 1000), 0.0)
+                sup.arbiter.submit_now("bench", VelocityCommand(float(count % 1000), 0.0))
             if count >= exchanges and not done.done():
                 done.set_result(None)
 

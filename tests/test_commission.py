@@ -22,7 +22,7 @@ from abh3_supervisor.core.kinematics import yx_to_ab
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.frames import Generation
 from tests.commission_bench import FakeBench, Headless
-from tests.support.rig import present
+from tests.support.rig import present, set_velocity_ab
 from tests.support.safe_word import is_safe_word
 
 ROBOT = """
@@ -315,11 +315,11 @@ def test_monitor_and_moving_units_are_refused() -> None:
     bench = robot()
     bench.sup.apply_text("u1", "SERVO ON ON")
     bench.sup.apply_text("u1", "START ON ON")
-    bench.sup.set_velocity_ab(
-        "u1", 50, 0, source=present(bench.sup, "u1")
+    set_velocity_ab(
+        bench.sup, "u1", 50, 0, source=present(bench.sup, "u1")
     )  # someone else's setpoint, before we start
     bench.run(0.5)
-    bench.sup.set_velocity_ab("u1", 50, 0, source=present(bench.sup, "u1"))
+    set_velocity_ab(bench.sup, "u1", 50, 0, source=present(bench.sup, "u1"))
     results, _, _ = session(bench, units=["u1"])
     assert "at rest" in failed(results["u1"])
     assert not [c for c in results["u1"].checks if c.step.startswith("jog")]

@@ -15,7 +15,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.config.model import Fault, FaultKind
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.protocol import frames
-from tests.support.rig import Rig, present
+from tests.support.rig import Rig, present, set_velocity_ab
 
 BASE = """
 buses:
@@ -47,7 +47,7 @@ def moving(r: Rig, unit: str, a: float, b: float, seconds: float) -> None:
             break
         r.run(0.001)
     assert r.sup.robot_unready(unit) is None
-    r.sup.set_velocity_ab(unit, a, b, source=present(r.sup, unit))
+    set_velocity_ab(r.sup, unit, a, b, source=present(r.sup, unit))
     r.run(seconds)
 
 

@@ -17,7 +17,7 @@ from abh3_supervisor.clients.decode import SHOWN, decode_file, read_messages
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.errors import Abh3Error
 from abh3_supervisor.protocol import ids
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_velocity
 
 FORMATS = (".log", ".asc", ".blf", ".csv")
 # DP0 command and reply of drive 1 (host 2), as `abh3 run --record` writes them
@@ -228,8 +228,8 @@ def test_decode_without_config_guesses_each_addresses_generation_and_says_so(
     for unit in ("left", "right"):
         assert rig.sup.apply_text(unit, "SERVO ON ON") == ""
         assert rig.sup.apply_text(unit, "START ON ON") == ""
-    rig.sup.set_velocity("left", 50, 0, source=present(rig.sup, "left"))
-    rig.sup.set_velocity("right", 100, 0, source=present(rig.sup, "right"))
+    set_velocity(rig.sup, "left", 50, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "right", 100, 0, source=present(rig.sup, "right"))
     rig.run(3.0)
     log = tmp_path / "both.log"
     record_traffic(rig, log)

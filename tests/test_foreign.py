@@ -22,7 +22,7 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.scheduler.core import BusScheduler, ForeignEvent
 from abh3_supervisor.service.snapshot import supervisor_state
 from tests.support.foreign_host import TimelineHost
-from tests.support.rig import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig, set_velocity
 from tests.support.robots import TWO_DRIVES
 from tests.support.safe_word import is_safe_word
 
@@ -184,7 +184,7 @@ def test_a_monitor_units_drive_is_not_ours_to_defend() -> None:
 def _moving(rig: Rig, unit: str) -> None:
     for text in ("SERVO ON ON", "START ON ON"):
         assert rig.sup.apply_text(unit, text) == ""
-    rig.sup.set_velocity(unit, 100, 100, source=rig.own(unit))
+    set_velocity(rig.sup, unit, 100, 100, source=rig.own(unit))
 
 
 def _ours(rig: Rig, address: int, since: float) -> list[tuple[float, bytes]]:
@@ -217,7 +217,7 @@ def test_a_second_host_stops_the_unit_at_once_and_keeps_it_stopped() -> None:
     assert rig.drive("right").cmd_raw == (500, 500)
     # refused while stopped: motion and SERVO, with the host named
     with pytest.raises(CommandError, match=r"another host \(0x02\) commands drive 0x01"):
-        rig.sup.set_velocity("left", 10, 10, source=rig.own("left"))
+        set_velocity(rig.sup, "left", 10, 10, source=rig.own("left"))
     with pytest.raises(CommandError, match="0x02"):
         rig.sup.set_inputs("left", layout.servo.both, layout.servo.both)
     # said once, as an ERROR naming the host and the frames, however many frames came

@@ -29,6 +29,7 @@ from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.snapshot import supervisor_state
 from tests.support.foreign_host import BusHost, moving_word, safe_word
+from tests.support.rig import set_velocity
 from tests.support.safe_word import assert_drive_stopped, is_safe_word
 from tests.support.served import Served
 
@@ -102,7 +103,7 @@ def test_a_second_host_is_stopped_at_once_kept_stopped_and_named(
             sent = stats.commands_sent
             await until(lambda: stats.commands_sent >= sent + 8)
             with pytest.raises(CommandError, match=r"another host \(0x02\) commands drive 0x01"):
-                sup.set_velocity("left", 10, 10)
+                set_velocity(sup, "left", 10, 10)
             assert sup.apply_text("left", "SERVO ON ON") == commands.RESPONSE_INVALID
             assert sup.clear_emergency_stop("test")  # not while it is heard
             state = supervisor_state(sup, rt.pumps)["units"]

@@ -18,7 +18,7 @@ from abh3_supervisor.errors import CommandError
 from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.support.rig import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig, set_velocity
 
 
 class Source(InputSource):
@@ -93,7 +93,7 @@ def test_estop_is_stop_category_1_zero_and_start_off_at_once_then_servo_and_brak
     rig: Rig,
 ) -> None:
     running(rig)
-    rig.sup.set_velocity("left", 300, 0)
+    set_velocity(rig.sup, "left", 300, 0)
     rig.run(1.0)
     lay = rig.sup.units["left"].layout
     rig.sup.emergency_stop("test")
@@ -121,7 +121,7 @@ def test_a_parameter_write_locks_servo_off_until_it_ends(rig: Rig) -> None:
         with pytest.raises(CommandError, match="parameter write is in flight"):
             rig.sup.set_inputs("left", lay.servo.both, lay.servo.both)
         with pytest.raises(CommandError, match="parameter write is in flight"):
-            rig.sup.set_velocity("left", 10, 0)
+            set_velocity(rig.sup, "left", 10, 0)
         rig.run(0.1)
         assert switches(rig) == 0
     assert rig.sup.apply_text("left", "SERVO ON ON") == ""  # the write ended
@@ -139,7 +139,7 @@ def test_the_lock_is_refused_while_this_supervisor_commands_servo_on(rig: Rig) -
 
 def test_a_held_unit_sends_the_safe_word_brake_included_and_refuses_vel(rig: Rig) -> None:
     running(rig)
-    rig.sup.set_velocity("left", 200, 0)
+    set_velocity(rig.sup, "left", 200, 0)
     rig.run(0.5)
     assert told(rig) == 200.0 and switches(rig)
     row = Row(0x4117, "750 ms", "drive_timeout_ms: 500", False)
@@ -182,11 +182,12 @@ def test_a_setpoint_whose_owner_lost_the_unit_is_zero_on_the_wire() -> None:
 
 
 def test_the_public_api_owns_its_motion_only_while_it_repeats_it() -> None:
-    """Supervisor.set_velocity is a streamed source (api:<unit>): silence is zero."""
+    """A VEL given to Supervisor.apply_text (its programmatic entry) is the streamed
+    source api:<unit>'s: silence is zero."""
     rig = Rig(parse_config(TWO_UNITS, "two.yaml"))
     del rig.sup.arbiter.sources["api:left"]  # the rig's own standing one: the real default
     running(rig)
-    rig.sup.set_velocity("left", 300, 0)
+    assert rig.sup.apply_text("left", "VEL 300 0") == ""
     rig.run(0.3)
     assert told(rig) == 300.0
     rig.run(0.5)

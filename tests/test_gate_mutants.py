@@ -22,7 +22,7 @@ from abh3_supervisor.protocol import scaling
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.stopping import CONFIRMED
 from abh3_supervisor.service.param_ops import ParamFailed, ParamOps
-from tests.support.rig import TWO_UNITS, Rig
+from tests.support.rig import TWO_UNITS, Rig, set_velocity, streamed
 
 SPEED_AY_0 = 0x5000
 ONE_DRIVE = """
@@ -48,7 +48,7 @@ def test_the_estop_first_step_switches_nothing_on_it_only_takes_start_off(rig: R
     """``inputs & ~START`` → ``inputs | ~START`` (word): the first e-stop frame would switch
     on every other bit — brake release, torque — on a drive that had them off."""
     switched_on(rig)  # the brake stays applied
-    rig.sup.set_velocity("left", 300, 0)
+    set_velocity(rig.sup, "left", 300, 0)
     rig.run(0.3)
     lay = rig.sup.units["left"].layout
     before = rig.drive("left").inputs
@@ -62,9 +62,8 @@ def test_a_unit_nobody_owns_is_told_zero_on_both_axes() -> None:
     """``Word(inputs, 0.0, 0.0)`` → ``Word(inputs, 0.0, 1.0)`` (word, not owned): the
     unowned unit's BX would creep at 1 min⁻¹ after its owner fell silent."""
     rig = Rig(parse_config(TWO_UNITS, "two.yaml"))
-    del rig.sup.arbiter.sources["api:left"]  # the rig's standing source: the real default
     switched_on(rig)
-    rig.sup.set_velocity("left", 300, 20)
+    set_velocity(rig.sup, "left", 300, 20, streamed(rig.sup, "left"))
     rig.run(0.3)
     assert rig.drive("left").cmd_raw[1] != 0
     rig.run(0.5)  # the streamed source fell silent: nobody owns the unit

@@ -14,7 +14,7 @@ from abh3_supervisor.core.supervisor import SupervisorEvent
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import FeedbackEvent
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_current, set_velocity
 
 CONFIG = parse_config(TWO_UNITS, "two.yaml")  # left: 2021 travel model; right: 2023 motor model
 TOLD = ("SERVO ON ON", "START ON ON", "BRAKE ON ON", "VEL 100 100")
@@ -87,16 +87,16 @@ def test_bits_a_generation_does_not_define_never_reach_a_drive(rig: Rig) -> None
 
 def test_the_whole_wire_range_is_reachable(rig: Rig) -> None:
     assert (
-        rig.sup.set_velocity("left", -6553.6, 6553.4, source=present(rig.sup, "left")).clamped
+        set_velocity(rig.sup, "left", -6553.6, 6553.4, source=present(rig.sup, "left")).clamped
         is False
     )
     assert rig.sup.apply_text("left", "TORQUE ON ON") == ""
     assert (
-        rig.sup.set_current("left", -327.68, 327.67, source=present(rig.sup, "left")).clamped
+        set_current(rig.sup, "left", -327.68, 327.67, source=present(rig.sup, "left")).clamped
         is False
     )
-    result = rig.sup.set_current(
-        "left", -400, 0, source=present(rig.sup, "left")
+    result = set_current(
+        rig.sup, "left", -400, 0, source=present(rig.sup, "left")
     )  # beyond the wire: scaled to it
     assert result.clamped and result.ay == pytest.approx(-327.68)
 

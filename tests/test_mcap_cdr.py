@@ -28,6 +28,8 @@ from mcap.reader import make_reader
 from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 
+from tests.support.rig import set_twist
+
 INT32 = (-(2**31), -1, 0, 1, 2**31 - 1)
 FLOATS = (0.0, -0.0, 1.5, -273.15, 1e308, -1e308, 5e-324, math.inf, -math.inf, math.nan)
 NAMES = ("", "b", "ab", "abc", "abcd", "démo", "日本語のバス", "x" * 37)  # every alignment
@@ -238,7 +240,7 @@ def test_every_message_of_a_run_re_encodes_to_its_own_bytes() -> None:
         for command in ("SERVO ON ON", "START ON ON"):
             rig.sup.apply_text(unit, command)
     owner = rig.own("l")
-    rig.sup.set_twist("rover", 0.3, -0.4, source=owner)
+    set_twist(rig.sup, "rover", 0.3, -0.4, source=owner)
     rig.run(1.5)
     assert {schema for _, schema, _, _ in sink.messages} == set(SCHEMAS) - {"can_msgs/msg/Frame"}
     decoders: dict[str, Any] = {}

@@ -16,7 +16,7 @@ from abh3_supervisor.config import parse_config
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.runtime.mcap_recording import McapRecording
 from abh3_supervisor.scheduler.core import StatusEvent
-from tests.support.rig import Rig
+from tests.support.rig import Rig, set_twist
 from tests.support.robot_truth import Truth
 
 CONFIG = """
@@ -65,9 +65,9 @@ def test_a_robots_odom_from_every_wheel_and_a_one_drive_robots_as_before(
     owner = rig.own("l")
     for i in range(3000):
         if i % 100 == 0 and i < 2000:
-            rig.sup.set_twist("rover", 0.3, -0.4, source=owner)
+            set_twist(rig.sup, "rover", 0.3, -0.4, source=owner)
         if i == 2000:
-            rig.sup.set_twist("rover", 0.0, 0.0, source=owner)
+            set_twist(rig.sup, "rover", 0.0, 0.0, source=owner)
         rig.run(0.001)
         truth.step(0.001)
     recording.stop()

@@ -24,7 +24,7 @@ from abh3_supervisor.core.state import Feedback
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.scheduler.core import StatusEvent
 from abh3_supervisor.simulator.drive import PULSES_PER_REV
-from tests.support.rig import Rig, present
+from tests.support.rig import Rig, present, set_twist
 
 G = Geometry(pulses_per_rev=1000)  # 1 pulse = 0.1 / 10 · 0.1 · π / 1000 m
 
@@ -80,7 +80,7 @@ def test_odometry_follows_a_commanded_twist_on_the_simulated_drive() -> None:
 
     rig.sup.subscribe(on_event)
     rig.run(0.5)  # first reading: the origin
-    rig.sup.set_twist("u", 0.1, 0.2, source=present(rig.sup, "u"))
+    set_twist(rig.sup, "u", 0.1, 0.2, source=present(rig.sup, "u"))
     rig.run(1.0)  # ramp
     start = odo.pose
     rig.run(4.0)

@@ -19,7 +19,7 @@ from abh3_supervisor.plugin_host.feed import InputFeed
 from abh3_supervisor.protocol import scaling
 from abh3_supervisor.scheduler.core import GapEvent
 from tests.support.headless import headless_demo
-from tests.support.rig import Deaf, Rig, present
+from tests.support.rig import Deaf, Rig, present, set_velocity
 from tests.support.wire_monitor import WireMonitor
 
 PERIOD = 0.02  # 50 Hz: TWO_UNITS' command rate
@@ -197,7 +197,7 @@ def test_a_command_the_arbitration_gives_back_later_is_checked_anew(rig: Rig) ->
     notes: list[str] = []
     rig.sup.subscribe(lambda e: notes.append(e.message) if isinstance(e, Notice) else None)
     mine = rig.own("left")
-    rig.sup.set_velocity("left", 300, 0, source=mine)
+    set_velocity(rig.sup, "left", 300, 0, source=mine)
     assert rig.sup._checked is None  # nothing kept past the call
     rig.run(0.1)
     assert commanded(rig) == 300.0
@@ -219,7 +219,7 @@ def test_clamp_note_names_the_limit_and_reaches_the_event_log(rig: Rig) -> None:
         "clamped: VEL 99999 0 → 6553.4 0 (wire range -6553.6 … 6553.4)"
     )
     assert rig.sup.admit("left", VelocityCommand(10, 0)) is None
-    rig.sup.set_velocity("left", 99999, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 99999, 0, source=present(rig.sup, "left"))
     assert notes[-1] == "clamped: VEL 99999 0 → 6553.4 0 (wire range -6553.6 … 6553.4)"
 
 
@@ -280,9 +280,9 @@ def test_a_stream_beyond_the_limit_says_so_once_a_second(rig: Rig) -> None:
     for text in ("SERVO ON ON", "START ON ON"):
         assert rig.sup.apply_text("left", text) == ""
     for i in range(50):  # 50 Hz for a second, every value beyond the wire's range
-        rig.sup.set_velocity("left", 7000 + i, 0, source=present(rig.sup, "left"))
+        set_velocity(rig.sup, "left", 7000 + i, 0, source=present(rig.sup, "left"))
         rig.run(0.02)
-    rig.sup.set_velocity("left", 8000, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 8000, 0, source=present(rig.sup, "left"))
     clamped = [n for n in notes if n.startswith("clamped: ")]
     assert len(clamped) == 2
     assert clamped[1].endswith("(49 more like it since the last line not shown)")

@@ -40,7 +40,7 @@ from abh3_supervisor.plugin_host import hookspecs, tick
 from abh3_supervisor.plugin_host.host import PluginHost
 from abh3_supervisor.runtime.headless import run_headless
 from tests.support.foreign_host import TimelineHost
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_velocity
 
 ROOT = Path(__file__).resolve().parent.parent
 BUILTINS = ROOT / "plugins" / "abh3_plugins"
@@ -112,7 +112,7 @@ def test_the_view_reads_and_never_writes() -> None:
             view.units["x"] = left  # type: ignore[index]
         for motion in ("set_velocity", "set_twist", "apply", "zero"):
             assert not hasattr(view, motion)
-        rig.sup.set_velocity("left", 0.0, 0.0, source=present(rig.sup, "left"))
+        set_velocity(rig.sup, "left", 0.0, 0.0, source=present(rig.sup, "left"))
         assert view.owner("left") == "test:left"  # live, not a copy taken at start
         change = FlagChange("right", 0.0, "drive_inputs", None, 1)
         assert view.flag_names(change) == (left.names("inputs", 1), [])
@@ -190,8 +190,8 @@ def test_the_estop_and_owner_changes_are_events() -> None:
     source = present(sup, "left")
     sup.apply_text("left", "SERVO ON ON")
     sup.apply_text("left", "START ON ON")
-    sup.set_velocity("left", 100.0, 0.0, source=source)
-    sup.set_velocity("left", 120.0, 0.0, source=source)  # same owner: no event
+    set_velocity(sup, "left", 100.0, 0.0, source=source)
+    set_velocity(sup, "left", 120.0, 0.0, source=source)  # same owner: no event
     sup.emergency_stop("operator")
     sup.emergency_stop("again")  # already latched: no second event
     sup.clear_emergency_stop("tui")

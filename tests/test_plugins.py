@@ -23,7 +23,7 @@ from abh3_supervisor.plugin_host import hookspecs
 from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.plugin_host.host import MAX_FAILURES, PluginHost, installed
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.support.rig import TWO_UNITS, present
+from tests.support.rig import TWO_UNITS, present, set_velocity
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -186,7 +186,7 @@ def run_csv(tmp_path: Path, plugin_yaml: str, seconds: float = 1.0) -> Any:
             for unit in ("left", "right"):
                 sup.apply_text(unit, "SERVO ON ON")
                 sup.apply_text(unit, "START ON ON")
-            sup.set_velocity("left", 100.0, 10.0, source=present(sup, "left"))
+            set_velocity(sup, "left", 100.0, 10.0, source=present(sup, "left"))
             await asyncio.sleep(seconds)  # let it run: what is recorded is the subject here
             return rt.sims["b"]
 

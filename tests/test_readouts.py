@@ -34,7 +34,7 @@ from abh3_supervisor.core.eventlog import EventLog, describe
 from abh3_supervisor.core.supervisor import FlagChange, SupervisorEvent
 from abh3_supervisor.protocol import flags
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_current, set_velocity
 
 # a commanding 2021 travel unit beside a 2023 motor unit that only watches
 WATCHED = """
@@ -61,8 +61,8 @@ def driven() -> Rig:
     for unit in ("left", "right"):
         assert rig.sup.apply_text(unit, "SERVO ON ON") == ""
         assert rig.sup.apply_text(unit, "START ON ON") == ""
-    rig.sup.set_velocity("left", 50, 0, source=present(rig.sup, "left"))  # Y/X: travel 50, no turn
-    rig.sup.set_velocity("right", 100, 0, source=present(rig.sup, "right"))  # A/B: only motor A
+    set_velocity(rig.sup, "left", 50, 0, source=present(rig.sup, "left"))  # Y/X: travel 50, no turn
+    set_velocity(rig.sup, "right", 100, 0, source=present(rig.sup, "right"))  # A/B: only motor A
     rig.run(3.0)
     return rig
 
@@ -145,7 +145,7 @@ def test_status_lines_of_an_older_service_label_both_pairs() -> None:
 def test_a_current_command_is_labelled_and_in_percent() -> None:
     rig = Rig(parse_config(TWO_UNITS, "two.yaml"))
     rig.sup.apply_text("right", "TORQUE ON ON")
-    rig.sup.set_current("right", 12.5, -3, source=present(rig.sup, "right"))
+    set_current(rig.sup, "right", 12.5, -3, source=present(rig.sup, "right"))
     assert "cmd current A/B 12.50 -3.00 %" in lines(rig)["right"]
 
 

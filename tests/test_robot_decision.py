@@ -26,7 +26,7 @@ from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.simulator.drive import BOOT_S
-from tests.support.rig import Rig
+from tests.support.rig import Rig, set_twist
 
 AGV = """
 buses:
@@ -82,7 +82,7 @@ def stream(rig: Rig, owner: str, seconds: float, linear: float = 0.3) -> list[st
     answers = []
     for _ in range(round(seconds / 0.05)):
         try:
-            rig.sup.set_twist("agv", linear, 0.0, source=owner)
+            set_twist(rig.sup, "agv", linear, 0.0, source=owner)
             answers.append("")
         except CommandError as exc:
             answers.append(str(exc))
@@ -181,13 +181,13 @@ def test_a_twist_before_the_robot_is_switched_on_is_refused_naming_the_switches(
     rig = agv()
     rig.run(0.2)
     with pytest.raises(CommandError, match=r"left_drive: SERVO A, START A not switched on"):
-        rig.sup.set_twist("agv", 0.3, 0.0, source=rig.own("left_drive"))
+        set_twist(rig.sup, "agv", 0.3, 0.0, source=rig.own("left_drive"))
 
 
 def test_a_request_while_the_drives_report_their_switches_is_held_at_zero_until_ready() -> None:
     rig = agv()
     owner = switch_on(rig)
-    rig.sup.set_twist("agv", 0.3, 0.0, source=owner)  # taken: pending, not a fault
+    set_twist(rig.sup, "agv", 0.3, 0.0, source=owner)  # taken: pending, not a fault
     ready = next(t for t in (i * 0.001 for i in range(1, 500)) if _ready_by(rig, t))
     rig.run(0.1)
     first = min(moving_frames(rig, "left_drive") + moving_frames(rig, "right_drive"))

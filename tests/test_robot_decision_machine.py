@@ -39,7 +39,7 @@ from abh3_supervisor.scheduler.core import (
     HealthEvent,
     StatusEvent,
 )
-from tests.support.rig import present
+from tests.support.rig import present, set_twist
 
 # the test's own bit tables (protocol doc §5): SERVO and START per axis, per generation
 SERVO = {"2021": (1 << 0, 1 << 12), "2023": (1 << 0, 1 << 8)}
@@ -223,7 +223,7 @@ class RobotDecision(RuleBasedStateMachine):
     @rule(linear=st.sampled_from([0.0, 0.2, -0.3]), angular=st.sampled_from([0.0, 0.5]))
     def twist(self, linear: float, angular: float) -> None:
         with contextlib.suppress(CommandError):  # refused: said in its answer, judged below
-            self.sup.set_twist(self.robot, linear, angular, source=self.owner)
+            set_twist(self.sup, self.robot, linear, angular, source=self.owner)
 
     @rule(index=st.integers(0, 1), value=st.sampled_from([0, 150, -300]))
     def vel(self, index: int, value: int) -> None:

@@ -13,7 +13,7 @@ from abh3_supervisor.clients.tui.app import SupervisorApp
 from abh3_supervisor.clients.tui.screens import ConfirmScreen
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.runtime.bus_runtime import Runtime
-from tests.support.rig import Rig, present
+from tests.support.rig import Rig, present, set_twist
 from tests.support.robots import SKID, TWO_DRIVES, first_moving, in_one_turn, motor, sent
 from tests.support.tui import mirror_of, press_until, response, run_app, until
 from tests.support.wire_monitor import WireMonitor
@@ -84,7 +84,7 @@ def test_the_arrows_fastest_twist_is_what_the_robots_one_clamp_lets_through() ->
         robot = next(iter(rig.config.robots.values()))
         speed, turn = operator.speed_caps(mirror_of(rig), robot.units[-1:])
         for twist, cap in (((100.0, 0.0), speed), ((0.0, 100.0), turn)):
-            rig.sup.set_twist(robot.name, *twist, source=present(rig.sup, robot.units[0]))
+            set_twist(rig.sup, robot.name, *twist, source=present(rig.sup, robot.units[0]))
             plan = rig.sup.robots[robot.name].last
             assert plan is not None
             assert max(abs(v) for v in plan.twist) == pytest.approx(cap)

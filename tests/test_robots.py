@@ -17,7 +17,7 @@ from abh3_supervisor.core.robot import Side, motor_speeds, twist_of
 from abh3_supervisor.core.supervisor import Notice
 from abh3_supervisor.errors import CommandError, ConfigError
 from abh3_supervisor.protocol import frames, ids
-from tests.support.rig import Rig, present
+from tests.support.rig import Rig, present, set_twist, set_velocity
 
 UNITS = """
 buses:
@@ -89,7 +89,7 @@ def per_min(mps: float, diameter: float, gear: float) -> float:
 def test_one_wheel_per_drive_goes_straight_with_the_mirrored_motor_backwards() -> None:
     rig = rig_of(ONE_PER_DRIVE)
     rig.run(0.1)
-    rig.sup.set_twist("rover", 0.3, 0.0, source=present(rig.sup, "l"))
+    set_twist(rig.sup, "rover", 0.3, 0.0, source=present(rig.sup, "l"))
     rig.run(1.5)
     speed = per_min(0.3, 0.2, 10)
     _, la, lb = commands(rig, "l")[-1]
@@ -105,7 +105,7 @@ def test_one_wheel_per_drive_goes_straight_with_the_mirrored_motor_backwards() -
 def test_skid_steer_turns_every_wheel_of_a_side_alike() -> None:
     rig = rig_of(SKID_STEER)
     rig.run(0.1)
-    rig.sup.set_twist("skid", 0.0, 1.0, source=present(rig.sup, "r"))  # on the spot
+    set_twist(rig.sup, "skid", 0.0, 1.0, source=present(rig.sup, "r"))  # on the spot
     rig.run(1.5)
     wheel = per_min(1.0 * 0.6 / 2, 0.25, 20)
     assert commands(rig, "l")[-1][1:] == pytest.approx((-wheel, -wheel), abs=0.1)
@@ -117,7 +117,7 @@ def test_a_robots_drives_get_their_speeds_in_the_same_scheduler_turn() -> None:
     rig = rig_of(ONE_PER_DRIVE)
     rig.run(0.2)
     t = rig.timeline.now
-    rig.sup.set_twist("rover", 0.3, 0.5, source=present(rig.sup, "l"))
+    set_twist(rig.sup, "rover", 0.3, 0.5, source=present(rig.sup, "l"))
     rig.run(0.2)
     left, right = first_moving(rig, "l", t), first_moving(rig, "r", t)
     assert left[0] == right[0]  # one turn: the same instant on the fake clock
@@ -147,7 +147,7 @@ def test_one_saturated_side_slows_the_whole_robot_and_it_goes_straight() -> None
         "velocity_model: motor}\n", "velocity_model: motor, limits: {velocity: 100}}\n", 1
     )
     rig = rig_of(limited)
-    result = rig.sup.set_twist("rover", 1.0, 0.0, source=present(rig.sup, "l"))
+    result = set_twist(rig.sup, "rover", 1.0, 0.0, source=present(rig.sup, "l"))
     rig.run(1.0)
     la, ra = commands(rig, "l")[-1][1], commands(rig, "r")[-1][1]
     assert la == pytest.approx(100.0, abs=0.1)
@@ -163,7 +163,7 @@ def test_robot_limits_scale_the_twist_and_keep_its_path() -> None:
         "    gear_ratio: 10\n    limits: {linear_mps: 0.5, angular_radps: 1.0}\n",
     )
     rig = rig_of(text)
-    rig.sup.set_twist("rover", 1.0, 1.0, source=present(rig.sup, "l"))
+    set_twist(rig.sup, "rover", 1.0, 1.0, source=present(rig.sup, "l"))
     plan = rig.sup.robots["rover"].last
     assert plan is not None
     assert plan.twist == pytest.approx((0.5, 0.5))  # curvature 1 m⁻¹ kept
@@ -178,7 +178,7 @@ def test_robot_limits_bound_each_axis_for_unit_commands_too() -> None:
     rig = rig_of(text)
     fastest = per_min(0.5 + 1.0 * 0.5 / 2, 0.2, 10)  # the fastest wheel within the limits
     assert rig.sup.units["l"].axis_limits == pytest.approx((fastest, math.inf))
-    result = rig.sup.set_velocity("l", 5000, 0, source=present(rig.sup, "l"))
+    result = set_velocity(rig.sup, "l", 5000, 0, source=present(rig.sup, "l"))
     assert result.ay == pytest.approx(fastest)
     assert result.clamped
 
@@ -190,7 +190,7 @@ def test_acceleration_ramps_up_and_a_stop_is_at_once() -> None:
     rig = rig_of(text)
     rig.run(0.1)
     source = present(rig.sup, "l")
-    rig.sup.set_twist("rover", 0.5, 0.0, source=source)
+    set_twist(rig.sup, "rover", 0.5, 0.0, source=source)
     rig.run(0.5)
     halfway = rig.sup.robots["rover"].last
     assert halfway is not None and 0.2 < halfway.twist[0] < 0.3  # 0.5 m/s² for 0.5 s
@@ -204,7 +204,7 @@ def test_acceleration_ramps_up_and_a_stop_is_at_once() -> None:
 
 def test_a_unit_that_stops_stops_its_whole_robot() -> None:
     rig = rig_of(ONE_PER_DRIVE)
-    rig.sup.set_twist("rover", 0.3, 0.0, source=present(rig.sup, "l"))
+    set_twist(rig.sup, "rover", 0.3, 0.0, source=present(rig.sup, "l"))
     assert rig.sup.units["r"].setpoint.ay != 0
     rig.sup.zero("l")  # as a gap or an offline drive does
     assert rig.sup.units["r"].setpoint.ay == 0
@@ -216,7 +216,7 @@ def test_a_unit_that_refuses_leaves_the_whole_robot_still() -> None:
     source = present(rig.sup, "l")
     assert rig.sup.apply_text("r", "TORQUE ON ON") == ""  # r takes currents, not speeds
     with pytest.raises(CommandError, match="current mode"):
-        rig.sup.set_twist("rover", 0.3, 0.0, source=source)
+        set_twist(rig.sup, "rover", 0.3, 0.0, source=source)
     rig.sup.arbiter.submit(source, Twist(0.3, 0.0), 0.0)  # a stream: refused on r
     assert rig.sup.units["l"].setpoint.ay == 0 and rig.sup.units["r"].setpoint.ay == 0
     assert rig.sup.arbiter.owner("l") is None
@@ -224,7 +224,7 @@ def test_a_unit_that_refuses_leaves_the_whole_robot_still() -> None:
 
 def test_a_robot_has_one_owner_another_sources_unit_command_zeroes_the_rest() -> None:
     rig = rig_of(ONE_PER_DRIVE)
-    rig.sup.set_twist("rover", 0.3, 0.0, source=present(rig.sup, "l"))
+    set_twist(rig.sup, "rover", 0.3, 0.0, source=present(rig.sup, "l"))
     other = present(rig.sup, "r")
     rig.sup.arbiter.sources[other].priority = 5
     rig.sup.arbiter.submit(other, VelocityCommand(50, 0), 1.0)  # r's A (its wheel) only
@@ -234,7 +234,7 @@ def test_a_robot_has_one_owner_another_sources_unit_command_zeroes_the_rest() ->
 
 def test_a_file_without_robots_twists_each_unit_as_the_seed_does() -> None:
     rig = rig_of(UNITS)
-    result = rig.sup.set_twist("l", 0.05, 0.1, source=present(rig.sup, "l"))
+    result = set_twist(rig.sup, "l", 0.05, 0.1, source=present(rig.sup, "l"))
     geometry = rig.config.units["l"].geometry
     assert (result.ay, result.bx) == pytest.approx(twist_to_ab(0.05, 0.1, geometry))
     assert rig.config.robots["l"].implicit

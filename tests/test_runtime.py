@@ -16,7 +16,7 @@ from abh3_supervisor.protocol.generation import Generation
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.headless import run_headless
 from abh3_supervisor.scheduler.core import BusScheduler
-from tests.support.rig import TWO_UNITS, present
+from tests.support.rig import TWO_UNITS, present, set_velocity
 from tests.support.safe_word import commands_to, is_safe_word
 
 pytestmark = pytest.mark.wallclock  # real time: runtimes, sockets, processes
@@ -45,7 +45,7 @@ def test_runs_records_and_stops_the_drives_on_the_way_out(tmp_path: Path) -> Non
             for unit in ("left", "right"):
                 assert await sup.command(unit, "SERVO ON ON") == ""
                 assert await sup.command(unit, "START ON ON") == ""
-            sup.set_velocity("left", 200, 10, source=present(sup, "left"))
+            set_velocity(sup, "left", 200, 10, source=present(sup, "left"))
             assert await sup.command("left", "FOO") == "Invalid Command."
             await sup.wait_exchange("left", sup.clock(), 1.0)
 

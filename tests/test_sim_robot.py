@@ -14,7 +14,7 @@ from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.protocol import flags, frames
 from abh3_supervisor.protocol.frames import Generation
 from abh3_supervisor.simulator.robot import SimRobot
-from tests.support.rig import Rig
+from tests.support.rig import Rig, set_twist
 
 # commissioning moves one motor at a time: each drive decided alone (whole_robots=False)
 pytestmark = pytest.mark.wire_allow("robot", reason="one wheel at a time, by design")
@@ -105,16 +105,16 @@ def test_the_pose_integrates_a_straight_run_and_a_turn_on_the_spot() -> None:
         for text in ("SERVO ON ON", "START ON ON"):
             assert r.sup.apply_text(unit, text, source=r.own(unit)) == ""
     source = r.own("front")
-    r.sup.set_twist("rover", 0.3, 0.0, source=source)
+    set_twist(r.sup, "rover", 0.3, 0.0, source=source)
     r.run(1.0)
-    r.sup.set_twist("rover", 0.0, 0.0, source=source)
+    set_twist(r.sup, "rover", 0.0, 0.0, source=source)
     r.run(0.5)
     robot = r.sim.robot("rover", r.timeline.now)
     assert robot.x == pytest.approx(0.3, rel=0.1) and robot.heading == pytest.approx(0, abs=1e-3)
     x, heading = robot.x, robot.heading
-    r.sup.set_twist("rover", 0.0, 1.0, source=source)  # 1 rad/s by the file's 0.5 m track
+    set_twist(r.sup, "rover", 0.0, 1.0, source=source)  # 1 rad/s by the file's 0.5 m track
     r.run(1.0)
-    r.sup.set_twist("rover", 0.0, 0.0, source=source)
+    set_twist(r.sup, "rover", 0.0, 0.0, source=source)
     r.run(0.5)
     robot = r.sim.robot("rover", r.timeline.now)
     assert robot.x == pytest.approx(x, abs=1e-3)  # on the spot

@@ -13,7 +13,16 @@ from abh3_supervisor.core.supervisor import FlagChange, Notice
 from abh3_supervisor.errors import CommandError
 from abh3_supervisor.protocol import flags, frames, ids
 from abh3_supervisor.scheduler.core import HealthEvent
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import (
+    TWO_UNITS,
+    Rig,
+    present,
+    set_current,
+    set_twist,
+    set_velocity,
+    set_velocity_ab,
+    set_velocity_yx,
+)
 from tests.support.wire_monitor import WireMonitor
 
 
@@ -33,11 +42,11 @@ def start(rig: Rig, *units: str) -> None:
 
 def test_velocity_in_any_model_reaches_the_drive_in_its_own(rig: Rig) -> None:
     start(rig, "left", "right")
-    rig.sup.set_velocity_ab(
-        "left", 120, 80, source=rig.own("left")
+    set_velocity_ab(
+        rig.sup, "left", 120, 80, source=rig.own("left")
     )  # left is a travel-model drive: sends Y 100, X 20
-    rig.sup.set_velocity_yx(
-        "right", 100, 20, source=rig.own("right")
+    set_velocity_yx(
+        rig.sup, "right", 100, 20, source=rig.own("right")
     )  # right is a motor-model drive: sends A 120, B 80
     rig.run(1.0)
     assert (last_command(rig, "left").cmd_ay, last_command(rig, "left").cmd_bx) == (100.0, 20.0)
@@ -50,7 +59,7 @@ def test_velocity_in_any_model_reaches_the_drive_in_its_own(rig: Rig) -> None:
 
 def test_twist_goes_through_the_unit_geometry(rig: Rig) -> None:
     start(rig, "left")
-    result = rig.sup.set_twist("left", 0.05, 0.1, source=present(rig.sup, "left"))
+    result = set_twist(rig.sup, "left", 0.05, 0.1, source=present(rig.sup, "left"))
     y, x = twist_to_yx(0.05, 0.1, rig.config.units["left"].geometry)
     assert (result.ay, result.bx) == pytest.approx((y, x))
 
@@ -61,7 +70,7 @@ def test_clamping_scales_both_axes_and_is_reported() -> None:
             TWO_UNITS.replace("name: left,", "name: left, limits: {velocity: 100},"), "l.yaml"
         )
     )
-    result = rig.sup.set_velocity("left", 400, -200, source=present(rig.sup, "left"))
+    result = set_velocity(rig.sup, "left", 400, -200, source=present(rig.sup, "left"))
     assert (result.ay, result.bx, result.clamped) == (100.0, -50.0, True)
     notices = [e for e in rig.events if isinstance(e, Notice)]
     assert notices[-1].message == "clamped: VEL 400 -200 → 100 -50 (limits.velocity 100)"
@@ -70,9 +79,9 @@ def test_clamping_scales_both_axes_and_is_reported() -> None:
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_nan_and_infinity_are_rejected(rig: Rig, bad: float) -> None:
     with pytest.raises(CommandError, match="not a finite number"):
-        rig.sup.set_velocity("left", bad, 0, source=present(rig.sup, "left"))
+        set_velocity(rig.sup, "left", bad, 0, source=present(rig.sup, "left"))
     with pytest.raises(CommandError):
-        rig.sup.set_twist("left", 0, bad, source=present(rig.sup, "left"))
+        set_twist(rig.sup, "left", 0, bad, source=present(rig.sup, "left"))
 
 
 def test_command_language_responses(rig: Rig) -> None:
@@ -93,12 +102,12 @@ def test_input_data_and_mask_like_the_seed_topic(rig: Rig) -> None:
 
 def test_current_needs_torque_mode_and_mode_change_zeroes_the_command(rig: Rig) -> None:
     start(rig, "left")
-    rig.sup.set_velocity("left", 100, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 100, 0, source=present(rig.sup, "left"))
     with pytest.raises(CommandError, match="velocity mode; a current command needs TORQUE ON ON"):
-        rig.sup.set_current("left", 10, 10, source=present(rig.sup, "left"))
+        set_current(rig.sup, "left", 10, 10, source=present(rig.sup, "left"))
     assert rig.sup.apply_text("left", "TORQUE ON ON") == ""
     assert (rig.sup.units["left"].setpoint.ay, rig.sup.units["left"].setpoint.bx) == (0, 0)
-    rig.sup.set_current("left", 12.5, -3, source=present(rig.sup, "left"))
+    set_current(rig.sup, "left", 12.5, -3, source=present(rig.sup, "left"))
     rig.run(0.1)
     cmd = last_command(rig, "left")
     assert (cmd.cmd_ay, cmd.cmd_bx, cmd.ay_is_current) == (12.5, -3.0, True)
@@ -107,8 +116,8 @@ def test_current_needs_torque_mode_and_mode_change_zeroes_the_command(rig: Rig) 
 
 def test_emergency_stop_latches_until_cleared(rig: Rig, wire: WireMonitor) -> None:
     start(rig, "left", "right")
-    rig.sup.set_velocity("left", 300, 0, source=present(rig.sup, "left"))
-    rig.sup.set_velocity("right", 300, 300, source=present(rig.sup, "right"))
+    set_velocity(rig.sup, "left", 300, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "right", 300, 300, source=present(rig.sup, "right"))
     rig.run(0.5)
     rig.sup.emergency_stop()
     wire.estop()
@@ -119,23 +128,23 @@ def test_emergency_stop_latches_until_cleared(rig: Rig, wire: WireMonitor) -> No
         lay = rig.sup.units[unit].layout
         assert not cmd.inputs & lay.start.both and cmd.inputs & lay.servo.both
     with pytest.raises(CommandError, match="emergency stop is latched"):
-        rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
+        set_velocity(rig.sup, "left", 10, 0, source=present(rig.sup, "left"))
     assert rig.sup.apply_text("left", "START ON ON") == "Packet Error: 3"
-    rig.sup.set_velocity("left", 0, 0, source=present(rig.sup, "left"))  # zero is always allowed
+    set_velocity(rig.sup, "left", 0, 0, source=present(rig.sup, "left"))  # zero is always allowed
     rig.run(0.1)
     wire.clear()
     rig.sup.clear_emergency_stop()
     # the e-stop switched SERVO off too: both are given anew before motion is taken
     with pytest.raises(CommandError, match="SERVO A, SERVO B, START A, START B not switched"):
-        rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
+        set_velocity(rig.sup, "left", 10, 0, source=present(rig.sup, "left"))
     for text in ("SERVO ON ON", "START ON ON"):
         assert rig.sup.apply_text("left", text) == ""
-    rig.sup.set_velocity("left", 10, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 10, 0, source=present(rig.sup, "left"))
 
 
 def test_an_offline_unit_has_its_command_zeroed(rig: Rig) -> None:
     start(rig, "left")
-    rig.sup.set_velocity("left", 300, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 300, 0, source=present(rig.sup, "left"))
     rig.run(0.5)
     rig.drive("left").silent = True
     rig.run(1.5)
@@ -175,7 +184,7 @@ def test_model_mismatch_is_reported() -> None:
 def test_monitor_units_refuse_commands() -> None:
     rig = Rig(parse_config(TWO_UNITS.replace("name: right,", "name: right, role: monitor,"), "m"))
     with pytest.raises(CommandError, match="role: monitor"):
-        rig.sup.set_velocity("right", 1, 1, source=present(rig.sup, "right"))
+        set_velocity(rig.sup, "right", 1, 1, source=present(rig.sup, "right"))
 
 
 @pytest.mark.wallclock
@@ -192,7 +201,7 @@ def test_exchange_waiters_resolve_on_the_reply_to_a_later_request(rig: Rig) -> N
 
 def test_safe_state_is_zero_servo_and_start_off(rig: Rig) -> None:
     start(rig, "left", "right")
-    rig.sup.set_velocity("left", 100, 0, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 100, 0, source=present(rig.sup, "left"))
     rig.sup.safe_state()
     rig.run(0.1)
     for unit in ("left", "right"):

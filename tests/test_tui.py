@@ -36,7 +36,7 @@ from abh3_supervisor.plugin_host.hookspecs import hookimpl
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.scheduler.core import HealthEvent
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_velocity
 from tests.support.safe_word import assert_demo_stopped
 from tests.support.terminal import ended, in_a_terminal
 from tests.support.tui import (
@@ -61,7 +61,7 @@ def test_estop_from_every_screen_stops_both_units() -> None:
         for unit in ("left", "right"):
             assert await sup.command(unit, "SERVO ON ON") == ""
             assert await sup.command(unit, "START ON ON") == ""
-        sup.set_velocity("left", 100, 0, source=present(sup, "left"))
+        set_velocity(sup, "left", 100, 0, source=present(sup, "left"))
         await pilot.press("2")  # the unit screen: e-stop works from here too
         await pilot.press("ctrl+e")
         await until(pilot, lambda: sup.estop, "the e-stop reaches the service")
@@ -193,7 +193,7 @@ def test_layout_snapshots(
         app = SupervisorApp(mirror, None)
         for step in range(60):  # 30 s, sampled as the app does
             if step == 30:
-                rig.sup.set_velocity("left", -150, 0, source=present(rig.sup, "left"))
+                set_velocity(rig.sup, "left", -150, 0, source=present(rig.sup, "left"))
             rig.run(0.5)
             mirror.apply(supervisor_state(rig.sup, {}))
             app.sampler.sample()

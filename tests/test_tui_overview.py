@@ -21,7 +21,7 @@ from abh3_supervisor.clients.tui.model import (
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.core.verify import DriveCheck, State, Verification
 from tests.support.foreign_host import TimelineHost
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_velocity
 from tests.support.tui import mirror_of, snapshot_rig
 
 REPORTED = ("fbk", "fbk A/B", "fbk Y/X", "current", "load", "supply")  # by the drive
@@ -197,7 +197,7 @@ def test_the_whole_name_under_the_table_is_the_selected_units() -> None:
     """An abbreviated unit that is not selected is named only by its abbreviation (and
     an offline one keeps it, with unknown switches)."""
     rig = Rig(parse_config(LONG_NAMES, "t.yaml"))
-    rig.sup.set_velocity("left_drive", 100, 0, source=present(rig.sup, "left_drive"))
+    set_velocity(rig.sup, "left_drive", 100, 0, source=present(rig.sup, "left_drive"))
     rig.run(1.0)
     rig.drive("left_drive").silent = True
     rig.run(1.0)

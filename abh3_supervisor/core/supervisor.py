@@ -37,12 +37,13 @@ from abh3_supervisor.core.inputs import (
     InputArbiter,
     InputCommand,
     InputSource,
+    Motion,
     Stop,
     Twist,
     VelocityYX,
 )
 from abh3_supervisor.core.journal import Journal
-from abh3_supervisor.core.kinematics import ab_to_yx, yx_to_ab
+from abh3_supervisor.core.kinematics import yx_to_ab
 from abh3_supervisor.core.readiness import (
     SETTLE_S,
     DriveView,
@@ -149,13 +150,6 @@ class OwnerChange:
 
 SupervisorEvent = Event | FlagChange | Notice | OperatorAction | EstopChange | OwnerChange
 Observer = Callable[[SupervisorEvent], None]
-
-
-@dataclass(frozen=True, slots=True)
-class SetResult:
-    ay: float
-    bx: float
-    clamped: bool
 
 
 class Supervisor:
@@ -687,51 +681,6 @@ class Supervisor:
             raise CommandError(f"unit '{name}' is configured role: monitor and takes no commands")
         return unit
 
-    # Motion has an owner: every setpoint reaches a unit through the arbitration
-    # (core/inputs.py), as a source's command. The methods below are the programmatic
-    # way in: each submits a *streamed* command of the source ``api:<unit>`` (or the one
-    # named), fresh for that source's timeout — repeat it to keep moving; silence is zero.
-
-    def set_velocity_ab(
-        self, name: str, a: float, b: float, *, source: str | None = None
-    ) -> SetResult:
-        """Motor-axis velocities [min⁻¹], converted to the drive's model."""
-        unit = self._commandable(name)
-        _finite(a, b)
-        if unit.cfg.velocity_model is VelocityModel.TRAVEL:
-            return self.set_velocity(name, *ab_to_yx(a, b), source=source)
-        return self.set_velocity(name, a, b, source=source)
-
-    def set_velocity_yx(
-        self, name: str, y: float, x: float, *, source: str | None = None
-    ) -> SetResult:
-        """Travel/turn velocities [min⁻¹], converted to the drive's model."""
-        self._commandable(name)
-        _finite(y, x)
-        return self._submit(name, VelocityYX(y, x), source)
-
-    def set_velocity(
-        self, name: str, ay: float, bx: float, *, source: str | None = None
-    ) -> SetResult:
-        """AY/BX velocities as the drive reads them (its configured model) [min⁻¹]."""
-        self._commandable(name)
-        _finite(ay, bx)
-        return self._submit(name, VelocityCommand(ay, bx), source)
-
-    def set_twist(
-        self, name: str, linear_x: float, angular_z: float, *, source: str | None = None
-    ) -> SetResult:
-        """Robot twist [m/s, rad/s] to the robot ``name`` (or the robot of the unit
-        ``name``): every drive of it at once. The result is the named unit's (the robot's
-        first unit when a robot is named)."""
-        robot = self.robot(name)
-        for unit in robot.units:
-            self._commandable(unit)
-        _finite(linear_x, angular_z)
-        first = name if name in robot.units else robot.units[0]
-        owner = source if source is not None else f"{API_SOURCE}:{robot.name}"
-        return self._submit(first, Twist(linear_x, angular_z), owner, units=robot.units)
-
     def robot(self, name: str) -> RobotConfig:
         """The robot called ``name``, or the robot of the unit called ``name``."""
         robot = self.config.robot(name)
@@ -742,14 +691,6 @@ class Supervisor:
             )
         return robot
 
-    def set_current(
-        self, name: str, ay: float, bx: float, *, source: str | None = None
-    ) -> SetResult:
-        """Current commands [%]; the unit must be in torque mode on both axes."""
-        self._commandable(name)
-        _finite(ay, bx)
-        return self._submit(name, CurrentCommand(ay, bx), source)
-
     def zero(self, name: str) -> None:
         """Zero command in the unit's current mode (velocity or current); flags unchanged.
         Whoever drove the unit loses it: only a command given after this moves it."""
@@ -757,59 +698,42 @@ class Supervisor:
         self.arbiter.hold(name)
         self._zero(unit)
 
-    def _submit(
-        self,
-        name: str,
-        command: InputCommand,
-        source: str | None,
-        *,
-        standing: bool = False,
-        units: tuple[str, ...] = (),
-    ) -> SetResult:
-        """``command`` as ``source``'s (default ``api:<name>``, streamed) in the arbitration,
-        for ``units`` (default: ``name``); refused (raised) if a unit cannot take it now,
-        or if another source owns it. The result is ``name``'s."""
-        targets = units or (name,)
-        wanted = {}
-        for target in targets:  # the caller hears a refusal, not a notice
-            state = self.unit(target)
-            wanted[target] = self._target(state, command, preview=True)
-            self._check(state, *wanted[target])
+    # Motion has an owner: every setpoint reaches a unit through the arbitration
+    # (core/inputs.py), as an input source's command — a plugin's, a control client's, the
+    # TUI's (plugin_host/feed.py), the start-up's (run_startup). The command language's
+    # VEL/CUR given here (apply) is submitted as the source named, by default ``api:<unit>``.
+
+    def _submit(self, name: str, command: Motion, source: str | None, *, standing: bool) -> None:
+        """``command`` as ``source``'s (default ``api:<name>``, streamed) in the
+        arbitration; refused (raised) if the unit cannot take it now, or if another source
+        owns it."""
+        state = self.unit(name)
+        wanted = self._target(state, command)
+        self._check(state, *wanted)
         owner = source if source is not None else f"{API_SOURCE}:{name}"
         if owner not in self.arbiter.sources:
             # the start-up's motion stands for the whole run; the API's is streamed
             timeout = math.inf if owner.startswith(STARTUP_SOURCE) else DEFAULT_TIMEOUT
-            self.arbiter.add(_Api(owner, targets, timeout=timeout))
+            self.arbiter.add(_Own(owner, (name,), timeout=timeout))
         if self.arbiter.closed:
             raise CommandError("the supervisor is stopping: commands are refused")
-        if not isinstance(command, Twist):  # a twist's plan is made when it is applied
-            self._checked = (command, wanted)
+        self._checked = (command, {name: wanted})
         try:
             self.arbiter.submit(owner, command, self.clock(), standing=standing)
         finally:
             self._checked = None
-        for target in targets:
-            ay, bx, _ = wanted[target]
-            if self.units[target].setpoint.owner != owner and (ay or bx):
-                holder = self.arbiter.owner(target)
-                raise CommandError(
-                    f"unit '{target}' is driven by input {holder}: not applied"
-                    if holder is not None and holder != owner
-                    else f"unit '{target}' did not take the command (see the notices)"
-                )
-        unit = self.units[name]
-        ay, bx, kind = wanted[name]
-        clamped = _limited(unit, ay, bx, kind)[2] is not None  # as _set found it
-        if isinstance(command, Twist):
-            plan = self._robot_of[name].last
-            clamped = plan is not None and plan.note is not None
-        return SetResult(unit.setpoint.ay, unit.setpoint.bx, clamped)
+        ay, bx, _ = wanted
+        if self.units[name].setpoint.owner != owner and (ay or bx):
+            holder = self.arbiter.owner(name)
+            raise CommandError(
+                f"unit '{name}' is driven by input {holder}: not applied"
+                if holder is not None and holder != owner
+                else f"unit '{name}' did not take the command (see the notices)"
+            )
 
-    def _target(
-        self, unit: UnitState, command: InputCommand, *, preview: bool = False
-    ) -> tuple[float, float, ControlMode]:
+    def _target(self, unit: UnitState, command: InputCommand) -> tuple[float, float, ControlMode]:
         """The AY/BX values ``command`` asks of ``unit`` in its model, and their kind
-        (``preview``: a twist as asked, its robot's plan left as it is)."""
+        (a twist's: its robot's plan, made now)."""
         if isinstance(command, Stop):
             return 0.0, 0.0, unit.setpoint.kind
         if isinstance(command, CurrentCommand):
@@ -819,7 +743,7 @@ class Supervisor:
         if isinstance(command, Twist):  # the robot's plan: one decision for all its drives
             motion = self._robot_of[unit.name]
             twist = command.linear_x, command.angular_z
-            fields = motion.preview(*twist) if preview else motion.plan(*twist, self.clock()).fields
+            fields = motion.plan(*twist, self.clock()).fields
             ay, bx = fields[unit.name]
             return ay, bx, ControlMode.VELOCITY
         y, x = command.y, command.x
@@ -1272,9 +1196,9 @@ class Supervisor:
             self._store(unit, Setpoint())  # torque is off: the fields are velocities
 
 
-class _Api(InputSource):
-    """The source behind a programmatic command (``api:<unit>``, ``startup:<unit>``): it
-    has no device and no thread; its commands are submitted by the Supervisor itself."""
+class _Own(InputSource):
+    """A source of the supervisor's own (``startup:<unit>``, ``api:<unit>``): it has no
+    device and no thread; its commands are submitted by the Supervisor itself."""
 
     def start(self, feed: object) -> None:
         pass

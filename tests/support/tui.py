@@ -19,7 +19,7 @@ from abh3_supervisor.protocol import flags
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.service.server import ControlServer
 from abh3_supervisor.service.snapshot import supervisor_state
-from tests.support.rig import TWO_UNITS, Rig, present
+from tests.support.rig import TWO_UNITS, Rig, present, set_velocity
 from tests.support.served import served
 
 KEYBOARD = TWO_UNITS + "plugins:\n  keyboard: {units: [left]}\n"
@@ -116,7 +116,7 @@ def snapshot_rig() -> Rig:
     for unit in ("left", "right"):
         rig.sup.apply_text(unit, "SERVO ON ON")
     rig.sup.apply_text("left", "START ON ON")
-    rig.sup.set_velocity("left", 300, 20, source=present(rig.sup, "left"))
+    set_velocity(rig.sup, "left", 300, 20, source=present(rig.sup, "left"))
     rig.run(1.0)
     rig.drive("right").errors = flags.FAULT.mask("A_OVERCURRENT")
     rig.drive("right").alarms = flags.FAULT.mask("CONTROL_UNDERVOLTAGE")
