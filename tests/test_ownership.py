@@ -134,8 +134,9 @@ def test_a_replaced_setpoint_never_comes_back(rig: Rig) -> None:
 
 def test_a_startup_vel_never_comes_back_after_a_client_took_over(rig: Rig) -> None:
     arb, node = owned_rig(rig)
-    # the YAML's startup: VEL, as Supervisor.run_startup gives it
-    assert rig.sup.apply_text("left", "VEL 300 0", source="startup:left", standing=True) == ""
+    # the YAML's startup: VEL, as Supervisor.run_startup gives it (its source startup:left)
+    assert rig.sup.startup("left", "VEL 300 0").response == ""
+    assert rig.sup.arbiter.owner("left") == "startup:left"
     rig.run(0.3)
     assert commanded(rig) == 300.0
     node.alive["tui1"] = 10.0
@@ -144,6 +145,28 @@ def test_a_startup_vel_never_comes_back_after_a_client_took_over(rig: Rig) -> No
     arb.remove("tui1", rig.timeline.now)
     rig.run(1.0)
     assert commanded(rig) == 0.0
+
+
+def test_the_startup_is_an_input_source_under_the_arbitration_rules(rig: Rig) -> None:
+    """The YAML's startup: is the input source startup:<unit> (Supervisor.startup, as
+    run_startup runs each line): its VEL is owned by that source, a source of higher
+    priority outranks it, and once it was replaced it never comes back."""
+    for text in ("SERVO ON ON", "START ON ON"):
+        assert rig.sup.apply_text("left", text) == ""
+    assert rig.sup.startup("left", "VEL 300 0").response == ""
+    assert (rig.sup.arbiter.owner("left"), rig.sup.units["left"].setpoint.ay) == (
+        "startup:left",
+        300,
+    )
+    rig.sup.arbiter.add(Source("joystick", ("left",), priority=5, timeout=float("inf")))
+    rig.sup.arbiter.submit("joystick", VelocityCommand(50, 0), rig.timeline.now)
+    assert rig.sup.startup("left", "VEL 200 0").response == ""  # said, but outranked
+    assert (rig.sup.arbiter.owner("left"), rig.sup.units["left"].setpoint.ay) == ("joystick", 50)
+    rig.run(0.1)
+    rig.sup.arbiter.submit("joystick", None, rig.timeline.now)  # the joystick lets go
+    rig.run(0.3)
+    assert rig.sup.arbiter.owner("left") is None
+    assert rig.sup.units["left"].setpoint.ay == 0 and commanded(rig) == 0.0
 
 
 def test_a_streamed_source_takes_over_at_its_next_sample_but_a_standing_one_does_not() -> None:

@@ -48,7 +48,7 @@ def startup_motion(config: Config, unit: str, startup: Sequence[str]) -> str | N
     cfg = dataclasses.replace(config.units[unit], role=Role.COMMAND, startup=tuple(startup))
     scratch = Supervisor(dataclasses.replace(config, units={unit: cfg}), clock=lambda: 0.0)
     for text in startup:
-        scratch.apply_text(unit, text)
+        scratch.startup(unit, text)  # as the run's start-up does: its input source's
         setpoint = scratch.units[unit].setpoint
         if setpoint.ay or setpoint.bx:
             return text

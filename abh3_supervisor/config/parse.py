@@ -168,7 +168,7 @@ def _dry_run_startup(src: Source, config: Config) -> None:
     for index, (name, unit) in enumerate(config.units.items()):
         for i, text in enumerate(unit.startup):
             reasons.clear()
-            answer = sup.apply_text(name, text, source=f"startup:{name}", standing=True)
+            answer = sup.startup(name, text).response  # as the run's startup:<unit> does
             if answer != RESPONSE_OK:
                 why = reasons[-1] if reasons else "not a command"
                 src.error(

@@ -34,6 +34,7 @@ from abh3_supervisor.core.gate import (
 )
 from abh3_supervisor.core.inputs import (
     DEFAULT_TIMEOUT,
+    CommandOutcome,
     InputArbiter,
     InputCommand,
     InputSource,
@@ -41,6 +42,7 @@ from abh3_supervisor.core.inputs import (
     Stop,
     Twist,
     VelocityYX,
+    enact,
 )
 from abh3_supervisor.core.journal import Journal
 from abh3_supervisor.core.kinematics import yx_to_ab
@@ -712,9 +714,7 @@ class Supervisor:
         self._check(state, *wanted)
         owner = source if source is not None else f"{API_SOURCE}:{name}"
         if owner not in self.arbiter.sources:
-            # the start-up's motion stands for the whole run; the API's is streamed
-            timeout = math.inf if owner.startswith(STARTUP_SOURCE) else DEFAULT_TIMEOUT
-            self.arbiter.add(_Own(owner, (name,), timeout=timeout))
+            self.arbiter.add(_Own(owner, (name,), timeout=DEFAULT_TIMEOUT))
         if self.arbiter.closed:
             raise CommandError("the supervisor is stopping: commands are refused")
         self._checked = (command, {name: wanted})
@@ -949,14 +949,27 @@ class Supervisor:
         return commands.RESPONSE_OK
 
     def run_startup(self, name: str) -> list[tuple[str, str]]:
-        """The unit's ``startup:`` commands, now: its motion is owned by the supervisor
-        (source ``startup:<unit>``) for the whole run, until another source replaces it.
-        The answer to each, in order."""
+        """The unit's ``startup:`` commands, now (:meth:`startup`); the answer to each, in
+        order."""
+        return [(text, self.startup(name, text).response) for text in self.unit(name).cfg.startup]
+
+    def startup(self, name: str, text: str) -> CommandOutcome:
+        """One line of the unit's ``startup:``, now, as the input source ``startup:<unit>``
+        does it — an input like any other (core/inputs.py, :func:`enact`): its switches act
+        at once, its motion is that source's standing command in the arbitration (present
+        for the whole run: an owner the arbitration chose, until another source replaces
+        it or the unit stops)."""
         source = f"{STARTUP_SOURCE}:{name}"
-        return [
-            (text, self.apply_text(name, text, source=source, standing=True))
-            for text in self.unit(name).cfg.startup
-        ]
+
+        def submit(command: Motion) -> None:
+            if self.arbiter.closed:  # inputs stopped: nothing may command motion any more
+                raise CommandError("the supervisor is stopping: commands are refused")
+            if source not in self.arbiter.sources:
+                self.arbiter.add(_Own(source, (name,), timeout=math.inf))
+            self.arbiter.submit(source, command, self.clock(), standing=True)
+
+        self.unit(name)  # an unknown unit is the caller's error, not the command's
+        return enact(self, (name,), text, submit)
 
     def refusal(self, name: str, text: str, exc: CommandError) -> str:
         """The seed's answer to a command the unit refused, and a notice saying why."""
