@@ -11,7 +11,10 @@ The wheels' exported CMake files name the wheel builder's Python (``/opt/python/
 those paths are rewritten to the virtual environment's own once, after installing.
 
 The tests use the same functions to get a real rclpy (``runtime=True`` adds rclpy, the RMW
-and the message packages the bridge publishes).
+and the message packages the bridge publishes). One of those, ``tf2_msgs`` (``/tf``), has
+no wheel in the registry: a runtime environment builds it from its upstream definition
+(ros2/geometry2's ``tf2_msgs/msg/TFMessage.msg``, the message alone) with the same cmake
+steps, into the environment itself, so its Python imports it as the wheels' packages.
 """
 
 from __future__ import annotations
@@ -30,7 +33,15 @@ from pathlib import Path
 # the wheels' name prefix per distro: Kilted's are unprefixed (ros-rclpy), older ones not
 PREFIX = {"kilted": "ros-", "jazzy": "ros-jazzy-"}
 DISTROS = tuple(PREFIX)
-RUNTIME = ("rclpy", "rmw-fastrtps-cpp", "std-msgs", "geometry-msgs", "nav-msgs", "diagnostic-msgs")
+RUNTIME = (
+    "rclpy",
+    "rmw-fastrtps-cpp",
+    "std-msgs",
+    "geometry-msgs",
+    "nav-msgs",
+    "diagnostic-msgs",
+    "sensor-msgs",  # joint_states, joint_commands
+)
 GENERATORS = (
     "ament-cmake",
     "ament-cmake-ros",
@@ -56,6 +67,45 @@ PLAIN = ("catkin-pkg", "numpy")  # not ROS packages: the same name in every dist
 # the build machine of the wheels, named in their exported CMake files
 WHEEL_PYTHON = "/opt/python/cp311-cp311"
 PACKAGE = "abh3_can_interface"
+# tf2_msgs has no wheel in the registry: its TFMessage (what /tf carries) built as above.
+# The .msg is upstream's text to the byte (ros2/geometry2, tf2_msgs/msg/TFMessage.msg), so
+# the type and its hash are ROS's; the package's other files (TF2Error, the services and
+# the action) are left out: the bridge publishes only TFMessage
+TF2_MSGS = "tf2_msgs"
+TF2_FILES = {
+    "msg/TFMessage.msg": "geometry_msgs/TransformStamped[] transforms\n",
+    "CMakeLists.txt": (
+        "cmake_minimum_required(VERSION 3.8)\n"
+        "project(tf2_msgs)\n"
+        "find_package(ament_cmake REQUIRED)\n"
+        "find_package(rosidl_default_generators REQUIRED)\n"
+        "find_package(builtin_interfaces REQUIRED)\n"
+        "find_package(geometry_msgs REQUIRED)\n"
+        "rosidl_generate_interfaces(${PROJECT_NAME}\n"
+        '  "msg/TFMessage.msg"\n'
+        "  DEPENDENCIES builtin_interfaces geometry_msgs\n"
+        ")\n"
+        "ament_package()\n"
+    ),
+    "package.xml": (
+        '<?xml version="1.0"?>\n'
+        '<package format="3">\n'
+        "  <name>tf2_msgs</name>\n"
+        "  <version>0.0.0</version>\n"
+        "  <description>tf2_msgs/TFMessage only, built by abh3-supervisor's tests where the "
+        "registry has no tf2_msgs wheel</description>\n"
+        '  <maintainer email="dev@abh3-supervisor.invalid">abh3-supervisor</maintainer>\n'
+        "  <license>BSD</license>\n"
+        "  <buildtool_depend>ament_cmake</buildtool_depend>\n"
+        "  <buildtool_depend>rosidl_default_generators</buildtool_depend>\n"
+        "  <depend>builtin_interfaces</depend>\n"
+        "  <depend>geometry_msgs</depend>\n"
+        "  <exec_depend>rosidl_default_runtime</exec_depend>\n"
+        "  <member_of_group>rosidl_interface_packages</member_of_group>\n"
+        "  <export><build_type>ament_cmake</build_type></export>\n"
+        "</package>\n"
+    ),
+}
 
 
 class BuildError(RuntimeError):
@@ -127,6 +177,8 @@ def ensure_venv(
             f"installing the ROS 2 {distro} wheels from the package registry",
         )
         _fix_cmake_paths(venv)
+        if runtime:
+            build_tf2_msgs(venv)
         (venv / ".complete").write_text("\n".join(names) + "\n")
     return venv
 
@@ -163,17 +215,31 @@ def sourced_ros() -> Path | None:
     return None
 
 
-def site_dir(prefix: Path) -> Path:
+def site_dir(prefix: Path, package: str = PACKAGE) -> Path:
     """Where the package's Python modules went under ``prefix``."""
-    found = sorted(prefix.glob(f"lib*/python3*/*-packages/{PACKAGE}"))
+    found = sorted(prefix.glob(f"lib*/python3*/*-packages/{package}"))
     if not found:
-        raise BuildError(f"no {PACKAGE} Python package under {prefix}/lib*/python3*/")
+        raise BuildError(f"no {package} Python package under {prefix}/lib*/python3*/")
     return found[0].parent
 
 
-def build(prefix: Path, venv: Path | None = None, source: Path | None = None) -> Path:
-    """Configure, build and install the interface into ``prefix`` with cmake; the generators
-    come from ``venv`` (the wheels) or, without one, from the sourced ROS 2."""
+def build_tf2_msgs(venv: Path) -> Path:
+    """tf2_msgs (TFMessage) built with ``venv``'s generators and installed into ``venv``
+    itself: its Python and libraries land where the wheels' are, found as theirs are."""
+    with tempfile.TemporaryDirectory(prefix="abh3-tf2-msgs-") as tmp:
+        source = Path(tmp) / TF2_MSGS
+        for name, text in TF2_FILES.items():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            (source / name).write_text(text)
+        return build(venv, venv, source, TF2_MSGS)
+
+
+def build(
+    prefix: Path, venv: Path | None = None, source: Path | None = None, package: str = PACKAGE
+) -> Path:
+    """Configure, build and install the interface (or ``source``, the package ``package``)
+    into ``prefix`` with cmake; the generators come from ``venv`` (the wheels) or, without
+    one, from the sourced ROS 2."""
     for tool in ("cmake", "make", "c++"):
         if shutil.which(tool) is None:
             raise BuildError(f"{tool} is not installed (apt-get install cmake make g++)")
@@ -208,7 +274,7 @@ def build(prefix: Path, venv: Path | None = None, source: Path | None = None) ->
         jobs = str(max(1, min(4, os.cpu_count() or 1)))
         _run(["cmake", "--build", build_dir, "-j", jobs], "cmake build", env)
         _run(["cmake", "--install", build_dir], "cmake install", env)
-    return site_dir(prefix)
+    return site_dir(prefix, package)
 
 
 def setup_lines(prefix: Path) -> list[str]:
