@@ -365,7 +365,10 @@ class Ros2Plugin:
 
     @hookimpl
     def abh3_flags(self, change: FlagChange) -> None:
-        if self.diagnostics is not None and change.word in ("error", "alarm"):
+        # any word: an error or alarm sets a unit's level, and what a drive reports
+        # switched on (SERVO, START) its robot's (ready or not): published at once when a
+        # level changed (changed() compares), not a period later
+        if self.diagnostics is not None:
             self.diagnostics.changed(time.monotonic())
 
     @hookimpl
