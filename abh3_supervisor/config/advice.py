@@ -1,6 +1,8 @@
 """Warnings for a file that is valid but unsafe on real drives (``check`` and the log at
 start): a real bus is one without ``simulate:``; what is harmless on the simulator —
-no speed limit, motion at start — is said there, never refused (docs/robots.md)."""
+no speed limit, motion at start — is said there, never refused (docs/robots.md). And one
+that holds on the simulator too: two robots putting the same transform on one ``/tf``
+(the ``ros2`` plugin), which tf2 would take as one frame jumping between two poses."""
 
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ from abh3_supervisor.protocol.scaling import VELOCITY
 
 def warnings(config: Config) -> list[str]:
     """``FILE:LINE: key: why`` for each commanded unit on a real bus that has no speed
-    limit (its own or its robot's) or moves at start."""
+    limit (its own or its robot's) or moves at start, and for each robot whose transform
+    another one already puts on the same ``/tf``."""
     out: list[str] = []
     for index, unit in enumerate(config.units.values()):
         bus = config.buses.get(unit.bus)
@@ -38,7 +41,69 @@ def warnings(config: Config) -> list[str]:
                 f"{real}: its motors turn the moment `run` starts, with no question asked; "
                 "give motion from a client, or put it under the bus's simulate.startup"
             )
+    return out + _shared_transforms(config)
+
+
+def _shared_transforms(config: Config) -> list[str]:
+    """``FILE:LINE: key: why`` for each robot whose ``frame_id → child_frame_id`` another
+    robot already publishes on the same ``/tf`` (docs/ros2.md): every ``odom`` of the
+    ``ros2`` plugin with its ``odom_tf`` on (the default), frame ids its own (a declared
+    robot) or the plugin's ``odom_frame``/``base_frame`` (a unit's own robot)."""
+    if "ros2" not in config.plugins:
+        return []
+    raw = _mapping(config.plugins.get("ros2"))
+    robots, remap = _mapping(raw.get("robots")), _mapping(raw.get("remap"))
+    namespace = raw.get("namespace", "/{unit}")
+    namespace = namespace if isinstance(namespace, str) else "/{unit}"
+    declared = [r for r in config.robots.values() if not r.implicit]
+    wheels = {u for r in declared for u in r.units}
+    # (name, frame ids, where it is in the file): every robot the bridge gives an odom
+    publishing: list[tuple[str, tuple[str, str], Path]] = [
+        (r.name, (r.frame_id, r.child_frame_id), ("robots", _index(config, r.name)))
+        for r in declared
+    ]
+    frames = (str(raw.get("odom_frame", "odom")), str(raw.get("base_frame", "base_link")))
+    publishing += [
+        (u.name, frames, ("units", index))
+        for index, u in enumerate(config.units.values())
+        if u.name not in wheels and u.geometry.pulses_per_rev > 0
+    ]
+    first: dict[tuple[str, str, str], str] = {}
+    out: list[str] = []
+    for name, (frame_id, child), where in publishing:
+        own = _mapping(robots.get(name))
+        if own.get("odom_tf", raw.get("odom_tf", True)) is False:
+            continue
+        topic = remap.get(f"{name}/tf", remap.get("tf", "/tf"))
+        if not isinstance(topic, str):
+            continue  # reported by the plugin's own check
+        if not topic.startswith("/"):  # relative: under the robot's namespace
+            topic = f"{namespace.replace('{unit}', name).rstrip('/')}/{topic}"
+        other = first.setdefault((topic, frame_id, child), name)
+        if other != name:
+            own_ids = (
+                "declare it under robots: with its own frame_id and child_frame_id"
+                if where[0] == "units"  # a unit's own robot: the plugin's frame ids
+                else "give each robot its own frame_id and child_frame_id"
+            )
+            out.append(
+                _where(config, where)
+                + f"robot '{name}' publishes {frame_id} → {child} on {topic}, as robot "
+                f"'{other}' does: tf2 would see one frame jumping between two poses; "
+                f"{own_ids} (a prefix: {name}_odom, {name}_base_link), or set "
+                f"plugins.ros2.robots.{name}.odom_tf: false where another node publishes "
+                "that transform"
+            )
     return out
+
+
+def _mapping(value: Any) -> dict[str, Any]:
+    return value if isinstance(value, dict) else {}
+
+
+def _index(config: Config, robot: str) -> int:
+    """The robot's place in the file's ``robots:`` list (declared robots keep that order)."""
+    return list(config.declared_robots).index(robot)
 
 
 def _limited(config: Config, unit: UnitConfig) -> bool:
