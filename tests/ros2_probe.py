@@ -1,5 +1,9 @@
 """A real rclpy node against ``abh3 run``: run with a ROS 2 venv's Python (tests/test_ros2_real.py).
 
+With ``"mode": "nav"`` it is instead the ROS side of a Nav2 base (tests/test_nav_real.py,
+:func:`nav`): it records every odom, /tf, joint_states and /diagnostics message and drives
+the robot with JointState commands as joint_state_topic_hardware_interface does.
+
 Prints one JSON object on stdout: what it saw of the graph (nodes, per-topic endpoint names
 and GIDs, the node's own endpoints), the topics, /diagnostics, odom at rest, while
 driving and (``settle``) once stopped, the service, and the wall-clock times of its cmd_vel publishing (for the frames
@@ -36,7 +40,10 @@ def main() -> int:
         return bool(cond())
 
     try:
-        run(node, args, out, spin_until)
+        if args.get("mode") == "nav":
+            nav(node, args, out)
+        else:
+            run(node, args, out, spin_until)
     except Exception as exc:  # reported, so the test says what failed
         out["errors"].append(f"{type(exc).__name__}: {exc}")
     print(json.dumps(out), flush=True)
@@ -154,6 +161,126 @@ def call(node: Any, args: dict[str, Any], out: dict[str, Any], spin_until: Any) 
         answers.append(future.result().responce if future.done() else None)
         calls.append([sent, time.time()])  # wall clock, as the recording's frames
     out["answers"], out["calls"] = answers, calls
+
+
+def nav(node: Any, args: dict[str, Any], out: dict[str, Any]) -> None:
+    """A robot's Nav2 topics: everything its odom, /tf, joint_states and the robot's
+    /diagnostics status carry from the start, received by an executor on a thread of its
+    own (none is lost to the publishing); in the main thread, in phases (``phases``: a
+    name, whether JointState commands go out at ``rate_hz``, the ``enable`` command called
+    at its start, its seconds), the joint commands and the service calls, with the wall
+    clock of each phase's start, its first and its last command (for the recording)."""
+    import threading
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
+    from sensor_msgs.msg import JointState  # type: ignore[import-not-found]
+    from tf2_msgs.msg import TFMessage  # type: ignore[import-not-found]
+
+    def ns(stamp: Any) -> int:
+        return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+    def yaw(q: Any) -> float:
+        return 2 * math.atan2(q.z, q.w)
+
+    odoms: list[list[Any]] = []
+    tfs: list[list[Any]] = []
+    joints: list[list[Any]] = []
+    robot_status: list[list[Any]] = []
+
+    def on_odom(o: Any) -> None:
+        p, q, tw = o.pose.pose.position, o.pose.pose.orientation, o.twist.twist
+        odoms.append(
+            [ns(o.header.stamp), o.header.frame_id, o.child_frame_id, p.x, p.y, yaw(q),
+             [q.x, q.y, q.z, q.w], tw.linear.x, tw.angular.z,
+             [o.pose.covariance[i] for i in (0, 7, 35)], time.time()]
+        )  # fmt: skip
+
+    def on_tf(m: Any) -> None:
+        for t in m.transforms:
+            tr, q = t.transform.translation, t.transform.rotation
+            tfs.append(
+                [ns(t.header.stamp), t.header.frame_id, t.child_frame_id, tr.x, tr.y, tr.z,
+                 [q.x, q.y, q.z, q.w], len(m.transforms)]
+            )  # fmt: skip
+
+    def on_joints(m: Any) -> None:
+        joints.append([ns(m.header.stamp), list(m.name), list(m.position), list(m.velocity)])
+
+    def on_diagnostics(d: Any) -> None:
+        for s in d.status:
+            if s.name == args["robot_status"]:
+                level = s.level[0] if isinstance(s.level, bytes) else int(s.level)
+                robot_status.append([time.time(), level, s.message])
+
+    qos = QoSProfile(depth=100)  # reliable, volatile: matches the bridge's depth 10
+    node.create_subscription(Odometry, args["odom"], on_odom, qos)
+    node.create_subscription(TFMessage, args["tf"], on_tf, qos)
+    node.create_subscription(JointState, args["joint_states"], on_joints, qos)
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, qos)
+    command = node.create_publisher(JointState, args["joint_commands"], 10)
+    client = None
+    if args.get("enable"):
+        from abh3_can_interface.srv import Abh3Input
+
+        client = node.create_client(Abh3Input, args["enable"])
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinning = threading.Thread(target=executor.spin, daemon=True)
+    spinning.start()
+    try:
+        nav_phases(args, out, command, client, JointState, odoms, robot_status)
+    finally:
+        executor.shutdown(timeout_sec=5)
+        spinning.join(timeout=5)
+    out.update(odom=odoms, tf=tfs, joint_states=joints, robot_status=robot_status)
+
+
+def nav_phases(
+    args: dict[str, Any],
+    out: dict[str, Any],
+    command: Any,
+    client: Any,
+    joint_state: Any,  # the message class
+    odoms: list[Any],
+    robot_status: list[Any],
+) -> None:
+    wait = float(args.get("wait", 30))
+
+    def until(cond: Any, seconds: float) -> bool:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not cond():
+            time.sleep(0.01)
+        return bool(cond())
+
+    out["matched"] = until(lambda: command.get_subscription_count() > 0 and odoms, wait)
+    if client is not None:
+        out["service_ready"] = client.wait_for_service(timeout_sec=wait)
+    period = 1.0 / float(args["rate_hz"])
+    phases: list[dict[str, Any]] = []
+    for name, drive, enable, seconds in args["phases"]:
+        phase: dict[str, Any] = {"name": name, "start": time.time(), "sent": 0}
+        if enable is not None and client is not None:
+            future = client.call_async(client.srv_type.Request(command=enable))
+            until(future.done, wait)
+            phase["answer"] = future.result().responce if future.done() else None
+            phase["answered"] = time.time()
+        msg = joint_state(name=list(args["joints"]), velocity=list(drive or []))
+        end = time.monotonic() + float(seconds)
+        due = time.monotonic()
+        while time.monotonic() < end:
+            if drive is not None:  # every controller cycle, as the hardware interface
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(time.time_ns(), 10**9)
+                command.publish(msg)
+                phase.setdefault("first", time.time())
+                phase["last"] = time.time()
+                phase["sent"] += 1
+            due += period
+            time.sleep(max(0.0, due - time.monotonic()))
+        phases.append(phase)
+    out["phases"] = phases
 
 
 if __name__ == "__main__":
