@@ -116,6 +116,33 @@ def test_odometry_is_the_bytes_serialize_dynamic_writes(frame_id: str, child: st
         assert ours == reference("nav_msgs/msg/Odometry", message)
 
 
+def test_odometry_with_its_covariances_is_the_bytes_serialize_dynamic_writes() -> None:
+    pose_cov = [float(i) / 7 for i in range(36)]
+    twist_cov = [float(-i) * 1e-3 for i in range(36)]
+    ours = cdr.odometry_encoder("odom", "base_link")(
+        3, 9, 1.5, -2.0, 0.0, 0.0, 0.1, 0.99, 0.4, -0.2, pose_cov, twist_cov
+    )
+    message = {
+        "header": stamp(3, 9, "odom"),
+        "child_frame_id": "base_link",
+        "pose": {
+            "pose": {
+                "position": {"x": 1.5, "y": -2.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.1, "w": 0.99},
+            },
+            "covariance": pose_cov,
+        },
+        "twist": {
+            "twist": {
+                "linear": {"x": 0.4, "y": 0.0, "z": 0.0},
+                "angular": {"x": 0.0, "y": 0.0, "z": -0.2},
+            },
+            "covariance": twist_cov,
+        },
+    }
+    assert ours == reference("nav_msgs/msg/Odometry", message)
+
+
 def diagnostics_reference(sec: int, nanosec: int, frame_id: str, statuses: Any) -> bytes:
     return reference(
         "diagnostic_msgs/msg/DiagnosticArray",

@@ -1,6 +1,7 @@
 """``--record run.mcap`` of a robot on two drives, on the fake clock: one ``/<robot>/odom``
-from every wheel (none per drive), at the rate the robot's units all report, following
-where the simulated robot went."""
+from every wheel (none per drive), at each round of its drives' DP0 replies (the command
+rate, as the ROS 2 bridge publishes it: issue 51), following where the simulated robot
+went, the covariance saying what each pose rests on."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from mcap_ros2.reader import read_ros2_messages
 from abh3_supervisor.config import parse_config
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.runtime.mcap_recording import McapRecording
-from abh3_supervisor.scheduler.core import StatusEvent
+from abh3_supervisor.scheduler.core import FeedbackEvent
 from tests.support.rig import Rig, set_twist
 from tests.support.robot_truth import Truth
 
@@ -49,11 +50,11 @@ def test_a_robots_odom_from_every_wheel_and_a_one_drive_robots_as_before(
     recording = McapRecording(path.open("wb"), config)
     recording.attach(rig.sup, rig.timeline.clock)
     rig.sup.subscribe(recording.observe)
-    brd4 = {u: 0 for u in config.units}
+    replies = {u: 0 for u in config.units}
 
     def count(event: object) -> None:
-        if isinstance(event, StatusEvent) and isinstance(event.record, frames.Brd4):
-            brd4[event.unit] += 1
+        if isinstance(event, FeedbackEvent) and not isinstance(event.reply, frames.Unknown):
+            replies[event.unit] += 1
 
     rig.sup.subscribe(count)
     for unit in config.units:
@@ -77,9 +78,12 @@ def test_a_robots_odom_from_every_wheel_and_a_one_drive_robots_as_before(
         if m.channel.topic.endswith("/odom"):
             odom.setdefault(m.channel.topic, []).append(m.ros_msg)
     assert set(odom) == {"/rover/odom", "/solo/odom"}  # none per drive of the robot
-    # a pose per round: the slower unit's reports (20 Hz) pace the robot's
-    assert len(odom["/rover/odom"]) == pytest.approx(brd4["r"], abs=1)
-    assert len(odom["/solo/odom"]) == brd4["solo"]  # every report, as before robots
+    # a pose per round of the drives' replies: each unit's once
+    assert len(odom["/rover/odom"]) == pytest.approx(min(replies["l"], replies["r"]), abs=1)
+    assert len(odom["/solo/odom"]) == replies["solo"]  # a one-drive robot: every reply
+    # the pose rests on the counts (1e-6) at a round of them, else on the feedback since
+    variances = {m.pose.covariance[0] for m in odom["/rover/odom"]}  # type: ignore[attr-defined]
+    assert {1e-6, 1e-4} <= variances
     last = odom["/rover/odom"][-1]
     assert (last.header.frame_id, last.child_frame_id) == ("world", "rover_base")  # type: ignore[attr-defined]
     pose = last.pose.pose  # type: ignore[attr-defined]

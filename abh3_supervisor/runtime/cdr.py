@@ -97,29 +97,33 @@ def flat_encoder(msgdef: str) -> Callable[..., bytes]:
     return encode
 
 
-OdomEncoder = Callable[[int, int, float, float, float, float, float, float, float, float], bytes]
+OdomEncoder = Callable[..., bytes]
+ZERO_COVARIANCE = (0.0,) * 36
 
 
 def odometry_encoder(frame_id: str, child_frame_id: str) -> OdomEncoder:
-    """``nav_msgs/msg/Odometry`` of a robot on the ground, its frame ids and zero
-    covariances fixed: called with (sec, nanosec, x, y, qx, qy, qz, qw, linear.x,
-    angular.z); position.z and the other twist components are 0."""
+    """``nav_msgs/msg/Odometry`` of a robot on the ground, its frame ids fixed: called
+    with (sec, nanosec, x, y, qx, qy, qz, qw, linear.x, angular.z) and, optionally, the
+    pose's and the twist's covariance (36 values each; zero when not given);
+    position.z and the other twist components are 0."""
     fid, cid = frame_id.encode(), child_frame_id.encode()
     fsize, csize = len(fid) + 1, len(cid) + 1
     pack = (
         Layout().add("i", 4).add("I", 4).string(fid).string(cid)
-        .add("d", 8, 7).zeros(8, 36)  # pose: position, orientation; covariance
-        .add("d", 8, 6).zeros(8, 36)  # twist: linear, angular; covariance
+        .add("d", 8, 7).add("d", 8, 36)  # pose: position, orientation; covariance
+        .add("d", 8, 6).add("d", 8, 36)  # twist: linear, angular; covariance
         .struct().pack
     )  # fmt: skip
 
     def encode(
         sec: int, nanosec: int, x: float, y: float, qx: float, qy: float, qz: float, qw: float,
-        linear: float, angular: float,
+        linear: float, angular: float, pose_covariance: Sequence[float] = ZERO_COVARIANCE,
+        twist_covariance: Sequence[float] = ZERO_COVARIANCE,
     ) -> bytes:  # fmt: skip
         return pack(
             HEADER, sec, nanosec, fsize, fid, csize, cid,
-            x, y, 0.0, qx, qy, qz, qw, linear, 0.0, 0.0, 0.0, 0.0, angular,
+            x, y, 0.0, qx, qy, qz, qw, *pose_covariance,
+            linear, 0.0, 0.0, 0.0, 0.0, angular, *twist_covariance,
         )  # fmt: skip
 
     return encode

@@ -7,10 +7,13 @@ Topics:
   pump sent or received, the stop frames included — the same frames a ``.log`` holds;
 - per unit, with the ROS 2 bridge's names: ``/<unit>/vel_fbk_ab``, ``/<unit>/vel_fbk_yx``
   after every DP0 reply, ``/<unit>/brd<n>_data`` for every status packet 0–6;
-- per robot, ``/<robot>/odom`` from every wheel's pulse counts and velocity feedback
-  (:mod:`..core.odometry`) when every wheel's pulses_per_rev is known, with the robot's
-  frame ids; a unit of a file without ``robots:`` is a one-drive robot named after it
-  (``/<unit>/odom`` when its ``geometry.pulses_per_rev`` is known);
+- per robot, ``/<robot>/odom`` (:mod:`..core.odometry`, as the ROS 2 bridge publishes it):
+  at each round of its drives' DP0 replies (the command rate), its twist from their
+  velocity feedback, its pose from the latest round of pulse counts carried on by the
+  feedback (or the feedback alone), the pose covariance saying which; a robot of monitor
+  units at each round of its pulse counts. With the robot's frame ids; a unit of a file
+  without ``robots:`` is a one-drive robot named after it (``/<unit>/odom`` when its
+  ``geometry.pulses_per_rev`` is known);
 - ``/diagnostics`` once a second and when a level changes (:mod:`..core.diagnostics`).
 
 Each message is encoded once (:mod:`.cdr`) and the same bytes go to every sink. What an
@@ -30,13 +33,14 @@ from typing import Any, Protocol
 
 import can
 
-from abh3_supervisor.config.model import Config
+from abh3_supervisor.config.model import Config, Role
 from abh3_supervisor.core.diagnostics import Health, Level, Status
-from abh3_supervisor.core.odometry import Odometer, Pose, odometers, yaw_quaternion
+from abh3_supervisor.core.odometry import Odometer, Pose, Sample, odometers, yaw_quaternion
 from abh3_supervisor.core.state import Feedback
 from abh3_supervisor.core.supervisor import FlagChange, Supervisor
 from abh3_supervisor.protocol import frames
 from abh3_supervisor.runtime.cdr import (
+    ZERO_COVARIANCE,
     DiagStatus,
     FrameEncoder,
     OdomEncoder,
@@ -196,6 +200,16 @@ class RosTopics(can.Listener):
         self._feedback_topics: dict[str, tuple[str, str]] = {}
         self._status_topics: dict[tuple[str, int], str] = {}
         self._odom: dict[str, tuple[str, OdomEncoder]] = {}
+        # a robot whose drives are all commanded is sampled at each round of their DP0
+        # replies (core/odometry.py, as the bridge); a monitor robot at its pulse counts
+        self._live = {
+            odometer.robot.name: all(
+                config.units[u].role is Role.COMMAND for u in odometer.units if u in config.units
+            )
+            and all(u in config.units for u in odometer.units)
+            for odos in self.odometry.values()
+            for odometer in odos
+        }
         # unit → every wheel's drive of the robots it is a drive of (odometry's twist)
         self._wheels = {
             unit: tuple(dict.fromkeys(u for o in odos for u in o.robot.units))
@@ -293,6 +307,11 @@ class RosTopics(can.Listener):
                 self._emit("/diagnostics", DIAGNOSTICS, data, ns)
             else:
                 self._feedback(what, values, ns)
+                for odometer in self.odometry.get(what, ()):
+                    if self._live[odometer.robot.name]:  # a round of replies: a sample
+                        sample = odometer.feedback(what, values)
+                        if sample is not None:
+                            self._odom_sample(odometer, sample, ns)
         else:
             self._status(what, ns, values)
 
@@ -319,11 +338,34 @@ class RosTopics(can.Listener):
         if isinstance(record, frames.Brd4):
             for odometer in self.odometry.get(event.unit, ()):
                 pose = odometer.pulses(event.unit, record.pulse_a, record.pulse_b, event.t)
-                if pose is not None and feedback is not None:  # every wheel reported anew
-                    self._odometry(odometer, pose, ns, feedback)
+                # a robot of drives we command is sampled at each round of its replies
+                # (above); a monitor robot's pose comes with its every wheel's counts
+                live = self._live[odometer.robot.name]
+                if pose is not None and feedback is not None and not live:
+                    linear, angular = odometer.twist({u: feedback[u] for u in odometer.units})
+                    covariance = odometer.pose_covariance("pulses")
+                    self._odometry(odometer, pose, linear, angular, covariance, ns)
+
+    def _odom_sample(self, odometer: Odometer, sample: Sample, ns: int) -> None:
+        self._odometry(
+            odometer,
+            sample.pose,
+            sample.linear_x,
+            sample.angular_z,
+            sample.pose_covariance,
+            ns,
+            sample.twist_covariance,
+        )
 
     def _odometry(
-        self, odometer: Odometer, pose: Pose, ns: int, feedback: dict[str, Feedback | None]
+        self,
+        odometer: Odometer,
+        pose: Pose,
+        linear: float,
+        angular: float,
+        pose_covariance: Sequence[float],
+        ns: int,
+        twist_covariance: Sequence[float] = ZERO_COVARIANCE,
     ) -> None:
         robot = odometer.robot
         route = self._odom.get(robot.name)
@@ -331,10 +373,12 @@ class RosTopics(can.Listener):
             route = f"/{robot.name}/odom", odometry_encoder(robot.frame_id, robot.child_frame_id)
             self._odom[robot.name] = route
         topic, encode = route
-        linear, angular = odometer.twist({u: feedback[u] for u in robot.units})
         qx, qy, qz, qw = yaw_quaternion(pose.yaw)
         sec, nanosec = divmod(ns, 1_000_000_000)
-        data = encode(sec, nanosec, pose.x, pose.y, qx, qy, qz, qw, linear, angular)
+        data = encode(
+            sec, nanosec, pose.x, pose.y, qx, qy, qz, qw, linear, angular,
+            pose_covariance, twist_covariance,
+        )  # fmt: skip
         self._emit(topic, ODOMETRY, data, ns)
 
 
