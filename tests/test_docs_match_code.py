@@ -174,7 +174,9 @@ def test_every_command_and_option_the_docs_show_exists() -> None:
 
 
 def test_every_scripted_fault_is_documented() -> None:
-    for name in ("configuration.md", "architecture.md"):
-        text = (ROOT / "docs" / name).read_text()
-        missing = [k.value for k in FaultKind if f"`{k.value}`" not in text]
-        assert not missing, f"docs/{name} does not name the fault kinds {missing}"
+    """In the reference, docs/configuration.md; docs/architecture.md only points there
+    (a map a newcomer reads in ten minutes, issue 53)."""
+    text = (ROOT / "docs" / "configuration.md").read_text()
+    missing = [k.value for k in FaultKind if f"`{k.value}`" not in text]
+    assert not missing, f"docs/configuration.md does not name the fault kinds {missing}"
+    assert "`simulate.faults`" in (ROOT / "docs" / "architecture.md").read_text()
