@@ -12,6 +12,31 @@ and no record field changes meaning; a minor version only adds (names, hooks, ho
 arguments, record fields with defaults). Hooks are called with keyword arguments and a
 plugin may take fewer than offered, so an added argument breaks no plugin. Anything
 imported from another abh3_supervisor module may change in any release.
+
+Facts an author asks for first (docs/plugins.md has the rest; tests/test_docs_claims.py
+holds both to the code):
+
+- The host's keys, valid in every ``plugins.<name>`` section and never shown to the
+  plugin: ``on_error``, ``critical``, ``start_timeout_s``, ``tick_hz``.
+- Order: plugins are called in the order the YAML's ``plugins:`` names them. At the
+  start every ``abh3_threads``, then each plugin's ``abh3_start`` and its
+  ``abh3_input_sources``, then each source's ``start(feed)`` as registered; on the way
+  out the same order, not reversed: each source's ``stop()``, the workers' queues
+  drained, each ``abh3_stop`` (a plugin whose start failed gets it too).
+- ``abh3_stop`` has 2 s; an ``OSError`` there is an output failure (exit code 5, unless
+  1 or 3 apply), any other exception or a block is logged and changes no exit code.
+- :class:`InputFeed`, from any thread: ``twist(linear_x, angular_z)``,
+  ``velocity_yx(y, x)``, ``velocity_ab(a, b)``, ``velocity(ay, bx)``, ``current(ay, bx)``,
+  ``release()`` (arbitrated: repeat within the source's timeout); ``retarget(units)``,
+  ``inputs(data, mask)``, ``command(text)`` and ``enable(on)`` (each a
+  ``concurrent.futures.Future[str]``), ``request_status(packet)``,
+  ``emergency_stop()``. Its ``hold``, ``execute``, ``holds`` and ``alive`` are the bus
+  loop's, for control-socket clients: not for plugins.
+- :class:`OwnerChange`'s ``old``/``new``: an input source's name (``str``) or ``None``
+  (nobody: zero); :class:`EstopChange`'s ``source``: who latched or cleared it (``str``).
+- A relative path in a section is the plugin's to resolve: nothing resolves it against
+  the YAML's folder (``section.src.file``); ``Section.output_path`` checks it against the
+  working directory.
 """
 
 from __future__ import annotations
