@@ -1,7 +1,8 @@
 """``--foxglove [HOST:]PORT``: the recording's topics live over the Foxglove WebSocket
 protocol, read by a real WebSocket client (the ``websockets`` package) and decoded with
 mcap_ros2's decoder from the schemas the server advertises; a viewer that never reads
-leaves the drives' exchanges alone while the SDK drops what it cannot take.
+leaves the drives' exchanges alone while its own queue drops what it cannot take
+(counted per viewer: tests/test_watchers_foxglove.py).
 
 Everything binds to 127.0.0.1, on a port the system picks (``:0``).
 """
@@ -20,7 +21,7 @@ import threading
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any, TypeVar, cast
+from typing import Any, ClassVar, TypeVar, cast
 
 import pytest
 
@@ -28,11 +29,10 @@ from abh3_supervisor.clients.cli import main
 from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.config.endpoint import Endpoint, parse_endpoint
 from abh3_supervisor.errors import ConfigError
-from abh3_supervisor.runtime import foxglove_live
+from abh3_supervisor.runtime import foxglove_live, foxglove_server
 from abh3_supervisor.runtime.bus_runtime import Runtime
 from abh3_supervisor.runtime.foxglove_live import SUBPROTOCOL
 
-pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
 pytest.importorskip("mcap_ros2")
 import websockets
@@ -209,8 +209,8 @@ def test_every_topic_of_the_recording_is_advertised_with_its_schema() -> None:
 @pytest.mark.wallclock
 def test_a_viewer_that_never_reads_costs_the_bus_nothing() -> None:
     """It subscribes to everything, then reads nothing while the drives run at 100 Hz:
-    a write on the bus loop stays a few microseconds (it never calls the SDK, never waits
-    for the viewer), every unit keeps its rate and no exchange times out."""
+    a write on the bus loop stays a few microseconds (it never does a viewer's work,
+    never waits for the viewer), every unit keeps its rate and no exchange times out."""
     run_s = 4.0
 
     async def stall(rt: Runtime, port: int) -> tuple[int, int, list[int], dict[str, Any]]:
@@ -270,9 +270,9 @@ def test_a_viewer_that_never_reads_costs_the_bus_nothing() -> None:
 def test_a_starved_drain_drops_counts_and_says_so_once(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """The thread that hands messages to the SDK gets no CPU (held here): the queue stops
-    at its bound, every message past it is dropped and counted, the log says so once, and
-    the drives run on."""
+    """The server's thread, which takes the queued messages, gets no CPU (held here):
+    the queue stops at its bound, every message past it is dropped and counted, the log
+    says so once, and the drives run on."""
     monkeypatch.setattr(foxglove_live, "QUEUE", 200)
     held = threading.Event()
 
@@ -300,7 +300,7 @@ def test_a_starved_drain_drops_counts_and_says_so_once(
 
 
 async def _drained(sink: Any) -> None:
-    """Until the drain thread has handed everything queued to the SDK."""
+    """Until the server's thread has taken everything queued."""
     while sink.queue:
         await asyncio.sleep(0.01)  # polls a condition; the drain runs on its own thread
 
@@ -448,26 +448,28 @@ def test_an_endpoint_is_loopback_unless_a_host_is_given() -> None:
     assert not parse_endpoint("0.0.0.0:1").loopback
 
 
-def test_the_sdks_lines_are_printable_warnings_at_most_and_few(
+def test_a_viewers_lines_are_printable_warnings_at_most_and_few(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    """A viewer's text is in some of the SDK's lines: no forged line, no terminal escape,
-    no ERROR of ours, and no flood of the log."""
+    """A viewer's text is in some of the lines its doing adds to the log (ours, and the
+    websockets library's): no forged line, no terminal escape, no ERROR of ours, and no
+    flood of the log."""
     now = [0.0]
-    lines = foxglove_live._SdkLines(clock=lambda: now[0])
-    sdk = logging.getLogger("foxglove.websocket.test")
+    lines = foxglove_server.ViewerLines(clock=lambda: now[0])
+    library = logging.getLogger("websockets.test")
 
     def said(text: str) -> None:
-        lines.handle(sdk.makeRecord(sdk.name, logging.ERROR, __file__, 1, text, (), None))
+        record = library.makeRecord(library.name, logging.ERROR, __file__, 1, text, (), None)
+        foxglove_server._LibraryLines(lines).handle(record)
 
-    with caplog.at_level(logging.INFO, logger=foxglove_live.log.name):
+    with caplog.at_level(logging.INFO, logger=foxglove_server.log.name):
         said("Invalid message: unknown variant `x\n10:00:00.000 ERROR   unit left: FORGED\x1b[2J`")
         for i in range(1000):  # a flood of them, in one instant
             said(f"Invalid message {i}")
         now[0] += 1.0
         said("a viewer left")
-    records = [r for r in caplog.records if r.name == foxglove_live.log.name]
-    assert len(records) == foxglove_live.SDK_LINES_PER_S + 1
+    records = [r for r in caplog.records if r.name == foxglove_server.log.name]
+    assert len(records) == foxglove_server.LINES_PER_S + 1
     assert all(r.levelno == logging.WARNING for r in records)
     first = records[0].getMessage()
     assert first.startswith("foxglove: Invalid message") and "\n" not in first
@@ -475,27 +477,28 @@ def test_the_sdks_lines_are_printable_warnings_at_most_and_few(
     assert records[-1].getMessage() == "foxglove: a viewer left (996 more not shown)"
 
 
-def test_a_viewer_that_does_not_let_go_never_holds_the_way_out(
-    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+def test_a_server_that_does_not_end_never_holds_the_way_out(
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
-    """The SDK's stop waits for every viewer; ours gives it STOP_S, then goes on."""
-    monkeypatch.setattr(foxglove_live, "STOP_S", 0.05)
+    """The way out gives the server's thread a bound, then goes on (a real viewer that
+    never reads is cut at the stop: tests/test_watchers_foxglove.py)."""
     released = threading.Event()
 
     class Stuck:
         port = 1
+        watchers = foxglove_live.Watchers()
+        viewers: ClassVar = {"#1 127.0.0.1:9": (5, 7)}
 
-        def stop(self) -> None:
-            released.wait(WAIT_S)  # a viewer's full TCP window, in the SDK
+        def stop(self, timeout: float) -> bool:
+            return released.wait(0)  # its loop held: not ended in time
 
-    sink = foxglove_live.FoxgloveSink(cast(Any, None), {})
-    live = foxglove_live.FoxgloveLive(
-        cast(Any, Stuck()), sink, Endpoint("127.0.0.1", 1), foxglove_live.Watchers()
-    )
+    sink = foxglove_live.FoxgloveSink({}, lambda *message: None)
+    live = foxglove_live.FoxgloveLive(cast(Any, Stuck()), sink, Endpoint("127.0.0.1", 1))
     try:
         with caplog.at_level(logging.WARNING):
             live.stop()  # returns: the way out goes on
         assert "a viewer does not let go" in caplog.text
+        assert "viewer #1 127.0.0.1:9 missed 7 of 12 message(s)" in caplog.text
     finally:
         released.set()
 
@@ -577,8 +580,7 @@ def test_a_port_in_use_is_exit_2_before_any_drive_moves(
     err = capsys.readouterr().err
     assert code == 2
     assert kept.read_bytes() == b"yesterday's recording"  # refused before it was opened
-    assert f"--foxglove 127.0.0.1:{port}: cannot serve: Failed to bind port" in err
-    assert "in use" in err
+    assert f"--foxglove 127.0.0.1:{port}: cannot serve: port {port} on 127.0.0.1 is in use" in err
 
 
 def test_a_bad_option_value_is_argparse_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
@@ -590,10 +592,10 @@ def test_a_bad_option_value_is_argparse_exit_2(capsys: pytest.CaptureFixture[str
 
 @pytest.mark.wallclock
 def test_without_the_extra_the_run_says_how_to_get_it(tmp_path: Path) -> None:
-    """foxglove made unimportable in a child: exit 2 and the pip line, nothing started."""
+    """websockets made unimportable in a child: exit 2 and the pip line, nothing started."""
     path = _yaml(tmp_path, CONFIG)
     code = (
-        "import sys; sys.modules['foxglove'] = None\n"
+        "import sys; sys.modules['websockets'] = None\n"
         "from abh3_supervisor.clients.cli import main\n"
         f"sys.exit(main(['run', {str(path)!r}, '--headless', '--no-socket']))\n"
     )

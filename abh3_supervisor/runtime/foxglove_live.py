@@ -1,5 +1,5 @@
 """``--foxglove [HOST:]PORT``: the MCAP recording's topics, live, over the Foxglove
-WebSocket protocol (``foxglove-sdk``'s server), without ROS.
+WebSocket protocol, served by a server of our own (:mod:`.foxglove_server`), without ROS.
 
 The same CDR messages and ``ros2msg`` schemas the recording writes (they come from the
 one producer, :mod:`.ros_topics`), one channel per topic, made the first time the topic
@@ -8,30 +8,21 @@ publishing, services or parameters), so a viewer can only watch.
 
 A slow or absent viewer costs the bus nothing. Without an ``.mcap`` recording, the
 high-rate topics (frames, feedback) are not even produced while no viewer subscribes
-(:class:`LiveFeed`). The SDK's log call is cheap while nobody
-watches (0.1 µs, the GIL kept) but not once a viewer subscribes: it wakes the SDK's
-sender and gives up the GIL, 10 µs typically and up to milliseconds when another thread
-takes the GIL meanwhile (docs/foxglove.md, measured). So :meth:`FoxgloveSink.write`, on
-the bus loop, only appends the message to a bounded queue — nothing at all for a topic no
-viewer subscribes to — and a thread of ours at normal priority hands the queue to the SDK
-every ``DRAIN_S``. A full queue (that thread starved) drops the message, counts it and
-says so once. Beyond that, each viewer has its own queue in the SDK (``BACKLOG``): one
-that falls behind loses its oldest messages there, which the SDK says in the log
-(``outbox for client … full``, at most every 30 s) but does not count — what the viewer
-received against :attr:`FoxgloveSink.served` does. ``foxglove`` is imported only here,
-only when asked for.
+(:class:`LiveFeed`). :meth:`FoxgloveSink.write`, on the bus loop (or the recorder's
+writer thread), only appends the message to a bounded queue — nothing at all for a topic
+no viewer subscribes to — and the server's thread, at normal priority, takes the queue
+every ``DRAIN_S`` and hands each message to the queue of each viewer subscribed to it. A
+full hand-off queue (that thread starved) drops the message, counts it and says so once.
+Each viewer's own queue (``foxglove_server.BACKLOG``) drops its oldest message when the
+viewer falls behind, counted per viewer (:attr:`FoxgloveLive.viewers`) and said in the
+log. ``websockets`` is imported only when a server starts (the ``foxglove`` extra).
 """
 
 from __future__ import annotations
 
 import collections
 import logging
-import math
-import threading
-import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import can
 
@@ -39,62 +30,59 @@ from abh3_supervisor.config.endpoint import Endpoint
 from abh3_supervisor.config.model import Config
 from abh3_supervisor.core.supervisor import Supervisor
 from abh3_supervisor.errors import Abh3Error, install_hint
-from abh3_supervisor.runtime import priority
+from abh3_supervisor.runtime.foxglove_server import (
+    SUBPROTOCOL,
+    Channel,
+    FoxgloveServer,
+    Watchers,
+    bind_error,
+)
 from abh3_supervisor.runtime.recorder import GuardedRecorder
 from abh3_supervisor.runtime.ros_topics import SCHEMAS, RosTopics, TopicSink
 from abh3_supervisor.scheduler.core import FeedbackEvent
 
-if TYPE_CHECKING:
-    import foxglove
-    from foxglove.websocket import ServerListener, WebSocketServer
-
-T = TypeVar("T")
+__all__ = ["SUBPROTOCOL", "FoxgloveLive", "FoxgloveSink", "LiveFeed", "Watchers"]
 log = logging.getLogger(__name__)
 INSTALL_HINT = install_hint("foxglove")
-SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk's server speaks (the app does)
-BACKLOG = 1024  # messages the SDK queues per viewer (its default); the oldest go beyond
-QUEUE = 8192  # messages waiting for the drain: ~8 s of 4 units at 100 Hz
+QUEUE = 8192  # messages waiting for the server's thread: ~8 s of 4 units at 100 Hz
 DRAIN_S = 0.02  # the live view's added latency; 50 wake-ups a second, not one a message
-STOP_S = 1.0  # what closing waits for the drain thread at most, and for the server
-SDK_LINES_PER_S = 5  # the SDK's log lines said a second at most (a viewer may flood them)
-SDK_LINE_CHARS = 300
+STOP_S = 1.0  # what the stop gives the viewers to take what is queued for them
 
 
 def check_installed(option: str) -> None:
     """Say now, before anything opens, that the extra is missing (exit 2)."""
     try:
-        import foxglove  # noqa: F401
+        import websockets  # noqa: F401
     except ImportError as exc:
         raise Abh3Error(
-            f"{option}: live view in Foxglove needs foxglove-sdk: {INSTALL_HINT}"
+            f"{option}: live view in Foxglove needs websockets: {INSTALL_HINT}"
             f" ({exc.name or exc} is not installed)"
         ) from exc
 
 
 Message = tuple[str, str, bytes, int]  # topic, schema, CDR bytes, wall-clock ns
+Publish = Callable[[str, str, bytes, int], None]
 
 
 class FoxgloveSink:
     """A :class:`~.ros_topics.TopicSink`: each topic's CDR messages queued on the bus
-    loop and logged, by :meth:`drain` on a thread of ours, on the topic's own channel of
-    ``context``, which the server serves."""
+    loop and handed, by :meth:`drain` on the server's thread, to ``publish`` (the
+    server's: to each viewer subscribed to the topic's channel)."""
 
-    def __init__(self, context: foxglove.Context, schemas: Mapping[str, str]) -> None:
-        self.context = context
-        self.schemas = schemas  # ROS 2 type name → ros2msg text
+    def __init__(self, channels: Mapping[str, Channel], publish: Publish) -> None:
+        self.channels = channels  # topic → its channel, once made (the server's)
+        self.publish = publish
         self.queue: collections.deque[Message] = collections.deque()
-        self.served = 0  # messages handed to the SDK (each viewer gets them, or drops)
+        self.served = 0  # messages handed to the server (each viewer gets them, or drops)
         self.dropped = 0  # messages the full queue turned away (on the loop)
-        self.failed = 0  # messages the SDK refused (said once)
-        # topic → its channel's has_sinks, once the drain made the channel: until then
-        # every message of the topic is queued (the channel must exist to be advertised)
-        self._watched: dict[str, Callable[[], bool]] = {}
-        self._log: dict[str, Callable[[bytes, int | None], None]] = {}
+        self.failed = 0  # messages the server refused (said once)
 
     def write(self, topic: str, schema: str, data: bytes, ns: int) -> None:
-        """On the bus loop: never blocks, never raises, never calls the SDK's log."""
-        watched = self._watched.get(topic)
-        if watched is not None and not watched():
+        """On the bus loop: never blocks, never raises, never does a viewer's work."""
+        channel = self.channels.get(topic)
+        # until its channel is made, every message of the topic is queued (a channel
+        # must exist to be advertised, and a viewer must see it to subscribe)
+        if channel is not None and not channel.subscriptions:
             return  # nobody subscribes to this topic
         if len(self.queue) >= QUEUE:
             self.dropped += 1
@@ -107,55 +95,20 @@ class FoxgloveSink:
         self.queue.append((topic, schema, data, ns))
 
     def drain(self) -> None:
-        """Hand what is queued to the SDK (on the drain thread)."""
-        queue = self.queue
+        """Hand what is queued to the server (on its thread)."""
+        queue, publish = self.queue, self.publish
         while queue:
             topic, schema, data, ns = queue.popleft()
             try:
-                send = self._log.get(topic)
-                if send is None:
-                    send = self._channel(topic, schema)
-                send(data, ns)
+                publish(topic, schema, data, ns)
             except Exception as exc:  # a viewer's trouble is never the bus's
                 self.failed += 1
                 if self.failed == 1:
                     log.error(
-                        "foxglove: %s: not served (%s); the drives are unaffected", topic, exc
+                        "foxglove: %s: not served (%r); the drives are unaffected", topic, exc
                     )
                 continue
             self.served += 1
-
-    def _channel(self, topic: str, schema: str) -> Callable[[bytes, int | None], None]:
-        import foxglove
-
-        channel = foxglove.Channel(
-            topic,
-            schema=foxglove.Schema(
-                name=schema, encoding="ros2msg", data=self.schemas[schema].encode()
-            ),
-            message_encoding="cdr",
-            context=self.context,
-        )
-        send = self._log[topic] = channel.base.log  # without the wrapper's type checks
-        self._watched[topic] = channel.base.has_sinks  # 0.1 µs, keeps the GIL
-        return send
-
-
-class Watchers:
-    """The server's listener: which viewer subscribes to which channel (called on the
-    SDK's threads, with the GIL; read on the loop)."""
-
-    def __init__(self) -> None:
-        self.subscriptions: set[tuple[int, int]] = set()  # (client id, channel id)
-
-    def on_subscribe(self, client: Any, channel: Any) -> None:
-        self.subscriptions.add((client.id, channel.id))
-
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:  # a viewer gone, too
-        self.subscriptions.discard((client.id, channel.id))
-
-    def __bool__(self) -> bool:
-        return bool(self.subscriptions)
 
 
 class LiveFeed(can.Listener):
@@ -239,22 +192,12 @@ def live_feed(
 
 
 class FoxgloveLive:
-    """The server, the sink that feeds it and the thread that drains the sink's queue
-    every ``DRAIN_S``; :meth:`stop` ends both."""
+    """The server and the sink that feeds it; :meth:`stop` ends both."""
 
-    def __init__(
-        self, server: WebSocketServer, sink: FoxgloveSink, endpoint: Endpoint, watchers: Watchers
-    ) -> None:
-        self.server, self.sink, self.endpoint, self.watchers = server, sink, endpoint, watchers
-        self._stopping = threading.Event()
-        self._drainer = threading.Thread(target=self._drain, name="foxglove drain", daemon=True)
-        self._drainer.start()
-
-    def _drain(self) -> None:
-        priority.normal()  # never the bus loop's real-time priority
-        while not self._stopping.wait(DRAIN_S):
-            self.sink.drain()
-        self.sink.drain()  # the stop frames, last
+    def __init__(self, server: FoxgloveServer, sink: FoxgloveSink, endpoint: Endpoint) -> None:
+        self.server, self.sink, self.endpoint = server, sink, endpoint
+        self.watchers = server.watchers
+        self._stopped = False
 
     @property
     def port(self) -> int:
@@ -265,20 +208,30 @@ class FoxgloveLive:
         host = self.endpoint.host
         return f"ws://{f'[{host}]' if ':' in host else host}:{self.port}"
 
+    @property
+    def viewers(self) -> dict[str, tuple[int, int]]:
+        """Each viewer (``#N host:port``, connected or gone): (messages sent to it,
+        messages it missed: dropped by its full queue, or left queued at the stop)."""
+        return self.server.viewers
+
     def feed(self, recorder: GuardedRecorder | None, config: Config) -> LiveFeed:
         """What the bus pumps and the supervisor must feed for this view."""
         return live_feed(self.sink, recorder, config, self.watchers)
 
     def stop(self) -> None:
-        self._stopping.set()
-        self._drainer.join(STOP_S)
-        # a viewer that stopped reading can hold the SDK's stop for as long as TCP keeps
-        # its connection: never the way out (the drives are stopped already)
-        stopping = threading.Thread(target=self.server.stop, name="foxglove stop", daemon=True)
-        stopping.start()
-        stopping.join(STOP_S)
-        if stopping.is_alive():
-            log.warning("foxglove: a viewer does not let go: its connection is left behind")
+        """The stop frames to the viewers, ``STOP_S`` for each to take what is queued
+        for it (one that does not is cut), then each viewer's count in the log."""
+        if self._stopped:
+            return
+        self._stopped = True
+        # the server's thread is never the way out's (the drives are stopped already)
+        if not self.server.stop(3 * STOP_S):
+            log.warning("foxglove: a viewer does not let go: the server is left behind")
+        for name, (sent, missed) in self.viewers.items():
+            if missed:
+                log.warning(
+                    "foxglove: viewer %s missed %d of %d message(s)", name, missed, sent + missed
+                )
         sink = self.sink
         dropped = f", {sink.dropped} dropped (the live view fell behind)" if sink.dropped else ""
         log.info("foxglove: stopped; %d message(s) served%s", sink.served, dropped)
@@ -290,32 +243,14 @@ def start_foxglove(
     """The server listening at ``endpoint``, or an :class:`Abh3Error` a user can act on
     (the port is taken, the host is not this machine's): before any bus opens."""
     check_installed(f"--foxglove {endpoint}")
-    import foxglove
-
-    # the SDK's own lines (a viewer connects, leaves, falls behind) in our log, named
-    foxglove.set_log_level(logging.INFO)
-    sdk = logging.getLogger("foxglove")
-    if not any(isinstance(h, _SdkLines) for h in sdk.handlers):
-        sdk.addHandler(_SdkLines())
-        sdk.propagate = False  # said once, through ours
-    context, watchers = foxglove.Context(), Watchers()
+    server = FoxgloveServer(name, endpoint.host, endpoint.port, schemas, STOP_S)
+    sink = FoxgloveSink(server.channels, server.publish)
     try:
-        # the SDK's threads start with the server: at normal priority, as their creator
-        server = _at_normal_priority(
-            lambda: foxglove.start_server(
-                name=name,
-                host=endpoint.host,
-                port=endpoint.port,
-                capabilities=[],  # watch only: no publishing, services or parameters
-                context=context,
-                server_listener=cast("ServerListener", watchers),  # the two it needs
-                message_backlog_size=BACKLOG,
-            )
-        )
-    except RuntimeError as exc:
-        why = str(exc).removeprefix("FoxgloveError: ")
+        server.start(lambda: sink.drain(), DRAIN_S)  # sink.drain as it is then
+    except OSError as exc:
+        why = bind_error(exc, endpoint.host, endpoint.port)
         raise Abh3Error(f"--foxglove {endpoint}: cannot serve: {why}") from exc
-    live = FoxgloveLive(server, FoxgloveSink(context, schemas), endpoint, watchers)
+    live = FoxgloveLive(server, sink, endpoint)
     log.info(
         "foxglove: serving live on %s (Foxglove: Open connection → Foxglove WebSocket)",
         live.url,
@@ -327,37 +262,3 @@ def start_foxglove(
             live.url,
         )
     return live
-
-
-class _SdkLines(logging.Handler):
-    """The SDK's lines (its loggers, ``foxglove.*``), said in our log as a viewer's doing:
-    named, made printable and short (a viewer's text is in some: no forged lines, no
-    terminal escapes), at most WARNING (a viewer's garbage or its going away is no error
-    of ours), each said once in a row and at most ``SDK_LINES_PER_S`` a second, the rest
-    counted into the next line said."""
-
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__()
-        self.clock = clock
-        self.last, self.window, self.said, self.unsaid = "", -math.inf, 0, 0
-
-    def emit(self, record: logging.LogRecord) -> None:
-        text = "".join(c if c.isprintable() else "?" for c in record.getMessage())
-        text = text[:SDK_LINE_CHARS]
-        now = self.clock()
-        if now >= self.window:
-            self.window, self.said = now + 1.0, 0
-        if text == self.last or self.said >= SDK_LINES_PER_S:
-            self.unsaid += 1
-            return
-        self.last, self.said = text, self.said + 1
-        more = f" ({self.unsaid} more not shown)" if self.unsaid else ""
-        self.unsaid = 0
-        log.log(min(record.levelno, logging.WARNING), "foxglove: %s%s", text, more)
-
-
-def _at_normal_priority(start: Callable[[], T]) -> T:
-    """``start()`` on a thread of normal priority (what it starts inherits it), even when
-    called from the bus loop's real-time one."""
-    with ThreadPoolExecutor(1, "foxglove start", initializer=priority.normal) as pool:
-        return pool.submit(start).result()
