@@ -54,9 +54,9 @@ BACKLOG = 1024  # messages queued per viewer (~0.5 s of everything, 4 units at 1
 REPORT_S = 10.0  # a viewer's drop lines: at most one per this while it drops
 CONTROL_MAX = 256  # a viewer's unsent status replies beyond which no more are queued
 # the kernel's send buffer of each viewer's socket (Linux doubles it): what may wait
-# there uncounted; autotuned, it reached 4 MB on loopback (20 s of a robot's topics)
-# before a viewer that never reads had its first drop counted. Enough for any link a
-# live view needs: 128 KiB a 50 ms round trip is 2.6 MB/s, ten times a robot's topics
+# there uncounted; autotuned, it reached 4 MB on loopback, and a viewer that never read
+# had about 3 MB there (some 20 s of 4 units' topics) before its first drop was counted.
+# Enough for any link a live view needs: 128 KiB a 50 ms round trip is 2.6 MB/s
 SEND_BUFFER = 1 << 16
 INCOMING_MAX = 1 << 16  # bytes of a viewer's message (a subscribe to every channel fits)
 KEPT_GONE = 100  # viewers that left whose counts are kept (the most recent)
