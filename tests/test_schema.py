@@ -75,6 +75,8 @@ def test_every_shipped_config_validates(
 
 
 def doc_blocks() -> list[tuple[str, str]]:
+    """Every ```yaml block of the docs: an abh3 file or a part of one. Another tool's YAML
+    (ros2_control's controllers) is fenced ```yaml <tool>, which this leaves out."""
     docs = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
     return [
         (f"{p.relative_to(ROOT)}#{i}", block)
