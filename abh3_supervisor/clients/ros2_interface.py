@@ -309,15 +309,29 @@ def cached_build(venv: Path) -> Path:
 
 
 def command(prefix: Path, distro: str | None) -> int:
-    """``abh3 ros2 build-interface``: build, then print the lines to source."""
+    """``abh3 ros2 build-interface``: build, then print the lines to source. From the
+    registry's wheels it builds ``tf2_msgs`` (``/tf``) into the same prefix too: the
+    registry has no wheel of it, and a sourced ROS 2 has its own."""
     venv = None
     if distro is not None or sourced_ros() is None:
         distro = distro or "kilted"
         print(f"abh3: the ROS 2 {distro} generators from the package registry…", file=sys.stderr)
-        venv = ensure_venv(distro)
+        # with the runtime's wheels: geometry_msgs (what TFMessage is made of) needs the
+        # RMW's type support to build against, which the generators alone lack
+        venv = ensure_venv(distro, runtime=True)
     print(f"abh3: building {PACKAGE} into {prefix}…", file=sys.stderr)
     build(prefix, venv)
-    print(f"# {PACKAGE} built; to use it with rclpy (transport: rclpy):", file=sys.stderr)
+    built = PACKAGE
+    if venv is not None:
+        print(f"abh3: building {TF2_MSGS} (for /tf) into {prefix}…", file=sys.stderr)
+        with tempfile.TemporaryDirectory(prefix="abh3-tf2-msgs-") as tmp:
+            source = Path(tmp) / TF2_MSGS
+            for name, text in TF2_FILES.items():
+                (source / name).parent.mkdir(parents=True, exist_ok=True)
+                (source / name).write_text(text)
+            build(prefix, venv, source, TF2_MSGS)
+        built = f"{PACKAGE} and {TF2_MSGS}"
+    print(f"# {built} built; to use them with rclpy (transport: rclpy):", file=sys.stderr)
     for line in setup_lines(prefix):
         print(line)
     return 0
