@@ -7,7 +7,7 @@ killed with -9 shows as connection broken within 1.5 × its keep-alive.
 
 About 20 s on a 2-core machine (20 processes at 50 Hz per unit), in every full run;
 ``ABH3_FLEET_SCALE=0`` leaves it out, ``ABH3_FLEET_SCALE_N`` sets the count. It prints
-its figures with ``-s`` (docs/performance.md, "The fleet on one broker")."""
+its figures with ``-s`` (docs/performance.md, "Where the targets stand": the fleet row)."""
 
 from __future__ import annotations
 
