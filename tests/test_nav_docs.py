@@ -52,7 +52,7 @@ def test_the_ros2_control_block_names_the_robots_topics_and_its_controller_its_g
         assert f'<joint name="{name}">' in xml
     controllers = next(
         yaml.safe_load(b)
-        for b in re.findall(r"```yaml\n(.*?)```", text, re.S)
+        for b in re.findall(r"```yaml[^\n]*\n(.*?)```", text, re.S)
         if "diff_drive_controller" in b
     )
     p = controllers["diff_drive_controller"]["ros__parameters"]
