@@ -295,7 +295,10 @@ def test_a_starved_drain_drops_counts_and_says_so_once(
     assert queued == 200 and dropped > 500 and timeouts == 0
     said = [r.getMessage() for r in caplog.records if "falls behind" in r.getMessage()]
     assert len(said) == 1
-    at_end = re.search(r"foxglove: stopped; \d+ message\(s\) served, (\d+) dropped", caplog.text)
+    at_end = re.search(
+        r"foxglove: stopped; \d+ message\(s\) handed to the server for its viewers, (\d+) dropped",
+        caplog.text,
+    )
     assert at_end is not None and int(at_end[1]) >= dropped  # the stop frames' too
 
 
@@ -581,6 +584,27 @@ def test_a_port_in_use_is_exit_2_before_any_drive_moves(
     assert code == 2
     assert kept.read_bytes() == b"yesterday's recording"  # refused before it was opened
     assert f"--foxglove 127.0.0.1:{port}: cannot serve: port {port} on 127.0.0.1 is in use" in err
+
+
+@pytest.mark.wallclock
+def test_a_port_in_use_from_the_file_names_its_line_and_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The endpoint came from the YAML, not the option: the message says where."""
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    port = taken.getsockname()[1]
+    path = _yaml(tmp_path, re.sub(r"^foxglove:.*$", f"foxglove: {port}", CONFIG, flags=re.M))
+    line = path.read_text().splitlines().index(f"foxglove: {port}") + 1
+    try:
+        code = main(["run", str(path), "--headless", "--no-socket", "--duration", "5"])
+    finally:
+        taken.close()
+    err = capsys.readouterr().err
+    assert code == 2
+    assert f"{path}:{line}: foxglove: 127.0.0.1:{port}: cannot serve: port {port}" in err
+    assert "give another port (0: any free one" in err and "--foxglove" not in err
 
 
 def test_a_bad_option_value_is_argparse_exit_2(capsys: pytest.CaptureFixture[str]) -> None:

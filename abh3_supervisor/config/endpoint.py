@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 LOOPBACK = "127.0.0.1"
 MAX_PORT = 65535
@@ -21,6 +21,8 @@ SAID = "[HOST:]PORT (e.g. 8765, 0.0.0.0:8765, [::1]:8765; port 0: any free one)"
 class Endpoint:
     host: str
     port: int
+    # where it was given, for a message: the option, or the file's line and key
+    where: str = field(default="--foxglove", compare=False)
 
     def __str__(self) -> str:
         return f"[{self.host}]:{self.port}" if ":" in self.host else f"{self.host}:{self.port}"

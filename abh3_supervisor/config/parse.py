@@ -142,10 +142,12 @@ def _foxglove(top: Section) -> Endpoint | None:
     if top.data.get("foxglove") is None:
         return None
     try:
-        return parse_endpoint(top.data["foxglove"])
+        endpoint = parse_endpoint(top.data["foxglove"])
     except ValueError as exc:
         top.error("foxglove", str(exc))
         return None
+    where = f"{top.src.file}:{top.src.line(('foxglove',))}: foxglove:"
+    return dataclasses.replace(endpoint, where=where)
 
 
 def _dry_run_startup(src: Source, config: Config) -> None:

@@ -234,7 +234,11 @@ class FoxgloveLive:
                 )
         sink = self.sink
         dropped = f", {sink.dropped} dropped (the live view fell behind)" if sink.dropped else ""
-        log.info("foxglove: stopped; %d message(s) served%s", sink.served, dropped)
+        log.info(
+            "foxglove: stopped; %d message(s) handed to the server for its viewers%s",
+            sink.served,
+            dropped,
+        )
 
 
 def start_foxglove(
@@ -249,7 +253,10 @@ def start_foxglove(
         server.start(lambda: sink.drain(), DRAIN_S)  # sink.drain as it is then
     except OSError as exc:
         why = bind_error(exc, endpoint.host, endpoint.port)
-        raise Abh3Error(f"--foxglove {endpoint}: cannot serve: {why}") from exc
+        raise Abh3Error(
+            f"{endpoint.where} {endpoint}: cannot serve: {why}; give another port "
+            "(0: any free one, the log names it)"
+        ) from exc
     live = FoxgloveLive(server, sink, endpoint)
     log.info(
         "foxglove: serving live on %s (Foxglove: Open connection → Foxglove WebSocket)",

@@ -15,7 +15,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     helpers = ros2.add_subparsers(dest="ros2", required=True)
     build = helpers.add_parser(
         "build-interface",
-        help="build abh3_can_interface with cmake (no colcon) from a sourced ROS 2 or the wheels",
+        help="build abh3_can_interface (and, from the wheels, tf2_msgs) with cmake (no colcon) "
+        "from a sourced ROS 2 or the wheels",
     )
     build.add_argument("--prefix", type=Path, required=True, help="install it here")
     build.add_argument(

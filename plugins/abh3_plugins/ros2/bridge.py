@@ -324,12 +324,16 @@ class Ros2Plugin:
             "ALLOWED" if self.settings.allow_commands else "off (allow_commands: false)",
         )
         for robot in declared:
+            own, named = self.settings.of(robot.name), self.settings.name
+            topics = [named(robot.name, "cmd_vel"), named(robot.name, "odom")]
+            if own.odom_tf:
+                topics.append(self.settings.tf_name(robot.name))
+            if own.joint_states:
+                topics.append(named(robot.name, "joint_states"))
+                if self.settings.allow_commands:
+                    topics.append(named(robot.name, "joint_commands"))
             log.info(
-                "ros2: robot %s (%s): %s, %s",
-                robot.name,
-                ", ".join(robot.units),
-                self.settings.name(robot.name, "cmd_vel"),
-                self.settings.name(robot.name, "odom"),
+                "ros2: robot %s (%s): %s", robot.name, ", ".join(robot.units), ", ".join(topics)
             )
 
     @hookimpl
