@@ -159,6 +159,10 @@ def _stop_at_end_of_stdin(sup: Supervisor, stop: asyncio.Event) -> None:
     loop = asyncio.get_running_loop()
     fd = sys.stdin.fileno()
 
+    def gone() -> None:
+        sup.audit("tui", None, "the TUI that started this supervisor is gone: stop")
+        stop.set()
+
     def readable() -> None:
         try:
             data = os.read(fd, 4096)
@@ -166,10 +170,12 @@ def _stop_at_end_of_stdin(sup: Supervisor, stop: asyncio.Event) -> None:
             data = b""
         if not data:
             loop.remove_reader(fd)
-            sup.audit("tui", None, "the TUI that started this supervisor is gone: stop")
-            stop.set()
+            gone()
 
-    loop.add_reader(fd, readable)
+    try:
+        loop.add_reader(fd, readable)
+    except (OSError, ValueError):  # not a pipe the loop can watch (a file, /dev/null)
+        loop.call_soon(gone)  # no process to outlive: as at its end
 
 
 async def _serve(
