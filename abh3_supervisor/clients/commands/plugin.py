@@ -12,7 +12,7 @@ from abh3_supervisor.clients.cli import EXIT_OK
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     plugin = sub.add_parser("plugin", help="plugin authors' tools")
     plugin.set_defaults(func=handle)
-    tools = plugin.add_subparsers(dest="plugin", required=True)
+    tools = plugin.add_subparsers(dest="plugin", required=True, metavar="COMMAND")
     new = tools.add_parser(
         "new",
         help="write a pip-installable plugin package: an example hook, its test, pyproject",

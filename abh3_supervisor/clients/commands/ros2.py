@@ -12,7 +12,7 @@ from abh3_supervisor.errors import RunError
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ros2 = sub.add_parser("ros2", help="ROS 2 helpers")
     ros2.set_defaults(func=handle)
-    helpers = ros2.add_subparsers(dest="ros2", required=True)
+    helpers = ros2.add_subparsers(dest="ros2", required=True, metavar="COMMAND")
     build = helpers.add_parser(
         "build-interface",
         help="build abh3_can_interface (and, from the wheels, tf2_msgs) with cmake (no colcon) "
