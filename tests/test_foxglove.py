@@ -26,7 +26,7 @@ from typing import Any, ClassVar, TypeVar, cast
 import pytest
 
 from abh3_supervisor.clients.cli import main
-from abh3_supervisor.config import Config, parse_config
+from abh3_supervisor.config import Config
 from abh3_supervisor.config.endpoint import Endpoint, parse_endpoint
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.runtime import foxglove_live, foxglove_server
@@ -40,29 +40,12 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from websockets.typing import Subprotocol
 
+from tests.support.foxglove import CONFIG, config
+
 T = TypeVar("T")
 ROOT = Path(__file__).resolve().parent.parent
-CONFIG = """
-buses:
-  demo: {interface: virtual, channel: foxglove-test, simulate: true}
-units:
-  - name: left
-    abh3_id: 1
-    velocity_model: motor
-    command_rate_hz: 100
-    broadcast: {mask: 0x7f, rate_hz: 14}
-    geometry: {pulses_per_rev: 4096}
-    startup: ["SERVO ON ON", "START ON ON", "VEL 120 -80"]
-  - {name: right, abh3_id: 3, protocol: "2023", velocity_model: motor, command_rate_hz: 100,
-     broadcast: {mask: 0x0f, rate_hz: 8}}
-foxglove: 127.0.0.1:0
-"""
 MESSAGE_DATA = 0x01  # the protocol's binary opcode: subscription id, log time, payload
 WAIT_S = 10.0  # a condition not met by then is a failure, not a slow machine
-
-
-def config(text: str = CONFIG) -> Config:
-    return parse_config(text, "foxglove.yaml")
 
 
 async def serving(cfg: Config, viewer: Callable[[Runtime, int], Awaitable[T]]) -> T:

@@ -422,7 +422,7 @@ def test_in_a_run_a_viewer_that_never_reads_is_counted_and_the_end_says_it(
     """The drives at 100 Hz, a viewer subscribed to everything that never reads: the
     run goes on until it has dropped; the stop says what it missed, as its count."""
     from abh3_supervisor.runtime.bus_runtime import Runtime
-    from tests.test_foxglove import config
+    from tests.support.foxglove import config
 
     async def test() -> tuple[str, int]:
         cfg = config()
