@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 import threading
 from collections.abc import Iterator
 
@@ -13,6 +12,7 @@ from abh3_supervisor.core.journal import Journal
 from abh3_supervisor.core.supervisor import Notice, Supervisor
 from abh3_supervisor.scheduler.core import FeedbackEvent
 from tests.support.rig import Rig
+from tests.support.threads import switching_often
 
 
 def test_a_reader_gets_what_was_written_since_it_came_in_order() -> None:
@@ -46,12 +46,8 @@ def test_the_size_is_a_power_of_two() -> None:
 @pytest.fixture
 def switching() -> Iterator[None]:
     """Threads switch as often as the interpreter allows: races show at once."""
-    before = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)
-    try:
+    with switching_often():
         yield
-    finally:
-        sys.setswitchinterval(before)
 
 
 def test_a_reader_on_another_thread_sees_each_entry_once_or_counts_it_missed(

@@ -18,7 +18,6 @@ import asyncio
 import dataclasses
 import enum
 import gc
-import sys
 import threading
 from collections.abc import Callable, Iterator
 
@@ -34,6 +33,7 @@ from abh3_supervisor.protocol import frames, ids
 from abh3_supervisor.scheduler.core import BusScheduler
 from abh3_supervisor.scheduler.stats import RTT_WINDOW, UnitStats
 from tests.support.rig import TWO_UNITS, Rig
+from tests.support.threads import switching_often
 
 ROUNDS = 20_000  # loop-side changes per test; the reader reads as often as it gets to
 WORD = bytes.fromhex("f401f40103300000")
@@ -42,12 +42,8 @@ REQUEST = frames.encode_request(0xEF00)
 
 @pytest.fixture(autouse=True)
 def _switch_often() -> Iterator[None]:
-    before = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)
-    try:
+    with switching_often():
         yield
-    finally:
-        sys.setswitchinterval(before)
 
 
 def _interleaved(change: Callable[[int], None], read: Callable[[], object]) -> int:
