@@ -9,31 +9,21 @@ every wheel follows the motion the simulated drives made.
 
 from __future__ import annotations
 
-import asyncio
 import math
 from collections.abc import Iterator
 
 import pytest
 
 pytest.importorskip("cyclonedds")
-from abh3_plugins.ros2 import bridge as bridge_module
 from abh3_plugins.ros2 import types
-from abh3_plugins.ros2.bridge import Ros2Plugin
 from abh3_plugins.ros2.robot import source_name
 from abh3_plugins.ros2.settings import Settings
-from abh3_supervisor.config import Config, parse_config
-from abh3_supervisor.core.commands import VelocityCommand
-from abh3_supervisor.core.inputs import InputSource, Twist
-from abh3_supervisor.core.robot import RobotConfig, Side
-from abh3_supervisor.core.supervisor import Supervisor
+from abh3_supervisor.config import parse_config
+from abh3_supervisor.core.robot import Side
 from abh3_supervisor.errors import ConfigError
 from abh3_supervisor.plugin_host.host import PluginHost
-from abh3_supervisor.plugin_host.view import SupervisorView
-from abh3_supervisor.protocol import frames
-from abh3_supervisor.scheduler.core import FeedbackEvent, StatusEvent
-from tests.support.rig import Rig
 from tests.support.robot_truth import Truth
-from tests.support.ros2_memory import MemoryTransport
+from tests.support.ros2_rig import Bridged
 
 UNITS = """
 buses: {{b: {{interface: virtual, channel: robot, simulate: true}}}}
@@ -78,67 +68,16 @@ ONE_DRIVE = UNITS.format(  # declared on one drive: the robot's names, not the u
 TWIST = (0.2, 0.5)
 
 
-class SyncFeed:
-    """An input source's feed on the fake clock: straight into the arbitration."""
-
-    def __init__(self, sup: Supervisor, source: InputSource) -> None:
-        self.sup, self.source = sup, source
-
-    def twist(self, linear_x: float, angular_z: float) -> None:
-        self.sup.arbiter.submit(self.source.name, Twist(linear_x, angular_z), self.sup.clock())
-
-    def velocity(self, ay: float, bx: float) -> None:
-        self.sup.arbiter.submit(self.source.name, VelocityCommand(ay, bx), self.sup.clock())
-
-
-class Bridged:
-    """A rig with the ROS 2 plugin: its sources in the arbitration, its hooks fed."""
-
-    def __init__(self, text: str, monkeypatch: pytest.MonkeyPatch) -> None:
-        self.config: Config = parse_config(text, "robot.yaml")
-        self.rig = Rig(self.config)
-        sup = self.rig.sup
-        for unit in self.config.units:
-            for command in ("SERVO ON ON", "START ON ON"):
-                sup.apply_text(unit, command)
-        self.t = MemoryTransport()
-        monkeypatch.setattr(bridge_module, "open_transport", lambda settings: self.t)
-        self.plugin = Ros2Plugin()
-        self.plugin.settings = Settings(allow_commands=True, diagnostics_hz=0.0)
-        loop = asyncio.new_event_loop()  # no loop on the fake clock: the view's actions
-        loop.close()  # (unused by the bridge) do nothing
-        self.plugin.abh3_start(SupervisorView(sup, loop, "ros2"))
-        self.sources: dict[str, InputSource] = {}
-        self.plugin.abh3_input_sources(self._register)
-        sup.subscribe(self._observe)
-
-    def _register(self, source: InputSource) -> None:
-        self.sources[source.name] = source
-        self.rig.sup.arbiter.add(source)
-        source.start(SyncFeed(self.rig.sup, source))
-
-    def _observe(self, event: object) -> None:
-        """The plugin host's translation of events into hooks (host.py), on this thread."""
-        sup = self.rig.sup
-        if isinstance(event, StatusEvent) and not isinstance(event.record, frames.Unknown):
-            self.plugin.abh3_status(event.unit, event.packet, event.record, event.t)
-        elif isinstance(event, FeedbackEvent):
-            feedback = sup.units[event.unit].feedback
-            if feedback is not None:
-                self.plugin.abh3_feedback(event.unit, feedback)
-
-    def robot(self) -> RobotConfig:
-        return next(r for r in self.config.robots.values() if not r.implicit)
-
-    def motor(self, unit: str, axis: int) -> float:
-        return float(self.rig.drive(unit).vel[axis])
+def bridging(text: str, monkeypatch: pytest.MonkeyPatch) -> Bridged:
+    """The rig these tests share: commands allowed, no periodic diagnostics."""
+    return Bridged(text, monkeypatch, settings=Settings(allow_commands=True, diagnostics_hz=0.0))
 
 
 @pytest.fixture(
     params=[TWO_DRIVES, SKID, ONE_DRIVE], ids=["two-drives", "skid-steer", "one-drive-declared"]
 )
 def bridged(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterator[Bridged]:
-    b = Bridged(request.param, monkeypatch)
+    b = bridging(request.param, monkeypatch)
     yield b
     b.plugin.abh3_stop()
 
@@ -211,7 +150,7 @@ def test_a_cmd_vel_beyond_what_a_wheels_frame_can_carry_is_clamped_as_a_whole(
 ) -> None:
     """One rule at every entry (docs/safety.md): beyond the limits or the wire's range a
     twist is scaled down as a whole, its curvature kept, and said — as the socket's is."""
-    b = Bridged(TWO_DRIVES, monkeypatch)
+    b = bridging(TWO_DRIVES, monkeypatch)
     cmd_vel = b.t.handlers["/rover/cmd_vel"]
     # straight at 6 m/s needs ±5730 min⁻¹; turning at 10 rad/s on top, the right wheel
     # needs more than 6553.4: both wheels are scaled by one factor
@@ -232,7 +171,7 @@ def test_a_one_drive_robot_keeps_the_units_names_source_and_frames(
         "  - {name: solo, abh3_id: 4, broadcast: {mask: 0x13, rate_hz: 50},\n"
         "     geometry: {pulses_per_rev: 4096}}\nrobots:",
     )
-    b = Bridged(text, monkeypatch)
+    b = bridging(text, monkeypatch)
     assert {"/solo/cmd_vel", "/rover/cmd_vel"} <= set(b.t.handlers)
     assert "ros2:solo" in b.sources and source_name("rover") in b.sources
     b.rig.run(0.3)

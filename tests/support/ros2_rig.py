@@ -1,6 +1,6 @@
 """The ROS 2 plugin on the fake clock: an in-memory transport, the supervisor and the
 simulated drives of tests/support/rig.py, the plugin's sources in the arbitration and its
-hooks fed as the plugin host feeds them (tests/test_nav_*.py)."""
+hooks fed as the plugin host feeds them (tests/test_nav_*.py, tests/test_ros2_robot.py)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ import pytest
 
 from abh3_plugins.ros2 import bridge as bridge_module
 from abh3_plugins.ros2.bridge import Ros2Plugin
-from abh3_plugins.ros2.settings import parse
+from abh3_plugins.ros2.settings import Settings, parse
 from abh3_supervisor.config import Config, parse_config
 from abh3_supervisor.config.source import Section
+from abh3_supervisor.core.commands import VelocityCommand
 from abh3_supervisor.core.inputs import InputSource, Twist
 from abh3_supervisor.core.robot import RobotConfig
 from abh3_supervisor.core.supervisor import Supervisor
@@ -33,11 +34,21 @@ class SyncFeed:
     def twist(self, linear_x: float, angular_z: float) -> None:
         self.sup.arbiter.submit(self.source.name, Twist(linear_x, angular_z), self.sup.clock())
 
+    def velocity(self, ay: float, bx: float) -> None:
+        self.sup.arbiter.submit(self.source.name, VelocityCommand(ay, bx), self.sup.clock())
+
 
 class Bridged:
-    """A rig with the ROS 2 plugin configured by the file's own ``plugins.ros2``."""
+    """A rig with the ROS 2 plugin configured by the file's own ``plugins.ros2`` (or by
+    ``settings``): its sources in the arbitration, its hooks fed."""
 
-    def __init__(self, text: str, monkeypatch: pytest.MonkeyPatch, enable: bool = True) -> None:
+    def __init__(
+        self,
+        text: str,
+        monkeypatch: pytest.MonkeyPatch,
+        enable: bool = True,
+        settings: Settings | None = None,
+    ) -> None:
         self.config: Config = parse_config(text, "robot.yaml")
         self.rig = Rig(self.config)
         sup = self.rig.sup
@@ -49,10 +60,12 @@ class Bridged:
         monkeypatch.setattr(bridge_module, "open_transport", lambda settings: self.t)
         self.plugin = Ros2Plugin()
         assert self.config.source is not None
-        raw = self.config.plugins.get("ros2") or {}
-        section = Section(self.config.source, ("plugins", "ros2"), raw, None)
-        self.plugin.settings = parse(section, self.config)
-        self.config.source.raise_if_problems()
+        if settings is None:
+            raw = self.config.plugins.get("ros2") or {}
+            section = Section(self.config.source, ("plugins", "ros2"), raw, None)
+            settings = parse(section, self.config)
+            self.config.source.raise_if_problems()
+        self.plugin.settings = settings
         loop = asyncio.new_event_loop()  # no loop on the fake clock
         loop.close()
         self.plugin.abh3_start(SupervisorView(sup, loop, "ros2"))
