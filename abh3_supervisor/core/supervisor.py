@@ -202,7 +202,8 @@ class Supervisor:
                 if whole_robots:  # commissioning tries both axes of each drive
                     motor = config.units[name].velocity_model is VelocityModel.MOTOR
                     self.units[name].wheels = wheel_axes(robot, name, motor)
-        self._needs: dict[str, int] = {}  # unit → its wheel axes' switches (_need)
+        # unit → SERVO and START of its wheel axes: fixed by the file, read per reply
+        self._needs = {u.name: switches(u.layout, u.wheels) for u in self.units.values()}
         # a robot moves whole or not at all (core/readiness.py): each commanded unit's
         # robot (a unit of none is a robot of its own), and whether it is ready now
         self._group: dict[str, tuple[str, tuple[str, ...]]] = {}
@@ -503,10 +504,7 @@ class Supervisor:
 
     def _need(self, unit: UnitState) -> int:
         """SERVO and START of the unit's wheel axes (fixed by the file: made once)."""
-        need = self._needs.get(unit.name)
-        if need is None:
-            need = self._needs[unit.name] = switches(unit.layout, unit.wheels)
-        return need
+        return self._needs[unit.name]
 
     def _switch(self, unit: UnitState, new: int) -> None:
         """Set the input word this supervisor commands; a change of its wheel axes'

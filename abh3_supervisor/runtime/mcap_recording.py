@@ -87,6 +87,8 @@ class McapRecording(can.Listener):
         self.channels: dict[str, int] = {}
         self.counts: dict[str, int] = {}
         self.topics = RosTopics(config, [self])
+        # on the loop: what of an event is recorded (the topics' own, no call in between)
+        self.capture: Callable[[object], list[Captured]] = self.topics.capture
         self._finished = False
         self.broken = False
         self.error: Exception | None = None  # the write that failed, until raised
@@ -127,10 +129,6 @@ class McapRecording(can.Listener):
         """A supervisor event (on the loop thread), written at once."""
         self.topics.observe(event)
         self._raise_failure()
-
-    def capture(self, event: object) -> list[Captured]:
-        """On the loop: what of ``event`` is recorded (:meth:`.RosTopics.capture`)."""
-        return self.topics.capture(event)
 
     def replay(self, item: Captured) -> None:
         """Write what :meth:`capture` took (the recorder's thread)."""

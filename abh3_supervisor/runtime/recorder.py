@@ -183,9 +183,7 @@ class GuardedRecorder(can.Listener):
         self.failed_at: float | None = None  # wall clock of the failure
         self.dropped = 0  # frames and events the full queue turned away
         self._queue: deque[Any] = deque()
-        # what the loop runs per event: the topics' own capture where the writer has one
-        topics = getattr(writer, "topics", None)
-        self._capture = getattr(topics, "capture", None) or getattr(writer, "capture", None)
+        self._capture = getattr(writer, "capture", None)  # run on the loop per event
         self._replay = getattr(writer, "replay", None)
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None

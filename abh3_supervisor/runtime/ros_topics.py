@@ -202,11 +202,9 @@ class RosTopics(can.Listener):
         self._odom: dict[str, tuple[str, OdomEncoder]] = {}
         # a robot whose drives are all commanded is sampled at each round of their DP0
         # replies (core/odometry.py, as the bridge); a monitor robot at its pulse counts
+        commanded = {n for n, u in config.units.items() if u.role is Role.COMMAND}
         self._live = {
-            odometer.robot.name: all(
-                config.units[u].role is Role.COMMAND for u in odometer.units if u in config.units
-            )
-            and all(u in config.units for u in odometer.units)
+            odometer.robot.name: set(odometer.units) <= commanded
             for odos in self.odometry.values()
             for odometer in odos
         }

@@ -268,7 +268,6 @@ class ControlServer:
         self._acceptor: Acceptor | None = None
         self._events = EventLog(rt.supervisor)
         self._reader = rt.supervisor.journal.reader()  # the event lines' (_send_lines)
-        self._listening = False  # a client asked for events
         self._lines_queued = False
         self._methods: dict[str, Callable[[_Client, dict[str, Any]], Awaitable[Any]]] = {
             "hello": self._hello,
@@ -363,7 +362,6 @@ class ControlServer:
             await client.serve()
         finally:
             self.clients.discard(client)
-            self._listeners_changed()
             client.close()
 
     async def call(self, client: _Client, request: rpc.Request) -> Any:
@@ -467,7 +465,7 @@ class ControlServer:
         """A notice is checked at once (an e-stop, from a key or a plugin, is one); the
         events go as lines to every client that listens."""
         self._lines_queued = False
-        listeners = [c for c in self.clients if c.events] if self._listening else []
+        listeners = [c for c in self.clients if c.events]
         missed = self._reader.missed
         for _, event, _ in self._reader.read():
             if isinstance(event, Notice):
@@ -479,9 +477,6 @@ class ControlServer:
             log.warning("control socket %s: %s", self.path, text)
             if listeners:
                 self.broadcast(listeners, logging.WARNING, text)
-
-    def _listeners_changed(self) -> None:
-        self._listening = any(c.events for c in self.clients)
 
     def broadcast(
         self, listeners: list[_Client], level: int, text: str, unit: str | None = None
@@ -535,7 +530,6 @@ class ControlServer:
         if events and not client.events:  # after the reply: what is already so
             asyncio.get_running_loop().call_soon(self._online_lines, client)
         client.events = events
-        self._listeners_changed()
         if client.state_task is not None:
             client.state_task.cancel()
             client.state_task = None
